@@ -1,0 +1,3 @@
+from fxcell.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,153 @@
+"""Cell configuration: robot connection, tool, joint limits, scene, recorder, daemon.
+
+One YAML file (``config/cell.yaml``) names the robot and refers to the limits and
+scene files beside it. Every model forbids unknown keys, so a typo fails at start
+with a :class:`~fxcell.errors.ConfigError` that names the bad key. Units are SI:
+metres, radians, seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from fxcell.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+Vector6 = tuple[float, float, float, float, float, float]
+Vector3 = tuple[float, float, float]
+
+HOME_JOINTS: Vector6 = (0.0, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0)
+# The seed's TCP (Robotiq Hand-E fingertip centre) in the flange frame: x, y, z, rx, ry, rz.
+SEED_TCP: Vector6 = (-0.00025, 0.00245, 0.14789, 0.0, 0.0, -1.5708)
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RobotConfig(_Model):
+    """How to reach the controller."""
+
+    host: str | None = None
+    """Controller address; ``None`` starts the embedded simulator."""
+    external_control: Literal["script", "urcap"] = "script"
+    """``script``: ur_rtde uploads its control script; ``urcap``: play ``urcap_program``."""
+    urcap_program: str = "external_control.urp"
+    frequency: float = Field(500.0, gt=0, le=500)
+    command_timeout: float = Field(10.0, gt=0)
+    """Seconds a general command waits for the robot to confirm its effect."""
+    connect_timeout: float = Field(10.0, gt=0)
+    reconnect_backoff_max: float = Field(5.0, gt=0)
+
+
+class ToolConfig(_Model):
+    tcp: Vector6 = SEED_TCP
+    """Tool centre point in the flange frame: x, y, z (m) and rotation vector (rad)."""
+    payload: float = Field(1.0, ge=0, le=3.0)
+    """Payload mass in kg (Hand-E with fingers is about 1 kg)."""
+
+
+class JointLimits(_Model):
+    """Per-joint limits: base, shoulder, elbow, wrist 1, wrist 2, wrist 3."""
+
+    position_min: Vector6 = (-2 * math.pi,) * 6
+    position_max: Vector6 = (2 * math.pi,) * 6
+    velocity: Vector6 = (math.pi, math.pi, math.pi, 2 * math.pi, 2 * math.pi, 2 * math.pi)
+    acceleration: Vector6 = (0.7, 0.7, 0.7, 1.4, 1.4, 1.4)
+    """The seed's joint_limits.yaml accelerations (rad/s²)."""
+    jerk: Vector6 = (10.0,) * 6
+
+    @field_validator("velocity", "acceleration", "jerk")
+    @classmethod
+    def _positive(cls, v: Vector6) -> Vector6:
+        if not all(math.isfinite(x) and x > 0 for x in v):
+            raise ValueError("every limit must be a finite number > 0")
+        return v
+
+
+class SceneObject(_Model):
+    """A box in the cell, in the robot base frame."""
+
+    name: str
+    size: Vector3
+    position: Vector3
+    """Centre of the box (m)."""
+    rpy: Vector3 = (0.0, 0.0, 0.0)
+
+
+class SceneConfig(_Model):
+    objects: tuple[SceneObject, ...] = ()
+
+
+class RecorderConfig(_Model):
+    enabled: bool = False
+    directory: Path = Path("logs")
+    chunk_duration: float = Field(1.0, gt=0)
+    """Seconds per MCAP chunk: bounds what a crash can lose."""
+    rotate_size: int = Field(512 * 1024 * 1024, gt=0)
+    rotate_duration: float = Field(3600.0, gt=0)
+
+
+class DaemonConfig(_Model):
+    host: str = "127.0.0.1"
+    port: int = Field(8040, ge=1, le=65535)
+    allow_remote: bool = False
+    """Binding to a non-loopback address needs this set (and a token)."""
+    token_file: Path = Path("~/.config/fxcell/token")
+
+
+class CellConfig(_Model):
+    """Everything a :class:`~fxcell.cell.Cell` and the daemon need."""
+
+    robot: RobotConfig = RobotConfig()
+    tool: ToolConfig = ToolConfig()
+    home: Vector6 = HOME_JOINTS
+    limits: JointLimits = JointLimits()
+    scene: SceneConfig = SceneConfig()
+    recorder: RecorderConfig = RecorderConfig()
+    daemon: DaemonConfig = DaemonConfig()
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> CellConfig:
+        """Load ``cell.yaml``; ``limits_file``/``scene_file`` keys are read relative to it."""
+        path = Path(path) if path is not None else CONFIG_DIR / "cell.yaml"
+        data = _read_yaml(path)
+        for key, section in (("limits_file", "limits"), ("scene_file", "scene")):
+            ref = data.pop(key, None)
+            if ref is not None:
+                if section in data:
+                    raise ConfigError(f"{path}: give either {key!r} or {section!r}, not both")
+                data[section] = _read_yaml(path.parent / str(ref))
+        return cls.from_dict(data, source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], source: str = "<dict>") -> CellConfig:
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            problems = "; ".join(
+                f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in exc.errors()
+            )
+            raise ConfigError(f"{source}: {problems}") from None
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return data

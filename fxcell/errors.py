@@ -1,0 +1,165 @@
+"""The one exception hierarchy of fxcell.
+
+Every error the public API raises derives from :class:`FxcellError`. Errors that
+reject bad input also derive from :class:`ValueError` so that generic callers can
+catch them the usual way. Nothing from ur_rtde (``RuntimeError``) and no bare
+``asyncio.CancelledError`` leaks out of the public API: they are translated here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+
+class FxcellError(Exception):
+    """Root of every error fxcell raises."""
+
+
+# ----------------------------------------------------------------- configuration
+
+
+class ConfigError(FxcellError, ValueError):
+    """A configuration file or value is invalid; the message names the bad key."""
+
+
+# ----------------------------------------------------------------- bad input
+
+
+class InvalidArgumentError(FxcellError, ValueError):
+    """An argument is malformed or out of range; nothing was sent to the robot."""
+
+
+class InvalidFactorError(InvalidArgumentError):
+    """A velocity or acceleration factor is not a finite number in (0, 1]."""
+
+
+class InvalidTargetError(InvalidArgumentError):
+    """A joint or pose target is malformed, non-finite or outside the joint limits."""
+
+
+class UnreachableError(InvalidTargetError):
+    """No inverse-kinematics solution exists for a pose (within the joint limits)."""
+
+
+class SingularityError(InvalidTargetError):
+    """The target or the path to it passes through a kinematic singularity."""
+
+
+class CollisionError(InvalidTargetError):
+    """The target, or every path to it, is in collision with the cell or the robot."""
+
+
+class PlanningError(FxcellError):
+    """The planner found no collision-free path in its time budget."""
+
+
+# ----------------------------------------------------------------- state and robot
+
+
+class InvalidStateError(FxcellError):
+    """A command is not allowed in the cell's current state; nothing was sent."""
+
+    def __init__(self, command: str, state: str, allowed: Iterable[str]) -> None:
+        self.command = command
+        self.state = state
+        self.allowed = tuple(allowed)
+        needs = ", ".join(self.allowed) or "no state"
+        super().__init__(f"{command}() is not allowed in state {state!r}; it needs {needs}")
+
+
+class NotInRemoteControlError(FxcellError):
+    """The teach pendant is in Local control: network commands are refused."""
+
+
+class RobotCommandError(FxcellError):
+    """The controller refused or failed a command (reply quoted in the message)."""
+
+
+class SafetyStopError(FxcellError):
+    """A safety stop is active or happened during the command."""
+
+
+class ProtectiveStopError(SafetyStopError):
+    """The robot is (or went) in protective stop."""
+
+
+class ProtectiveStopUnlockTooSoonError(ProtectiveStopError):
+    """The controller refuses to unlock a protective stop within 5 s of it."""
+
+    def __init__(self, remaining: float) -> None:
+        self.remaining = remaining
+        super().__init__(
+            f"cannot unlock the protective stop for another {remaining:.2f} s "
+            "(the controller requires 5 s after the stop; pass wait=True to wait)"
+        )
+
+
+class SafeguardStopError(SafetyStopError):
+    """A safeguard stop (external safety input) is active."""
+
+
+class EmergencyStopError(SafetyStopError):
+    """An emergency stop is active."""
+
+
+class RobotFaultError(SafetyStopError):
+    """The safety system reports a fault or a violation."""
+
+
+class RobotTimeoutError(FxcellError, TimeoutError):
+    """The robot did not confirm a command's effect within its timeout."""
+
+
+class ConnectionLostError(FxcellError, ConnectionError):
+    """The link to the robot controller is down (or dropped during the command)."""
+
+
+class RobotLinkError(ConnectionLostError):
+    """The robot-link process failed; the message collects what failed per client."""
+
+    def __init__(self, message: str, failures: Mapping[str, str] | None = None) -> None:
+        self.failures = dict(failures or {})
+        detail = "; ".join(f"{part}: {why}" for part, why in self.failures.items())
+        super().__init__(f"{message}: {detail}" if detail else message)
+
+
+# ----------------------------------------------------------------- motion
+
+
+class MoveError(FxcellError):
+    """A move failed while executing."""
+
+
+class MoveStoppedError(MoveError):
+    """The move was stopped (``stop()``, cancellation, or a safety event) before the target."""
+
+
+class MoveInProgressError(MoveError):
+    """Another move is already running and the caller did not ask to queue."""
+
+
+class TrackingError(MoveError):
+    """The robot did not follow the planned trajectory within tolerance."""
+
+
+# ----------------------------------------------------------------- recorder, daemon
+
+
+class RecorderError(FxcellError):
+    """The MCAP recorder cannot write or read a log."""
+
+
+class RemoteError(FxcellError):
+    """The daemon refused a request; ``status`` is the HTTP status code."""
+
+    def __init__(self, message: str, status: int = 0) -> None:
+        self.status = status
+        super().__init__(message)
+
+
+class NotAuthorizedError(RemoteError):
+    """The request lacks a valid bearer token."""
+
+
+class ControlHeldError(RemoteError):
+    """Another client holds control of the cell."""

@@ -1,0 +1,42 @@
+"""``fxcell info``: versions of fxcell and its robotics stack, and the configuration in use."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+from typing import Any
+
+from fxcell._version import __version__
+
+STACK = ("ur_rtde", "transitions", "pin", "coal", "ompl", "ruckig", "mcap", "numpy", "pydantic")
+
+
+def stack_versions() -> dict[str, str]:
+    """Installed version of each library fxcell builds on ("missing" if absent)."""
+    versions: dict[str, str] = {}
+    for dist in STACK:
+        try:
+            versions[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            versions[dist] = "missing"
+    return versions
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser("info", help="show versions and the configuration in use")
+    p.add_argument("--config", help="cell configuration file (default: config/cell.yaml)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fxcell.config import CellConfig
+
+    print(f"fxcell {__version__}")
+    for dist, ver in stack_versions().items():
+        print(f"  {dist:<12} {ver}")
+    config = CellConfig.load(args.config)
+    robot = config.robot.host or "embedded simulator"
+    print(f"robot: {robot} (external control: {config.robot.external_control})")
+    print(f"tcp: {list(config.tool.tcp)}")
+    print(f"scene: {', '.join(o.name for o in config.scene.objects) or 'empty'}")
+    return 0

@@ -1,0 +1,76 @@
+"""The ``fxcell`` command line: version, help, info, error handling."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+import fxcell
+from fxcell.cli import main
+
+
+def test_version_flag_prints_the_package_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"fxcell {fxcell.__version__}"
+
+
+def test_package_version_comes_from_the_installed_metadata() -> None:
+    import importlib.metadata
+
+    assert fxcell.__version__ == importlib.metadata.version("fxcell")
+
+
+def test_help_lists_the_subcommands(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "usage: fxcell" in out
+    assert "info" in out
+
+
+def test_no_subcommand_prints_help_and_succeeds(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([]) == 0
+    assert "usage: fxcell" in capsys.readouterr().out
+
+
+def test_unknown_subcommand_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["no-such-command"])
+    assert exc.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_info_reports_the_robotics_stack(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["info"]) == 0
+    out = capsys.readouterr().out
+    for dist in ("ur_rtde", "pin", "ompl", "ruckig", "mcap", "transitions"):
+        line = next(line for line in out.splitlines() if line.strip().startswith(dist))
+        assert "missing" not in line
+    assert "embedded simulator" in out
+
+
+def test_config_error_is_reported_without_a_traceback(
+    tmp_path: pytest.TempPathFactory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "cell.yaml"  # type: ignore[operator]
+    bad.write_text("robot:\n  hots: 10.0.0.1\n")
+    assert main(["info", "--config", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert "robot.hots" in err
+    assert "Traceback" not in err
+
+
+def test_console_script_runs_as_a_module() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "fxcell", "--version"],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=30,
+    )
+    assert out.stdout.strip() == f"fxcell {fxcell.__version__}"

@@ -1,0 +1,62 @@
+"""Configuration loading: defaults, referenced files, and errors that name the bad key."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from fxcell.config import HOME_JOINTS, SEED_TCP, CellConfig
+from fxcell.errors import ConfigError, FxcellError
+
+
+def test_shipped_config_loads_with_the_seed_defaults() -> None:
+    config = CellConfig.load()
+    assert config.robot.host is None
+    assert config.tool.tcp == SEED_TCP
+    assert config.home == pytest.approx(HOME_JOINTS)
+    assert config.limits.acceleration == (0.7, 0.7, 0.7, 1.4, 1.4, 1.4)
+    table = next(o for o in config.scene.objects if o.name == "table")
+    assert table.size == (1.15, 0.73, 0.04)
+    assert table.position == (-0.075, -0.065, -0.02)
+
+
+def test_unknown_key_is_named_in_the_error(tmp_path: Path) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text("tool:\n  tpc: [0, 0, 0, 0, 0, 0]\n")
+    with pytest.raises(ConfigError, match=r"tool\.tpc"):
+        CellConfig.load(path)
+
+
+def test_config_errors_are_fxcell_errors_and_value_errors(tmp_path: Path) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text("robot: [not, a, mapping]\n")
+    with pytest.raises(FxcellError):
+        CellConfig.load(path)
+    with pytest.raises(ValueError, match="robot"):
+        CellConfig.load(path)
+
+
+def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        CellConfig.load(tmp_path / "absent.yaml")
+
+
+def test_invalid_yaml_is_a_config_error(tmp_path: Path) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text("robot: {host: [\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        CellConfig.load(path)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, math.inf, math.nan])
+def test_non_positive_or_non_finite_limits_are_rejected(bad: float) -> None:
+    with pytest.raises(ConfigError, match=r"limits\.acceleration"):
+        CellConfig.from_dict({"limits": {"acceleration": [bad, 1, 1, 1, 1, 1]}})
+
+
+def test_limits_file_is_read_relative_to_the_cell_file(tmp_path: Path) -> None:
+    (tmp_path / "lim.yaml").write_text("jerk: [5, 5, 5, 5, 5, 5]\n")
+    (tmp_path / "cell.yaml").write_text("limits_file: lim.yaml\n")
+    assert CellConfig.load(tmp_path / "cell.yaml").limits.jerk == (5.0,) * 6
