@@ -1,0 +1,461 @@
+"""Jerk-limited time parameterisation with Ruckig, sampled at the controller's 2 ms cycle.
+
+Three kinds of trajectories, all time-optimal within the scaled joint limits for what
+they are asked to do:
+
+- :func:`rest_to_rest`: one straight joint-space segment (phase-synchronised, so every
+  sample lies on the straight line between start and target);
+- :func:`through_waypoints`: a piecewise-linear joint path (e.g. from OMPL). Ruckig
+  0.19's community edition has no intermediate waypoints, so each segment is its own
+  Ruckig problem and consecutive segments meet with a non-zero velocity chosen from the
+  path's geometry (zero only where a joint reverses). Blending leaves the straight
+  segments near the corners, so the caller's validator checks the sampled result; a
+  segment that fails is retried with rest at its ends, which follows the checked path
+  exactly;
+- :func:`along_path`: an exact geometric path ``q(s)`` (a Cartesian straight line
+  solved by IK) timed with a one-dimensional Ruckig profile on the path parameter,
+  with limits derived from the path's joint derivatives.
+
+:func:`braking` is the jerk-limited stop from any state, used by ``stop()`` and
+cancellation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import ruckig
+from numpy.typing import NDArray
+
+from fxcell.config import JointLimits
+from fxcell.errors import InvalidFactorError, PlanningError
+
+DT = 0.002
+"""Sample period: the UR e-series control cycle (500 Hz)."""
+DOF = 6
+
+Array = NDArray[np.float64]
+Validator = Callable[[Array], int | None]
+"""Checks sampled joint positions (N, 6); returns the index of the first bad sample or None."""
+
+
+def validate_factor(name: str, value: object) -> float:
+    """Return ``value`` as a float if it is a finite number in (0, 1]; else InvalidFactorError."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise InvalidFactorError(f"{name} must be a number in (0, 1], got {type(value).__name__}")
+    f = float(value)
+    if not (math.isfinite(f) and 0.0 < f <= 1.0):
+        raise InvalidFactorError(f"{name} must be in (0, 1], got {value!r}")
+    return f
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Per-joint kinematic limits a trajectory must respect (already scaled)."""
+
+    velocity: Array
+    acceleration: Array
+    jerk: Array
+    position_min: Array
+    position_max: Array
+
+    @classmethod
+    def from_config(
+        cls, limits: JointLimits, velocity_factor: float = 1.0, acceleration_factor: float = 1.0
+    ) -> Limits:
+        """Scale the configured limits: velocity by ``velocity_factor``, acceleration and
+        jerk by ``acceleration_factor`` (both validated to be in (0, 1])."""
+        vf = validate_factor("velocity_factor", velocity_factor)
+        af = validate_factor("acceleration_factor", acceleration_factor)
+        return cls(
+            velocity=np.asarray(limits.velocity, float) * vf,
+            acceleration=np.asarray(limits.acceleration, float) * af,
+            jerk=np.asarray(limits.jerk, float) * af,
+            position_min=np.asarray(limits.position_min, float),
+            position_max=np.asarray(limits.position_max, float),
+        )
+
+    def with_velocity(self, velocity: Sequence[float]) -> Limits:
+        return Limits(
+            np.asarray(velocity, float),
+            self.acceleration,
+            self.jerk,
+            self.position_min,
+            self.position_max,
+        )
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Joint positions, velocities and accelerations sampled every :data:`DT` seconds.
+
+    Sample ``k`` is the state at ``t = k·DT``; the last sample is the exact end state
+    (at ``duration``, which need not be a multiple of DT).
+    """
+
+    positions: Array
+    velocities: Array
+    accelerations: Array
+    duration: float
+    segments: int = 1
+    """Ruckig segments it was built from (1 for a direct move)."""
+    stops: int = 0
+    """Interior waypoints where the trajectory comes to rest."""
+
+    @property
+    def times(self) -> Array:
+        t = np.arange(len(self.positions), dtype=float) * DT
+        t[-1] = self.duration
+        return t
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def state(self, index: int) -> tuple[Array, Array, Array]:
+        """Position, velocity, acceleration of sample ``index`` (clamped to the end)."""
+        i = min(max(index, 0), len(self.positions) - 1)
+        return self.positions[i], self.velocities[i], self.accelerations[i]
+
+
+# ----------------------------------------------------------------- Ruckig plumbing
+
+
+def _input(limits: Limits) -> ruckig.InputParameter:
+    inp = ruckig.InputParameter(DOF)
+    inp.max_velocity = limits.velocity.tolist()
+    inp.max_acceleration = limits.acceleration.tolist()
+    inp.max_jerk = limits.jerk.tolist()
+    return inp
+
+
+def _solve(inp: ruckig.InputParameter) -> ruckig.Trajectory:
+    traj = ruckig.Trajectory(DOF)
+    result = ruckig.Ruckig(DOF).calculate(inp, traj)
+    if result not in (ruckig.Result.Working, ruckig.Result.Finished):
+        raise PlanningError(f"Ruckig could not time the motion: {result}")
+    return traj
+
+
+def _segment(
+    start: Array,
+    target: Array,
+    v0: Array,
+    v1: Array,
+    limits: Limits,
+    *,
+    phase: bool,
+) -> ruckig.Trajectory:
+    inp = _input(limits)
+    inp.current_position = start.tolist()
+    inp.current_velocity = v0.tolist()
+    inp.current_acceleration = [0.0] * DOF
+    inp.target_position = target.tolist()
+    inp.target_velocity = v1.tolist()
+    inp.target_acceleration = [0.0] * DOF
+    inp.min_position = limits.position_min.tolist()
+    inp.max_position = limits.position_max.tolist()
+    inp.synchronization = ruckig.Synchronization.Phase if phase else ruckig.Synchronization.Time
+    return _solve(inp)
+
+
+class _Line:
+    """A rest-to-rest straight joint segment, timed as a scalar profile (stays on the line)."""
+
+    def __init__(self, start: Array, target: Array, limits: Limits) -> None:
+        self.start = start
+        self.delta = target - start
+        inp = ruckig.InputParameter(1)
+        inp.current_position = [0.0]
+        inp.target_position = [1.0]
+        v, a, j = _line_limits(self.delta, limits)
+        inp.max_velocity = [v]
+        inp.max_acceleration = [a]
+        inp.max_jerk = [j]
+        self._traj = ruckig.Trajectory(1)
+        result = ruckig.Ruckig(1).calculate(inp, self._traj)
+        if result not in (ruckig.Result.Working, ruckig.Result.Finished):
+            raise PlanningError(f"Ruckig could not time the segment: {result}")
+        self.duration = float(self._traj.duration)
+
+    def at_time(self, t: float) -> tuple[Array, Array, Array]:
+        (s,), (sd,), (sdd,) = self._traj.at_time(t)
+        return self.start + s * self.delta, sd * self.delta, sdd * self.delta
+
+
+class Piece(Protocol):
+    """A timed piece of a trajectory (a Ruckig trajectory or a :class:`_Line`)."""
+
+    @property
+    def duration(self) -> float: ...
+
+    def at_time(self, t: float) -> Any: ...
+
+
+def _sample(pieces: Sequence[Piece]) -> Trajectory:
+    """Sample consecutive Ruckig trajectories on one global 2 ms grid."""
+    ends = np.cumsum([p.duration for p in pieces])
+    total = float(ends[-1])
+    n = max(round(math.ceil(total / DT - 1e-9)), 1) + 1
+    t = np.arange(n, dtype=float) * DT
+    t[-1] = total
+    pos = np.empty((n, DOF))
+    vel = np.empty((n, DOF))
+    acc = np.empty((n, DOF))
+    which = np.minimum(np.searchsorted(ends, t, side="left"), len(pieces) - 1)
+    starts = np.concatenate(([0.0], ends[:-1]))
+    for k in range(n):
+        j = int(which[k])
+        local = min(max(t[k] - starts[j], 0.0), pieces[j].duration)
+        p, v, a = pieces[j].at_time(local)
+        pos[k], vel[k], acc[k] = p, v, a
+    # Ruckig ends within ~1e-12 of the target; make the last sample exact.
+    return Trajectory(pos, vel, acc, total, segments=len(pieces))
+
+
+# ----------------------------------------------------------------- public builders
+
+
+def _profile(v: float, a: float, j: float) -> tuple[Array, Array, Array, Array]:
+    """Sample the time-optimal rest-to-rest profile of a scalar s from 0 to 1.
+
+    Returns times, s, ds/dt and d²s/dt² on the 2 ms grid (last sample at the end time).
+    """
+    inp = ruckig.InputParameter(1)
+    inp.current_position = [0.0]
+    inp.target_position = [1.0]
+    inp.max_velocity = [v]
+    inp.max_acceleration = [a]
+    inp.max_jerk = [j]
+    traj = ruckig.Trajectory(1)
+    result = ruckig.Ruckig(1).calculate(inp, traj)
+    if result not in (ruckig.Result.Working, ruckig.Result.Finished):
+        raise PlanningError(f"Ruckig could not time the path: {result}")
+    total = float(traj.duration)
+    n = max(round(math.ceil(total / DT - 1e-9)), 1) + 1
+    t = np.arange(n, dtype=float) * DT
+    t[-1] = total
+    out = np.array([[x[0] for x in traj.at_time(float(tk))] for tk in t])
+    out[-1] = (1.0, 0.0, 0.0)
+    return t, np.clip(out[:, 0], 0.0, 1.0), out[:, 1], out[:, 2]
+
+
+def _line_limits(delta: Array, limits: Limits) -> tuple[float, float, float]:
+    """Limits of s on the line q0 + s·delta: the tightest joint, scaled by its share."""
+    ad = np.abs(delta)
+    moving = ad > 1e-15
+    return (
+        float(np.min(limits.velocity[moving] / ad[moving])),
+        float(np.min(limits.acceleration[moving] / ad[moving])),
+        float(np.min(limits.jerk[moving] / ad[moving])),
+    )
+
+
+def minimum_duration(start: Sequence[float], target: Sequence[float], limits: Limits) -> float:
+    """Time-optimal rest-to-rest duration of a joint move under ``limits`` (the bound
+    Ruckig computes with every joint free to move independently)."""
+    zero = np.zeros(DOF)
+    return float(
+        _segment(
+            np.asarray(start, float), np.asarray(target, float), zero, zero, limits, phase=False
+        ).duration
+    )
+
+
+def rest_to_rest(start: Sequence[float], target: Sequence[float], limits: Limits) -> Trajectory:
+    """The time-optimal jerk-limited move along the straight joint-space line.
+
+    On a straight line every joint moves in proportion, so the optimum is a scalar
+    profile under the tightest joint's limits; every sample lies on the line.
+    """
+    q0 = np.asarray(start, float)
+    q1 = np.asarray(target, float)
+    delta = q1 - q0
+    if not np.any(np.abs(delta) > 1e-15):
+        z = np.zeros((1, DOF))
+        return Trajectory(q1[None, :].copy(), z, z.copy(), 0.0)
+    t, s, sd, sdd = _profile(*_line_limits(delta, limits))
+    pos = q0 + s[:, None] * delta
+    pos[-1] = q1
+    return Trajectory(pos, sd[:, None] * delta, sdd[:, None] * delta, float(t[-1]))
+
+
+def waypoint_velocities(waypoints: Array, limits: Limits) -> Array:
+    """Velocities at the waypoints for passing through without stopping.
+
+    In each segment the cruise velocity is the straight-line velocity the segment could
+    reach (bounded by the joint velocities and by what the acceleration limits reach
+    over the segment). At an interior waypoint each joint keeps the smaller of the
+    adjacent segments' cruise speeds, and stops where it reverses direction.
+    """
+    m = len(waypoints)
+    v = np.zeros((m, DOF))
+    if m < 3:
+        return v
+    deltas = np.diff(waypoints, axis=0)
+    cruise = np.zeros_like(deltas)
+    for k, d in enumerate(deltas):
+        ad = np.abs(d)
+        moving = ad > 1e-9
+        if not moving.any():
+            continue
+        scale = min(
+            float(np.min(limits.velocity[moving] / ad[moving])),
+            float(np.min(np.sqrt(limits.acceleration[moving] / ad[moving]))),
+        )
+        cruise[k] = d * scale
+    for k in range(1, m - 1):
+        a, b = cruise[k - 1], cruise[k]
+        same = a * b > 0
+        v[k] = np.where(same, np.sign(a) * np.minimum(np.abs(a), np.abs(b)), 0.0)
+    return v
+
+
+def through_waypoints(
+    waypoints: Sequence[Sequence[float]] | Array,
+    limits: Limits,
+    *,
+    validate: Validator | None = None,
+    blend: bool = True,
+) -> Trajectory:
+    """Time a piecewise-linear joint path, passing interior waypoints without stopping.
+
+    ``validate`` checks the sampled positions; where a blended segment fails it, that
+    segment is redone from rest to rest (exactly on the checked straight segment).
+    """
+    wp = np.asarray(waypoints, float)
+    # Drop repeated waypoints: a zero-length segment has nothing to time.
+    keep = [0] + [k for k in range(1, len(wp)) if np.max(np.abs(wp[k] - wp[k - 1])) > 1e-12]
+    wp = wp[keep]
+    if len(wp) == 1:
+        return rest_to_rest(wp[0], wp[0], limits)
+    if len(wp) == 2:
+        return rest_to_rest(wp[0], wp[1], limits)
+    vel = waypoint_velocities(wp, limits) if blend else np.zeros_like(wp)
+    for _ in range(len(wp) + 1):
+        pieces: list[Piece] = []
+        for k in range(len(wp) - 1):
+            rest = not vel[k].any() and not vel[k + 1].any()
+            try:
+                pieces.append(
+                    _Line(wp[k], wp[k + 1], limits)
+                    if rest
+                    else _segment(wp[k], wp[k + 1], vel[k], vel[k + 1], limits, phase=False)
+                )
+            except PlanningError:
+                if rest:
+                    raise
+                vel[k] = vel[k + 1] = 0.0
+                break
+        else:
+            traj = _sample(pieces)
+            traj.positions[-1] = wp[-1]
+            traj.velocities[-1] = 0.0
+            traj.accelerations[-1] = 0.0
+            bad = validate(traj.positions) if validate is not None else None
+            if bad is None:
+                stops = sum(1 for k in range(1, len(wp) - 1) if not vel[k].any())
+                return Trajectory(
+                    traj.positions,
+                    traj.velocities,
+                    traj.accelerations,
+                    traj.duration,
+                    segments=len(pieces),
+                    stops=stops,
+                )
+            ends = np.cumsum([p.duration for p in pieces])
+            seg = min(int(np.searchsorted(ends, bad * DT)), len(pieces) - 1)
+            if not vel[seg].any() and not vel[seg + 1].any():
+                raise PlanningError("the timed path left the collision-free corridor")
+            vel[seg] = vel[seg + 1] = 0.0
+    raise PlanningError("could not time the path")  # pragma: no cover - loop always returns
+
+
+def along_path(
+    path: Callable[[float], Array],
+    knots: Array,
+    limits: Limits,
+) -> Trajectory:
+    """Time an exact geometric path ``q = path(s)``, ``s`` in [0, 1], without leaving it.
+
+    ``knots`` are ``path`` evaluated at evenly spaced ``s`` (at least 3), used to bound
+    the joint derivatives dq/ds and d²q/ds². The path parameter gets a one-dimensional
+    time-optimal Ruckig profile under the tightest joint limits, the samples are
+    ``path(s(t))``, and the result is checked against the joint limits and slowed if the
+    path's curvature makes a joint exceed them.
+    """
+    knots = np.asarray(knots, float)
+    m = len(knots)
+    if m < 3:
+        raise ValueError("along_path needs at least 3 knots")
+    ds = 1.0 / (m - 1)
+    d1 = np.max(np.abs(np.diff(knots, axis=0)), axis=0) / ds
+    d2 = np.max(np.abs(np.diff(knots, n=2, axis=0)), axis=0) / ds**2
+    if not np.any(d1 > 1e-12):
+        return rest_to_rest(knots[0], knots[-1], limits)
+    d1 = np.maximum(d1, 1e-12)
+    safety = 1.0
+    for _ in range(8):
+        v_s = safety * float(np.min(limits.velocity / d1))
+        # Keep most of the acceleration budget for the tangential term: lower v_s
+        # until the centripetal term d²q/ds²·ṡ² takes at most a quarter of it.
+        v_cap = float(np.min(np.sqrt(0.25 * limits.acceleration / np.maximum(d2, 1e-12))))
+        v_s = min(v_s, v_cap)
+        a_s = safety * float(np.min((limits.acceleration - d2 * v_s**2) / d1))
+        j_s = safety * float(np.min(limits.jerk / d1))
+        t, s, _, _ = _profile(v_s, a_s, j_s)
+        total = float(t[-1])
+        n = len(t)
+        pos = np.array([path(float(sk)) for sk in s])
+        vel = np.gradient(pos, t, axis=0)
+        acc = np.gradient(vel, t, axis=0)
+        vel[0] = vel[-1] = 0.0
+        acc[0] = acc[-1] = 0.0
+        v_ratio = float(np.max(np.abs(vel) / limits.velocity))
+        a_ratio = float(np.max(np.abs(acc[1:-1]) / limits.acceleration)) if n > 2 else 0.0
+        if v_ratio <= 1.0 + 1e-3 and a_ratio <= 1.05:
+            return Trajectory(pos, vel, acc, total)
+        safety *= 0.8 / max(v_ratio, math.sqrt(a_ratio), 1.0)
+    raise PlanningError("could not time the path within the joint limits")
+
+
+def braking(
+    position: Sequence[float],
+    velocity: Sequence[float],
+    acceleration: Sequence[float],
+    limits: Limits,
+) -> Trajectory:
+    """The jerk-limited time-optimal stop from a moving state (sample 0 = that state).
+
+    All joints reach rest together at the slowest joint's minimum braking time.
+    """
+    inp = _input(limits)
+    inp.control_interface = ruckig.ControlInterface.Velocity
+    inp.synchronization = ruckig.Synchronization.Time
+    inp.current_position = [float(x) for x in position]
+    inp.current_velocity = [float(x) for x in velocity]
+    inp.current_acceleration = [float(x) for x in acceleration]
+    inp.target_velocity = [0.0] * DOF
+    inp.target_acceleration = [0.0] * DOF
+    traj = _sample([_solve(inp)])
+    traj.velocities[-1] = 0.0
+    traj.accelerations[-1] = 0.0
+    return traj
+
+
+def braking_duration(
+    velocity: Sequence[float], acceleration: Sequence[float], limits: Limits
+) -> float:
+    """The minimum time to rest from ``velocity``/``acceleration`` (the stop bound)."""
+    inp = _input(limits)
+    inp.control_interface = ruckig.ControlInterface.Velocity
+    inp.synchronization = ruckig.Synchronization.No
+    inp.current_position = [0.0] * DOF
+    inp.current_velocity = [float(x) for x in velocity]
+    inp.current_acceleration = [float(x) for x in acceleration]
+    inp.target_velocity = [0.0] * DOF
+    inp.target_acceleration = [0.0] * DOF
+    return float(_solve(inp).duration)
