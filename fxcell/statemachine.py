@@ -332,6 +332,14 @@ class RobotStateMachine:
         )
         self._queue: asyncio.Queue[_Request] = asyncio.Queue()
         self._changed = asyncio.Event()
+        self._edges = [
+            (
+                str(t["trigger"]),
+                [str(x) for x in (t["source"] if isinstance(t["source"], list) else [t["source"]])],
+                str(t["dest"]),
+            )
+            for t in self.chart.transitions
+        ]
         self._allowed = {cmd: frozenset(self.chart.allowed(cmd)) for cmd in self.chart.commands}
 
     @property
@@ -395,33 +403,42 @@ class RobotStateMachine:
                 request.done.cancel()
 
     async def _apply(self, request: _Request) -> bool:
-        source = self.state
         if request.target is None:
+            source = self.state
             trigger = request.trigger
             if trigger not in self._machine.get_triggers(self._model.state):
                 return False
             await self._model.trigger(trigger)  # type: ignore[attr-defined]
-        else:
-            if request.target == source:
+            if self.state != source:
+                self._emit(source, self.state, trigger, request.cause, request.detail)
+            return True
+        dest = machine_name(request.target)
+        for _ in range(3):  # follow declared transitions, at most three steps
+            if self._model.state == dest:
                 return True
-            dest = machine_name(request.target)
-            trigger = f"observe_{request.target.value.split('.')[-1]}"
-            if request.target.is_running and not source.is_running:
-                trigger = "observe_running"
-            if request.target is not CellState.DISCONNECTED and source is CellState.DISCONNECTED:
-                trigger = "observe_connected"
-            if trigger in self._machine.get_triggers(self._model.state):
-                await self._model.trigger(trigger)  # type: ignore[attr-defined]
-            if self._model.state != dest:  # no declared path (or only part of it): force
-                if self.state != source:
-                    self._emit(source, self.state, trigger, request.cause, request.detail)
-                    source = self.state
-                trigger = "resync"
-                self._machine.set_state(dest, self._model)
-        dest_state = self.state
-        if dest_state != source:
-            self._emit(source, dest_state, trigger, request.cause, request.detail)
+            step = self._path_step(self._model.state, dest)
+            if step is None:
+                break
+            source = self.state
+            await self._model.trigger(step)  # type: ignore[attr-defined]
+            self._emit(source, self.state, step, request.cause, request.detail)
+        if self._model.state != dest:  # no declared path: force
+            source = self.state
+            self._machine.set_state(dest, self._model)
+            self._emit(source, self.state, "resync", request.cause, request.detail)
         return True
+
+    def _path_step(self, current: str, dest: str) -> str | None:
+        """A declared trigger leading from ``current`` to ``dest`` (or to its parent)."""
+        partial = None
+        for trigger, sources, target in self._edges:
+            if not any(current == s or current.startswith(s + SEPARATOR) for s in sources):
+                continue
+            if target == dest:
+                return trigger
+            if partial is None and dest.startswith(target + SEPARATOR):
+                partial = trigger
+        return partial
 
     def _emit(
         self, source: CellState, dest: CellState, trigger: str, cause: Cause, detail: str

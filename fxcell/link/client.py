@@ -1,0 +1,549 @@
+"""The asyncio side of the robot link: spawns, supervises and talks to the link process.
+
+:class:`LinkClient` starts ``fxcell.link.process`` with one end of a socketpair,
+reads its framed messages (500 Hz state samples, replies, trajectory reports) and
+restarts it with exponential backoff whenever it exits or cannot connect. The link
+counts as *up* while state samples arrive: 100 ms without one (outside a declared
+blocking constructor) or the process exiting marks it down at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import itertools
+import logging
+import socket
+import sys
+import time
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from fxcell.errors import (
+    ConnectionLostError,
+    FxcellError,
+    InvalidArgumentError,
+    NotInRemoteControlError,
+    RobotCommandError,
+    RobotLinkError,
+    RobotTimeoutError,
+)
+from fxcell.link import wire
+from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
+
+log = logging.getLogger(__name__)
+
+STALE_AFTER = 0.1
+"""Seconds without a state sample after which the link counts as down."""
+HOLD_STALE_AFTER = 8.0
+"""The same while the link process runs a blocking ur_rtde constructor."""
+
+
+class LinkStatus(enum.StrEnum):
+    STARTING = "starting"
+    UP = "up"
+    DOWN = "down"
+    CLOSED = "closed"
+
+
+@dataclass(frozen=True, slots=True)
+class TrajectoryProgress:
+    """Where a streamed trajectory is: sample index reached, actual joints, tracking error."""
+
+    index: int
+    total: int
+    actual_q: tuple[float, ...] | None
+    tracking_error: float
+    time: float
+
+
+@dataclass(frozen=True, slots=True)
+class TrajectoryResult:
+    """How a streamed trajectory ended.
+
+    ``status``: ``completed`` (every sample sent), ``stopped`` (stop requested) or
+    ``failed``; ``reason`` then names why: ``protective_stop``, ``emergency_stop``,
+    ``safeguard_stop``, ``fault``, ``program_stopped``, ``link_lost``,
+    ``no_external_control``, ...
+    """
+
+    status: Literal["completed", "stopped", "failed"]
+    reason: str
+    index: int
+    total: int
+    actual_q: tuple[float, ...] | None
+    duration: float
+
+
+@dataclass
+class TrajectoryHandle:
+    """A trajectory the link process is streaming with servoJ at 500 Hz."""
+
+    id: int
+    total: int
+    _link: LinkClient
+    _done: asyncio.Future[TrajectoryResult]
+    _replaced: asyncio.Queue[bool] = field(default_factory=asyncio.Queue)
+    progress: TrajectoryProgress | None = None
+    _progress_event: asyncio.Event = field(default_factory=asyncio.Event)
+
+    @property
+    def done(self) -> bool:
+        return self._done.done()
+
+    async def replace_remaining(self, samples: ArrayLike) -> bool:
+        """Replace every sample not yet sent (e.g. by a braking profile).
+
+        Returns False when the trajectory had already ended.
+        """
+        array = _check_samples(samples)
+        if self.done:
+            return False
+        self._link._send(wire.TRAJ_REPLACE, self.id, array)
+        getter = asyncio.ensure_future(self._replaced.get())
+        try:
+            waitables: set[asyncio.Future[Any]] = {getter, self._done}
+            finished, _ = await asyncio.wait(
+                waitables, timeout=1.0, return_when=asyncio.FIRST_COMPLETED
+            )
+        finally:
+            getter.cancel()
+        if getter in finished and not getter.cancelled():
+            return getter.result()
+        return False
+
+    async def stop(self) -> TrajectoryResult:
+        """Stop streaming now (servoStop decelerates) and wait for the end report."""
+        if not self.done:
+            self._link._send(wire.TRAJ_STOP, self.id)
+        return await self.wait()
+
+    async def wait(self) -> TrajectoryResult:
+        """Wait for the end: completed, stopped or failed (never raises for those)."""
+        return await asyncio.shield(self._done)
+
+    async def next_progress(self) -> TrajectoryProgress | None:
+        """Wait for the next progress report (``None`` once the trajectory ended)."""
+        self._progress_event.clear()
+        waiter = asyncio.ensure_future(self._progress_event.wait())
+        try:
+            waitables: set[asyncio.Future[Any]] = {waiter, self._done}
+            await asyncio.wait(waitables, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            waiter.cancel()
+        return None if self.done else self.progress
+
+
+def _check_samples(samples: ArrayLike) -> NDArray[np.float64]:
+    array = np.asarray(samples, dtype=float)
+    if array.ndim != 2 or array.shape[1] != 6 or len(array) == 0:
+        raise InvalidArgumentError(f"trajectory samples must be (N, 6), got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise InvalidArgumentError("trajectory samples must be finite")
+    return np.ascontiguousarray(array)
+
+
+_ERROR_KINDS: dict[str, type[FxcellError]] = {
+    "robot": RobotCommandError,
+    "timeout": RobotTimeoutError,
+    "connection": ConnectionLostError,
+    "remote": NotInRemoteControlError,
+}
+
+
+class StateSubscription:
+    """An async iterator over state samples with a bounded buffer (oldest dropped)."""
+
+    def __init__(self, link: LinkClient, maxsize: int) -> None:
+        self._link = link
+        self._queue: asyncio.Queue[RobotState] = asyncio.Queue(maxsize)
+        self.dropped = 0
+
+    def _offer(self, state: RobotState) -> None:
+        if self._queue.full():
+            self._queue.get_nowait()
+            self.dropped += 1
+        self._queue.put_nowait(state)
+
+    def __aiter__(self) -> StateSubscription:
+        return self
+
+    async def __anext__(self) -> RobotState:
+        return await self._queue.get()
+
+    def close(self) -> None:
+        self._link._subscriptions.discard(self)
+
+    def __enter__(self) -> StateSubscription:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class LinkClient:
+    """Asyncio client of a supervised robot-link process for one controller.
+
+    ``on_state`` is called for every sample, ``on_status`` when the link goes up or
+    down and ``on_control`` when external control starts or ends (all synchronous).
+    """
+
+    def __init__(
+        self,
+        host: str,
+        *,
+        frequency: float = 500.0,
+        connect_timeout: float = 10.0,
+        backoff_max: float = 5.0,
+        urcap_port: int = URCAP_SCRIPT_PORT,
+        on_state: Callable[[RobotState], None] | None = None,
+        on_status: Callable[[LinkStatus, str], None] | None = None,
+        on_control: Callable[[bool, str], None] | None = None,
+    ) -> None:
+        self.host = host
+        self.frequency = frequency
+        self.connect_timeout = connect_timeout
+        self.backoff_max = backoff_max
+        self.urcap_port = urcap_port
+        self._on_state = on_state
+        self._on_status = on_status
+        self._on_control = on_control
+        self.status = LinkStatus.STARTING
+        self.latest: RobotState | None = None
+        self.control_ready = False
+        self.pid: int | None = None
+        self.restarts = 0
+        self.last_failure = ""
+        self._subscriptions: set[StateSubscription] = set()
+        self._writer: asyncio.StreamWriter | None = None
+        self._process: asyncio.subprocess.Process | None = None
+        self._supervisor: asyncio.Task[None] | None = None
+        self._pending: dict[int, asyncio.Future[Any]] = {}
+        self._trajectories: dict[int, TrajectoryHandle] = {}
+        self._ids = itertools.count(1)
+        self._hold = False
+        self._last_sample = 0.0
+        self._status_changed = asyncio.Event()
+        self._closing = False
+
+    # -- life cycle
+
+    async def start(self, wait: bool = True) -> None:
+        """Start the supervisor; with ``wait`` return once the link is up (or raise)."""
+        if self._supervisor is None:
+            self._supervisor = asyncio.create_task(self._supervise(), name=f"link {self.host}")
+        if wait:
+            await self.wait_up(self.connect_timeout)
+
+    async def wait_up(self, within: float) -> None:
+        try:
+            async with asyncio.timeout(within):
+                while self.status is not LinkStatus.UP:
+                    if self.status is LinkStatus.CLOSED:
+                        raise ConnectionLostError("the robot link is closed")
+                    self._status_changed.clear()
+                    await self._status_changed.wait()
+        except TimeoutError:
+            raise RobotLinkError(
+                f"no robot link to {self.host} within {within:g} s",
+                {"link": self.last_failure} if self.last_failure else None,
+            ) from None
+
+    async def close(self) -> None:
+        """Stop the supervisor and the link process."""
+        self._closing = True
+        if self._supervisor is not None:
+            self._supervisor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._supervisor
+            self._supervisor = None
+        await self._kill()
+        self._set_status(LinkStatus.CLOSED, "closed")
+
+    async def __aenter__(self) -> LinkClient:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def kill_process(self) -> None:
+        """Kill the link process abruptly (tests and benchmarks of the supervision)."""
+        if self._process is not None and self._process.returncode is None:
+            self._process.kill()
+
+    # -- status
+
+    def _set_status(self, status: LinkStatus, reason: str) -> None:
+        if status is self.status:
+            return
+        self.status = status
+        if status is not LinkStatus.UP:
+            self.latest = None
+            if self.control_ready:
+                self.control_ready = False
+                if self._on_control is not None:
+                    self._on_control(False, reason)
+        self._status_changed.set()
+        if self._on_status is not None:
+            self._on_status(status, reason)
+
+    @property
+    def up(self) -> bool:
+        return self.status is LinkStatus.UP
+
+    # -- supervision
+
+    async def _supervise(self) -> None:
+        backoff = 0.05
+        while True:
+            started = time.monotonic()
+            try:
+                await self._run_once()
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # keep supervising whatever happened
+                self.last_failure = f"{type(exc).__name__}: {exc}"
+                log.warning("robot link to %s failed: %s", self.host, self.last_failure)
+            await self._kill()
+            self._fail_all(self.last_failure or "link process exited")
+            self._set_status(LinkStatus.DOWN, self.last_failure or "link process exited")
+            if time.monotonic() - started > 5.0:
+                backoff = 0.05
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, self.backoff_max)
+            self.restarts += 1
+
+    async def _run_once(self) -> None:
+        parent, child = socket.socketpair()
+        try:
+            self._process = await asyncio.create_subprocess_exec(
+                sys.executable,
+                "-m",
+                "fxcell.link.process",
+                "--fd",
+                str(child.fileno()),
+                "--host",
+                self.host,
+                "--frequency",
+                str(self.frequency),
+                "--urcap-port",
+                str(self.urcap_port),
+                pass_fds=(child.fileno(),),
+                stdin=asyncio.subprocess.DEVNULL,
+            )
+        finally:
+            child.close()
+        self.pid = self._process.pid
+        reader, writer = await asyncio.open_connection(sock=parent)
+        self._writer = writer
+        self._hold = True  # until the first sample: connecting may block the process
+        self._last_sample = time.monotonic()
+        watchdog = asyncio.create_task(self._watchdog(), name="link watchdog")
+        try:
+            async with asyncio.timeout(self.connect_timeout) as connect_deadline:
+                while True:
+                    header = await reader.readexactly(wire.HEADER.size)
+                    (size,) = wire.HEADER.unpack(header)
+                    if size > wire.MAX_FRAME:
+                        raise RobotLinkError(f"oversized link frame ({size} bytes)")
+                    message = wire.decode(await reader.readexactly(size))
+                    if message[0] == wire.STATE and connect_deadline.when() is not None:
+                        connect_deadline.reschedule(None)
+                    self._handle(message)
+        except asyncio.IncompleteReadError:
+            if not self.last_failure:
+                self.last_failure = "link process exited"
+        except TimeoutError:
+            self.last_failure = f"no state from {self.host} within {self.connect_timeout:g} s"
+        finally:
+            watchdog.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await watchdog
+            writer.close()
+            self._writer = None
+
+    async def _watchdog(self) -> None:
+        while True:
+            await asyncio.sleep(0.02)
+            if self.status is not LinkStatus.UP:
+                continue
+            limit = HOLD_STALE_AFTER if self._hold else STALE_AFTER
+            silent = time.monotonic() - self._last_sample
+            if silent > limit:
+                self._set_status(LinkStatus.DOWN, f"no robot state for {silent * 1000:.0f} ms")
+
+    async def _kill(self) -> None:
+        process, self._process = self._process, None
+        if process is None:
+            return
+        if process.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                process.kill()
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(process.wait(), 5.0)
+
+    def _fail_all(self, reason: str) -> None:
+        error = ConnectionLostError(f"robot link lost: {reason}")
+        for future in self._pending.values():
+            if not future.done():
+                future.set_exception(error)
+        self._pending.clear()
+        for handle in list(self._trajectories.values()):
+            if not handle._done.done():
+                handle._done.set_result(
+                    TrajectoryResult(
+                        "failed",
+                        "link_lost",
+                        handle.progress.index if handle.progress else 0,
+                        handle.total,
+                        None,
+                        0.0,
+                    )
+                )
+        self._trajectories.clear()
+
+    # -- incoming
+
+    def _handle(self, message: tuple[Any, ...]) -> None:
+        kind = message[0]
+        if kind == wire.STATE:
+            now = time.monotonic()
+            state = wire.state_from_tuple(message[1], now)
+            self._last_sample = now
+            self._hold = False
+            self.latest = state
+            if self.status is not LinkStatus.UP:
+                self.last_failure = ""
+                self._set_status(LinkStatus.UP, "state stream live")
+            if self._on_state is not None:
+                self._on_state(state)
+            for sub in tuple(self._subscriptions):
+                sub._offer(state)
+        elif kind == wire.REPLY:
+            _, request_id, ok, value = message
+            future = self._pending.pop(request_id, None)
+            if future is not None and not future.done():
+                if ok:
+                    future.set_result(value)
+                else:
+                    error_kind, text = value
+                    future.set_exception(_ERROR_KINDS.get(error_kind, RobotCommandError)(text))
+        elif kind == wire.TRAJ:
+            self._handle_trajectory(message[1], message[2], message[3])
+        elif kind == wire.CONTROL:
+            _, ready, reason = message
+            self.control_ready = bool(ready)
+            if self._on_control is not None:
+                self._on_control(self.control_ready, str(reason))
+        elif kind == wire.HOLD:
+            self._hold = bool(message[1])
+            self._last_sample = time.monotonic()
+        elif kind == wire.FATAL:
+            _, text, failures = message
+            self.last_failure = str(RobotLinkError(text, failures))
+        elif kind == wire.LOG:
+            log.log(int(message[1]), "link: %s", message[2])
+
+    def _handle_trajectory(self, traj_id: int, kind: str, data: dict[str, Any]) -> None:
+        handle = self._trajectories.get(traj_id)
+        if handle is None:
+            return
+        if kind == "progress":
+            handle.progress = TrajectoryProgress(
+                data["index"], data["total"], data["actual_q"], data["tracking_error"], time.time()
+            )
+            handle._progress_event.set()
+        elif kind == "replaced":
+            handle._replaced.put_nowait(bool(data.get("ok")))
+        elif kind == "end":
+            self._trajectories.pop(traj_id, None)
+            if not handle._done.done():
+                handle._done.set_result(
+                    TrajectoryResult(
+                        data["status"],
+                        data["reason"],
+                        data["index"],
+                        data["total"],
+                        data["actual_q"],
+                        data["duration"],
+                    )
+                )
+
+    # -- outgoing
+
+    def _send(self, *message: Any) -> None:
+        if self._writer is None or self.status is not LinkStatus.UP:
+            raise ConnectionLostError(f"no robot link to {self.host} ({self.status.value})")
+        self._writer.write(wire.encode(message))
+
+    async def call(self, method: str, within: float = 5.0, **kwargs: Any) -> Any:
+        """Run ``method`` in the link process; typed fxcell errors on failure."""
+        request_id = next(self._ids)
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._pending[request_id] = future
+        try:
+            self._send(wire.CALL, request_id, method, kwargs)
+            async with asyncio.timeout(within):
+                return await future
+        except TimeoutError:
+            raise RobotTimeoutError(
+                f"robot link call {method} timed out after {within:g} s"
+            ) from None
+        finally:
+            self._pending.pop(request_id, None)
+
+    async def dashboard(self, command: str, within: float = 5.0) -> str:
+        """Send one dashboard request line; returns the reply line."""
+        reply: str = await self.call("dashboard", within, command=command)
+        return reply
+
+    async def start_control(self, mode: str, program: str, within: float) -> None:
+        """Start external control: ``script`` upload or ``urcap`` program."""
+        await self.call("start_control", within + 10.0, mode=mode, program=program, timeout=within)
+
+    async def stop_control(self, mode: str, within: float = 5.0) -> None:
+        await self.call("stop_control", within, mode=mode)
+
+    async def execute_trajectory(
+        self, samples: ArrayLike, *, lookahead_time: float = 0.1, gain: float = 300.0
+    ) -> TrajectoryHandle:
+        """Stream (N, 6) joint positions spaced 2 ms apart with servoJ at 500 Hz."""
+        array = _check_samples(samples)
+        if not 0.03 <= lookahead_time <= 0.2:
+            raise InvalidArgumentError("lookahead_time must be within [0.03, 0.2] s")
+        if not 100 <= gain <= 2000:
+            raise InvalidArgumentError("gain must be within [100, 2000]")
+        traj_id = next(self._ids)
+        handle = TrajectoryHandle(
+            traj_id, len(array), self, asyncio.get_running_loop().create_future()
+        )
+        self._trajectories[traj_id] = handle
+        try:
+            self._send(wire.TRAJ_START, traj_id, array, lookahead_time, gain)
+        except BaseException:
+            self._trajectories.pop(traj_id, None)
+            raise
+        return handle
+
+    async def servo_stop(self) -> bool:
+        """Stop any streamed trajectory and leave servo mode."""
+        return bool(await self.call("servo_stop", 5.0))
+
+    # -- state stream
+
+    def subscribe(self, maxsize: int = 1024) -> StateSubscription:
+        """An async iterator over every state sample (use as a context manager)."""
+        sub = StateSubscription(self, maxsize)
+        self._subscriptions.add(sub)
+        return sub
+
+    async def samples(self) -> AsyncIterator[RobotState]:
+        with self.subscribe() as sub:
+            async for state in sub:
+                yield state

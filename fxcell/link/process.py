@@ -1,0 +1,503 @@
+"""The robot-link process: hosts the ur_rtde clients, away from the asyncio loop.
+
+Started by :class:`fxcell.link.client.LinkClient` as ``python -m fxcell.link.process
+--fd N --host H ...`` with one end of a socketpair. ur_rtde holds the GIL while it
+connects and its reconnect path is fragile, so this process never reconnects: when
+the controller link breaks it reports why and exits, and the client starts a fresh
+process (with backoff).
+
+Threads: the main thread reads requests; a worker runs calls one at a time (dashboard
+round trips, starting the control script); the pump samples ``RTDEReceiveInterface``
+and forwards every new 500 Hz sample; a trajectory thread streams ``servoJ`` with
+``initPeriod``/``waitPeriod``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import os
+import queue
+import socket
+import sys
+import threading
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fxcell.link import wire
+from fxcell.protocol import (
+    CONTROL_PERIOD,
+    RobotState,
+    RuntimeState,
+    SafetyMode,
+)
+
+log = logging.getLogger("fxcell.link.process")
+
+_PROTECTIVE = {SafetyMode.PROTECTIVE_STOP}
+_SAFEGUARD = {
+    SafetyMode.SAFEGUARD_STOP,
+    SafetyMode.AUTOMATIC_MODE_SAFEGUARD_STOP,
+    SafetyMode.SYSTEM_THREE_POSITION_ENABLING_STOP,
+}
+_ESTOP = {SafetyMode.SYSTEM_EMERGENCY_STOP, SafetyMode.ROBOT_EMERGENCY_STOP}
+_FAULT = {SafetyMode.FAULT, SafetyMode.VIOLATION}
+
+
+def stop_reason(safety_mode: int, runtime_state: int) -> str | None:
+    """Why a trajectory cannot continue, from one state sample (``None``: it can)."""
+    if safety_mode in _PROTECTIVE:
+        return "protective_stop"
+    if safety_mode in _ESTOP:
+        return "emergency_stop"
+    if safety_mode in _SAFEGUARD:
+        return "safeguard_stop"
+    if safety_mode in _FAULT:
+        return "fault"
+    if runtime_state != RuntimeState.PLAYING:
+        return "program_stopped"
+    return None
+
+
+class CallError(Exception):
+    """A call failed in a way the client maps to a typed fxcell error."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        self.kind = kind
+        super().__init__(message)
+
+
+class Link:
+    def __init__(self, sock: socket.socket, args: argparse.Namespace) -> None:
+        self.sock = sock
+        self.args = args
+        self.host: str = args.host
+        self._send_lock = threading.Lock()
+        self._calls: queue.Queue[tuple[int, str, dict[str, Any]] | None] = queue.Queue()
+        self._stop = threading.Event()
+        self.dashboard: Any = None
+        self.receive: Any = None
+        self.control: Any = None
+        self.latest: RobotState | None = None
+        self._traj_lock = threading.Lock()
+        self._traj: _Trajectory | None = None
+
+    # -- sending
+
+    def send(self, *message: Any) -> None:
+        data = wire.encode(message)
+        with self._send_lock:
+            try:
+                self.sock.sendall(data)
+            except OSError:
+                self._stop.set()
+
+    # -- life cycle
+
+    def connect(self) -> bool:
+        import dashboard_client
+        import rtde_receive
+
+        failures: dict[str, str] = {}
+        try:
+            self.dashboard = dashboard_client.DashboardClient(self.host)
+            self.dashboard.connect(int(self.args.timeout * 1000))
+        except Exception as exc:
+            failures["dashboard"] = str(exc) or type(exc).__name__
+        try:
+            self.receive = rtde_receive.RTDEReceiveInterface(self.host, self.args.frequency)
+        except Exception as exc:
+            failures["rtde_receive"] = str(exc) or type(exc).__name__
+        if failures:
+            self.send(wire.FATAL, f"cannot connect to {self.host}", failures)
+            return False
+        self.send(wire.CONNECTED, {"host": self.host})
+        return True
+
+    def run(self) -> int:
+        self.send(wire.HELLO, {"pid": os.getpid()})
+        if not self.connect():
+            return 2
+        threads = [
+            threading.Thread(target=self._pump, name="pump", daemon=True),
+            threading.Thread(target=self._worker, name="worker", daemon=True),
+            threading.Thread(target=self._reader, name="reader", daemon=True),
+        ]
+        for t in threads:
+            t.start()
+        self._stop.wait()
+        self._stop_trajectory("link closing")
+        return 3
+
+    def lost(self, reason: str) -> None:
+        if not self._stop.is_set():
+            self.send(wire.FATAL, "robot link lost", {"rtde_receive": reason})
+            self._stop.set()
+
+    # -- reader
+
+    def _reader(self) -> None:
+        try:
+            while not self._stop.is_set():
+                header = self._recv_exact(wire.HEADER.size)
+                if header is None:
+                    break
+                (size,) = wire.HEADER.unpack(header)
+                body = self._recv_exact(size)
+                if body is None:
+                    break
+                self._dispatch(wire.decode(body))
+        finally:
+            self._stop.set()  # the client went away: exit
+
+    def _recv_exact(self, n: int) -> bytes | None:
+        chunks = bytearray()
+        while len(chunks) < n:
+            try:
+                chunk = self.sock.recv(n - len(chunks))
+            except OSError:
+                return None
+            if not chunk:
+                return None
+            chunks += chunk
+        return bytes(chunks)
+
+    def _dispatch(self, message: tuple[Any, ...]) -> None:
+        kind = message[0]
+        if kind == wire.CALL:
+            _, request_id, method, kwargs = message
+            self._calls.put((request_id, method, kwargs))
+        elif kind == wire.TRAJ_START:
+            _, traj_id, samples, lookahead, gain = message
+            self._start_trajectory(traj_id, samples, lookahead, gain)
+        elif kind == wire.TRAJ_REPLACE:
+            _, traj_id, samples = message
+            with self._traj_lock:
+                traj = self._traj
+            if traj is not None and traj.id == traj_id:
+                traj.replace(samples)
+            else:
+                self.send(wire.TRAJ, traj_id, "replaced", {"ok": False})
+        elif kind == wire.TRAJ_STOP:
+            with self._traj_lock:
+                traj = self._traj
+            if traj is not None and traj.id == message[1]:
+                traj.stop("stop requested")
+
+    # -- state pump
+
+    def _pump(self) -> None:
+        r = self.receive
+        last = None
+        last_new = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                ts = r.getTimestamp()
+                if ts != last:
+                    last = ts
+                    last_new = time.monotonic()
+                    state = self._sample(r, ts)
+                    self.latest = state
+                    self.send(wire.STATE, wire.state_to_tuple(state))
+                    time.sleep(0.0012)
+                    continue
+                if time.monotonic() - last_new > 0.05 and not r.isConnected():
+                    self.lost("RTDE connection dropped")
+                    return
+            except Exception as exc:
+                self.lost(f"RTDE receive failed: {exc}")
+                return
+            time.sleep(0.0002)
+
+    @staticmethod
+    def _sample(r: Any, ts: float) -> RobotState:
+        return RobotState(
+            timestamp=ts,
+            robot_mode=r.getRobotMode(),
+            safety_mode=r.getSafetyMode(),
+            runtime_state=r.getRuntimeState(),
+            robot_status_bits=r.getRobotStatus(),
+            safety_status_bits=r.getSafetyStatusBits(),
+            target_q=tuple(r.getTargetQ()),
+            target_qd=tuple(r.getTargetQd()),
+            target_qdd=tuple(r.getTargetQdd()),
+            actual_q=tuple(r.getActualQ()),
+            actual_qd=tuple(r.getActualQd()),
+            actual_current=tuple(r.getActualCurrent()),
+            target_tcp_pose=tuple(r.getTargetTCPPose()),
+            actual_tcp_pose=tuple(r.getActualTCPPose()),
+            actual_tcp_speed=tuple(r.getActualTCPSpeed()),
+            speed_scaling=r.getSpeedScaling(),
+        )
+
+    # -- calls
+
+    def _worker(self) -> None:
+        while not self._stop.is_set():
+            item = self._calls.get()
+            if item is None:
+                return
+            request_id, method, kwargs = item
+            try:
+                value = getattr(self, f"call_{method}")(**kwargs)
+            except CallError as exc:
+                self.send(wire.REPLY, request_id, False, (exc.kind, str(exc)))
+            except Exception as exc:
+                self.send(wire.REPLY, request_id, False, ("robot", f"{type(exc).__name__}: {exc}"))
+            else:
+                self.send(wire.REPLY, request_id, True, value)
+
+    def call_dashboard(self, command: str) -> str:
+        """One dashboard request line; returns the reply line."""
+        try:
+            self.dashboard.send(command + "\n")
+            reply: str = self.dashboard.receive()
+        except Exception as exc:
+            raise CallError("connection", f"dashboard {command!r}: {exc}") from None
+        return reply.strip()
+
+    def call_ping(self) -> str:
+        return "pong"
+
+    def _wait_playing(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            state = self.latest
+            if state is not None and state.runtime_state == RuntimeState.PLAYING:
+                return True
+            time.sleep(0.005)
+        return False
+
+    def call_start_control(self, mode: str, program: str, timeout: float) -> bool:
+        """Start external control (script upload or URCap program); True when PLAYING."""
+        import rtde_control
+
+        flags = rtde_control.RTDEControlInterface.Flags
+        c = self.control
+        if c is not None:
+            if c.isConnected() and c.isProgramRunning():
+                self.send(wire.CONTROL, True, "already running")
+                return True
+            if mode == "script" and c.isConnected():
+                c.reuploadScript()
+                if not self._wait_playing(timeout):
+                    raise CallError("timeout", "control script did not start")
+                self.send(wire.CONTROL, True, "script re-uploaded")
+                return True
+            if mode == "urcap" and c.isConnected():
+                self._play_urcap(program, timeout)
+                self.send(wire.CONTROL, True, "URCap program restarted")
+                return True
+            self._drop_control("reconnecting control interface")
+        self.send(wire.HOLD, True)
+        try:
+            if mode == "urcap":
+                c = rtde_control.RTDEControlInterface(
+                    self.host,
+                    self.args.frequency,
+                    flags.FLAG_USE_EXT_UR_CAP | flags.FLAG_NO_WAIT,
+                    self.args.urcap_port,
+                )
+            else:
+                c = rtde_control.RTDEControlInterface(self.host, self.args.frequency)
+        except Exception as exc:
+            raise CallError("robot", f"cannot start external control: {exc}") from None
+        finally:
+            self.send(wire.HOLD, False)
+        self.control = c
+        if mode == "urcap":
+            self._play_urcap(program, timeout)
+        elif not self._wait_playing(timeout):
+            raise CallError("timeout", "control script did not start")
+        self.send(wire.CONTROL, True, f"external control ({mode})")
+        return True
+
+    def _play_urcap(self, program: str, timeout: float) -> None:
+        reply = self.call_dashboard(f"load {program}")
+        if "Loading program" not in reply:
+            raise CallError("robot", f"load {program}: {reply}")
+        reply = self.call_dashboard("play")
+        if reply != "Starting program":
+            raise CallError("robot", f"play: {reply}")
+        if not self._wait_playing(timeout):
+            raise CallError("timeout", f"{program} did not start playing")
+
+    def call_stop_control(self, mode: str) -> bool:
+        self._stop_trajectory("external control stopped")
+        c = self.control
+        if c is not None:
+            with contextlib.suppress(Exception):
+                c.stopScript()
+        if mode == "urcap":
+            self.call_dashboard("stop")
+        self._drop_control("external control stopped")
+        return True
+
+    def _drop_control(self, reason: str) -> None:
+        c, self.control = self.control, None
+        if c is not None:
+            with contextlib.suppress(Exception):
+                c.disconnect()
+        self.send(wire.CONTROL, False, reason)
+
+    def call_servo_stop(self) -> bool:
+        self._stop_trajectory("servo stop")
+        c = self.control
+        if c is None:
+            return False
+        return bool(c.servoStop())
+
+    # -- trajectories
+
+    def _start_trajectory(
+        self, traj_id: int, samples: NDArray[np.float64], lookahead: float, gain: float
+    ) -> None:
+        with self._traj_lock:
+            old = self._traj
+        if old is not None:
+            old.stop("superseded")
+            old.thread.join(1.0)
+        traj = _Trajectory(self, traj_id, samples, lookahead, gain)
+        with self._traj_lock:
+            self._traj = traj
+        traj.thread.start()
+
+    def _stop_trajectory(self, reason: str) -> None:
+        with self._traj_lock:
+            traj = self._traj
+        if traj is not None:
+            traj.stop(reason)
+            if traj.thread is not threading.current_thread():
+                traj.thread.join(1.0)
+
+
+class _Trajectory:
+    """Streams one (N, 6) joint trajectory with servoJ at 500 Hz."""
+
+    PROGRESS_EVERY = 10  # samples (20 ms)
+
+    def __init__(
+        self, link: Link, traj_id: int, samples: NDArray[np.float64], lookahead: float, gain: float
+    ) -> None:
+        self.link = link
+        self.id = traj_id
+        self.samples = np.asarray(samples, dtype=float)
+        self.lookahead = lookahead
+        self.gain = gain
+        self._lock = threading.Lock()
+        self._replacement: NDArray[np.float64] | None = None
+        self._stop_reason: str | None = None
+        self.thread = threading.Thread(target=self._run, name=f"trajectory-{traj_id}", daemon=True)
+
+    def replace(self, samples: NDArray[np.float64]) -> None:
+        with self._lock:
+            self._replacement = np.asarray(samples, dtype=float)
+
+    def stop(self, reason: str) -> None:
+        with self._lock:
+            if self._stop_reason is None:
+                self._stop_reason = reason
+
+    def _run(self) -> None:
+        link = self.link
+        started = time.monotonic()
+        c = link.control
+        samples = self.samples
+        i = 0
+        status, reason = "completed", ""
+        if c is None:
+            status, reason = "failed", "no_external_control"
+        else:
+            try:
+                while True:
+                    with self._lock:
+                        if self._stop_reason is not None:
+                            status, reason = "stopped", self._stop_reason
+                            break
+                        if self._replacement is not None:
+                            samples, self._replacement = self._replacement, None
+                            i = 0
+                            link.send(wire.TRAJ, self.id, "replaced", {"ok": True})
+                    if i >= len(samples):
+                        break
+                    state = link.latest
+                    if state is not None:
+                        why = stop_reason(state.safety_mode, state.runtime_state)
+                        if why is not None:
+                            status, reason = "failed", why
+                            break
+                    t0 = c.initPeriod()
+                    ok = c.servoJ(
+                        samples[i].tolist(), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain
+                    )
+                    if not ok:
+                        state = link.latest
+                        why = None
+                        if state is not None:
+                            why = stop_reason(state.safety_mode, state.runtime_state)
+                        status, reason = "failed", why or "servoj_refused"
+                        break
+                    if i % self.PROGRESS_EVERY == 0:
+                        self._progress(i, len(samples), samples[i])
+                    i += 1
+                    c.waitPeriod(t0)
+            except Exception as exc:
+                status, reason = "failed", f"link_error: {exc}"
+            with contextlib.suppress(Exception):
+                c.servoStop()
+        state = link.latest
+        link.send(
+            wire.TRAJ,
+            self.id,
+            "end",
+            {
+                "status": status,
+                "reason": reason,
+                "index": i,
+                "total": len(samples),
+                "actual_q": state.actual_q if state is not None else None,
+                "duration": time.monotonic() - started,
+            },
+        )
+        with link._traj_lock:
+            if link._traj is self:
+                link._traj = None
+
+    def _progress(self, index: int, total: int, commanded: NDArray[np.float64]) -> None:
+        state = self.link.latest
+        actual = state.actual_q if state is not None else None
+        error = float(np.max(np.abs(commanded - np.asarray(actual)))) if actual else float("nan")
+        self.link.send(
+            wire.TRAJ,
+            self.id,
+            "progress",
+            {"index": index, "total": total, "actual_q": actual, "tracking_error": error},
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m fxcell.link.process")
+    parser.add_argument("--fd", type=int, required=True)
+    parser.add_argument("--host", required=True)
+    parser.add_argument("--frequency", type=float, default=500.0)
+    parser.add_argument("--timeout", type=float, default=2.0)
+    parser.add_argument("--urcap-port", type=int, default=50002)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
+    sock = socket.socket(fileno=args.fd)
+    link = Link(sock, args)
+    code = link.run()
+    with contextlib.suppress(OSError):
+        sock.shutdown(socket.SHUT_RDWR)
+    # ur_rtde's destructors can block or crash on a broken link: leave without them.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,101 @@
+"""Framing of the messages between the robot-link process and its asyncio client.
+
+Each frame is a 4-byte big-endian length followed by a pickled tuple whose first item
+names the message. Both ends are fxcell code of the same user, joined by a private
+socketpair, so pickle is safe here and the fastest codec for numpy arrays. State
+samples travel as plain tuples (no enums) to keep the 500 Hz stream compact.
+"""
+
+from __future__ import annotations
+
+import pickle
+import struct
+from typing import Any, TypeVar
+
+from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
+
+_E = TypeVar("_E", RobotMode, SafetyMode, RuntimeState)
+
+HEADER = struct.Struct(">I")
+MAX_FRAME = 64 * 1024 * 1024
+
+# client -> link process
+CALL = "call"  # (CALL, request_id, method, kwargs)
+TRAJ_START = "traj_start"  # (TRAJ_START, traj_id, samples, lookahead_time, gain)
+TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, traj_id, samples)
+TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, traj_id)
+
+# link process -> client
+HELLO = "hello"  # (HELLO, {"pid": ...})
+CONNECTED = "connected"  # (CONNECTED, info)
+FATAL = "fatal"  # (FATAL, message, {part: why}) then the process exits
+STATE = "state"  # (STATE, state_tuple)
+REPLY = "reply"  # (REPLY, request_id, ok, value | (error_type, message))
+CONTROL = "control"  # (CONTROL, ready: bool, reason)
+HOLD = "hold"  # (HOLD, bool): a blocking ur_rtde constructor runs; the stream pauses
+TRAJ = "traj"  # (TRAJ, traj_id, kind, data) kind: progress | replaced | end
+LOG = "log"  # (LOG, level, message)
+
+
+def encode(message: tuple[Any, ...]) -> bytes:
+    body = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    return HEADER.pack(len(body)) + body
+
+
+def decode(body: bytes) -> tuple[Any, ...]:
+    message = pickle.loads(body)
+    if not isinstance(message, tuple) or not message:
+        raise ValueError(f"malformed link message: {message!r:.80}")
+    return message
+
+
+def state_to_tuple(s: RobotState) -> tuple[Any, ...]:
+    return (
+        s.timestamp,
+        int(s.robot_mode),
+        int(s.safety_mode),
+        int(s.runtime_state),
+        s.robot_status_bits,
+        s.safety_status_bits,
+        s.target_q,
+        s.target_qd,
+        s.target_qdd,
+        s.actual_q,
+        s.actual_qd,
+        s.actual_current,
+        s.target_tcp_pose,
+        s.actual_tcp_pose,
+        s.actual_tcp_speed,
+        s.speed_scaling,
+        s.output_int_registers,
+    )
+
+
+def state_from_tuple(t: tuple[Any, ...], received_at: float) -> RobotState:
+    return RobotState(
+        timestamp=t[0],
+        robot_mode=_enum(RobotMode, t[1], RobotMode.NO_CONTROLLER),
+        safety_mode=_enum(SafetyMode, t[2], SafetyMode.UNDEFINED_SAFETY_MODE),
+        runtime_state=_enum(RuntimeState, t[3], RuntimeState.STOPPED),
+        robot_status_bits=t[4],
+        safety_status_bits=t[5],
+        target_q=t[6],
+        target_qd=t[7],
+        target_qdd=t[8],
+        actual_q=t[9],
+        actual_qd=t[10],
+        actual_current=t[11],
+        target_tcp_pose=t[12],
+        actual_tcp_pose=t[13],
+        actual_tcp_speed=t[14],
+        speed_scaling=t[15],
+        output_int_registers=t[16],
+        received_at=received_at,
+    )
+
+
+def _enum(cls: type[_E], value: int, default: _E) -> _E:
+    try:
+        return cls(value)
+    except ValueError:
+        return default
