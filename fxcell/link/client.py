@@ -96,15 +96,21 @@ class TrajectoryHandle:
     def done(self) -> bool:
         return self._done.done()
 
-    async def replace_remaining(self, samples: ArrayLike) -> bool:
+    async def replace_remaining(self, samples: ArrayLike, at_index: int | None = None) -> bool:
         """Replace every sample not yet sent (e.g. by a braking profile).
 
-        Returns False when the trajectory had already ended.
+        With ``at_index``, ``samples[0]`` replaces the trajectory's sample ``at_index``
+        and the samples before it are still sent (if the link is already past it, it
+        joins ``samples`` at the matching offset). Returns False when the trajectory had
+        already ended.
         """
         array = _check_samples(samples)
         if self.done:
             return False
-        self._link._send(wire.TRAJ_REPLACE, self.id, array)
+        if at_index is None:
+            self._link._send(wire.TRAJ_REPLACE, self.id, array)
+        else:
+            self._link._send(wire.TRAJ_REPLACE, self.id, array, int(at_index))
         getter = asyncio.ensure_future(self._replaced.get())
         try:
             waitables: set[asyncio.Future[Any]] = {getter, self._done}

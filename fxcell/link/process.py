@@ -175,11 +175,12 @@ class Link:
             _, traj_id, samples, lookahead, gain = message
             self._start_trajectory(traj_id, samples, lookahead, gain)
         elif kind == wire.TRAJ_REPLACE:
-            _, traj_id, samples = message
+            traj_id, samples = message[1], message[2]
+            at_index = message[3] if len(message) > 3 else None
             with self._traj_lock:
                 traj = self._traj
             if traj is not None and traj.id == traj_id:
-                traj.replace(samples)
+                traj.replace(samples, at_index)
             else:
                 self.send(wire.TRAJ, traj_id, "replaced", {"ok": False})
         elif kind == wire.TRAJ_STOP:
@@ -389,13 +390,16 @@ class _Trajectory:
         self.lookahead = lookahead
         self.gain = gain
         self._lock = threading.Lock()
-        self._replacement: NDArray[np.float64] | None = None
+        self._replacement: tuple[NDArray[np.float64], int | None] | None = None
         self._stop_reason: str | None = None
         self.thread = threading.Thread(target=self._run, name=f"trajectory-{traj_id}", daemon=True)
 
-    def replace(self, samples: NDArray[np.float64]) -> None:
+    def replace(self, samples: NDArray[np.float64], at_index: int | None = None) -> None:
+        """Replace the samples not yet sent; with ``at_index``, ``samples[0]`` takes the
+        place of the current trajectory's sample ``at_index`` (the ones before it are
+        still sent), so a braking profile starts exactly where it was computed from."""
         with self._lock:
-            self._replacement = np.asarray(samples, dtype=float)
+            self._replacement = (np.asarray(samples, dtype=float), at_index)
 
     def stop(self, reason: str) -> None:
         with self._lock:
@@ -419,9 +423,15 @@ class _Trajectory:
                             status, reason = "stopped", self._stop_reason
                             break
                         if self._replacement is not None:
-                            samples, self._replacement = self._replacement, None
-                            i = 0
-                            link.send(wire.TRAJ, self.id, "replaced", {"ok": True})
+                            (new, at), self._replacement = self._replacement, None
+                            late = at is not None and at < i
+                            if at is None:
+                                samples, i = new, 0
+                            elif not late:
+                                samples, i = np.concatenate([samples[i:at], new]), 0
+                            else:  # already past it: join the new samples where we are
+                                samples, i = new, min(i - at, len(new) - 1)
+                            link.send(wire.TRAJ, self.id, "replaced", {"ok": True, "late": late})
                     if i >= len(samples):
                         break
                     state = link.latest

@@ -22,7 +22,7 @@ MAX_FRAME = 64 * 1024 * 1024
 # client -> link process
 CALL = "call"  # (CALL, request_id, method, kwargs)
 TRAJ_START = "traj_start"  # (TRAJ_START, traj_id, samples, lookahead_time, gain)
-TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, traj_id, samples)
+TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, traj_id, samples[, at_index])
 TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, traj_id)
 
 # link process -> client
