@@ -1,6 +1,51 @@
 """fxcell: run a Universal Robots UR3e cell from asyncio Python."""
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from fxcell._version import __version__
 from fxcell.errors import FxcellError
 
-__all__ = ["FxcellError", "__version__"]
+if TYPE_CHECKING:
+    from fxcell.cell import Cell, ProgramStatus
+    from fxcell.config import CellConfig
+    from fxcell.protocol import ProgramState, RobotMode, RobotState, SafetyMode
+    from fxcell.statemachine import CellState
+
+# Loaded on first use, so that ``import fxcell`` (and the robot-link process, which
+# imports fxcell.link) stays fast.
+_LAZY = {
+    "Cell": "fxcell.cell",
+    "ProgramStatus": "fxcell.cell",
+    "CellConfig": "fxcell.config",
+    "CellState": "fxcell.statemachine",
+    "ProgramState": "fxcell.protocol",
+    "RobotMode": "fxcell.protocol",
+    "RobotState": "fxcell.protocol",
+    "SafetyMode": "fxcell.protocol",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'fxcell' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+__all__ = [
+    "Cell",
+    "CellConfig",
+    "CellState",
+    "FxcellError",
+    "ProgramState",
+    "ProgramStatus",
+    "RobotMode",
+    "RobotState",
+    "SafetyMode",
+    "__version__",
+]

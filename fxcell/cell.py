@@ -1,0 +1,651 @@
+"""``Cell``: the await-style API over one UR3e, guarded by the robot-mode state machine.
+
+Every public command checks the state machine's guard first (refusing with
+:class:`~fxcell.errors.InvalidStateError` before anything is sent), talks to the robot
+through the robot-link process, and returns once the robot confirms the effect, as
+the 500 Hz state stream shows it. Commands, transitions and state samples are
+published on :attr:`Cell.bus`. Moves are tasks the Cell owns: a safety stop, a
+program stop or a lost link observed while one runs cancels it, and its caller gets
+the matching error.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib
+import logging
+import time
+from collections.abc import AsyncIterator, Callable, Coroutine, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+from fxcell.config import CellConfig
+from fxcell.errors import (
+    ConnectionLostError,
+    EmergencyStopError,
+    FxcellError,
+    MoveInProgressError,
+    MoveStoppedError,
+    NotInRemoteControlError,
+    ProtectiveStopError,
+    ProtectiveStopUnlockTooSoonError,
+    RecorderError,
+    RobotCommandError,
+    RobotFaultError,
+    RobotTimeoutError,
+    SafeguardStopError,
+)
+from fxcell.events import CommandEvent, EventBus, EventStream, Origin, StateEvent, TransitionEvent
+from fxcell.geometry import Pose
+from fxcell.link import LinkClient, LinkStatus, StateSubscription
+from fxcell.protocol import ProgramState, RobotMode, RobotState, SafetyMode
+from fxcell.statemachine import CellState, RobotStateMachine, observed_state
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+PROTECTIVE_STOP_HOLD = 5.0
+"""Seconds the controller keeps a protective stop locked (its wording says 5 s)."""
+
+_LOCAL_CONTROL_MARKERS = ("remote control", "not allowed due to safety")
+
+# States in which a command waiting for an effect gives up, and the error it raises.
+_FAILURE_STATES: dict[CellState, type[FxcellError]] = {
+    CellState.DISCONNECTED: ConnectionLostError,
+    CellState.PROTECTIVE_STOP: ProtectiveStopError,
+    CellState.SAFEGUARD_STOP: SafeguardStopError,
+    CellState.EMERGENCY_STOP: EmergencyStopError,
+    CellState.FAULT: RobotFaultError,
+}
+_MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
+    **_FAILURE_STATES,
+    CellState.PROGRAM_STOPPED: MoveStoppedError,
+    CellState.IDLE: MoveStoppedError,
+    CellState.POWER_OFF: MoveStoppedError,
+    CellState.SHUTTING_DOWN: MoveStoppedError,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class ProgramStatus:
+    """The dashboard's program state: ``PLAYING``/``STOPPED``/``PAUSED`` and the program."""
+
+    state: ProgramState
+    program: str
+
+
+class Cell:
+    """One UR3e cell.
+
+    ``host=None`` starts the embedded controller simulator (``fxcell.embedded``).
+    Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
+    ``record`` names a directory for an MCAP flight record of the session.
+    """
+
+    def __init__(
+        self,
+        host: str | None = None,
+        *,
+        config: CellConfig | None = None,
+        record: str | Path | None = None,
+        external_control: Literal["script", "urcap"] | None = None,
+        command_timeout: float | None = None,
+        origin: Origin = Origin.LIBRARY,
+        simulator_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        self.config = config or CellConfig()
+        robot = self.config.robot
+        self._host = host if host is not None else robot.host
+        self.external_control = external_control or robot.external_control
+        self.command_timeout = command_timeout or robot.command_timeout
+        self._record = record
+        self._origin = origin
+        self._simulator_options = dict(simulator_options or {})
+        self.bus = EventBus()
+        self.machine = RobotStateMachine(on_transition=self._on_transition)
+        self.link: LinkClient | None = None
+        self._simulator: Any = None
+        self._recorder: Any = None
+        self._machine_task: asyncio.Task[None] | None = None
+        self._observed: CellState = CellState.DISCONNECTED
+        self._shutting_down = False
+        self._control_wanted = False
+        self._protective_since: float | None = None
+        self._move_task: asyncio.Task[Any] | None = None
+        self._move_error: FxcellError | None = None
+        self._stopping = False
+        self._kinematics: Any = None
+        self._opened = False
+
+    @classmethod
+    def from_config(cls, config: str | Path | CellConfig | None = None, **kwargs: Any) -> Cell:
+        """A Cell configured from ``cell.yaml`` (a path) or a :class:`CellConfig`."""
+        if not isinstance(config, CellConfig):
+            config = CellConfig.load(config)
+        return cls(config=config, **kwargs)
+
+    # ------------------------------------------------------------- life cycle
+
+    @property
+    def host(self) -> str | None:
+        """The controller address (that of the embedded simulator once it runs)."""
+        return self._host
+
+    async def open(self) -> None:
+        """Start the recorder, the simulator if no host is set, and the robot link."""
+        if self._opened:
+            return
+        self._opened = True
+        try:
+            if self._record is not None:
+                self._recorder = _start_recorder(Path(self._record), self)
+            if self._host is None:
+                embedded = importlib.import_module("fxcell.embedded")
+                self._simulator = await embedded.start(**self._simulator_options)
+                self._host = str(self._simulator.host)
+            self._machine_task = asyncio.create_task(self.machine.run(), name="cell machine")
+            robot = self.config.robot
+            self.link = LinkClient(
+                self._host,
+                frequency=robot.frequency,
+                connect_timeout=robot.connect_timeout,
+                backoff_max=robot.reconnect_backoff_max,
+                on_state=self._on_sample,
+                on_status=self._on_link_status,
+                on_control=self._on_control,
+            )
+            await self.link.start(wait=True)
+            await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
+        except BaseException:
+            await self.close()
+            raise
+
+    async def close(self) -> None:
+        """Cancel any move, stop the link (and the embedded simulator), finish the record."""
+        await self._cancel_move(MoveStoppedError("the cell is closing"))
+        if self.link is not None:
+            await self.link.close()
+        if self._machine_task is not None:
+            self._machine_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._machine_task
+            self._machine_task = None
+        if self._simulator is not None:
+            simulator, self._simulator = self._simulator, None
+            await simulator.stop()
+        if self._recorder is not None:
+            recorder, self._recorder = self._recorder, None
+            await asyncio.to_thread(recorder.close)
+        self._opened = False
+
+    async def __aenter__(self) -> Cell:
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # ------------------------------------------------------------- state
+
+    @property
+    def state(self) -> CellState:
+        """The state machine's current state."""
+        return self.machine.state
+
+    @property
+    def robot_state(self) -> RobotState | None:
+        """The latest 500 Hz sample (``None`` while disconnected)."""
+        return self.link.latest if self.link is not None else None
+
+    def transitions(self, maxsize: int = 256) -> EventStream:
+        """Async iterator over :class:`TransitionEvent` (use ``with``)."""
+        return self.bus.stream(TransitionEvent, maxsize=maxsize)
+
+    def events(self, *types: type, maxsize: int = 4096) -> EventStream:
+        """Async iterator over bus events of the given types (all if none)."""
+        return self.bus.stream(*types, maxsize=maxsize)
+
+    def robot_states(self, maxsize: int = 1024) -> StateSubscription:
+        """Async iterator over every 500 Hz :class:`RobotState` sample (use ``with``)."""
+        return self._link().subscribe(maxsize)
+
+    async def wait_for_state(
+        self,
+        *states: CellState,
+        timeout: float | None = None,  # noqa: ASYNC109
+    ) -> CellState:
+        """Wait until the machine is in one of ``states``; returns it."""
+        wanted = set(states)
+        try:
+            async with asyncio.timeout(timeout if timeout is not None else self.command_timeout):
+                while self.state not in wanted:
+                    await self.machine.wait_changed()
+        except TimeoutError:
+            raise RobotTimeoutError(
+                f"state {self.state.value!r} did not become one of "
+                f"{sorted(s.value for s in wanted)}"
+            ) from None
+        return self.state
+
+    # ------------------------------------------------------------- observation
+
+    def _on_sample(self, sample: RobotState) -> None:
+        self.bus.publish(StateEvent(sample))
+        self._observe(sample)
+
+    def _on_link_status(self, status: LinkStatus, reason: str) -> None:
+        if status is not LinkStatus.UP:
+            self._shutting_down = False
+            self._observe(None, reason)
+
+    def _on_control(self, ready: bool, reason: str) -> None:
+        if self.link is not None:
+            self._observe(self.link.latest, reason)
+
+    def _observe(self, sample: RobotState | None, detail: str = "") -> None:
+        moving = self._move_task is not None and not self._move_task.done()
+        target = observed_state(
+            sample,
+            control_ready=self.link is not None and self.link.control_ready,
+            moving=moving,
+            stopping=moving and self._stopping,
+            shutting_down=self._shutting_down,
+        )
+        if target is self._observed:
+            return
+        self._observed = target
+        if target is CellState.PROTECTIVE_STOP:
+            self._protective_since = time.monotonic()
+        if moving and target in _MOVE_ABORT_STATES:
+            error = _MOVE_ABORT_STATES[target](f"move aborted: robot went to {target.value}")
+            self._abort_move(error)
+        self.machine.sync(target, "observed", detail)
+
+    def _on_transition(self, event: TransitionEvent) -> None:
+        self.bus.publish(event)
+
+    # ------------------------------------------------------------- commands
+
+    @contextlib.asynccontextmanager
+    async def _command(self, name: str, **args: Any) -> AsyncIterator[dict[str, Any]]:
+        command_id = self.bus.next_command_id()
+        started = time.time()
+        self.bus.publish(CommandEvent(command_id, name, args, self._origin, started))
+        outcome: dict[str, Any] = {"result": None}
+        try:
+            yield outcome
+        except BaseException as exc:
+            self.bus.publish(
+                CommandEvent(
+                    command_id,
+                    name,
+                    args,
+                    self._origin,
+                    started,
+                    time.time(),
+                    "error",
+                    type(exc).__name__,
+                    str(exc),
+                )
+            )
+            raise
+        self.bus.publish(
+            CommandEvent(
+                command_id, name, args, self._origin, started, time.time(), "ok", None, None,
+                _jsonable(outcome["result"]),
+            )
+        )  # fmt: skip
+
+    def _link(self) -> LinkClient:
+        if self.link is None:
+            raise ConnectionLostError("the cell is not open (use `async with Cell(...)`)")
+        return self.link
+
+    def _sample(self) -> RobotState:
+        sample = self.robot_state
+        if sample is None:
+            raise ConnectionLostError("no robot state: the link is down")
+        return sample
+
+    async def _require_remote(self) -> None:
+        reply = await self._link().dashboard("is in remote control")
+        if reply.strip().lower() != "true":
+            raise NotInRemoteControlError(
+                "the teach pendant is in Local control: switch it to Remote Control"
+            )
+
+    async def _dashboard(self, command: str, expect: str) -> str:
+        """Send a dashboard command that needs Remote control; check the reply."""
+        await self._require_remote()
+        reply = await self._link().dashboard(command)
+        if any(marker in reply.lower() for marker in _LOCAL_CONTROL_MARKERS):
+            raise NotInRemoteControlError(f"{command!r} refused: {reply}")
+        if expect not in reply:
+            raise RobotCommandError(f"{command!r} failed: controller replied {reply!r}")
+        return reply
+
+    async def _await_effect(
+        self, command: str, wanted: set[CellState], within: float | None
+    ) -> CellState:
+        """Wait until the state is in ``wanted``; typed errors on safety stops or timeout."""
+        limit = within if within is not None else self.command_timeout
+        try:
+            async with asyncio.timeout(limit):
+                while True:
+                    state = self.state
+                    if state in wanted:
+                        return state
+                    error = _FAILURE_STATES.get(state)
+                    if error is not None:
+                        raise error(f"{command}(): the robot went to {state.value}")
+                    await self.machine.wait_changed()
+        except TimeoutError:
+            raise RobotTimeoutError(
+                f"{command}(): the robot did not reach "
+                f"{' or '.join(sorted(s.value for s in wanted))} within {limit:g} s "
+                f"(state {self.state.value})"
+            ) from None
+
+    async def power_on(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Power the arm on; returns when the robot mode is IDLE."""
+        async with self._command("power_on"):
+            state = self.machine.check("power_on")
+            if state is CellState.POWER_OFF:
+                await self._dashboard("power on", "Powering on")
+            await self._await_effect("power_on", {CellState.IDLE}, timeout)
+
+    async def brake_release(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Release the brakes; returns when the robot mode is RUNNING."""
+        async with self._command("brake_release"):
+            state = self.machine.check("brake_release")
+            if state is CellState.IDLE:
+                await self._dashboard("brake release", "Brake releasing")
+            await self._await_effect("brake_release", _running_states(), timeout)
+
+    async def power_off(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Power the arm off; returns when the robot mode is POWER_OFF."""
+        async with self._command("power_off"):
+            state = self.machine.check("power_off")
+            if state is not CellState.POWER_OFF:
+                self._control_wanted = False
+                await self._dashboard("power off", "Powering off")
+            await self._await_effect("power_off", {CellState.POWER_OFF}, timeout)
+
+    async def init(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Power on, release the brakes and start external control, as far as needed.
+
+        Idempotent: a cell already under external control returns at once.
+        """
+        async with self._command("init"):
+            self.machine.check("init")
+            if self.state in (CellState.POWER_OFF, CellState.POWERING_ON):
+                await self.power_on(timeout=timeout)
+            if self.state is CellState.IDLE:
+                await self.brake_release(timeout=timeout)
+            if self.state is not CellState.EXTERNAL_CONTROL_READY:
+                await self.start_external_control(timeout=timeout)
+
+    async def start_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Start the control program (script upload or URCap program, as configured).
+
+        Returns when the program is PLAYING and accepts commands.
+        """
+        async with self._command("start_external_control", mode=self.external_control):
+            state = self.machine.check("start_external_control")
+            if state is CellState.EXTERNAL_CONTROL_READY:
+                return
+            await self._require_remote()
+            limit = timeout if timeout is not None else self.command_timeout
+            self._control_wanted = True
+            await self._link().start_control(
+                self.external_control, self.config.robot.urcap_program, limit
+            )
+            await self._await_effect(
+                "start_external_control", {CellState.EXTERNAL_CONTROL_READY}, timeout
+            )
+
+    async def stop_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Stop the control program; returns when no program is playing."""
+        async with self._command("stop_external_control"):
+            self.machine.check("stop_external_control")
+            self._control_wanted = False
+            link = self._link()
+            if link.control_ready or self.state is CellState.EXTERNAL_CONTROL_READY:
+                await link.stop_control(self.external_control)
+            await self._await_effect("stop_external_control", {CellState.PROGRAM_STOPPED}, timeout)
+
+    async def unlock_protective_stop(
+        self,
+        wait: bool = False,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+    ) -> None:
+        """Unlock a protective stop and re-establish external control if it was on.
+
+        The controller refuses within 5 s of the stop: that raises
+        :class:`ProtectiveStopUnlockTooSoonError`, unless ``wait`` is true, when this
+        waits until the controller accepts.
+        """
+        async with self._command("unlock_protective_stop", wait=wait):
+            self.machine.check("unlock_protective_stop")
+            await self._require_remote()
+            limit = timeout if timeout is not None else self.command_timeout
+            deadline = time.monotonic() + limit + (PROTECTIVE_STOP_HOLD if wait else 0.0)
+            link = self._link()
+            while True:
+                reply = await link.dashboard("unlock protective stop")
+                if "releasing" in reply.lower():
+                    break
+                if "5s" not in reply and "cannot unlock" not in reply.lower():
+                    raise RobotCommandError(f"unlock protective stop failed: {reply!r}")
+                since = self._protective_since or time.monotonic()
+                remaining = max(0.0, PROTECTIVE_STOP_HOLD - (time.monotonic() - since))
+                if not wait:
+                    raise ProtectiveStopUnlockTooSoonError(remaining)
+                if time.monotonic() > deadline:
+                    raise RobotTimeoutError("the controller kept refusing to unlock")
+                await asyncio.sleep(min(max(remaining, 0.05), 0.25))
+            await self._await_effect(
+                "unlock_protective_stop",
+                {CellState.IDLE, CellState.POWER_OFF, *_running_states()},
+                timeout,
+            )
+            if self._control_wanted and self.state is CellState.PROGRAM_STOPPED:
+                await link.start_control(
+                    self.external_control, self.config.robot.urcap_program, limit
+                )
+                await self._await_effect(
+                    "unlock_protective_stop", {CellState.EXTERNAL_CONTROL_READY}, timeout
+                )
+
+    async def shutdown(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Shut down the robot and its controller; returns when the controller is gone."""
+        async with self._command("shutdown"):
+            self.machine.check("shutdown")
+            await self._dashboard("shutdown", "Shutting down")
+            self._control_wanted = False
+            self._shutting_down = True
+            self._observe(self.robot_state, "shutdown sent")
+            await self.wait_for_state(
+                CellState.DISCONNECTED, CellState.SHUTTING_DOWN, timeout=timeout
+            )
+            if self.state is CellState.SHUTTING_DOWN:
+                await self.wait_for_state(CellState.DISCONNECTED, timeout=timeout)
+
+    # ------------------------------------------------------------- queries
+
+    async def get_robot_mode(self) -> RobotMode:
+        """The robot mode (``RobotMode.RUNNING``, ``IDLE``, ``POWER_OFF``, ...)."""
+        async with self._command("get_robot_mode") as out:
+            self.machine.check("get_robot_mode")
+            out["result"] = mode = RobotMode(self._sample().robot_mode)
+            return mode
+
+    async def get_safety_status(self) -> SafetyMode:
+        """The safety mode (``SafetyMode.NORMAL``, ``PROTECTIVE_STOP``, ...)."""
+        async with self._command("get_safety_status") as out:
+            self.machine.check("get_safety_status")
+            out["result"] = mode = SafetyMode(self._sample().safety_mode)
+            return mode
+
+    async def get_program_state(self) -> ProgramStatus:
+        """The controller's program state and loaded program (dashboard ``programState``)."""
+        async with self._command("get_program_state") as out:
+            self.machine.check("get_program_state")
+            reply = await self._link().dashboard("programState")
+            word, _, program = reply.strip().partition(" ")
+            try:
+                state = ProgramState(word)
+            except ValueError:
+                raise RobotCommandError(f"unexpected programState reply {reply!r}") from None
+            out["result"] = status = ProgramStatus(state, program)
+            return status
+
+    async def is_in_remote_control(self) -> bool:
+        """True when the teach pendant is in Remote control."""
+        async with self._command("is_in_remote_control") as out:
+            self.machine.check("is_in_remote_control")
+            reply = await self._link().dashboard("is in remote control")
+            out["result"] = remote = reply.strip().lower() == "true"
+            return remote
+
+    async def get_current_joint_values(self) -> tuple[float, ...]:
+        """The six joint positions, rad."""
+        async with self._command("get_current_joint_values") as out:
+            self.machine.check("get_current_joint_values")
+            out["result"] = q = tuple(self._sample().actual_q)
+            return q
+
+    def _tcp_pose(self) -> Pose:
+        if self._kinematics is None:
+            from fxcell.kinematics import Kinematics
+
+            self._kinematics = Kinematics.ur3e(self.config.tool.tcp)
+        pose: Pose = self._kinematics.forward(self._sample().actual_q)
+        return pose
+
+    async def get_current_pose(self) -> tuple[float, ...]:
+        """The TCP pose: position (m) and quaternion ``(x, y, z, qx, qy, qz, qw)``."""
+        async with self._command("get_current_pose") as out:
+            self.machine.check("get_current_pose")
+            pose = self._tcp_pose()
+            out["result"] = result = (*map(float, pose.position), *pose.quaternion)
+            return result
+
+    async def get_current_rpy(self) -> tuple[float, float, float]:
+        """The TCP orientation as roll, pitch, yaw (rad), R = Rz(y)·Ry(p)·Rx(r)."""
+        async with self._command("get_current_rpy") as out:
+            self.machine.check("get_current_pose")
+            out["result"] = rpy = self._tcp_pose().rpy
+            return rpy
+
+    async def get_current_pose_rpy(self) -> tuple[float, ...]:
+        """The TCP pose as ``(x, y, z, roll, pitch, yaw)``."""
+        async with self._command("get_current_pose_rpy") as out:
+            self.machine.check("get_current_pose")
+            pose = self._tcp_pose()
+            out["result"] = result = (*map(float, pose.position), *pose.rpy)
+            return result
+
+    async def get_velocity(self) -> tuple[float, ...]:
+        """The six joint velocities, rad/s."""
+        async with self._command("get_velocity") as out:
+            self.machine.check("get_velocity")
+            out["result"] = qd = tuple(self._sample().actual_qd)
+            return qd
+
+    # ------------------------------------------------------------- moves
+
+    async def run_move(
+        self, name: str, args: Mapping[str, Any], body: Callable[[], Coroutine[Any, Any, T]]
+    ) -> T:
+        """Run ``body`` as the Cell's move task, guarded and cancellable.
+
+        For the move methods: only in ``running.external_control_ready``; one move at a
+        time; an observed safety stop, program stop or lost link cancels the task and
+        the caller gets the matching error; :meth:`stop` ends it with
+        :class:`MoveStoppedError`.
+        """
+        async with self._command(name, **args) as out:
+            if self._move_task is not None and not self._move_task.done():
+                raise MoveInProgressError(f"{name}(): another move is running")
+            self.machine.check("move")
+            self._move_error = None
+            self._stopping = False
+            task: asyncio.Task[T] = asyncio.create_task(body(), name=f"move {name}")
+            self._move_task = task
+            self._observe(self.robot_state, name)
+            try:
+                out["result"] = result = await asyncio.shield(task)
+                return result
+            except asyncio.CancelledError:
+                if not task.done():  # our caller was cancelled: stop the move too
+                    task.cancel()
+                    with contextlib.suppress(BaseException):
+                        await task
+                    raise
+                if self._move_error is not None:
+                    raise self._move_error from None
+                raise MoveStoppedError(f"{name}() was stopped") from None
+            except MoveStoppedError:
+                if self._move_error is not None:
+                    raise self._move_error from None
+                raise
+            finally:
+                if self._move_task is task:
+                    self._move_task = None
+                self._stopping = False
+                self._observe(self.robot_state, f"{name} ended")
+
+    def _abort_move(self, error: FxcellError) -> None:
+        task = self._move_task
+        if task is not None and not task.done():
+            if self._move_error is None:
+                self._move_error = error
+            task.cancel()
+
+    async def _cancel_move(self, error: FxcellError) -> None:
+        task = self._move_task
+        if task is None or task.done():
+            return
+        self._stopping = True
+        self._observe(self.robot_state, "stop")
+        self._abort_move(error)
+        with contextlib.suppress(BaseException):
+            await task
+
+    async def stop(self) -> bool:
+        """Stop the running move (it brakes to a stop); True if one was running."""
+        async with self._command("stop") as out:
+            self.machine.check("stop")
+            running = self._move_task is not None and not self._move_task.done()
+            await self._cancel_move(MoveStoppedError("stopped by stop()"))
+            out["result"] = running
+            return running
+
+
+def _running_states() -> set[CellState]:
+    return {s for s in CellState if s.is_running}
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, ProgramStatus):
+        return {"state": value.state.value, "program": value.program}
+    if isinstance(value, int | float | str | bool) or value is None:
+        return value
+    if isinstance(value, tuple | list):
+        return [_jsonable(v) for v in value]
+    return str(value)
+
+
+def _start_recorder(directory: Path, cell: Cell) -> Any:
+    try:
+        from fxcell.recorder import Recorder
+    except ImportError as exc:  # pragma: no cover - the recorder ships with fxcell
+        raise RecorderError(f"the MCAP recorder is not available: {exc}") from None
+    recorder = Recorder(directory, metadata={"host": str(cell.host)})
+    recorder.attach(cell.bus)
+    return recorder
