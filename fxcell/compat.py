@@ -1,0 +1,256 @@
+"""The seed library's ``fx_*`` functions, synchronous, on top of the async :class:`Cell`.
+
+For migrating the lab's existing scripts: every function keeps its seed name and
+returns what the thesis specifies (booleans for commands, values for queries). A
+failed command logs the reason and returns ``False``, as the seed did; use
+:class:`fxcell.Cell` for typed errors.
+
+The functions share one Cell, opened on first use from ``config/cell.yaml`` (no
+host there: the embedded simulator) and driven by an event loop in a background
+thread. :func:`fx_connect` chooses another host or configuration, :func:`fx_close`
+closes it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import atexit
+import logging
+import math
+import threading
+from collections.abc import Coroutine
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from fxcell.cell import Cell
+from fxcell.config import CellConfig
+from fxcell.errors import FxcellError
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+_lock = threading.RLock()
+_loop: asyncio.AbstractEventLoop | None = None
+_thread: threading.Thread | None = None
+_cell: Cell | None = None
+_velocity_factor = 1.0
+_acceleration_factor = 1.0
+
+
+def _ensure_loop() -> asyncio.AbstractEventLoop:
+    global _loop, _thread
+    with _lock:
+        if _loop is None or not _loop.is_running():
+            loop = asyncio.new_event_loop()
+            started = threading.Event()
+
+            def run() -> None:
+                asyncio.set_event_loop(loop)
+                loop.call_soon(started.set)
+                loop.run_forever()
+
+            _thread = threading.Thread(target=run, name="fxcell.compat loop", daemon=True)
+            _thread.start()
+            started.wait()
+            _loop = loop
+        return _loop
+
+
+def _run(coro: Coroutine[Any, Any, T]) -> T:
+    future: Future[T] = asyncio.run_coroutine_threadsafe(coro, _ensure_loop())
+    return future.result()
+
+
+def fx_connect(
+    host: str | None = None, config: str | Path | CellConfig | None = None, **kwargs: Any
+) -> bool:
+    """Open the shared Cell (closing any previous one); True when connected."""
+    global _cell
+    fx_close()
+    cfg = config if isinstance(config, CellConfig) else CellConfig.load(config)
+    cell = Cell(host, config=cfg, **kwargs)
+    try:
+        _run(cell.open())
+    except FxcellError as exc:
+        log.error("fx_connect failed: %s", exc)
+        return False
+    with _lock:
+        _cell = cell
+    return True
+
+
+def fx_close() -> None:
+    """Close the shared Cell (and the embedded simulator it started)."""
+    global _cell
+    with _lock:
+        cell, _cell = _cell, None
+    if cell is not None:
+        _run(cell.close())
+
+
+atexit.register(fx_close)
+
+
+def fx_cell() -> Cell:
+    """The shared Cell, opened on first use."""
+    with _lock:
+        if _cell is None and not fx_connect():
+            raise FxcellError("fx_connect() failed: see the log")
+        assert _cell is not None
+        return _cell
+
+
+def _ok(name: str, coro_factory: Any) -> bool:
+    try:
+        _run(coro_factory(fx_cell()))
+    except FxcellError as exc:
+        log.error("%s failed: %s", name, exc)
+        return False
+    return True
+
+
+# ----------------------------------------------------------------- general functions
+
+
+def fx_power_on() -> bool:
+    """Power the robot on; True once the robot mode is IDLE."""
+    return _ok("fx_power_on", lambda c: c.power_on())
+
+
+def fx_brake_release() -> bool:
+    """Release the brakes; True once the robot mode is RUNNING."""
+    return _ok("fx_brake_release", lambda c: c.brake_release())
+
+
+def fx_power_off() -> bool:
+    """Power the robot off; True once the robot mode is POWER_OFF."""
+    return _ok("fx_power_off", lambda c: c.power_off())
+
+
+def fx_get_robot_mode() -> str:
+    """The robot mode name, e.g. ``"RUNNING"`` (the seed stripped ``"Robotmode: "``)."""
+    return _run(fx_cell().get_robot_mode()).name
+
+
+def fx_start_external_control() -> bool:
+    """Start external control; True once the control program plays."""
+    return _ok("fx_start_external_control", lambda c: c.start_external_control())
+
+
+def fx_stop_external_control() -> bool:
+    """Stop the running program; True once it is stopped."""
+    return _ok("fx_stop_external_control", lambda c: c.stop_external_control())
+
+
+def fx_init() -> bool:
+    """Power on, release the brakes and start external control as needed."""
+    return _ok("fx_init", lambda c: c.init())
+
+
+def fx_is_in_remote_control() -> bool:
+    """True when the teach pendant is in Remote control."""
+    return _run(fx_cell().is_in_remote_control())
+
+
+def fx_shutdown() -> bool:
+    """Shut down the robot and its controller; True when the command was accepted."""
+    return _ok("fx_shutdown", lambda c: c.shutdown())
+
+
+def fx_unlock_protective_stop() -> bool:
+    """Unlock a protective stop (waiting out the controller's 5 s rule)."""
+    return _ok("fx_unlock_protective_stop", lambda c: c.unlock_protective_stop(wait=True))
+
+
+# ----------------------------------------------------------------- additional functions
+
+
+@dataclass(frozen=True)
+class ProgramStateReply:
+    """What the seed's ``GetProgramState`` service returned: ``state`` and ``program_name``."""
+
+    state: str
+    program_name: str
+
+
+def fx_get_program_state() -> ProgramStateReply:
+    """The program state (``"PLAYING"``/``"STOPPED"``/``"PAUSED"``) and program name."""
+    status = _run(fx_cell().get_program_state())
+    return ProgramStateReply(status.state.value, status.program)
+
+
+def fx_get_velocity() -> list[float]:
+    """The current joint velocities, rad/s (1x6)."""
+    return list(_run(fx_cell().get_velocity()))
+
+
+def fx_get_acceleration_scaling_factor() -> float:
+    """The default acceleration factor used by the move functions, in (0, 1]."""
+    return _acceleration_factor
+
+
+def fx_set_acceleration_factor(acceleration_factor: float) -> bool:
+    """Set the default acceleration factor; False (and unchanged) unless in (0, 1]."""
+    global _acceleration_factor
+    if not _valid_factor(acceleration_factor):
+        return False
+    _acceleration_factor = float(acceleration_factor)
+    return True
+
+
+def fx_get_velocity_scaling_factor() -> float:
+    """The default velocity factor used by the move functions, in (0, 1]."""
+    return _velocity_factor
+
+
+def fx_set_velocity_factor(velocity_factor: float) -> bool:
+    """Set the default velocity factor; False (and unchanged) unless in (0, 1]."""
+    global _velocity_factor
+    if not _valid_factor(velocity_factor):
+        return False
+    _velocity_factor = float(velocity_factor)
+    return True
+
+
+def fx_get_max_acceleration() -> list[float]:
+    """The configured maximum joint accelerations, rad/s² (1x6)."""
+    with _lock:
+        config = _cell.config if _cell is not None else CellConfig.load()
+    return list(config.limits.acceleration)
+
+
+def _valid_factor(value: Any) -> bool:
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return False
+    return math.isfinite(f) and 0.0 < f <= 1.0
+
+
+# ----------------------------------------------------------------- testing functions
+
+
+def fx_get_current_joint_values() -> list[float]:
+    """The current joint positions, rad (1x6)."""
+    return list(_run(fx_cell().get_current_joint_values()))
+
+
+def fx_get_current_pose() -> list[float]:
+    """The TCP pose: ``[x, y, z, qx, qy, qz, qw]`` (m, unit quaternion)."""
+    return list(_run(fx_cell().get_current_pose()))
+
+
+def fx_get_current_rpy() -> list[float]:
+    """The TCP orientation as ``[roll, pitch, yaw]`` (rad)."""
+    return list(_run(fx_cell().get_current_rpy()))
+
+
+def fx_get_current_pose_rpy() -> list[float]:
+    """The TCP pose as ``[x, y, z, roll, pitch, yaw]``."""
+    return list(_run(fx_cell().get_current_pose_rpy()))
+
+
+__all__ = [name for name in dir() if name.startswith("fx_")] + ["ProgramStateReply"]
