@@ -1,0 +1,409 @@
+"""``RemoteCell``: the Cell's await-style API over the network, against a running daemon.
+
+```python
+async with RemoteCell("http://127.0.0.1:8040", token) as cell:
+    await cell.init()
+    await cell.move_joint([0, -1.5708, 0, -1.5708, 0, 0])   # returns when the move ended
+    op = await cell.start("move_joint", target=[...])       # or run it as an operation
+    await op.cancel()                                        # = stop
+```
+
+Errors the daemon reports are raised as the same :mod:`fxcell.errors` classes the
+Cell raises (``InvalidStateError``, ``MoveStoppedError``, ...); refusals of the
+daemon itself are :class:`~fxcell.errors.NotAuthorizedError` and
+:class:`~fxcell.errors.ControlHeldError`. Cancelling a task that awaits a move
+cancels the move's operation, which stops the robot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import getpass
+import json
+import os
+import socket
+from collections.abc import AsyncIterator, Sequence
+from typing import Any
+
+import httpx
+
+from fxcell import errors
+from fxcell.protocol import RobotMode, SafetyMode
+
+DEFAULT_URL = "http://127.0.0.1:8040"
+CLIENT_HEADER = "X-Fxcell-Client"
+
+
+def default_client_name(program: str = "RemoteCell") -> str:
+    """``user@host (program, pid N)``: how the daemon names this client to others."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):
+        user = "unknown"
+    return f"{user}@{socket.gethostname()} ({program}, pid {os.getpid()})"
+
+
+def raise_error(body: Any, status: int) -> None:
+    """Raise the fxcell error a daemon error body describes."""
+    info = body.get("error") if isinstance(body, dict) else None
+    if not isinstance(info, dict):
+        raise errors.RemoteError(f"daemon answered HTTP {status}: {body!r}", status=status)
+    raise build_error(info, status)
+
+
+def build_error(info: dict[str, Any], status: int = 0) -> errors.FxcellError:
+    """The exception an error record ``{"type", "message", "detail"}`` stands for."""
+    name = str(info.get("type", "RemoteError"))
+    message = str(info.get("message", ""))
+    cls = getattr(errors, name, None)
+    if name == "OperationCancelledError":
+        cls = errors.MoveStoppedError
+    if not (isinstance(cls, type) and issubclass(cls, errors.FxcellError)):
+        return errors.RemoteError(f"{name}: {message}", status=status or 500)
+    exc = cls.__new__(cls)
+    Exception.__init__(exc, message)
+    for key, value in (info.get("detail") or {}).items():
+        with contextlib.suppress(AttributeError):
+            setattr(exc, key, tuple(value) if isinstance(value, list) else value)
+    if isinstance(exc, errors.RemoteError):
+        exc.status = status
+    return exc
+
+
+class RemoteOperation:
+    """A command running in the daemon: wait for it, cancel it (a move stops)."""
+
+    def __init__(self, cell: RemoteCell, record: dict[str, Any]) -> None:
+        self._cell = cell
+        self.record = record
+
+    @property
+    def id(self) -> str:
+        return str(self.record["id"])
+
+    @property
+    def status(self) -> str:
+        return str(self.record["status"])
+
+    @property
+    def done(self) -> bool:
+        return self.status != "running"
+
+    async def refresh(self) -> dict[str, Any]:
+        self.record = await self._cell._request("GET", f"/api/operations/{self.id}")
+        return self.record
+
+    async def wait(self) -> Any:
+        """Wait until the operation ends; its result, or its error raised.
+
+        Cancelling the waiting task (e.g. by ``asyncio.timeout``) cancels the operation:
+        a move brakes to a stop.
+        """
+        try:
+            while not self.done:
+                self.record = await self._cell._request(
+                    "POST", f"/api/operations/{self.id}/wait", params={"timeout": 20.0}
+                )
+        except asyncio.CancelledError:
+            with contextlib.suppress(errors.FxcellError, httpx.HTTPError):
+                await asyncio.shield(self.cancel())
+            raise
+        return self.result()
+
+    def result(self) -> Any:
+        if self.record.get("error"):
+            raise build_error(self.record["error"], int(self.record["error"].get("status", 0)))
+        return self.record.get("result")
+
+    async def cancel(self) -> dict[str, Any]:
+        """Cancel the operation and return its final record."""
+        self.record = await self._cell._request(
+            "POST", f"/api/operations/{self.id}/cancel", auth=True
+        )
+        return self.record
+
+
+class RemoteCell:
+    """The Cell's API against a daemon at ``url`` (``Authorization: Bearer token``)."""
+
+    def __init__(
+        self,
+        url: str = DEFAULT_URL,
+        token: str | None = None,
+        *,
+        name: str | None = None,
+        timeout: float = 30.0,
+    ) -> None:
+        self.url = url.rstrip("/")
+        self.token = token
+        self.name = name or default_client_name()
+        self._http = httpx.AsyncClient(
+            base_url=self.url,
+            timeout=httpx.Timeout(timeout, connect=5.0),
+            headers={CLIENT_HEADER: self.name},
+        )
+
+    async def __aenter__(self) -> RemoteCell:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def close(self, *, release: bool = True) -> None:
+        """Release control (if held) and close the connection."""
+        if release and self.token:
+            with contextlib.suppress(errors.FxcellError, httpx.HTTPError):
+                await self.release_control()
+        await self._http.aclose()
+
+    # ------------------------------------------------------------- transport
+
+    async def _request(
+        self,
+        method: str,
+        path: str,
+        *,
+        json_body: Any = None,
+        params: dict[str, Any] | None = None,
+        auth: bool = False,
+    ) -> Any:
+        headers = {}
+        if auth:
+            if not self.token:
+                raise errors.NotAuthorizedError(
+                    "no token: pass RemoteCell(url, token) or set FXCELL_TOKEN", status=401
+                )
+            headers["Authorization"] = f"Bearer {self.token}"
+        try:
+            response = await self._http.request(
+                method, path, json=json_body, params=params, headers=headers
+            )
+        except httpx.TransportError as exc:
+            raise errors.ConnectionLostError(
+                f"cannot reach the daemon at {self.url}: {exc}"
+            ) from exc
+        try:
+            body = response.json()
+        except ValueError:
+            body = response.text
+        if response.status_code >= 400:
+            raise_error(body, response.status_code)
+        return body
+
+    async def _query(self, name: str) -> Any:
+        return (await self._request("GET", f"/api/cell/{name}"))["result"]
+
+    async def start(self, name: str, **args: Any) -> RemoteOperation:
+        """Start command ``name`` as an operation and return at once."""
+        record = await self._request(
+            "POST",
+            f"/api/cell/{name}",
+            json_body=args or None,
+            params={"wait": "false"},
+            auth=True,
+        )
+        return RemoteOperation(self, record)
+
+    async def _command(self, name: str, **args: Any) -> Any:
+        op = await self.start(name, **args)
+        return await op.wait()
+
+    # ------------------------------------------------------------- daemon
+
+    async def snapshot(self) -> dict[str, Any]:
+        """The daemon's state snapshot (cell state, robot mode, joints, control, operations)."""
+        return await self._request("GET", "/api/state")  # type: ignore[no-any-return]
+
+    async def get_state(self) -> str:
+        """The state machine's current state (``cell.state`` of the Cell)."""
+        return str(await self._query("state"))
+
+    async def info(self) -> dict[str, Any]:
+        return await self._request("GET", "/api/info")  # type: ignore[no-any-return]
+
+    async def statechart(self) -> dict[str, Any]:
+        return await self._request("GET", "/api/statechart")  # type: ignore[no-any-return]
+
+    async def operations(self, *, running: bool = False) -> list[dict[str, Any]]:
+        return await self._request(  # type: ignore[no-any-return]
+            "GET", "/api/operations", params={"running": str(running).lower()}
+        )
+
+    async def operation(self, op_id: str) -> RemoteOperation:
+        return RemoteOperation(self, await self._request("GET", f"/api/operations/{op_id}"))
+
+    async def control(self) -> dict[str, Any] | None:
+        return await self._request("GET", "/api/control")  # type: ignore[no-any-return]
+
+    async def take_control(self, *, force: bool = False) -> dict[str, Any]:
+        return await self._request(  # type: ignore[no-any-return]
+            "POST", "/api/control", json_body={"force": force}, auth=True
+        )
+
+    async def release_control(self) -> bool:
+        body = await self._request("DELETE", "/api/control", auth=True)
+        return bool(body["released"])
+
+    async def stream(
+        self, *, rate: float = 50.0, topics: Sequence[str] | None = None
+    ) -> AsyncIterator[dict[str, Any]]:
+        """Messages of the daemon's WebSocket stream (``hello`` first, then as they come)."""
+        import websockets
+
+        ws_url = self.url.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
+        query = f"rate={rate}&client={self.name}"
+        if topics:
+            query += "&topics=" + ",".join(topics)
+        async with websockets.connect(f"{ws_url}/api/stream?{query}", max_size=None) as ws:
+            async for text in ws:
+                yield json.loads(text)
+
+    # ------------------------------------------------------------- general functions
+
+    async def power_on(self) -> None:
+        await self._command("power_on")
+
+    async def brake_release(self) -> None:
+        await self._command("brake_release")
+
+    async def power_off(self) -> None:
+        await self._command("power_off")
+
+    async def init(self) -> None:
+        await self._command("init")
+
+    async def shutdown(self) -> None:
+        await self._command("shutdown")
+
+    async def start_external_control(self) -> None:
+        await self._command("start_external_control")
+
+    async def stop_external_control(self) -> None:
+        await self._command("stop_external_control")
+
+    async def unlock_protective_stop(self, *, wait: bool = False) -> None:
+        await self._command("unlock_protective_stop", wait=wait)
+
+    async def get_robot_mode(self) -> RobotMode:
+        return RobotMode[await self._query("get_robot_mode")]
+
+    async def is_in_remote_control(self) -> bool:
+        return bool(await self._query("is_in_remote_control"))
+
+    async def get_program_state(self) -> Any:
+        """A :class:`fxcell.cell.ProgramStatus` (program state and loaded program)."""
+        from fxcell.cell import ProgramStatus
+        from fxcell.protocol import ProgramState
+
+        status = await self._query("get_program_state")
+        return ProgramStatus(ProgramState(status["state"]), status["program"])
+
+    async def get_safety_status(self) -> SafetyMode:
+        return SafetyMode[await self._query("get_safety_status")]
+
+    async def get_current_joint_values(self) -> list[float]:
+        return list(await self._query("get_current_joint_values"))
+
+    async def get_current_pose(self) -> Any:
+        return await self._query("get_current_pose")
+
+    async def get_current_rpy(self) -> list[float]:
+        return list(await self._query("get_current_rpy"))
+
+    async def get_current_pose_rpy(self) -> list[float]:
+        return list(await self._query("get_current_pose_rpy"))
+
+    async def get_velocity(self) -> list[float]:
+        return list(await self._query("get_velocity"))
+
+    # ------------------------------------------------------------- kinematic functions
+
+    async def move_joint(
+        self,
+        target: Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> Any:
+        return await self._move("move_joint", velocity_factor, acceleration_factor, target=target)
+
+    async def go_home(
+        self, velocity_factor: float | None = None, acceleration_factor: float | None = None
+    ) -> Any:
+        return await self._move("go_home", velocity_factor, acceleration_factor)
+
+    async def move_pose(
+        self,
+        target: Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        linear: bool = False,
+    ) -> Any:
+        return await self._move(
+            "move_pose", velocity_factor, acceleration_factor, target=target, linear=linear
+        )
+
+    async def move_distance(
+        self,
+        distance: Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> Any:
+        return await self._move(
+            "move_distance", velocity_factor, acceleration_factor, distance=distance
+        )
+
+    async def move_relative(
+        self,
+        start_pose: Sequence[float],
+        target_pose: Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> Any:
+        return await self._move(
+            "move_relative",
+            velocity_factor,
+            acceleration_factor,
+            start_pose=start_pose,
+            target_pose=target_pose,
+        )
+
+    async def _move(self, name: str, vf: float | None, af: float | None, **args: Any) -> Any:
+        args = {k: _plain(v) for k, v in args.items()}
+        if vf is not None:
+            args["velocity_factor"] = vf
+        if af is not None:
+            args["acceleration_factor"] = af
+        return await self._command(name, **args)
+
+    async def stop(self) -> None:
+        """Stop any motion (needs the token, not control)."""
+        await self._request("POST", "/api/cell/stop", auth=True)
+
+    async def set_velocity_factor(self, value: float) -> None:
+        await self._command("set_velocity_factor", value=value)
+
+    async def set_acceleration_factor(self, value: float) -> None:
+        await self._command("set_acceleration_factor", value=value)
+
+    async def get_velocity_factor(self) -> float:
+        return float(await self._query("get_velocity_factor"))
+
+    async def get_acceleration_factor(self) -> float:
+        return float(await self._query("get_acceleration_factor"))
+
+    async def get_max_acceleration(self) -> Any:
+        return await self._query("get_max_acceleration")
+
+
+def _plain(value: Any) -> Any:
+    """Sequences (numpy arrays, tuples) as JSON lists; a Pose as [x, y, z, qx, qy, qz, qw]."""
+    if hasattr(value, "position") and hasattr(value, "quaternion"):
+        return [float(v) for v in (*value.position, *value.quaternion)]
+    tolist = getattr(value, "tolist", None)
+    if callable(tolist):
+        return tolist()
+    if isinstance(value, tuple):
+        return list(value)
+    return value

@@ -1,0 +1,382 @@
+"""The daemon's HTTP + WebSocket API (FastAPI): every Cell function, operations, control.
+
+Layout of the API (the OpenAPI document is at ``/api/openapi.json``, browsable at
+``/api/docs``):
+
+- ``GET /api/state``: one snapshot (cell state, robot mode, joints, TCP, control, operations)
+  from the newest 500 Hz sample — no robot round trip.
+- ``GET /api/cell/<query>``: the Cell's general and kinematic queries (``get_robot_mode``, ...).
+- ``POST /api/cell/<command>``: commands that change the robot. They need the bearer token
+  and control; each runs as an operation. General commands answer when done (``wait``
+  defaults to true), moves answer at once with 202 and the operation (``wait=true`` to block).
+- ``/api/operations``: list, get, wait on and cancel operations (cancel = stop).
+- ``/api/control``: who controls the cell; take (``force`` to take over) and release it.
+- ``/api/statechart``: the robot-mode state machine as data, with the states each command needs.
+- ``WS /api/stream``: robot state at a chosen rate, transitions, commands, operations.
+"""
+
+# No "from __future__ import annotations": FastAPI reads the request models of the
+# routes built in loops from their evaluated annotations.
+import asyncio
+import contextlib
+import json
+from collections.abc import Awaitable, Callable
+from importlib import resources
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, FastAPI, Query, Request, WebSocket, WebSocketDisconnect
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel
+
+from fxcell._version import __version__
+from fxcell.daemon import models
+from fxcell.daemon.encoding import error_info, jsonable
+from fxcell.daemon.service import CellService
+from fxcell.daemon.stream import parse_rate, parse_topics
+from fxcell.errors import FxcellError, NotAuthorizedError, RemoteError
+
+CLIENT_HEADER = "X-Fxcell-Client"
+STATIC = resources.files("fxcell.daemon") / "static"
+
+# name -> (request model or None, summary)
+GENERAL_COMMANDS: dict[str, tuple[type[BaseModel] | None, str]] = {
+    "power_on": (None, "Power the arm on; returns when the robot mode is IDLE."),
+    "brake_release": (None, "Release the brakes; returns when the robot mode is RUNNING."),
+    "power_off": (None, "Power the arm off; returns when the robot mode is POWER_OFF."),
+    "init": (None, "Power on, release the brakes and start external control (idempotent)."),
+    "shutdown": (None, "Shut the controller down."),
+    "start_external_control": (None, "Start the external control program."),
+    "stop_external_control": (None, "Stop the external control program."),
+    "unlock_protective_stop": (
+        models.UnlockRequest,
+        "Unlock a protective stop (5 s after it) and restore external control.",
+    ),
+    "set_velocity_factor": (models.FactorRequest, "Default velocity factor of moves, in (0, 1]."),
+    "set_acceleration_factor": (
+        models.FactorRequest,
+        "Default acceleration factor of moves, in (0, 1].",
+    ),
+}
+MOVE_COMMANDS: dict[str, tuple[type[models.Factors], str]] = {
+    "move_joint": (models.MoveJointRequest, "Move to joint positions (rad)."),
+    "go_home": (models.GoHomeRequest, "Move to the configured home joints."),
+    "move_pose": (models.MovePoseRequest, "Move the TCP to a pose (base frame)."),
+    "move_distance": (models.MoveDistanceRequest, "Move the TCP along a straight line (m)."),
+    "move_relative": (
+        models.MoveRelativeRequest,
+        "Move by the displacement between two poses.",
+    ),
+}
+QUERIES: dict[str, str] = {
+    "get_robot_mode": "Robot mode (POWER_OFF, IDLE, RUNNING, ...).",
+    "get_safety_status": "Safety status (NORMAL, PROTECTIVE_STOP, ...).",
+    "get_program_state": "Program state of the controller.",
+    "is_in_remote_control": "Whether the pendant is in Remote control.",
+    "get_current_joint_values": "Actual joint positions (rad).",
+    "get_current_pose": "TCP pose: position (m) and quaternion (x, y, z, w).",
+    "get_current_rpy": "TCP orientation as roll, pitch, yaw (rad).",
+    "get_current_pose_rpy": "TCP pose as x, y, z, roll, pitch, yaw.",
+    "get_velocity": "Actual joint velocities (rad/s).",
+    "get_velocity_factor": "Default velocity factor of moves.",
+    "get_acceleration_factor": "Default acceleration factor of moves.",
+    "get_max_acceleration": "Joint acceleration limits (rad/s²).",
+}
+
+
+def _validation_message(exc: RequestValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err.get("loc", ()) if p != "body") or "body"
+        parts.append(f"{loc}: {err.get('msg', 'invalid')}")
+    return "invalid request: " + "; ".join(parts)
+
+
+def create_app(service: CellService) -> FastAPI:
+    """The FastAPI application serving ``service`` (API, stream and the operator page)."""
+    app = FastAPI(
+        title="fxcell daemon",
+        version=__version__,
+        description=(
+            "Network API of the fxcell cell daemon. Commands that change the robot need "
+            "`Authorization: Bearer <token>` and control of the cell; name your client with "
+            f"the `{CLIENT_HEADER}` header."
+        ),
+        openapi_url="/api/openapi.json",
+        docs_url="/api/docs",
+        redoc_url=None,
+    )
+    app.state.service = service
+
+    @app.exception_handler(FxcellError)
+    async def _fxcell_error(request: Request, exc: FxcellError) -> JSONResponse:
+        info = error_info(exc)
+        headers = {"WWW-Authenticate": "Bearer"} if info["status"] == 401 else None
+        return JSONResponse({"error": info}, status_code=info["status"], headers=headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        message = _validation_message(exc)
+        body = {"type": "InvalidArgumentError", "message": message, "status": 422, "detail": {}}
+        return JSONResponse({"error": body}, status_code=422)
+
+    def client_of(request: Request) -> str:
+        name = request.headers.get(CLIENT_HEADER, "").strip()
+        if name:
+            return name[:200]
+        host = request.client.host if request.client else "unknown"
+        return f"anonymous@{host}"
+
+    def authorize(request: Request) -> str:
+        if not service.authorized(request.headers.get("Authorization")):
+            raise NotAuthorizedError(
+                "this command changes the robot: send 'Authorization: Bearer <token>' "
+                "(the token is in the daemon's token file, or FXCELL_TOKEN)",
+                status=401,
+            )
+        return client_of(request)
+
+    api = APIRouter(prefix="/api")
+    op_responses: dict[int | str, dict[str, Any]] = {
+        401: {"model": models.ErrorResponse},
+        409: {"model": models.ErrorResponse},
+        422: {"model": models.ErrorResponse},
+        503: {"model": models.ErrorResponse},
+    }
+
+    async def respond(
+        request: Request,
+        name: str,
+        args: dict[str, Any],
+        call: Callable[[], Awaitable[Any]],
+        *,
+        wait: bool,
+        needs_control: bool = True,
+    ) -> JSONResponse:
+        client = authorize(request)
+        op = service.start_operation(name, args, client, call, needs_control=needs_control)
+        if not wait:
+            return JSONResponse(op.describe(), status_code=202)
+        # The operation is its own task: a client that hangs up does not cancel it.
+        await asyncio.shield(op.done.wait())
+        if op.error is not None and op.status == "failed":
+            return JSONResponse(
+                {"error": op.error, "operation": op.describe()}, status_code=op.error["status"]
+            )
+        return JSONResponse(op.describe())
+
+    # ------------------------------------------------------------- state and info
+
+    @api.get("/state", summary="Snapshot of the cell (no robot round trip)")
+    async def get_state() -> dict[str, Any]:
+        return service.snapshot()
+
+    @api.get("/info", summary="Daemon version, robot and configuration")
+    async def get_info() -> dict[str, Any]:
+        return service.info()
+
+    @api.get("/statechart", summary="The robot-mode state machine as data")
+    async def get_statechart() -> dict[str, Any]:
+        return service.statechart_data()
+
+    # ------------------------------------------------------------- queries
+
+    def add_query(name: str, summary: str) -> None:
+        async def query() -> dict[str, Any]:
+            return {"result": jsonable(await service.query(name))}
+
+        api.add_api_route(
+            f"/cell/{name}",
+            query,
+            methods=["GET"],
+            summary=summary,
+            name=name,
+            responses={409: {"model": models.ErrorResponse}, 503: {"model": models.ErrorResponse}},
+        )
+
+    for name, summary in QUERIES.items():
+        add_query(name, summary)
+
+    @api.get("/cell/state", summary="The state machine's current state")
+    async def cell_state() -> dict[str, Any]:
+        return {"result": service.machine_state()}
+
+    # ------------------------------------------------------------- commands
+
+    def add_general(name: str, model: type[BaseModel] | None, summary: str) -> None:
+        if model is None:
+
+            async def command(
+                request: Request, wait: bool = Query(True, description="answer when done")
+            ) -> JSONResponse:
+                return await respond(request, name, {}, lambda: service.call(name), wait=wait)
+
+        else:
+
+            async def command(  # type: ignore[misc]
+                request: Request,
+                body: Annotated[model, Body()],  # type: ignore[valid-type]
+                wait: bool = Query(True, description="answer when done"),
+            ) -> JSONResponse:
+                args = body.model_dump()  # type: ignore[attr-defined]
+                return await respond(
+                    request, name, args, lambda: service.call(name, **args), wait=wait
+                )
+
+        api.add_api_route(
+            f"/cell/{name}",
+            command,
+            methods=["POST"],
+            summary=summary,
+            name=name,
+            responses=op_responses,
+            response_model=models.OperationModel,
+        )
+
+    for name, (model, summary) in GENERAL_COMMANDS.items():
+        add_general(name, model, summary)
+
+    def add_move(name: str, model: type[models.Factors], summary: str) -> None:
+        async def move(
+            request: Request,
+            body: Annotated[model, Body()],  # type: ignore[valid-type]
+            wait: bool = Query(False, description="answer when the move has ended"),
+        ) -> JSONResponse:
+            args = body.model_dump(exclude_none=True)  # type: ignore[attr-defined]
+            return await respond(request, name, args, lambda: service.call(name, **args), wait=wait)
+
+        api.add_api_route(
+            f"/cell/{name}",
+            move,
+            methods=["POST"],
+            summary=summary + " Runs as an operation (202).",
+            name=name,
+            status_code=202,
+            responses=op_responses,
+            response_model=models.OperationModel,
+        )
+
+    for name, (model, summary) in MOVE_COMMANDS.items():
+        add_move(name, model, summary)
+
+    @api.post(
+        "/cell/stop",
+        summary="Stop any motion (needs the token, not control)",
+        response_model=models.OperationModel,
+        responses=op_responses,
+    )
+    async def stop(request: Request) -> JSONResponse:
+        return await respond(
+            request, "stop", {}, lambda: service.call("stop"), wait=True, needs_control=False
+        )
+
+    # ------------------------------------------------------------- operations
+
+    @api.get("/operations", summary="Running and recent operations")
+    async def list_operations(running: bool = False) -> list[dict[str, Any]]:
+        return [op.describe() for op in service.operations.all(running_only=running)]
+
+    def find(op_id: str) -> Any:
+        op = service.operations.get(op_id)
+        if op is None:
+            raise RemoteError(f"no operation {op_id!r}", status=404)
+        return op
+
+    @api.get("/operations/{op_id}", response_model=models.OperationModel)
+    async def get_operation(op_id: str) -> dict[str, Any]:
+        return find(op_id).describe()  # type: ignore[no-any-return]
+
+    @api.post(
+        "/operations/{op_id}/wait",
+        summary="Wait until the operation ends (at most timeout s)",
+        response_model=models.OperationModel,
+    )
+    async def wait_operation(
+        op_id: str, within: float = Query(30.0, gt=0, le=3600, alias="timeout")
+    ) -> dict[str, Any]:
+        op = find(op_id)
+        await asyncio.shield(service.operations.wait(op, within))
+        return op.describe()  # type: ignore[no-any-return]
+
+    @api.post(
+        "/operations/{op_id}/cancel",
+        summary="Cancel the operation (a move brakes to a stop)",
+        response_model=models.OperationModel,
+        responses=op_responses,
+    )
+    async def cancel_operation(request: Request, op_id: str) -> dict[str, Any]:
+        authorize(request)
+        op = find(op_id)
+        await asyncio.shield(service.cancel_operation(op))
+        return op.describe()  # type: ignore[no-any-return]
+
+    # ------------------------------------------------------------- control
+
+    @api.get("/control", summary="Who controls the cell (null: nobody)")
+    async def get_control() -> dict[str, Any] | None:
+        return service.control.describe()
+
+    @api.post("/control", summary="Take control (force: take over)", responses=op_responses)
+    async def take_control(
+        request: Request, body: models.ControlRequest | None = None
+    ) -> dict[str, Any] | None:
+        client = authorize(request)
+        service.control.acquire(client, force=body.force if body else False)
+        return service.control.describe()
+
+    @api.delete("/control", summary="Release control", responses=op_responses)
+    async def release_control(request: Request) -> dict[str, Any]:
+        client = authorize(request)
+        return {"released": service.control.release(client)}
+
+    # ------------------------------------------------------------- stream
+
+    @api.websocket("/stream")
+    async def stream(websocket: WebSocket) -> None:
+        params = websocket.query_params
+        try:
+            rate = parse_rate(params.get("rate"))
+            topics = parse_topics(params.get("topics"))
+        except ValueError as exc:
+            await websocket.close(code=1008, reason=str(exc)[:120])
+            return
+        await websocket.accept()
+        watcher = service.hub.add(topics, rate, params.get("client"))
+        await websocket.send_text(json.dumps({"type": "hello", "snapshot": service.snapshot()}))
+
+        async def receive() -> None:
+            while True:
+                text = await websocket.receive_text()
+                with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
+                    watcher.set_rate(parse_rate(json.loads(text)["rate"]))
+
+        async def send() -> None:
+            while True:
+                for text in await watcher.next_batch():
+                    await websocket.send_text(text)
+                if watcher.overflowed:
+                    await websocket.close(code=1011, reason="watcher too slow: backlog overflow")
+                    return
+
+        tasks = [asyncio.create_task(receive()), asyncio.create_task(send())]
+        try:
+            await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            service.hub.remove(watcher)
+            for task in tasks:
+                task.cancel()
+            for task in tasks:
+                with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, Exception):
+                    await task
+
+    app.include_router(api)
+
+    # ------------------------------------------------------------- operator page
+
+    @app.get("/", include_in_schema=False)
+    async def index() -> Response:
+        return FileResponse(str(STATIC / "index.html"), headers={"Cache-Control": "no-cache"})
+
+    app.mount("/static", StaticFiles(directory=str(STATIC)), name="static")
+    return app

@@ -1,0 +1,259 @@
+"""Operator commands: ``fxcell daemon`` and the commands that drive a running daemon.
+
+``fxcell status``, ``fxcell power-on``, ``fxcell move-joint 0 -1.57 0 -1.57 0 0``, ...
+talk to the daemon at ``--url`` (default ``$FXCELL_URL`` or the configured address)
+with the token from ``--token``, ``$FXCELL_TOKEN`` or the daemon's token file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import sys
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+GENERAL = (
+    ("power-on", "power the arm on (returns when IDLE)"),
+    ("brake-release", "release the brakes (returns when RUNNING)"),
+    ("power-off", "power the arm off"),
+    ("init", "power on, release the brakes, start external control"),
+    ("shutdown", "shut the controller down"),
+    ("start-external-control", "start the external control program"),
+    ("stop-external-control", "stop the external control program"),
+)
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "daemon",
+        help="run the cell daemon (HTTP API, WebSocket stream, operator page)",
+        description="Run the cell daemon. With no robot host configured it starts the "
+        "embedded simulator. Stops cleanly on SIGTERM/SIGINT.",
+    )
+    p.add_argument("--config", help="cell configuration file (default: config/cell.yaml)")
+    p.add_argument("--host", help="address to listen on (default: daemon.host, 127.0.0.1)")
+    p.add_argument("--port", type=int, help="port to listen on (default: daemon.port, 8040)")
+    p.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="allow a non-loopback --host (every robot-changing command still needs the token)",
+    )
+    p.add_argument(
+        "--robot", metavar="HOST", help="robot controller address (overrides robot.host)"
+    )
+    p.add_argument("--no-record", action="store_true", help="do not record MCAP logs")
+    p.add_argument("--log-dir", help="MCAP directory (default: recorder.directory, logs/)")
+    p.set_defaults(func=_run_daemon)
+
+    def client_parser(name: str, help_text: str) -> argparse.ArgumentParser:
+        c: argparse.ArgumentParser = sub.add_parser(name, help=help_text, description=help_text)
+        c.add_argument("--url", help="daemon URL (default: $FXCELL_URL or the configured address)")
+        c.add_argument("--token", help="bearer token (default: $FXCELL_TOKEN or the token file)")
+        c.add_argument("--config", help="cell configuration file (for the default URL and token)")
+        c.add_argument("--json", action="store_true", help="print JSON")
+        return c
+
+    client_parser("status", "show the state of the cell served by a running daemon").set_defaults(
+        func=_client(_status)
+    )
+    for name, text in GENERAL:
+        client_parser(name, text).set_defaults(func=_client(_general(name.replace("-", "_"))))
+    c = client_parser("unlock-protective-stop", "unlock a protective stop")
+    c.add_argument("--wait", action="store_true", help="wait out the controller's 5 s rule")
+    c.set_defaults(func=_client(_unlock))
+
+    def move_parser(name: str, text: str) -> argparse.ArgumentParser:
+        m = client_parser(name, text)
+        m.add_argument("-v", "--velocity-factor", type=float)
+        m.add_argument("-a", "--acceleration-factor", type=float)
+        m.add_argument(
+            "--no-wait", action="store_true", help="print the operation id and return at once"
+        )
+        return m
+
+    m = move_parser("move-joint", "move to joint positions (6 values, rad)")
+    m.add_argument("target", nargs=6, type=float, metavar="Q")
+    m.set_defaults(func=_client(_move("move_joint", lambda a: {"target": a.target})))
+    m = move_parser("go-home", "move to the home joints")
+    m.set_defaults(func=_client(_move("go_home", lambda a: {})))
+    m = move_parser(
+        "move-pose", "move the TCP to x y z roll pitch yaw (or x y z qx qy qz qw), m and rad"
+    )
+    m.add_argument("target", nargs="+", type=float, metavar="V")
+    m.add_argument("--linear", action="store_true", help="straight TCP line")
+    m.set_defaults(
+        func=_client(_move("move_pose", lambda a: {"target": a.target, "linear": a.linear}))
+    )
+    m = move_parser("move-distance", "move the TCP by dx dy dz (m) along the base axes")
+    m.add_argument("distance", nargs=3, type=float, metavar="D")
+    m.set_defaults(func=_client(_move("move_distance", lambda a: {"distance": a.distance})))
+
+    client_parser("stop", "stop any motion").set_defaults(func=_client(_stop))
+    c = client_parser("operations", "list running and recent operations")
+    c.set_defaults(func=_client(_operations))
+    c = client_parser("cancel", "cancel an operation (a move stops)")
+    c.add_argument("operation", help="operation id (op-N)")
+    c.set_defaults(func=_client(_cancel))
+    c = client_parser("token", "print the daemon's token (or the operator page URL with it)")
+    c.add_argument("--page-url", action="store_true", help="print the page URL that logs in")
+    c.set_defaults(func=_token)
+
+
+# ----------------------------------------------------------------- daemon
+
+
+def _run_daemon(args: argparse.Namespace) -> int:
+    from fxcell.config import CellConfig
+    from fxcell.daemon.server import serve
+
+    config = CellConfig.load(args.config)
+    data = config.model_dump()
+    for key, value in (("host", args.host), ("port", args.port)):
+        if value is not None:
+            data["daemon"][key] = value
+    if args.allow_remote:
+        data["daemon"]["allow_remote"] = True
+    if args.robot:
+        data["robot"]["host"] = args.robot
+    config = CellConfig.from_dict(data, source="command line")
+    record = None if args.no_record else Path(args.log_dir or config.recorder.directory)
+    return serve(config, record=record)
+
+
+# ----------------------------------------------------------------- client commands
+
+ClientCommand = Callable[[Any, argparse.Namespace], Awaitable[Any]]
+
+
+def _client(command: ClientCommand) -> Callable[[argparse.Namespace], int]:
+    def run(args: argparse.Namespace) -> int:
+        from fxcell.client import RemoteCell, default_client_name
+
+        url, token = _endpoint(args)
+
+        async def main() -> Any:
+            name = default_client_name("fxcell CLI").rsplit(", pid", 1)[0] + ")"
+            async with RemoteCell(url, token, name=name) as cell:
+                return await command(cell, args)
+
+        result = asyncio.run(main())
+        if result is not None:
+            if args.json or not isinstance(result, str):
+                print(json.dumps(result, indent=2, default=str))
+            else:
+                print(result)
+        return 0
+
+    return run
+
+
+def _endpoint(args: argparse.Namespace) -> tuple[str, str | None]:
+    from fxcell.config import CellConfig
+    from fxcell.daemon.auth import read_token
+
+    config = CellConfig.load(getattr(args, "config", None))
+    url = getattr(args, "url", None) or os.environ.get("FXCELL_URL")
+    if not url:
+        host = config.daemon.host
+        host = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+        url = f"http://{host}:{config.daemon.port}"
+    token = getattr(args, "token", None) or read_token(config.daemon.token_file)
+    return url, token
+
+
+async def _status(cell: Any, args: argparse.Namespace) -> Any:
+    snap = await cell.snapshot()
+    if args.json:
+        return snap
+    robot = snap.get("robot") or {}
+    control = snap.get("control")
+    lines = [
+        f"state:        {snap['state']}",
+        f"robot mode:   {robot.get('robot_mode', '-')}",
+        f"safety mode:  {robot.get('safety_mode', '-')}",
+        f"program:      {robot.get('runtime_state', '-')}",
+        "joints (rad): " + " ".join(f"{v:+.4f}" for v in robot.get("q", [])),
+        "tcp:          " + " ".join(f"{v:+.4f}" for v in robot.get("tcp", [])),
+        f"control:      {control['client'] if control else 'free'}",
+        f"allowed:      {', '.join(snap.get('allowed', []))}",
+    ]
+    for op in snap.get("operations", []):
+        lines.append(f"running:      {op['id']} {op['name']} ({op['client']})")
+    if snap.get("cell_error"):
+        lines.append(f"cell error:   {snap['cell_error']}")
+    return "\n".join(lines)
+
+
+def _general(name: str) -> ClientCommand:
+    async def command(cell: Any, args: argparse.Namespace) -> Any:
+        await getattr(cell, name)()
+        return f"{name}: done (state {await cell.get_state()})"
+
+    return command
+
+
+async def _unlock(cell: Any, args: argparse.Namespace) -> Any:
+    await cell.unlock_protective_stop(wait=args.wait)
+    return f"unlock_protective_stop: done (state {await cell.get_state()})"
+
+
+def _move(name: str, build: Callable[[argparse.Namespace], dict[str, Any]]) -> ClientCommand:
+    async def command(cell: Any, args: argparse.Namespace) -> Any:
+        body = build(args)
+        for key in ("velocity_factor", "acceleration_factor"):
+            if getattr(args, key) is not None:
+                body[key] = getattr(args, key)
+        op = await cell.start(name, **body)
+        if args.no_wait:
+            return op.id
+        try:
+            return await op.wait()
+        except KeyboardInterrupt:
+            await op.cancel()
+            raise
+
+    return command
+
+
+async def _stop(cell: Any, args: argparse.Namespace) -> Any:
+    await cell.stop()
+    return "stopped"
+
+
+async def _operations(cell: Any, args: argparse.Namespace) -> Any:
+    ops = await cell.operations()
+    if args.json:
+        return ops
+    return (
+        "\n".join(f"{op['id']:<8} {op['status']:<10} {op['name']:<24} {op['client']}" for op in ops)
+        or "no operations"
+    )
+
+
+async def _cancel(cell: Any, args: argparse.Namespace) -> Any:
+    op = await cell.operation(args.operation)
+    return await op.cancel()
+
+
+def _token(args: argparse.Namespace) -> int:
+    from fxcell.config import CellConfig
+    from fxcell.daemon.auth import read_token
+
+    config = CellConfig.load(args.config)
+    token = read_token(config.daemon.token_file)
+    if token is None:
+        print(
+            f"fxcell: error: no token yet ({config.daemon.token_file}); start the daemon once",
+            file=sys.stderr,
+        )
+        return 1
+    if args.page_url:
+        url, _ = _endpoint(args)
+        print(f"{url}/#token={token}")
+    else:
+        print(token)
+    return 0

@@ -1,0 +1,231 @@
+"""Running the daemon: the Cell under supervision, the HTTP server, signals and systemd.
+
+:func:`serve` runs until SIGTERM or SIGINT. Then it cancels every operation (a move
+brakes to a stop), closes the Cell (which finishes the MCAP file and stops the
+embedded simulator) and stops the HTTP server, all within :data:`SHUTDOWN_BUDGET`
+seconds, and returns 0. The Cell is (re)opened with backoff whenever opening it
+fails or it dies; the HTTP API keeps serving meanwhile (state ``disconnected``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import logging
+import signal
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import uvicorn
+
+from fxcell.config import CellConfig
+from fxcell.daemon.app import create_app
+from fxcell.daemon.auth import MIN_REMOTE_TOKEN_LENGTH, load_or_create_token
+from fxcell.daemon.notify import Notifier
+from fxcell.daemon.service import CellService
+from fxcell.errors import ConfigError, FxcellError
+
+log = logging.getLogger(__name__)
+
+SHUTDOWN_BUDGET = 2.5  # s; the issue allows 3 s from the signal to the exit
+BACKOFF_START = 0.5
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_bind(host: str, allow_remote: bool, token: str) -> None:
+    """Refuse a non-loopback address unless allowed explicitly (and the token is strong)."""
+    if is_loopback(host):
+        return
+    if not allow_remote:
+        raise ConfigError(
+            f"daemon.host: {host} is not a loopback address; binding to it exposes the robot "
+            "to the network: pass --allow-remote (daemon.allow_remote: true) to do it"
+        )
+    if len(token) < MIN_REMOTE_TOKEN_LENGTH:
+        raise ConfigError(
+            f"daemon.host: a non-loopback address needs a token of at least "
+            f"{MIN_REMOTE_TOKEN_LENGTH} characters"
+        )
+
+
+class _Server(uvicorn.Server):
+    """uvicorn without its own signal handling: the daemon owns SIGTERM/SIGINT."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Any:
+        yield
+
+
+class Daemon:
+    """The daemon's parts and their life cycle (use :func:`serve` to run one)."""
+
+    def __init__(
+        self,
+        config: CellConfig,
+        *,
+        record: Path | None,
+        open_cell: Callable[[CellConfig, Path | None], Any] | None = None,
+    ) -> None:
+        self.config = config
+        self.record = record
+        self._open_cell = open_cell or default_open_cell
+        self.token = load_or_create_token(config.daemon.token_file)
+        check_bind(config.daemon.host, config.daemon.allow_remote, self.token)
+        self.service = CellService(config, self.token)
+        self.app = create_app(self.service)
+        self.notifier = Notifier()
+        self.stopping = asyncio.Event()
+        self._cell: Any = None
+
+    async def run(self) -> int:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self._on_signal, sig)
+        server = _Server(
+            uvicorn.Config(
+                self.app,
+                host=self.config.daemon.host,
+                port=self.config.daemon.port,
+                log_level="warning",
+                lifespan="off",
+                ws="websockets-sansio",
+                ws_ping_interval=None,
+                timeout_graceful_shutdown=1,
+            )
+        )
+        sock = self._bind()
+        server_task = asyncio.create_task(server.serve(sockets=[sock]), name="fxcell http")
+        supervisor = asyncio.create_task(self._supervise(), name="fxcell cell supervisor")
+        watchdog = asyncio.create_task(self._watchdog(), name="fxcell watchdog")
+        try:
+            while not server.started:
+                if server_task.done():
+                    server_task.result()
+                    raise FxcellError("the HTTP server stopped while starting")
+                await asyncio.sleep(0.01)
+            url = f"http://{self.config.daemon.host}:{sock.getsockname()[1]}/"
+            log.warning("fxcell daemon serving %s (robot: %s)", url, self.service.robot_description)
+            print(f"fxcell daemon: serving {url}", flush=True)
+            self.notifier.ready(f"serving {url}")
+            await self.stopping.wait()
+        finally:
+            deadline = time.monotonic() + SHUTDOWN_BUDGET
+            self.notifier.stopping()
+            await self._shutdown(deadline)
+            server.should_exit = True
+            with contextlib.suppress(TimeoutError, asyncio.CancelledError):
+                await asyncio.wait_for(server_task, max(0.1, deadline - time.monotonic()))
+            server.force_exit = True
+            for task in (supervisor, watchdog, server_task):
+                task.cancel()
+            await asyncio.gather(supervisor, watchdog, server_task, return_exceptions=True)
+            sock.close()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
+        return 0
+
+    def _bind(self) -> socket.socket:
+        host, port = self.config.daemon.host, self.config.daemon.port
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError as exc:
+            sock.close()
+            raise ConfigError(f"daemon: cannot listen on {host}:{port}: {exc.strerror}") from None
+        sock.listen(128)
+        sock.setblocking(False)
+        return sock
+
+    def _on_signal(self, sig: int) -> None:
+        log.warning("received %s: stopping", signal.Signals(sig).name)
+        self.stopping.set()
+
+    async def _shutdown(self, deadline: float) -> None:
+        """Stop motion, then close the Cell (finishing the MCAP file)."""
+        await self.service.operations.cancel_all(within=max(0.1, deadline - time.monotonic()))
+        cell, self._cell = self._cell, None
+        self.service.detach("the daemon is stopping")
+        if cell is not None:
+            try:
+                await asyncio.wait_for(cell.close(), max(0.1, deadline - time.monotonic()))
+            except TimeoutError:
+                log.error("closing the cell took longer than the shutdown budget")
+            except FxcellError as exc:
+                log.error("closing the cell failed: %s", exc)
+
+    async def _supervise(self) -> None:
+        """Open the Cell, serve it, and reopen it with backoff when it fails or dies."""
+        backoff = BACKOFF_START
+        while not self.stopping.is_set():
+            started = time.monotonic()
+            try:
+                cell = self._open_cell(self.config, self.record)
+                self._cell = cell
+                await cell.open()
+                self.service.attach(cell)
+                self.notifier.status(f"cell open: {self.service.robot_description}")
+                # The Cell reconnects its robot link itself; it is reopened only if
+                # opening it fails (robot unreachable at start, simulator failed).
+                await self.stopping.wait()
+                return
+            except Exception as exc:  # whatever failed, keep serving and retry
+                log.error("cell: %s; reopening in %.1f s", exc, backoff)
+                self.service.detach(str(exc))
+                self.notifier.status(f"cell down: {exc}")
+                await self._discard_cell()
+                if time.monotonic() - started > 30:
+                    backoff = BACKOFF_START
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self.stopping.wait(), backoff)
+                backoff = min(backoff * 2, self.config.robot.reconnect_backoff_max)
+
+    async def _discard_cell(self) -> None:
+        cell, self._cell = self._cell, None
+        if cell is not None:
+            with contextlib.suppress(FxcellError, TimeoutError):
+                await asyncio.wait_for(cell.close(), 2.0)
+
+    async def _watchdog(self) -> None:
+        interval = self.notifier.watchdog_interval
+        if interval is None:
+            return
+        while True:
+            self.notifier.watchdog()
+            await asyncio.sleep(interval)
+
+
+def default_open_cell(config: CellConfig, record: Path | None) -> Any:
+    from fxcell.cell import Cell
+    from fxcell.events import Origin
+
+    return Cell(config=config, record=record, origin=Origin.DAEMON)
+
+
+def serve(
+    config: CellConfig,
+    *,
+    record: Path | None,
+) -> int:
+    """Run the daemon until SIGTERM/SIGINT; the exit code (0 after a clean stop)."""
+    daemon_holder: list[Daemon] = []
+
+    async def main() -> int:
+        daemon = Daemon(config, record=record)
+        daemon_holder.append(daemon)
+        return await daemon.run()
+
+    return asyncio.run(main())

@@ -1,0 +1,204 @@
+"""What the daemon's API serves: the Cell (when up), control, operations and the stream.
+
+:class:`CellService` is the seam between the HTTP layer and the Cell: the HTTP app
+only talks to it, and the supervisor (:mod:`fxcell.daemon.server`) plugs in a new
+Cell whenever it (re)connects. It keeps its own event bus subscription so that the
+state snapshot and the stream survive a Cell restart.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Awaitable, Callable, Mapping
+from typing import Any
+
+from fxcell._version import __version__
+from fxcell.config import CellConfig
+from fxcell.daemon.auth import check_bearer
+from fxcell.daemon.control import ControlLock, Holder
+from fxcell.daemon.encoding import jsonable
+from fxcell.daemon.operations import Operation, OperationRegistry
+from fxcell.daemon.stream import StreamHub
+from fxcell.errors import ConnectionLostError
+from fxcell.events import Event, EventBus, StateEvent, TransitionEvent
+from fxcell.protocol import RobotState
+from fxcell.statemachine import CellState, Statechart, load_statechart
+
+# Commands whose names differ between the API and the statechart's guard table.
+_GUARD_NAME = {
+    "move_joint": "move",
+    "go_home": "move",
+    "move_pose": "move",
+    "move_distance": "move",
+    "move_relative": "move",
+}
+
+
+class CellService:
+    """The daemon's view of the cell, shared by every request and watcher."""
+
+    def __init__(
+        self,
+        config: CellConfig,
+        token: str,
+        *,
+        control_lease: float = 30.0,
+        statechart: Statechart | None = None,
+    ) -> None:
+        self.config = config
+        self._token = token
+        self.cell: Any = None
+        self.bus: EventBus | None = None
+        self._unsubscribe: Callable[[], None] | None = None
+        self.latest: RobotState | None = None
+        self._state: str = CellState.DISCONNECTED.value
+        self.robot_description = config.robot.host or "embedded simulator"
+        self.cell_error: str | None = None
+        self.started = time.time()
+        self.statechart = statechart or load_statechart()
+        self.hub = StreamHub(self.machine_state)
+        self.operations = OperationRegistry(on_change=self._operation_changed)
+        self.control = ControlLock(
+            control_lease, keeps_alive=self._keeps_alive, on_change=self._control_changed
+        )
+
+    # ------------------------------------------------------------- the cell
+
+    def attach(self, cell: Any) -> None:
+        """Serve ``cell`` (its event bus feeds the snapshot and the stream)."""
+        self.detach()
+        self.cell = cell
+        self.cell_error = None
+        self.bus = cell.bus
+        self._unsubscribe = cell.bus.subscribe(self._on_event)
+        self._state = str(cell.state)
+
+    def detach(self, reason: str | None = None) -> None:
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+        self._unsubscribe = None
+        self.cell = None
+        self.bus = None
+        self.latest = None
+        self._state = CellState.DISCONNECTED.value
+        if reason:
+            self.cell_error = reason
+
+    def require_cell(self) -> Any:
+        if self.cell is None:
+            why = f": {self.cell_error}" if self.cell_error else ""
+            raise ConnectionLostError(f"the cell is not connected{why}")
+        return self.cell
+
+    def _on_event(self, event: Event) -> None:
+        if isinstance(event, StateEvent):
+            self.latest = event.sample
+        elif isinstance(event, TransitionEvent):
+            self._state = event.dest
+        self.hub.on_event(event)
+
+    def machine_state(self) -> str:
+        return self._state
+
+    # ------------------------------------------------------------- commands
+
+    def authorized(self, header: str | None) -> bool:
+        return check_bearer(header, self._token)
+
+    def start_operation(
+        self,
+        name: str,
+        args: Mapping[str, Any],
+        client: str,
+        call: Callable[[], Awaitable[Any]],
+        *,
+        needs_control: bool = True,
+    ) -> Operation:
+        if needs_control:
+            self.control.acquire(client)
+        self.require_cell()
+        return self.operations.start(name, args, client, call())
+
+    async def call(self, name: str, **kwargs: Any) -> Any:
+        cell = self.require_cell()
+        return await getattr(cell, name)(**kwargs)
+
+    async def query(self, name: str) -> Any:
+        cell = self.require_cell()
+        return await getattr(cell, name)()
+
+    async def cancel_operation(self, op: Operation) -> None:
+        await self.operations.cancel(op)
+
+    def allowed_commands(self, state: str | None = None) -> list[str]:
+        """Commands the statechart admits in ``state`` (default: the current one)."""
+        state = state or self._state
+        return [c for c in self.statechart.commands if state in self._allowed_states(c)]
+
+    def _allowed_states(self, command: str) -> list[str]:
+        return [s.value for s in self.statechart.allowed(_GUARD_NAME.get(command, command))]
+
+    # ------------------------------------------------------------- views
+
+    def snapshot(self) -> dict[str, Any]:
+        sample = self.latest
+        robot: dict[str, Any] | None = None
+        if sample is not None:
+            robot = {
+                "t": sample.timestamp,
+                "robot_mode": sample.robot_mode.name,
+                "safety_mode": sample.safety_mode.name,
+                "runtime_state": sample.runtime_state.name,
+                "q": list(sample.actual_q),
+                "qd": list(sample.actual_qd),
+                "tcp": list(sample.actual_tcp_pose),
+                "speed_scaling": sample.speed_scaling,
+            }
+        return {
+            "state": self._state,
+            "connected": self.cell is not None,
+            "cell_error": self.cell_error,
+            "robot": robot,
+            "allowed": self.allowed_commands(),
+            "control": self.control.describe(),
+            "operations": [op.describe() for op in self.operations.running()],
+            "watchers": self.hub.watchers,
+            "time": time.time(),
+        }
+
+    def info(self) -> dict[str, Any]:
+        cfg = self.config
+        return {
+            "version": __version__,
+            "robot": self.robot_description,
+            "simulated": cfg.robot.host is None,
+            "started": self.started,
+            "home": list(cfg.home),
+            "tcp": list(cfg.tool.tcp),
+            "limits": jsonable(cfg.limits),
+            "scene": jsonable(cfg.scene.objects),
+            "recorder": jsonable(cfg.recorder),
+        }
+
+    def statechart_data(self) -> dict[str, Any]:
+        chart = self.statechart
+        return {
+            "name": chart.name,
+            "title": chart.title,
+            "initial": chart.initial,
+            "states": chart.states,
+            "transitions": chart.transitions,
+            "commands": {c: self._allowed_states(c) for c in chart.commands},
+            "current": self._state,
+        }
+
+    # ------------------------------------------------------------- notifications
+
+    def _keeps_alive(self, client: str) -> bool:
+        return self.hub.watches(client) or bool(self.operations.running(client))
+
+    def _operation_changed(self, op: Operation) -> None:
+        self.hub.broadcast({"type": "operation", **op.describe()})
+
+    def _control_changed(self, holder: Holder | None) -> None:
+        self.hub.broadcast({"type": "control", "holder": self.control.describe()})

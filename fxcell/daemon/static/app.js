@@ -1,0 +1,525 @@
+// fxcell operator page: plain JavaScript, no build step, no external resources.
+"use strict";
+
+const $ = (sel) => document.querySelector(sel);
+const $$ = (sel) => Array.from(document.querySelectorAll(sel));
+
+const page = {
+  info: null, chart: null, state: "disconnected", robot: null, targetQ: null,
+  control: null, ops: new Map(), ws: null, wsRetry: 500,
+  client: sessionStorage.getItem("fxcell-client") ||
+    `web page ${Math.random().toString(16).slice(2, 8)} (${navigator.platform || "browser"})`,
+  azimuth: -0.9, elevation: 0.45,
+};
+sessionStorage.setItem("fxcell-client", page.client);
+
+// A token in the URL fragment (#token=...) is stored and removed from the address bar.
+(function takeTokenFromUrl() {
+  const m = location.hash.match(/token=([^&]+)/);
+  if (m) {
+    localStorage.setItem("fxcell-token", decodeURIComponent(m[1]));
+    history.replaceState(null, "", location.pathname + location.search);
+  }
+  $("#token").value = localStorage.getItem("fxcell-token") || "";
+  $("#token").addEventListener("change", (e) => localStorage.setItem("fxcell-token", e.target.value.trim()));
+})();
+
+// ------------------------------------------------------------------ event log
+
+function log(text, kind = "") {
+  const li = document.createElement("li");
+  const t = new Date().toLocaleTimeString();
+  li.textContent = `${t}  ${text}`;
+  if (kind) li.className = kind;
+  const ol = $("#log");
+  ol.prepend(li);
+  while (ol.children.length > 300) ol.lastChild.remove();
+}
+
+// ------------------------------------------------------------------ HTTP
+
+async function api(method, path, body) {
+  const headers = { "X-Fxcell-Client": page.client };
+  const token = localStorage.getItem("fxcell-token");
+  if (token) headers["Authorization"] = `Bearer ${token}`;
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  const res = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  let data = null;
+  try { data = await res.json(); } catch (e) { data = null; }
+  if (!res.ok) {
+    const err = (data && data.error) || { type: `HTTP ${res.status}`, message: res.statusText };
+    const e = new Error(err.message); e.type = err.type; e.status = res.status;
+    throw e;
+  }
+  return data;
+}
+
+async function command(name, body, opts = {}) {
+  if (!localStorage.getItem("fxcell-token")) {
+    log(`${name}: enter the daemon's token first (fxcell token)`, "error");
+    $("#token").focus();
+    return null;
+  }
+  const wait = opts.wait === undefined ? "" : `?wait=${opts.wait}`;
+  try {
+    const op = await api("POST", `/api/cell/${name}${wait}`, body);
+    if (op && op.id) updateOperation(op);
+    return op;
+  } catch (e) {
+    log(`${name} refused: ${e.type}: ${e.message}`, "error");
+    if (opts.errorBox) opts.errorBox.textContent = e.message;
+    return null;
+  }
+}
+
+// ------------------------------------------------------------------ status display
+
+const JOINTS = ["base", "shoulder", "elbow", "wrist 1", "wrist 2", "wrist 3"];
+const TCP = ["x (m)", "y (m)", "z (m)", "rx (rad)", "ry (rad)", "rz (rad)"];
+(function buildTables() {
+  $("#joints tbody").innerHTML = JOINTS.map((n, i) =>
+    `<tr><td>${n}</td><td id="q${i}">–</td><td id="qd${i}">–</td><td id="v${i}">–</td></tr>`).join("");
+  $("#tcp tbody").innerHTML = TCP.map((n, i) => `<tr><td>${n}</td><td id="p${i}">–</td></tr>`).join("");
+})();
+
+function stateClass(s) {
+  if (s.includes("external_control_ready")) return "ready";
+  if (s.includes("moving") || s.includes("stopping")) return "moving";
+  if (/stop|fault|emergency/.test(s)) return "alarm";
+  if (/disconnected|power_off|booting|shutting/.test(s)) return "off";
+  return "";
+}
+
+function showState(state) {
+  if (!state || state === page.state && page.chart && page.renderedState === state) return;
+  page.state = state;
+  const el = $("#cell-state");
+  el.textContent = state;
+  el.className = "big-state " + stateClass(state);
+  el.dataset.state = state;
+  updateButtons();
+  renderStatechart();
+}
+
+function showRobot(r) {
+  page.robot = r;
+  if (!r) return;
+  $("#robot-mode").textContent = r.robot_mode;
+  $("#safety-mode").textContent = r.safety_mode;
+  $("#runtime-state").textContent = r.runtime_state;
+  $("#speed-scaling").textContent = (r.speed_scaling ?? 1).toFixed(2);
+  r.q.forEach((v, i) => {
+    $(`#q${i}`).textContent = v.toFixed(4);
+    $(`#qd${i}`).textContent = (v * 180 / Math.PI).toFixed(2);
+    $(`#v${i}`).textContent = (r.qd ? r.qd[i] : 0).toFixed(3);
+  });
+  r.tcp.forEach((v, i) => { $(`#p${i}`).textContent = v.toFixed(i < 3 ? 5 : 4); });
+  requestDraw();
+}
+
+function showControl(holder) {
+  page.control = holder;
+  const el = $("#control");
+  if (!holder) { el.textContent = "control: free"; return; }
+  const mine = holder.client === page.client;
+  el.textContent = mine ? "control: this page" : `controlled by ${holder.client}`;
+  $("#take-control").disabled = mine;
+}
+
+function allowed(cmd) {
+  if (!page.chart) return false;
+  const guard = page.chart.commands[cmd];
+  return guard ? guard.includes(page.state) : true;
+}
+
+function updateButtons() {
+  for (const b of $$("button[data-command]")) {
+    b.disabled = !allowed(b.dataset.move ? "move" : b.dataset.command);
+  }
+  for (const b of $$("form.move button[type=submit]")) b.disabled = !allowed("move");
+}
+
+function updateOperation(op) {
+  page.ops.set(op.id, op);
+  const ids = Array.from(page.ops.keys());
+  for (const id of ids.slice(0, Math.max(0, ids.length - 8))) page.ops.delete(id);
+  const ul = $("#operations");
+  ul.innerHTML = "";
+  for (const o of Array.from(page.ops.values()).reverse()) {
+    const li = document.createElement("li");
+    li.dataset.op = o.id;
+    li.dataset.status = o.status;
+    li.innerHTML = `<span class="st-${o.status}">${o.status}</span> <b>${o.name}</b> <span class="muted">${o.id}</span>`;
+    if (o.status === "running") {
+      const b = document.createElement("button");
+      b.textContent = "cancel"; b.className = "link";
+      b.onclick = () => api("POST", `/api/operations/${o.id}/cancel`).then(updateOperation)
+        .catch((e) => log(`cancel ${o.id}: ${e.message}`, "error"));
+      li.append(b);
+    } else if (o.error) {
+      li.title = o.error.message;
+    }
+    ul.append(li);
+  }
+}
+
+// ------------------------------------------------------------------ WebSocket stream
+
+function connect() {
+  const proto = location.protocol === "https:" ? "wss" : "ws";
+  const ws = new WebSocket(`${proto}://${location.host}/api/stream?rate=50&client=${encodeURIComponent(page.client)}`);
+  page.ws = ws;
+  ws.onopen = () => { page.wsRetry = 500; $("#link").textContent = "live"; $("#link").className = "pill ok"; };
+  ws.onclose = () => {
+    $("#link").textContent = "offline"; $("#link").className = "pill bad";
+    setTimeout(connect, page.wsRetry);
+    page.wsRetry = Math.min(page.wsRetry * 2, 5000);
+  };
+  ws.onmessage = (msg) => onMessage(JSON.parse(msg.data));
+}
+
+function onMessage(m) {
+  switch (m.type) {
+    case "hello":
+      showControl(m.snapshot.control);
+      showState(m.snapshot.state);
+      showRobot(m.snapshot.robot);
+      m.snapshot.operations.forEach(updateOperation);
+      log(`connected to the daemon (state ${m.snapshot.state})`);
+      break;
+    case "state":
+      showState(m.state);
+      page.targetQ = m.target_q;
+      showRobot(m);
+      break;
+    case "transition":
+      showState(m.dest);
+      log(`${m.source} → ${m.dest}  (${m.trigger}, ${m.cause}${m.detail ? ": " + m.detail : ""})`, "transition");
+      break;
+    case "command":
+      if (m.outcome === "error") log(`${m.name}: ${m.error_type}: ${m.error_message}`, "error");
+      else if (m.outcome === "ok") log(`${m.name} done (${m.origin})`);
+      else log(`${m.name} started (${m.origin})`);
+      break;
+    case "operation":
+      updateOperation(m);
+      if (m.status === "failed") log(`${m.id} ${m.name} failed: ${m.error.message}`, "error");
+      else if (m.status === "cancelled") log(`${m.id} ${m.name} cancelled`, "warn");
+      break;
+    case "control":
+      showControl(m.holder);
+      log(m.holder ? `control taken by ${m.holder.client}` : "control released");
+      break;
+    case "log":
+      log(`${m.name}: ${m.message}`, m.level >= 40 ? "error" : "warn");
+      break;
+  }
+}
+
+// ------------------------------------------------------------------ commands and forms
+
+for (const b of $$("button[data-command]")) {
+  if (b.closest("form")) continue;
+  b.addEventListener("click", async () => {
+    if (b.dataset.confirm && !confirm(b.dataset.confirm)) return;
+    const body = b.dataset.body ? JSON.parse(b.dataset.body) : undefined;
+    log(`${b.dataset.command} requested`);
+    await command(b.dataset.command, body);
+  });
+}
+$("#form-joint button[data-command=go_home]").addEventListener("click", () => command("go_home", factors()));
+$("#stop").addEventListener("click", async () => {
+  log("STOP requested", "warn");
+  await command("stop", undefined);
+});
+$("#take-control").addEventListener("click", async () => {
+  try { showControl(await api("POST", "/api/control", { force: true })); }
+  catch (e) { log(`take control: ${e.message}`, "error"); }
+});
+
+function factors() {
+  const f = {};
+  for (const [id, key] of [["#vf", "velocity_factor"], ["#af", "acceleration_factor"]]) {
+    const v = Number($(id).value);
+    if (!(v > 0 && v <= 1)) throw new Error(`${key.replace("_", " ")} must be in (0, 1]`);
+    f[key] = v;
+  }
+  return f;
+}
+
+function numbers(form, names) {
+  return names.map((n) => {
+    const input = form.elements[n];
+    const v = Number(input.value);
+    if (input.value === "" || !Number.isFinite(v)) throw new Error(`${n}: enter a number`);
+    if (!input.checkValidity()) throw new Error(`${n}: ${input.validationMessage}`);
+    return v;
+  });
+}
+
+function validateJoints(q) {
+  const lim = page.info && page.info.limits;
+  if (!lim) return;
+  q.forEach((v, i) => {
+    if (v < lim.position_min[i] || v > lim.position_max[i])
+      throw new Error(`${JOINTS[i]}: ${v} rad is outside [${lim.position_min[i].toFixed(3)}, ${lim.position_max[i].toFixed(3)}]`);
+  });
+}
+
+const FORMS = {
+  "form-joint": (f) => { const q = numbers(f, ["q0", "q1", "q2", "q3", "q4", "q5"]); validateJoints(q); return { target: q }; },
+  "form-pose": (f) => ({ target: numbers(f, ["x", "y", "z", "roll", "pitch", "yaw"]), linear: f.elements.linear.checked }),
+  "form-distance": (f) => {
+    const d = numbers(f, ["dx", "dy", "dz"]);
+    if (d.every((v) => v === 0)) throw new Error("the distance is zero");
+    return { distance: d };
+  },
+};
+for (const form of $$("form.move")) {
+  form.addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const box = form.querySelector(".error");
+    box.textContent = "";
+    let body;
+    try { body = { ...FORMS[form.id](form), ...factors() }; }
+    catch (err) { box.textContent = err.message; return; }
+    log(`${form.dataset.command} requested`);
+    await command(form.dataset.command, body, { errorBox: box });
+  });
+}
+$("#copy-joints").addEventListener("click", () => {
+  if (!page.robot) return;
+  page.robot.q.forEach((v, i) => { $("#form-joint").elements[`q${i}`].value = v.toFixed(4); });
+});
+$("#copy-pose").addEventListener("click", async () => {
+  try {
+    const r = (await api("GET", "/api/cell/get_current_pose_rpy")).result;
+    ["x", "y", "z", "roll", "pitch", "yaw"].forEach((n, i) => { $("#form-pose").elements[n].value = Number(r[i]).toFixed(i < 3 ? 4 : 4); });
+  } catch (e) { log(`current pose: ${e.message}`, "error"); }
+});
+
+// ------------------------------------------------------------------ arm view (UR3e, DH)
+
+const DH = { d: [0.15185, 0, 0, 0.13105, 0.08535, 0.0921], a: [0, -0.24355, -0.2132, 0, 0, 0],
+  alpha: [Math.PI / 2, 0, 0, Math.PI / 2, -Math.PI / 2, 0] };
+
+function matMul(A, B) {
+  const C = new Array(16).fill(0);
+  for (let r = 0; r < 4; r++) for (let c = 0; c < 4; c++)
+    for (let k = 0; k < 4; k++) C[r * 4 + c] += A[r * 4 + k] * B[k * 4 + c];
+  return C;
+}
+function dh(theta, d, a, alpha) {
+  const ct = Math.cos(theta), st = Math.sin(theta), ca = Math.cos(alpha), sa = Math.sin(alpha);
+  return [ct, -st * ca, st * sa, a * ct, st, ct * ca, -ct * sa, a * st, 0, sa, ca, d, 0, 0, 0, 1];
+}
+function rotvec(rx, ry, rz) {
+  const th = Math.hypot(rx, ry, rz);
+  if (th < 1e-12) return [1, 0, 0, 0, 1, 0, 0, 0, 1];
+  const [x, y, z] = [rx / th, ry / th, rz / th], c = Math.cos(th), s = Math.sin(th), C = 1 - c;
+  return [c + x * x * C, x * y * C - z * s, x * z * C + y * s, y * x * C + z * s, c + y * y * C, y * z * C - x * s,
+    z * x * C - y * s, z * y * C + x * s, c + z * z * C];
+}
+const P = (T) => [T[3], T[7], T[11]];
+
+// Points along the arm: joint origins with the link offsets between them, then the TCP.
+function armPoints(q) {
+  let T = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
+  const pts = [P(T)];
+  for (let i = 0; i < 6; i++) {
+    const Tz = matMul(T, dh(q[i], DH.d[i], 0, 0));
+    pts.push(P(Tz));
+    T = matMul(T, dh(q[i], DH.d[i], DH.a[i], DH.alpha[i]));
+    pts.push(P(T));
+  }
+  const tcp = (page.info && page.info.tcp) || [0, 0, 0, 0, 0, 0];
+  const R = rotvec(tcp[3], tcp[4], tcp[5]);
+  const Tt = [R[0], R[1], R[2], tcp[0], R[3], R[4], R[5], tcp[1], R[6], R[7], R[8], tcp[2], 0, 0, 0, 1];
+  pts.push(P(matMul(T, Tt)));
+  return pts;
+}
+
+let drawPending = false;
+function requestDraw() {
+  if (drawPending) return;
+  drawPending = true;
+  requestAnimationFrame(() => { drawPending = false; drawArm(); });
+}
+
+function drawArm() {
+  const cv = $("#arm"), g = cv.getContext("2d");
+  const W = cv.width, H = cv.height, s = 520;
+  const ca = Math.cos(page.azimuth), sa = Math.sin(page.azimuth), ce = Math.cos(page.elevation), se = Math.sin(page.elevation);
+  const project = ([x, y, z]) => {
+    const u = ca * x - sa * y, v = sa * x + ca * y;   // rotate about z
+    return [W / 2 + s * u, H * 0.72 - s * (ce * z - se * v)];
+  };
+  g.clearRect(0, 0, W, H);
+  g.fillStyle = "#fbfcfe"; g.fillRect(0, 0, W, H);
+  // floor grid (0.1 m)
+  g.strokeStyle = "#e1e6ec"; g.lineWidth = 1;
+  for (let i = -5; i <= 5; i++) {
+    for (const [a, b] of [[[i / 10, -0.5, 0], [i / 10, 0.5, 0]], [[-0.5, i / 10, 0], [0.5, i / 10, 0]]]) {
+      const [x1, y1] = project(a), [x2, y2] = project(b);
+      g.beginPath(); g.moveTo(x1, y1); g.lineTo(x2, y2); g.stroke();
+    }
+  }
+  // scene boxes (wireframe)
+  for (const o of (page.info && page.info.scene) || []) drawBox(g, project, o);
+  // base axes
+  const axes = [[[0.15, 0, 0], "#d1242f"], [[0, 0.15, 0], "#1a7f37"], [[0, 0, 0.15], "#1f6feb"]];
+  for (const [p, col] of axes) {
+    const [x0, y0] = project([0, 0, 0]), [x1, y1] = project(p);
+    g.strokeStyle = col; g.lineWidth = 2; g.beginPath(); g.moveTo(x0, y0); g.lineTo(x1, y1); g.stroke();
+  }
+  if (!page.robot) {
+    g.fillStyle = "#6b7785"; g.font = "16px system-ui"; g.fillText("no robot state", 20, 30);
+    return;
+  }
+  const moving = page.state.includes("moving") || page.state.includes("stopping");
+  if (moving && page.targetQ) drawChain(g, project, armPoints(page.targetQ), "rgba(31,111,235,0.25)", 8);
+  drawChain(g, project, armPoints(page.robot.q), "#3d5a80", 12);
+}
+
+function drawChain(g, project, pts, colour, width) {
+  const xy = pts.map(project);
+  g.lineCap = "round"; g.lineJoin = "round";
+  g.strokeStyle = colour; g.lineWidth = width;
+  g.beginPath(); xy.slice(0, -1).forEach(([x, y], i) => (i ? g.lineTo(x, y) : g.moveTo(x, y))); g.stroke();
+  g.strokeStyle = "#f08c00"; g.lineWidth = width * 0.5;   // gripper to the TCP
+  const [fx, fy] = xy[xy.length - 2], [tx, ty] = xy[xy.length - 1];
+  g.beginPath(); g.moveTo(fx, fy); g.lineTo(tx, ty); g.stroke();
+  g.fillStyle = "#17202b";
+  for (let i = 1; i < xy.length - 1; i += 2) { g.beginPath(); g.arc(xy[i][0], xy[i][1], width * 0.45, 0, 2 * Math.PI); g.fill(); }
+  g.fillStyle = "#f08c00"; g.beginPath(); g.arc(tx, ty, 5, 0, 2 * Math.PI); g.fill();
+}
+
+function drawBox(g, project, o) {
+  const [sx, sy, sz] = o.size.map((v) => v / 2), [cx, cy, cz] = o.position;
+  const yaw = (o.rpy || [0, 0, 0])[2], c = Math.cos(yaw), s = Math.sin(yaw);
+  const corner = (i) => {
+    const x = (i & 1 ? sx : -sx), y = (i & 2 ? sy : -sy), z = (i & 4 ? sz : -sz);
+    return project([cx + c * x - s * y, cy + s * x + c * y, cz + z]);
+  };
+  const edges = [[0, 1], [1, 3], [3, 2], [2, 0], [4, 5], [5, 7], [7, 6], [6, 4], [0, 4], [1, 5], [2, 6], [3, 7]];
+  g.strokeStyle = "#9aa7b6"; g.lineWidth = 1;
+  for (const [a, b] of edges) {
+    const [x1, y1] = corner(a), [x2, y2] = corner(b);
+    g.beginPath(); g.moveTo(x1, y1); g.lineTo(x2, y2); g.stroke();
+  }
+}
+
+(function dragToRotate() {
+  const cv = $("#arm");
+  let last = null;
+  cv.addEventListener("pointerdown", (e) => { last = [e.clientX, e.clientY]; cv.setPointerCapture(e.pointerId); });
+  cv.addEventListener("pointerup", () => { last = null; });
+  cv.addEventListener("pointermove", (e) => {
+    if (!last) return;
+    page.azimuth += (e.clientX - last[0]) * 0.01;
+    page.elevation = Math.max(-0.2, Math.min(1.5, page.elevation + (e.clientY - last[1]) * 0.01));
+    last = [e.clientX, e.clientY];
+    requestDraw();
+  });
+})();
+
+// ------------------------------------------------------------------ state-machine diagram
+
+const SVGNS = "http://www.w3.org/2000/svg";
+function svg(tag, attrs, parent) {
+  const el = document.createElementNS(SVGNS, tag);
+  for (const [k, v] of Object.entries(attrs || {})) el.setAttribute(k, v);
+  if (parent) parent.append(el);
+  return el;
+}
+
+// Flow layout of the state tree: leaves are boxes, compound states frame their children.
+function layoutStates(states, prefix, maxWidth) {
+  const BOX_H = 26, GAP = 8, PAD = 8, HEAD = 16;
+  const items = states.map((st) => {
+    const name = prefix + st.name;
+    if (st.children && st.children.length) {
+      const inner = layoutStates(st.children, name + ".", maxWidth - 2 * PAD);
+      return { name, label: st.name, group: true, w: inner.w + 2 * PAD, h: inner.h + PAD + HEAD, inner };
+    }
+    return { name, label: st.name.replace(/_/g, " "), group: false, w: Math.max(70, st.name.length * 6.4 + 16), h: BOX_H };
+  });
+  let x = 0, y = 0, rowH = 0, w = 0;
+  for (const it of items) {
+    if (x > 0 && x + it.w > maxWidth) { x = 0; y += rowH + GAP; rowH = 0; }
+    it.x = x; it.y = y;
+    x += it.w + GAP; rowH = Math.max(rowH, it.h); w = Math.max(w, x - GAP);
+  }
+  return { items, w, h: y + rowH, PAD, HEAD };
+}
+
+function publicName(name) { return name.startsWith("connected.") ? name.slice("connected.".length) : name; }
+
+function renderStatechart() {
+  const chart = page.chart;
+  if (!chart) return;
+  page.renderedState = page.state;
+  const host = $("#statechart");
+  const WIDTH = 640;
+  const layout = layoutStates(chart.states, "", WIDTH - 4);
+  const root = svg("svg", { viewBox: `-2 -2 ${WIDTH} ${layout.h + 6}`, role: "img", "aria-label": "state machine" });
+  const boxes = new Map();
+  const place = (lay, ox, oy, parent) => {
+    for (const it of lay.items) {
+      const x = ox + it.x, y = oy + it.y;
+      if (it.group) {
+        const g = svg("g", { class: "group" }, parent);
+        svg("rect", { x, y, width: it.w, height: it.h, rx: 8 }, g);
+        svg("text", { x: x + 8, y: y + 12 }, g).textContent = it.label;
+        boxes.set(it.name, { x, y, w: it.w, h: it.h, group: true });
+        place(it.inner, x + lay.PAD, y + lay.HEAD + 2, parent);
+      } else {
+        const pub = publicName(it.name);
+        const g = svg("g", { class: "state" + (pub === page.state ? " current" : ""), "data-state": pub }, parent);
+        svg("rect", { x, y, width: it.w, height: it.h, rx: 5 }, g);
+        const t = svg("text", { x: x + it.w / 2, y: y + it.h / 2 + 4, "text-anchor": "middle" }, g);
+        t.textContent = it.label;
+        boxes.set(it.name, { x, y, w: it.w, h: it.h });
+      }
+    }
+  };
+  const edgeLayer = svg("g", {}, root);
+  place(layout, 0, 0, root);
+  svg("marker", { id: "arrow", viewBox: "0 0 10 10", refX: 9, refY: 5, markerWidth: 6, markerHeight: 6, orient: "auto-start-reverse" },
+    svg("defs", {}, root)).append(svg("path", { d: "M0,0 L10,5 L0,10 z", fill: "#8a97a6" }));
+  const current = page.state === "disconnected" ? "disconnected" : "connected." + page.state;
+  for (const t of chart.transitions) {
+    for (const src of [].concat(t.source)) {
+      const a = boxes.get(src), b = boxes.get(t.dest);
+      if (!a || !b || src === t.dest) continue;
+      if (a.group) continue;   // "from any connected state" edges would cover the chart
+      const live = current === src || current.startsWith(src + ".");
+      const [x1, y1] = [a.x + a.w / 2, a.y + a.h / 2], [x2, y2] = [b.x + b.w / 2, b.y + b.h / 2];
+      const mx = (x1 + x2) / 2 - (y2 - y1) * 0.15, my = (y1 + y2) / 2 + (x2 - x1) * 0.15;
+      svg("path", { d: `M${x1},${y1} Q${mx},${my} ${x2},${y2}`, class: "edge" + (live ? " live" : ""), "marker-end": "url(#arrow)" }, edgeLayer)
+        .append(Object.assign(svg("title"), { textContent: t.trigger }));
+    }
+  }
+  host.replaceChildren(root);
+}
+
+// ------------------------------------------------------------------ start
+
+async function start() {
+  try {
+    const [info, chart, snap] = await Promise.all([api("GET", "/api/info"), api("GET", "/api/statechart"), api("GET", "/api/state")]);
+    page.info = info; page.chart = chart;
+    $("#robot-name").textContent = `· ${info.robot}${info.simulated ? "" : " (real robot)"} · v${info.version}`;
+    showControl(snap.control);
+    page.state = "";
+    showState(snap.state);
+    showRobot(snap.robot);
+    snap.operations.forEach(updateOperation);
+  } catch (e) {
+    log(`cannot load the daemon's state: ${e.message}`, "error");
+  }
+  updateButtons();
+  requestDraw();
+  connect();
+}
+start();

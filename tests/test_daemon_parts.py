@@ -1,0 +1,320 @@
+"""The daemon's parts that need no robot: token, control lease, binding, sd_notify, stream
+decimation, and the HTTP layer's refusals (which happen before any robot is involved)."""
+
+from __future__ import annotations
+
+import os
+import socket
+import stat
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from fxcell.config import CellConfig
+from fxcell.daemon.app import create_app
+from fxcell.daemon.auth import TOKEN_ENV, check_bearer, load_or_create_token, read_token
+from fxcell.daemon.control import ControlLock
+from fxcell.daemon.notify import Notifier
+from fxcell.daemon.server import check_bind, is_loopback
+from fxcell.daemon.service import CellService
+from fxcell.daemon.stream import Watcher, parse_rate, parse_topics
+from fxcell.errors import ConfigError, ControlHeldError
+
+TOKEN = "s3cret-token-for-tests-0123456789"
+
+
+# ----------------------------------------------------------------- token
+
+
+def test_first_start_creates_an_owner_only_token(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    path = tmp_path / "conf" / "token"
+    token = load_or_create_token(path)
+    assert len(token) >= 32
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
+    assert load_or_create_token(path) == token  # reused at the next start
+    assert read_token(path) == token
+
+
+def test_environment_token_overrides_the_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(TOKEN_ENV, "from-env")
+    assert load_or_create_token(tmp_path / "token") == "from-env"
+    assert not (tmp_path / "token").exists()
+    assert read_token(tmp_path / "token") == "from-env"
+
+
+def test_token_file_readable_by_others_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    path = tmp_path / "token"
+    path.write_text("abc\n")
+    os.chmod(path, 0o644)
+    with pytest.raises(ConfigError, match="chmod 600"):
+        load_or_create_token(path)
+
+
+@pytest.mark.parametrize(
+    ("header", "ok"),
+    [
+        (f"Bearer {TOKEN}", True),
+        (f"bearer {TOKEN}", True),
+        (None, False),
+        ("", False),
+        (TOKEN, False),
+        (f"Basic {TOKEN}", False),
+        (f"Bearer {TOKEN}x", False),
+        ("Bearer ", False),
+    ],
+)
+def test_bearer_header_must_carry_the_token(header: str | None, ok: bool) -> None:
+    assert check_bearer(header, TOKEN) is ok
+
+
+# ----------------------------------------------------------------- binding
+
+
+def test_non_loopback_address_needs_the_explicit_option() -> None:
+    assert is_loopback("127.0.0.1")
+    assert is_loopback("::1")
+    assert is_loopback("localhost")
+    assert not is_loopback("0.0.0.0")
+    assert not is_loopback("192.168.1.20")
+    check_bind("127.0.0.1", False, "x")
+    with pytest.raises(ConfigError, match="--allow-remote"):
+        check_bind("0.0.0.0", False, TOKEN)
+    check_bind("0.0.0.0", True, TOKEN)
+    with pytest.raises(ConfigError, match="token"):
+        check_bind("0.0.0.0", True, "short")
+
+
+# ----------------------------------------------------------------- control
+
+
+def test_second_client_is_refused_with_the_holder_named() -> None:
+    lock = ControlLock(lease=30)
+    lock.acquire("alice@lab")
+    assert lock.acquire("alice@lab").client == "alice@lab"  # renew
+    with pytest.raises(ControlHeldError, match="controlled by 'alice@lab'"):
+        lock.acquire("bob@pc")
+    assert not lock.release("bob@pc")
+    assert lock.release("alice@lab")
+    assert lock.acquire("bob@pc").client == "bob@pc"
+
+
+def test_force_takes_control_over() -> None:
+    changes: list[str | None] = []
+    lock = ControlLock(on_change=lambda h: changes.append(h.client if h else None))
+    lock.acquire("alice")
+    assert lock.acquire("bob", force=True).client == "bob"
+    assert changes == ["alice", "bob"]
+
+
+def test_lease_runs_out_unless_the_holder_keeps_it_alive() -> None:
+    alive = {"alice": True}
+    lock = ControlLock(lease=0.0, keeps_alive=lambda c: alive.get(c, False))
+    lock.acquire("alice")
+    with pytest.raises(ControlHeldError):
+        lock.acquire("bob")  # alice watches: her lease holds
+    alive["alice"] = False
+    deadline = time.monotonic() + 1.0
+    while lock.holder is not None and time.monotonic() < deadline:
+        pass
+    assert lock.holder is None
+    assert lock.acquire("bob").client == "bob"
+
+
+# ----------------------------------------------------------------- sd_notify
+
+
+def test_notifier_speaks_the_systemd_datagram_protocol(tmp_path: Path) -> None:
+    path = str(tmp_path / "notify")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind(path)
+        server.settimeout(2)
+        notifier = Notifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "4000000"})
+        assert notifier.enabled
+        assert notifier.watchdog_interval == pytest.approx(2.0)
+        assert notifier.ready("serving")
+        assert server.recv(1024) == b"READY=1\nSTATUS=serving"
+        assert notifier.watchdog()
+        assert server.recv(1024) == b"WATCHDOG=1"
+        assert notifier.stopping()
+        assert server.recv(1024) == b"STOPPING=1"
+
+
+def test_notifier_is_silent_outside_systemd() -> None:
+    notifier = Notifier({})
+    assert not notifier.enabled
+    assert notifier.watchdog_interval is None
+    assert not notifier.ready()
+
+
+def test_watchdog_for_another_process_is_ignored() -> None:
+    notifier = Notifier({"WATCHDOG_USEC": "1000000", "WATCHDOG_PID": str(os.getpid() + 1)})
+    assert notifier.watchdog_interval is None
+
+
+# ----------------------------------------------------------------- stream
+
+
+@pytest.mark.parametrize("rate", [50.0, 100.0, 125.0, 250.0, 500.0])
+def test_state_samples_are_decimated_to_the_chosen_rate(rate: float) -> None:
+    watcher = Watcher(frozenset({"state"}), rate, None)
+    sent = 0
+    for i in range(5000):  # 10 s of 500 Hz samples
+        before = watcher._state
+        watcher._state = None
+        watcher.offer_state(i * 0.002, lambda: "s")
+        sent += watcher._state is not None
+        watcher._state = before
+    assert sent == pytest.approx(rate * 10, abs=2)
+
+
+def test_slow_watcher_keeps_every_event_but_only_the_newest_state() -> None:
+    watcher = Watcher(frozenset({"state", "transition"}), 500.0, None)
+    watcher.offer("transition", "t1")
+    for i in range(10):
+        watcher.offer_state(i * 0.002, lambda i=i: f"s{i}")  # type: ignore[misc]
+    watcher.offer("transition", "t2")
+    watcher.offer("command", "not subscribed")
+    assert list(watcher._backlog) == ["t1", "t2"]
+    assert watcher._state == "s9"
+
+
+def test_rate_and_topics_are_validated() -> None:
+    assert parse_rate(None) == 50.0
+    assert parse_rate("200") == 200.0
+    for bad in ("0", "-5", "nan", "inf", "501", "fast"):
+        with pytest.raises(ValueError):  # noqa: PT011 - message checked elsewhere
+            parse_rate(bad)
+    assert parse_topics("state,transition") == {"state", "transition"}
+    with pytest.raises(ValueError, match="unknown topics"):
+        parse_topics("state,secrets")
+
+
+# ----------------------------------------------------------------- HTTP refusals
+
+
+@pytest.fixture
+async def http(tmp_path: Path) -> AsyncIterator[httpx.AsyncClient]:
+    """The API with no cell attached: refusals must come before the robot is needed."""
+    service = CellService(CellConfig(), TOKEN)
+    transport = httpx.ASGITransport(app=create_app(service))
+    async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+        yield client
+
+
+def auth(client: str = "alice") -> dict[str, str]:
+    return {"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": client}
+
+
+async def test_commands_without_the_token_are_refused(http: httpx.AsyncClient) -> None:
+    for path in ("/api/cell/power_on", "/api/cell/stop", "/api/control"):
+        r = await http.post(path, headers={"X-Fxcell-Client": "eve"})
+        assert r.status_code == 401, path
+        assert r.json()["error"]["type"] == "NotAuthorizedError"
+        assert r.headers["WWW-Authenticate"] == "Bearer"
+    r = await http.post(
+        "/api/cell/move_joint", json={"target": [0] * 6}, headers={"Authorization": "Bearer no"}
+    )
+    assert r.status_code == 401
+
+
+@pytest.mark.parametrize(
+    ("path", "body", "fragment"),
+    [
+        ("/api/cell/move_joint", {"target": [0, 0, 0]}, "target"),
+        ("/api/cell/move_joint", {"target": [0, 0, 0, 0, 0, "x"]}, "target.5"),
+        ("/api/cell/move_joint", {"target": [0] * 6, "velocity_factor": 2}, "velocity_factor"),
+        ("/api/cell/move_joint", {"target": [0] * 6, "velocity_factor": 0}, "velocity_factor"),
+        ("/api/cell/move_joint", {"target": [0] * 6, "speed": 1}, "speed"),
+        ("/api/cell/move_joint", None, "body"),
+        ("/api/cell/move_pose", {"target": [0.1] * 5}, "target"),
+        ("/api/cell/move_distance", {"distance": [0, 0]}, "distance"),
+        ("/api/cell/set_velocity_factor", {"value": -1.4}, "value"),
+        ("/api/cell/set_acceleration_factor", {"value": 10}, "value"),
+        ("/api/cell/unlock_protective_stop", {"wait": "maybe"}, "wait"),
+    ],
+)
+async def test_malformed_requests_get_422_with_a_message(
+    http: httpx.AsyncClient, path: str, body: object, fragment: str
+) -> None:
+    r = await http.post(path, json=body, headers=auth())
+    assert r.status_code == 422
+    error = r.json()["error"]
+    assert error["type"] == "InvalidArgumentError"
+    assert fragment in error["message"]
+
+
+async def test_nan_in_a_target_is_refused(http: httpx.AsyncClient) -> None:
+    r = await http.post(
+        "/api/cell/move_joint",
+        content=b'{"target": [0, 0, NaN, 0, 0, 0]}',
+        headers={**auth(), "Content-Type": "application/json"},
+    )
+    assert r.status_code == 422
+
+
+async def test_a_second_client_is_refused_control(http: httpx.AsyncClient) -> None:
+    r = await http.post("/api/control", headers=auth("alice@lab"))
+    assert r.status_code == 200
+    assert r.json()["client"] == "alice@lab"
+    r = await http.post("/api/cell/power_on", headers=auth("bob@pc"))
+    assert r.status_code == 409
+    assert "controlled by 'alice@lab'" in r.json()["error"]["message"]
+    r = await http.post("/api/control", json={"force": True}, headers=auth("bob@pc"))
+    assert r.json()["client"] == "bob@pc"
+
+
+async def test_commands_without_a_cell_say_it_is_not_connected(http: httpx.AsyncClient) -> None:
+    r = await http.post("/api/cell/power_on", headers=auth())
+    assert r.status_code == 503
+    assert "not connected" in r.json()["error"]["message"]
+    r = await http.get("/api/cell/get_robot_mode")
+    assert r.status_code == 503
+
+
+async def test_openapi_documents_every_cell_function(http: httpx.AsyncClient) -> None:
+    doc = (await http.get("/api/openapi.json")).json()
+    paths = doc["paths"]
+    for name in (
+        "power_on", "brake_release", "power_off", "init", "shutdown", "start_external_control",
+        "stop_external_control", "unlock_protective_stop", "move_joint", "go_home", "move_pose",
+        "move_distance", "move_relative", "stop", "set_velocity_factor",
+        "set_acceleration_factor",
+    ):  # fmt: skip
+        assert "post" in paths[f"/api/cell/{name}"], name
+    for name in (
+        "get_robot_mode", "get_safety_status", "get_program_state", "is_in_remote_control",
+        "get_current_joint_values", "get_current_pose", "get_current_rpy",
+        "get_current_pose_rpy", "get_velocity", "get_velocity_factor",
+        "get_acceleration_factor", "get_max_acceleration", "state",
+    ):  # fmt: skip
+        assert "get" in paths[f"/api/cell/{name}"], name
+    assert "/api/operations/{op_id}/cancel" in paths
+    schema = doc["components"]["schemas"]["MoveJointRequest"]["properties"]["target"]
+    assert schema["minItems"] == schema["maxItems"] == 6
+
+
+async def test_page_and_its_assets_are_served_without_external_resources(
+    http: httpx.AsyncClient,
+) -> None:
+    page = await http.get("/")
+    assert page.status_code == 200
+    assert "<canvas" in page.text
+    for asset in ("/static/app.js", "/static/style.css"):
+        r = await http.get(asset)
+        assert r.status_code == 200
+        assert "http://" not in r.text.replace("http://www.w3.org/2000/svg", "")
+        assert "https://" not in r.text
+    assert "https://" not in page.text
+    assert "http://" not in page.text
