@@ -287,10 +287,12 @@ class Link:
                 c.reuploadScript()
                 if not self._wait_playing(timeout):
                     raise CallError("timeout", "control script did not start")
+                self._probe(c, timeout)
                 self.send(wire.CONTROL, True, "script re-uploaded")
                 return True
             if mode == "urcap" and c.isConnected():
                 self._play_urcap(program, timeout)
+                self._probe(c, timeout)
                 self.send(wire.CONTROL, True, "URCap program restarted")
                 return True
             self._drop_control("reconnecting control interface")
@@ -314,8 +316,21 @@ class Link:
             self._play_urcap(program, timeout)
         elif not self._wait_playing(timeout):
             raise CallError("timeout", "control script did not start")
+        self._probe(c, timeout)
         self.send(wire.CONTROL, True, f"external control ({mode})")
         return True
+
+    def _probe(self, c: Any, timeout: float) -> None:
+        """Wait until the control script answers a harmless command (it accepts commands)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                c.isSteady()
+                return
+            except Exception as exc:
+                if time.monotonic() > deadline:
+                    raise CallError("timeout", f"control script does not answer: {exc}") from None
+            time.sleep(0.01)
 
     def _play_urcap(self, program: str, timeout: float) -> None:
         reply = self.call_dashboard(f"load {program}")
