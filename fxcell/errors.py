@@ -163,3 +163,10 @@ class NotAuthorizedError(RemoteError):
 
 class ControlHeldError(RemoteError):
     """Another client holds control of the cell."""
+
+
+# ----------------------------------------------------------------- embedded simulator
+
+
+class SimulatorError(FxcellError):
+    """The embedded controller simulator did not start, stopped, or refused a request."""
