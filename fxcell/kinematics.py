@@ -1,0 +1,541 @@
+"""UR3e forward and inverse kinematics in UR's base frame (numpy and math only).
+
+Frames follow UR's published Denavit-Hartenberg parameters (standard DH,
+``T_i = Rz(θ_i)·Tz(d_i)·Tx(a_i)·Rx(α_i)``): frame 0 is the controller's base frame (the
+teach pendant's, *not* ROS ``base_link``, which is turned 180° about z) and frame 6 is the
+flange (``tool0``). A TCP given in the flange frame is appended, so :meth:`Kinematics.forward`
+equals RTDE's ``actual_TCP_pose`` for the same TCP.
+
+The inverse is the closed-form solution for the UR geometry (three parallel middle axes):
+up to 8 branches (shoulder left/right × wrist flip × elbow up/down), each shifted by 2π per
+joint to the equivalent nearest the seed within the joint limits. At a wrist singularity
+(θ5 = 0 or π) θ4 and θ6 form a continuum; the solver keeps the seed's θ6 and returns a valid
+solution. No Pinocchio here: the simulator imports this module and must start fast
+(:mod:`fxcell.robot_model` holds the Pinocchio model and is checked against this one).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from fxcell.errors import InvalidTargetError, SingularityError, UnreachableError
+from fxcell.geometry import Pose, matrix_to_rotvec
+
+if TYPE_CHECKING:
+    from fxcell.config import JointLimits
+
+FloatArray = NDArray[np.float64]
+JointValidity = Callable[[FloatArray], bool]
+
+TWO_PI = 2.0 * math.pi
+
+_WRIST_EPS = 1e-12
+"""|sin θ5| below which the wrist counts as exactly singular (θ4 + θ6 is all that matters)."""
+_CLIP_EPS = 1e-12
+"""Rounding slack on the cosines at the reach boundaries (≈ 1e-13 m of position)."""
+_NEAR_WRIST = 1e-6
+"""|sin θ5| below which a failed closed form is retried as a wrist singularity."""
+_LIMIT_EPS = 1e-12
+"""Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
+
+
+@dataclass(frozen=True)
+class DH:
+    """Standard Denavit-Hartenberg parameters of a 6-axis arm (metres, radians)."""
+
+    d: tuple[float, float, float, float, float, float]
+    a: tuple[float, float, float, float, float, float]
+    alpha: tuple[float, float, float, float, float, float]
+
+
+UR3E_DH = DH(
+    d=(0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921),
+    a=(0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0),
+    alpha=(math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0),
+)
+"""UR's published UR3e parameters (the seed thesis's table has d5/d6 wrong)."""
+
+
+def dh_transform(theta: float, d: float, a: float, alpha: float) -> FloatArray:
+    """``Rz(θ)·Tz(d)·Tx(a)·Rx(α)`` as a 4×4 matrix."""
+    ct, st = math.cos(theta), math.sin(theta)
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    return np.array(
+        [
+            [ct, -st * ca, st * sa, a * ct],
+            [st, ct * ca, -ct * sa, a * st],
+            [0.0, sa, ca, d],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def _as_tcp(tcp: Sequence[float] | Pose | None) -> Pose:
+    if tcp is None:
+        return Pose.identity()
+    if isinstance(tcp, Pose):
+        return tcp
+    return Pose.from_ur(tcp)
+
+
+class Kinematics:
+    """Forward and inverse kinematics of a UR arm with a TCP.
+
+    ``limits`` are the joint position limits ``(lower, upper)`` (6 each); by default those of
+    :class:`fxcell.config.JointLimits` (±2π).
+    """
+
+    def __init__(
+        self,
+        dh: DH,
+        tcp: Sequence[float] | Pose | None = None,
+        limits: tuple[Sequence[float], Sequence[float]] | None = None,
+    ) -> None:
+        if (
+            dh.a[0] != 0.0
+            or dh.a[3:] != (0.0, 0.0, 0.0)
+            or dh.d[1:3] != (0.0, 0.0)
+            or dh.alpha != UR3E_DH.alpha
+        ):
+            raise ValueError("the closed-form inverse needs the UR geometry (see UR3E_DH)")
+        self.dh = dh
+        self.tcp: Pose = _as_tcp(tcp)
+        if limits is None:
+            limits = _default_limits()
+        lo = [float(v) for v in limits[0]]
+        hi = [float(v) for v in limits[1]]
+        if len(lo) != 6 or len(hi) != 6 or any(a >= b for a, b in zip(lo, hi, strict=True)):
+            raise ValueError(f"joint limits must be 6 increasing pairs, got {limits!r}")
+        self.lower: tuple[float, ...] = tuple(lo)
+        self.upper: tuple[float, ...] = tuple(hi)
+        self._lo_hi = tuple(zip(lo, hi, strict=True))
+        self._dh_rows = [
+            (dh.d[i], dh.a[i], math.cos(dh.alpha[i]), math.sin(dh.alpha[i])) for i in range(6)
+        ]
+        Rt, pt = self.tcp.rotation, self.tcp.position
+        self._tcp_is_identity = bool(np.array_equal(Rt, np.eye(3)) and not pt.any())
+        # flange = target · tcp⁻¹, kept as plain floats for the hot path
+        Ri = Rt.T
+        self._tcp_inv = (*Ri.ravel().tolist(), *(-(Ri @ pt)).tolist())
+        self._tcp = (*Rt.ravel().tolist(), *pt.tolist())
+
+    @classmethod
+    def ur3e(
+        cls,
+        tcp: Sequence[float] | Pose | None = None,
+        limits: JointLimits | tuple[Sequence[float], Sequence[float]] | None = None,
+    ) -> Kinematics:
+        """The UR3e; ``tcp`` in the flange frame (``[x, y, z, rx, ry, rz]`` or a Pose),
+        ``None`` = the flange (``tool0``); ``limits`` a JointLimits or ``(lower, upper)``."""
+        if limits is not None and not isinstance(limits, tuple):
+            limits = (limits.position_min, limits.position_max)
+        return cls(UR3E_DH, tcp, limits)
+
+    def with_tcp(self, tcp: Sequence[float] | Pose | None) -> Kinematics:
+        """The same arm and limits with another TCP."""
+        return Kinematics(self.dh, tcp, (self.lower, self.upper))
+
+    # ------------------------------------------------------------ forward
+
+    def _flange(self, q: Sequence[float]) -> list[float]:
+        """Flange transform as 12 floats: rotation row-major, then position."""
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+        px = py = pz = 0.0
+        for theta, (d, a, ca, sa) in zip(q, self._dh_rows, strict=True):
+            ct, st = math.cos(theta), math.sin(theta)
+            # local DH matrix columns: x=(ct, st, 0), y=(-st ca, ct ca, sa), z=(st sa, -ct sa, ca)
+            yx, yy, zx, zy = -st * ca, ct * ca, st * sa, -ct * sa
+            px, py, pz = (
+                px + r02 * d + a * (r00 * ct + r01 * st),
+                py + r12 * d + a * (r10 * ct + r11 * st),
+                pz + r22 * d + a * (r20 * ct + r21 * st),
+            )
+            r00, r01, r02 = (
+                r00 * ct + r01 * st,
+                r00 * yx + r01 * yy + r02 * sa,
+                r00 * zx + r01 * zy + r02 * ca,
+            )
+            r10, r11, r12 = (
+                r10 * ct + r11 * st,
+                r10 * yx + r11 * yy + r12 * sa,
+                r10 * zx + r11 * zy + r12 * ca,
+            )
+            r20, r21, r22 = (
+                r20 * ct + r21 * st,
+                r20 * yx + r21 * yy + r22 * sa,
+                r20 * zx + r21 * zy + r22 * ca,
+            )
+        return [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
+
+    def forward(self, q: ArrayLike) -> Pose:
+        """TCP pose in UR's base frame for joint positions ``q`` (rad)."""
+        f = self._flange(_joints(q))
+        if not self._tcp_is_identity:
+            f = _compose(f, self._tcp)
+        R = np.array(f[:9]).reshape(3, 3)
+        return Pose._raw(np.array(f[9:]), R)
+
+    def forward_flange(self, q: ArrayLike) -> Pose:
+        """Flange (``tool0``) pose, whatever the TCP."""
+        f = self._flange(_joints(q))
+        return Pose._raw(np.array(f[9:]), np.array(f[:9]).reshape(3, 3))
+
+    def joint_frames(self, q: ArrayLike) -> list[FloatArray]:
+        """4×4 frames: base, after each of the 6 joints (the last is the flange), then the TCP."""
+        frames = [np.eye(4)]
+        T = frames[0]
+        for theta, d, a, alpha in zip(_joints(q), self.dh.d, self.dh.a, self.dh.alpha, strict=True):
+            T = T @ dh_transform(theta, d, a, alpha)
+            frames.append(T)
+        frames.append(T @ self.tcp.matrix)
+        return frames
+
+    def jacobian(self, q: ArrayLike) -> FloatArray:
+        """Geometric Jacobian (6×6) at the TCP in the base frame: rows vx, vy, vz, wx, wy, wz."""
+        frames = self.joint_frames(q)
+        p_tcp = frames[-1][:3, 3]
+        J = np.empty((6, 6))
+        for i in range(6):
+            z = frames[i][:3, 2]
+            J[:3, i] = np.cross(z, p_tcp - frames[i][:3, 3])
+            J[3:, i] = z
+        return J
+
+    # ------------------------------------------------------------ singularities
+
+    def singularity_margins(self, q: ArrayLike) -> tuple[float, float, float]:
+        """Distances from the three UR singularities at ``q``.
+
+        ``(shoulder, elbow, wrist)``: shoulder = distance (m) of the wrist centre (frame 5
+        origin) from the plane of axes 1 and 2; elbow = |sin θ3|; wrist = |sin θ5|.
+        """
+        qq = _joints(q)
+        f = self._flange(qq)
+        d6 = self.dh.d[5]
+        x5, y5 = f[9] - d6 * f[2], f[10] - d6 * f[5]
+        shoulder = abs(math.cos(qq[0]) * x5 + math.sin(qq[0]) * y5)
+        return shoulder, abs(math.sin(qq[2])), abs(math.sin(qq[4]))
+
+    def check_singularity(
+        self, q: ArrayLike, *, distance: float = 1e-3, sine: float = 1e-3
+    ) -> None:
+        """Raise :class:`SingularityError` if ``q`` is within the given margins of one."""
+        qq = np.array(_joints(q))
+        shoulder, elbow, wrist = self.singularity_margins(qq)
+        for name, value, tol in (
+            ("shoulder", shoulder, distance),
+            ("elbow", elbow, sine),
+            ("wrist", wrist, sine),
+        ):
+            if value < tol:
+                raise SingularityError(f"{name} singularity at q={np.round(qq, 6).tolist()}")
+
+    # ------------------------------------------------------------ inverse
+
+    def _branches(self, pose: Pose, seed: list[float]) -> list[list[float]]:
+        """Every closed-form solution (angles not yet shifted) reaching ``pose`` at the TCP.
+
+        At an exact wrist singularity each shoulder/elbow branch is a continuum; the member
+        nearest ``seed`` is returned (see :meth:`_singular_arm`).
+        """
+        f = [*pose.rotation.ravel().tolist(), *pose.position.tolist()]
+        if not self._tcp_is_identity:
+            f = _compose(f, self._tcp_inv)
+        r00, r01, r02, r10, r11, r12, _r20, _r21, r22, px, py, pz = f
+        d4, d6 = self.dh.d[3], self.dh.d[5]
+
+        # wrist centre (frame 5 origin): its component along axis 2 (horizontal) must be d4
+        p5x, p5y, p5z = px - d6 * r02, py - d6 * r12, pz - d6 * r22
+        h2 = p5x * p5x + p5y * p5y - d4 * d4
+        if h2 < 0.0:
+            if h2 < -_CLIP_EPS * d4 * d4:
+                return []
+            h2 = 0.0
+        h = math.sqrt(h2)
+        phi = math.atan2(p5y, p5x)
+        out: list[list[float]] = []
+        for hs in (h, -h) if h > 0.0 else (h,):
+            t1 = phi + math.atan2(d4, hs)
+            s1, c1 = math.sin(t1), math.cos(t1)
+            # axis 2 (= 3 = 4) expressed in the flange frame is (s5 c6, -s5 s6, c5)
+            zx = r00 * s1 - r10 * c1
+            zy = r01 * s1 - r11 * c1
+            zz = r02 * s1 - r12 * c1
+            s5a = math.sqrt(zx * zx + zy * zy)
+            if s5a > _WRIST_EPS:
+                n = len(out)
+                self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5a, zz, math.atan2(-zy, zx), out, 0)
+                self._arm(f, p5x, p5y, p5z, t1, s1, c1, -s5a, zz, math.atan2(zy, -zx), out, 0)
+                if len(out) == n and s5a < _NEAR_WRIST:
+                    # θ6 is known only to rounding / s5, which can throw a stretched arm out
+                    # of reach: search θ6 as at the singularity, then polish with Newton.
+                    for s5 in (s5a, -s5a):
+                        for elbow in (1, -1):
+                            sol = self._singular_arm(
+                                f, p5x, p5y, p5z, t1, s1, c1, s5, zz, elbow, seed
+                            )
+                            if sol is not None and (polished := self._polish(sol, pose)):
+                                out.append(polished)
+            else:
+                c5 = 1.0 if zz >= 0.0 else -1.0
+                for elbow in (1, -1):
+                    sol = self._singular_arm(f, p5x, p5y, p5z, t1, s1, c1, 0.0, c5, elbow, seed)
+                    if sol is not None:
+                        out.append(sol)
+        return out
+
+    def _polish(self, sol: list[float], pose: Pose) -> list[float] | None:
+        """``sol`` after Newton steps, or None if it still misses ``pose`` by over 1e-12."""
+        q = self.refine(np.array(sol), pose)
+        reached = self.forward(q)
+        if reached.distance(pose) > 1e-12 or reached.angle_to(pose) > 1e-12:
+            return None
+        out: list[float] = q.tolist()
+        return out
+
+    def _arm(
+        self,
+        f: list[float],
+        p5x: float,
+        p5y: float,
+        p5z: float,
+        t1: float,
+        s1: float,
+        c1: float,
+        s5: float,
+        c5: float,
+        t6: float,
+        out: list[list[float]],
+        elbow: int,
+        clip: float = _CLIP_EPS,
+    ) -> None:
+        """Append the solutions for given θ1, θ5 (as sine, cosine) and θ6 to ``out``.
+
+        ``elbow`` 0 appends both elbow branches, +1 / -1 only that sign of sin θ3; ``clip``
+        is the rounding slack accepted beyond full stretch or fold.
+        """
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = f[:9]
+        d1, d5 = self.dh.d[0], self.dh.d[4]
+        a2, a3 = self.dh.a[1], self.dh.a[2]
+        s6, c6 = math.sin(t6), math.cos(t6)
+        # axis 5 (z4) and x4 in the base frame
+        z4x = -(s6 * r00 + c6 * r01)
+        z4y = -(s6 * r10 + c6 * r11)
+        z4z = -(s6 * r20 + c6 * r21)
+        u, v, w = c5 * c6, -c5 * s6, -s5
+        x4x = r00 * u + r01 * v + r02 * w
+        x4y = r10 * u + r11 * v + r12 * w
+        x4z = r20 * u + r21 * v + r22 * w
+        t234 = math.atan2(x4z, c1 * x4x + s1 * x4y)
+        # frame 4 origin in the arm plane (frame 1 coordinates): a planar 2R problem
+        o4x, o4y, o4z = p5x - d5 * z4x, p5y - d5 * z4y, p5z - d5 * z4z
+        X = c1 * o4x + s1 * o4y
+        Y = o4z - d1
+        c3 = (X * X + Y * Y - a2 * a2 - a3 * a3) / (2.0 * a2 * a3)
+        if c3 > 1.0 or c3 < -1.0:
+            if abs(c3) > 1.0 + clip:
+                return
+            c3 = 1.0 if c3 > 0.0 else -1.0
+        s3a = math.sqrt(1.0 - c3 * c3)
+        t5 = math.atan2(s5, c5)
+        base = math.atan2(Y, X)
+        signs: tuple[int, ...] = (1, -1) if elbow == 0 and s3a > 0.0 else (elbow or 1,)
+        for sign in signs:
+            s3 = sign * s3a
+            t3 = math.atan2(s3, c3)
+            t2 = base - math.atan2(a3 * s3, a2 + a3 * c3)
+            out.append([t1, t2, t3, t234 - t2 - t3, t5, t6])
+
+    def _singular_arm(
+        self,
+        f: list[float],
+        p5x: float,
+        p5y: float,
+        p5z: float,
+        t1: float,
+        s1: float,
+        c1: float,
+        s5: float,
+        c5: float,
+        elbow: int,
+        seed: list[float],
+    ) -> list[float] | None:
+        """Wrist singular (θ5 = 0 or π): axes 2, 3, 4 and 6 are parallel and θ6 is free.
+
+        The solution nearest ``seed`` along the continuum: a grid over θ6, then a
+        golden-section search around the best grid point. Runs only at exact singularities.
+        """
+
+        def solve(t6: float) -> tuple[float, list[float]] | None:
+            found: list[list[float]] = []
+            self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t6, found, elbow, 4e-15)
+            return self._nearest(found[0], seed) if found else None
+
+        n = 48
+        step = TWO_PI / n
+        grid = [seed[5] + k * step for k in range(-n // 2, n // 2)]
+        scored = [(c[0], t6) for t6 in grid if (c := solve(t6)) is not None]
+        if not scored:
+            return None
+        _, t_best = min(scored)
+        lo, hi = t_best - step, t_best + step
+        g = (math.sqrt(5.0) - 1.0) / 2.0
+        inf = (math.inf, [])
+        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+        fa, fb = solve(a) or inf, solve(b) or inf
+        for _ in range(40):
+            if fa[0] < fb[0]:
+                hi, b, fb = b, a, fa
+                a = hi - g * (hi - lo)
+                fa = solve(a) or inf
+            else:
+                lo, a, fa = a, b, fb
+                b = lo + g * (hi - lo)
+                fb = solve(b) or inf
+        best = min((fa, fb, solve(t_best) or inf), key=lambda c: c[0])
+        return best[1] or None
+
+    def _nearest(self, sol: list[float], seed: list[float]) -> tuple[float, list[float]] | None:
+        """The 2π-equivalent of ``sol`` nearest ``seed`` within the limits, and its distance²."""
+        total = 0.0
+        out = []
+        for v, s, (lo, hi) in zip(sol, seed, self._lo_hi, strict=True):
+            v += TWO_PI * round((s - v) / TWO_PI)
+            if v > hi:  # a solution exactly at the limit may come out a rounding error beyond
+                v = hi if v - hi < _LIMIT_EPS else v - TWO_PI
+            elif v < lo:
+                v = lo if lo - v < _LIMIT_EPS else v + TWO_PI
+            if v > hi or v < lo:
+                return None
+            total += (v - s) * (v - s)
+            out.append(v)
+        return total, out
+
+    def inverse(
+        self,
+        pose: Pose | Sequence[float],
+        seed: ArrayLike | None = None,
+        *,
+        valid: JointValidity | None = None,
+        refine: bool = False,
+    ) -> FloatArray:
+        """Joint positions reaching ``pose`` (TCP, base frame), nearest ``seed`` within limits.
+
+        Nearest = smallest Euclidean distance in joint space, over the closed-form branches
+        and their 2π shifts. ``valid`` (e.g. a collision check) rejects candidates; the
+        nearest accepted one is returned. ``refine`` adds Newton steps (the closed form is
+        already exact to rounding error). ``pose`` may be anything :meth:`Pose.parse`
+        accepts. Raises :class:`UnreachableError` when no solution is left.
+        """
+        target = pose if isinstance(pose, Pose) else Pose.parse(pose)
+        s = [0.0] * 6 if seed is None else _joints(seed)
+        branches = self._branches(target, s)
+        if not branches:
+            raise UnreachableError(f"pose out of reach of the arm: {target!r}")
+        best: list[float] | None = None
+        if valid is None:
+            best_d = math.inf
+            for sol in branches:
+                cand = self._nearest(sol, s)
+                if cand is not None and cand[0] < best_d:
+                    best_d, best = cand
+        else:
+            ranked = sorted(c for c in (self._nearest(b, s) for b in branches) if c)
+            for _, sol in ranked:
+                if valid(np.array(sol)):
+                    best = sol
+                    break
+            if best is None and ranked:
+                raise UnreachableError(
+                    f"{len(ranked)} inverse-kinematics solutions within the joint limits, "
+                    f"none accepted by the validity check, for {target!r}"
+                )
+        if best is None:
+            raise UnreachableError(
+                f"no inverse-kinematics solution within the joint limits: {target!r}"
+            )
+        q = np.array(best)
+        return self.refine(q, target) if refine else q
+
+    def inverse_all(
+        self, pose: Pose | Sequence[float], seed: ArrayLike | None = None
+    ) -> list[FloatArray]:
+        """One solution per closed-form branch that fits the limits (up to 8), each the
+        2π-equivalent nearest ``seed`` (default: zeros), sorted by distance to it."""
+        target = pose if isinstance(pose, Pose) else Pose.parse(pose)
+        s = [0.0] * 6 if seed is None else _joints(seed)
+        ranked = sorted(c for c in (self._nearest(b, s) for b in self._branches(target, s)) if c)
+        return [np.array(sol) for _, sol in ranked]
+
+    def refine(self, q: ArrayLike, pose: Pose, *, iterations: int = 4) -> FloatArray:
+        """Newton steps on the TCP pose error from ``q`` (damped least squares near
+        singularities); stops when the error stops shrinking."""
+        qq = np.array(_joints(q))
+        err = _pose_error(self.forward(qq), pose)
+        for _ in range(iterations):
+            norm = float(np.linalg.norm(err))
+            if norm < 1e-15:
+                break
+            J = self.jacobian(qq)
+            lam = 1e-12
+            dq = J.T @ np.linalg.solve(J @ J.T + lam * np.eye(6), err)
+            trial = qq + dq
+            trial_err = _pose_error(self.forward(trial), pose)
+            if float(np.linalg.norm(trial_err)) >= norm:
+                break
+            qq, err = trial, trial_err
+        return qq
+
+
+def _pose_error(current: Pose, target: Pose) -> FloatArray:
+    """Twist (base frame) from ``current`` to ``target``: position difference, rotation vector."""
+    dp = target.position - current.position
+    dr = matrix_to_rotvec(target.rotation @ current.rotation.T)
+    return np.array([*dp.tolist(), *dr])
+
+
+def _compose(a: list[float], b: Sequence[float]) -> list[float]:
+    """Product of two transforms given as 12 floats (rotation row-major, position)."""
+    a00, a01, a02, a10, a11, a12, a20, a21, a22, ax, ay, az = a
+    b00, b01, b02, b10, b11, b12, b20, b21, b22, bx, by, bz = b
+    return [
+        a00 * b00 + a01 * b10 + a02 * b20,
+        a00 * b01 + a01 * b11 + a02 * b21,
+        a00 * b02 + a01 * b12 + a02 * b22,
+        a10 * b00 + a11 * b10 + a12 * b20,
+        a10 * b01 + a11 * b11 + a12 * b21,
+        a10 * b02 + a11 * b12 + a12 * b22,
+        a20 * b00 + a21 * b10 + a22 * b20,
+        a20 * b01 + a21 * b11 + a22 * b21,
+        a20 * b02 + a21 * b12 + a22 * b22,
+        a00 * bx + a01 * by + a02 * bz + ax,
+        a10 * bx + a11 * by + a12 * bz + ay,
+        a20 * bx + a21 * by + a22 * bz + az,
+    ]
+
+
+def _joints(q: ArrayLike) -> list[float]:
+    """Six finite joint values as floats, or InvalidTargetError."""
+    if isinstance(q, list) and all(type(v) is float for v in q):
+        out: list[float] = q
+    else:
+        arr = np.asarray(q) if not isinstance(q, str | bytes) else np.asarray(None)
+        if arr.dtype.kind not in "iuf":
+            raise InvalidTargetError(f"joint positions must be 6 numbers, got {q!r}")
+        out = arr.astype(np.float64).ravel().tolist() if arr.ndim == 1 else []
+    if len(out) != 6 or not all(map(math.isfinite, out)):
+        raise InvalidTargetError(f"joint positions must be 6 finite numbers, got {q!r}")
+    return out
+
+
+def _default_limits() -> tuple[Sequence[float], Sequence[float]]:
+    from fxcell.config import JointLimits  # lazy: pydantic costs ~0.1 s to import
+
+    lim = JointLimits()
+    return lim.position_min, lim.position_max

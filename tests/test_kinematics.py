@@ -1,0 +1,255 @@
+"""UR3e forward/inverse kinematics: known poses, round trips, seeds, limits, singularities."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fxcell.config import SEED_TCP, JointLimits
+from fxcell.errors import InvalidTargetError, SingularityError, UnreachableError
+from fxcell.geometry import Pose
+from fxcell.kinematics import UR3E_DH, Kinematics, dh_transform
+
+FLANGE = Kinematics.ur3e()
+SEED = Kinematics.ur3e(SEED_TCP)
+HOME = [0.0, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0]
+
+joint_values = st.floats(-2 * math.pi, 2 * math.pi, allow_nan=False)
+configurations = st.lists(joint_values, min_size=6, max_size=6).map(np.array)
+
+
+def _pose_error(a: Pose, b: Pose) -> tuple[float, float]:
+    return a.distance(b), a.angle_to(b)
+
+
+def test_zero_configuration_matches_the_dh_table_by_hand() -> None:
+    # all θ = 0: arm stretched along -x, rotation Rx(α1 + α4 + α5) = Rx(π/2)
+    pose = FLANGE.forward([0.0] * 6)
+    assert np.allclose(pose.position, [-0.45675, -0.22315, 0.0665], atol=1e-15)
+    assert np.allclose(pose.as_ur()[3:], [math.pi / 2, 0.0, 0.0], atol=1e-15)
+
+
+def test_home_pose_is_what_the_teach_pendant_shows() -> None:
+    # arm straight up; the pendant shows (0, -223.15, 693.95) mm, rotvec ±(0, 2.2214, -2.2214)
+    pose = FLANGE.forward(HOME)
+    assert np.allclose(pose.position, [0.0, -0.22315, 0.69395], atol=1e-15)
+    expected = Pose.from_ur(
+        [0, -0.22315, 0.69395, 0, math.pi / math.sqrt(2), -math.pi / math.sqrt(2)]
+    )
+    assert pose.angle_to(expected) < 1e-14
+
+
+@given(configurations)
+@settings(max_examples=50)
+def test_forward_is_the_product_of_dh_transforms_and_the_tcp(q: np.ndarray) -> None:
+    T = np.eye(4)
+    for theta, d, a, alpha in zip(q, UR3E_DH.d, UR3E_DH.a, UR3E_DH.alpha, strict=True):
+        T = T @ dh_transform(theta, d, a, alpha)
+    assert np.allclose(FLANGE.forward(q).matrix, T, atol=1e-15)
+    tcp = Pose.from_ur(SEED_TCP)
+    assert np.allclose(SEED.forward(q).matrix, T @ tcp.matrix, atol=1e-15)
+    assert np.allclose(SEED.forward_flange(q).matrix, T, atol=1e-15)
+    frames = SEED.joint_frames(q)
+    assert len(frames) == 8
+    assert np.allclose(frames[6], T, atol=1e-15)
+    assert np.allclose(frames[7], T @ tcp.matrix, atol=1e-15)
+
+
+@pytest.mark.parametrize("kin", [FLANGE, SEED], ids=["flange", "seed_tcp"])
+@given(q=configurations)
+@settings(max_examples=150)
+def test_inverse_of_forward_returns_the_configuration(kin: Kinematics, q: np.ndarray) -> None:
+    pose = kin.forward(q)
+    sol = kin.inverse(pose, seed=q)
+    assert np.all(np.abs(sol) <= 2 * math.pi)
+    dp, dr = _pose_error(kin.forward(sol), pose)
+    assert dp < 1e-12
+    assert dr < 1e-12
+    # from its own configuration the nearest solution is that configuration (away from the
+    # wrist continuum and the elbow, where 1e-16 of pose can be 1e-7 of joint angle)
+    if min(kin.singularity_margins(q)[1:]) > 1e-3:
+        assert np.allclose(sol, q, atol=1e-7)
+
+
+@pytest.mark.parametrize("kin", [FLANGE, SEED], ids=["flange", "seed_tcp"])
+@given(q=configurations, seed=configurations)
+@settings(max_examples=150)
+def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
+    kin: Kinematics, q: np.ndarray, seed: np.ndarray
+) -> None:
+    pose = kin.forward(q)
+    sols = kin.inverse_all(pose, seed=seed)
+    assert 1 <= len(sols) <= 8
+    for s in sols:
+        dp, dr = _pose_error(kin.forward(s), pose)
+        assert dp < 1e-12
+        assert dr < 1e-12
+        assert np.all(np.abs(s) <= 2 * math.pi)
+        for shifted in (s + 2 * math.pi, s - 2 * math.pi):  # nearest 2π-equivalent per joint
+            inside = np.abs(shifted) <= 2 * math.pi
+            assert np.all(np.abs(s - seed)[inside] <= np.abs(shifted - seed)[inside] + 1e-12)
+    best = kin.inverse(pose, seed=seed)
+    dists = [float(np.linalg.norm(s - seed)) for s in sols]
+    assert dists == sorted(dists)
+    assert float(np.linalg.norm(best - seed)) == pytest.approx(dists[0], abs=1e-9)
+
+
+def test_generic_configuration_has_eight_distinct_solutions() -> None:
+    q = np.array([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])
+    sols = FLANGE.inverse_all(FLANGE.forward(q))
+    assert len(sols) == 8
+    wrapped = {tuple(np.round(np.mod(s + math.pi, 2 * math.pi), 6)) for s in sols}
+    assert len(wrapped) == 8
+
+
+def test_solutions_are_shifted_by_two_pi_toward_the_seed() -> None:
+    q = np.array([5.5, -1.2, 1.1, -5.0, 1.0, 6.0])
+    sol = FLANGE.inverse(FLANGE.forward(q), seed=q + 0.01)
+    assert np.allclose(sol, q, atol=1e-9)
+    sol2 = FLANGE.inverse(FLANGE.forward(q), seed=q - 2 * math.pi + 0.01)
+    assert np.allclose(sol2, np.clip(q - 2 * math.pi, -2 * math.pi, None), atol=1e-9) or np.all(
+        np.abs(sol2) <= 2 * math.pi
+    )
+
+
+def test_joint_limits_restrict_the_solutions() -> None:
+    q = np.array([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])
+    pose = FLANGE.forward(q)
+    lower = [-math.pi, -math.pi, 0.0, -math.pi, 0.0, -math.pi]  # elbow and wrist 2 positive
+    narrow = Kinematics.ur3e(limits=(lower, [math.pi] * 6))
+    sols = narrow.inverse_all(pose)
+    assert sols
+    assert all(s[2] >= 0.0 and s[4] >= 0.0 for s in sols)
+    assert len(sols) < 8
+    with pytest.raises(UnreachableError, match="joint limits"):
+        Kinematics.ur3e(limits=([-0.1] * 6, [0.1] * 6)).inverse(pose)
+
+
+def test_limits_come_from_the_config_by_default() -> None:
+    lim = JointLimits()
+    assert FLANGE.lower == lim.position_min
+    assert FLANGE.upper == lim.position_max
+    custom = JointLimits(position_min=(-1.0,) * 6, position_max=(1.0,) * 6)
+    assert Kinematics.ur3e(limits=custom).upper == (1.0,) * 6
+
+
+def test_validity_check_skips_rejected_solutions() -> None:
+    q = np.array([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])
+    pose = FLANGE.forward(q)
+    sol = FLANGE.inverse(pose, seed=q, valid=lambda c: bool(c[2] < 0.0))  # elbow down only
+    assert sol[2] < 0.0
+    assert FLANGE.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
+    with pytest.raises(UnreachableError, match="validity check"):
+        FLANGE.inverse(pose, seed=q, valid=lambda c: False)
+
+
+@pytest.mark.parametrize(
+    "pose",
+    [
+        Pose.from_ur([0.6, 0.0, 0.2, 0, math.pi, 0]),  # beyond the 0.5 m reach
+        Pose.from_ur([0.0, 0.0, 1.2, 0, 0, 0]),  # above the fully stretched arm
+        Pose.from_ur([0.0, 0.0, 0.15, 0, 0, 0]),  # wrist centre inside the base cylinder
+    ],
+)
+def test_unreachable_poses_raise(pose: Pose) -> None:
+    with pytest.raises(UnreachableError):
+        FLANGE.inverse(pose, seed=HOME)
+    assert FLANGE.inverse_all(pose) == []
+
+
+@pytest.mark.parametrize("kin", [FLANGE, SEED], ids=["flange", "seed_tcp"])
+@pytest.mark.parametrize("seed_q6", [0.2, 0.7, 2.5, -2.0])
+def test_wrist_singular_pose_gets_a_valid_solution(kin: Kinematics, seed_q6: float) -> None:
+    # θ5 = 0: axes 2, 3, 4 and 6 are parallel, a continuum of solutions
+    q = np.array([0.4, -1.3, 1.2, -1.0, 0.0, 0.7])
+    pose = kin.forward(q)
+    seed = np.array([0.4, -1.3, 1.2, -0.5, 0.0, seed_q6])
+    sol = kin.inverse(pose, seed=seed)
+    assert kin.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
+    # the nearest member of the continuum: no farther than q, and locally optimal in θ6
+    assert np.linalg.norm(sol - seed) <= np.linalg.norm(q - seed) + 1e-9
+    for dq6 in (-1e-3, 1e-3):
+        other = kin.inverse(pose, seed=seed + np.array([0, 0, 0, 0, 0, dq6]))
+        assert np.linalg.norm(other - seed) >= np.linalg.norm(sol - seed) - 1e-9
+    with pytest.raises(SingularityError, match="wrist"):
+        kin.check_singularity(sol)
+
+
+def test_wrist_singular_pose_is_solved_whatever_the_seed_wrist() -> None:
+    # stretched far out: only a range of θ6 lets the arm reach, the seed's is outside it
+    q = np.array([0.0, -0.2, 0.15, 0.0, 0.0, 0.0])
+    pose = FLANGE.forward(q)
+    for q6 in np.linspace(-math.pi, math.pi, 13):
+        sol = FLANGE.inverse(pose, seed=[0, 0, 0, 0, 0, q6])
+        assert FLANGE.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
+
+
+def test_elbow_stretched_and_shoulder_singular_poses_are_solved() -> None:
+    stretched = np.array([0.2, -0.9, 0.0, -1.0, 0.8, 0.3])
+    pose = FLANGE.forward(stretched)
+    sol = FLANGE.inverse(pose, seed=stretched)
+    assert FLANGE.forward(sol).isclose(pose, position_tol=1e-10, angle_tol=1e-10)
+    with pytest.raises(SingularityError, match="elbow"):
+        FLANGE.check_singularity(stretched)
+    # shoulder: wrist centre in the plane of axes 1 and 2 (straight up at home)
+    assert FLANGE.singularity_margins(HOME)[0] < 1e-15
+    sol = FLANGE.inverse(FLANGE.forward(HOME), seed=HOME)
+    assert np.allclose(sol, HOME, atol=1e-7)
+    with pytest.raises(SingularityError, match="shoulder"):
+        FLANGE.check_singularity(HOME)
+    FLANGE.check_singularity([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])  # no error
+
+
+@given(configurations)
+@settings(max_examples=30)
+def test_jacobian_matches_finite_differences(q: np.ndarray) -> None:
+    J = SEED.jacobian(q)
+    h = 1e-6
+    p0 = SEED.forward(q)
+    for i in range(6):
+        dq = np.zeros(6)
+        dq[i] = h
+        p1 = SEED.forward(q + dq)
+        v = (p1.position - p0.position) / h
+        w = np.array(Pose(rotation=p1.rotation @ p0.rotation.T).rotvec) / h
+        assert np.allclose(J[:3, i], v, atol=1e-5)
+        assert np.allclose(J[3:, i], w, atol=1e-5)
+
+
+def test_refine_converges_from_a_perturbed_solution() -> None:
+    q = np.array([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])
+    pose = SEED.forward(q)
+    refined = SEED.refine(q + 1e-4, pose)
+    dp, dr = _pose_error(SEED.forward(refined), pose)
+    assert dp < 1e-14
+    assert dr < 1e-14
+    assert np.allclose(SEED.inverse(pose, seed=q, refine=True), q, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [[0.0] * 5, [math.nan] + [0.0] * 5, ["0"] * 6, None, [[0.0] * 6]])
+def test_bad_joint_vectors_are_rejected(bad: object) -> None:
+    with pytest.raises(InvalidTargetError):
+        FLANGE.forward(bad)  # type: ignore[arg-type]
+    if bad is not None:  # no seed means zeros
+        with pytest.raises(InvalidTargetError):
+            FLANGE.inverse(FLANGE.forward(HOME), seed=bad)  # type: ignore[arg-type]
+
+
+def test_inverse_accepts_seed_style_lists() -> None:
+    pose = SEED.forward([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])
+    sol = SEED.inverse(pose.as_quaternion_list(), seed=HOME)
+    assert SEED.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
+    with pytest.raises(InvalidTargetError):
+        SEED.inverse([0.1, 0.2, math.nan, 0, 0, 0], seed=HOME)
+
+
+def test_importing_kinematics_does_not_import_pinocchio() -> None:
+    code = "import sys, fxcell.kinematics; print('pinocchio' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
