@@ -296,6 +296,7 @@ class Link:
                 self.send(wire.CONTROL, True, "URCap program restarted")
                 return True
             self._drop_control("reconnecting control interface")
+        self._stop_leftover_program()
         self.send(wire.HOLD, True)
         try:
             if mode == "urcap":
@@ -331,6 +332,23 @@ class Link:
                 if time.monotonic() > deadline:
                     raise CallError("timeout", f"control script does not answer: {exc}") from None
             time.sleep(0.01)
+
+    def _stop_leftover_program(self) -> None:
+        """Stop a program still playing (e.g. the script of a previous link process).
+
+        ur_rtde's own path for this (command 255, then dashboard ``stop``) fails when
+        the script ends before the ``stop`` arrives.
+        """
+        state = self.latest
+        if state is None or state.runtime_state == RuntimeState.STOPPED:
+            return
+        self.call_dashboard("stop")
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            state = self.latest
+            if state is not None and state.runtime_state == RuntimeState.STOPPED:
+                return
+            time.sleep(0.005)
 
     def _play_urcap(self, program: str, timeout: float) -> None:
         reply = self.call_dashboard(f"load {program}")
@@ -395,6 +413,7 @@ class _Trajectory:
     """Streams one (N, 6) joint trajectory with servoJ at 500 Hz."""
 
     PROGRESS_EVERY = 10  # samples (20 ms)
+    SETTLE_MAX = 0.3  # s, beyond twice the lookahead time, to settle on the last sample
 
     def __init__(
         self, link: Link, traj_id: int, samples: NDArray[np.float64], lookahead: float, gain: float
@@ -427,6 +446,7 @@ class _Trajectory:
         c = link.control
         samples = self.samples
         i = 0
+        settle_until: float | None = None
         status, reason = "completed", ""
         if c is None:
             status, reason = "failed", "no_external_control"
@@ -446,18 +466,27 @@ class _Trajectory:
                                 samples, i = np.concatenate([samples[i:at], new]), 0
                             else:  # already past it: join the new samples where we are
                                 samples, i = new, min(i - at, len(new) - 1)
+                            settle_until = None
                             link.send(wire.TRAJ, self.id, "replaced", {"ok": True, "late": late})
-                    if i >= len(samples):
-                        break
                     state = link.latest
+                    if i >= len(samples):
+                        # hold the last sample until the robot settles on it (servoJ lags
+                        # by about the lookahead time), then leave servo mode
+                        if settle_until is None:
+                            settle_until = time.monotonic() + self.SETTLE_MAX + 2 * self.lookahead
+                        if time.monotonic() > settle_until or (
+                            state is not None and _settled(state, samples[-1])
+                        ):
+                            break
                     if state is not None:
                         why = stop_reason(state.safety_mode, state.runtime_state)
                         if why is not None:
                             status, reason = "failed", why
                             break
                     t0 = c.initPeriod()
+                    target = samples[min(i, len(samples) - 1)]
                     ok = c.servoJ(
-                        samples[i].tolist(), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain
+                        target.tolist(), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain
                     )
                     if not ok:
                         state = link.latest
@@ -466,9 +495,10 @@ class _Trajectory:
                             why = stop_reason(state.safety_mode, state.runtime_state)
                         status, reason = "failed", why or "servoj_refused"
                         break
-                    if i % self.PROGRESS_EVERY == 0:
-                        self._progress(i, len(samples), samples[i])
-                    i += 1
+                    if i < len(samples):
+                        if i % self.PROGRESS_EVERY == 0:
+                            self._progress(i, len(samples), samples[i])
+                        i += 1
                     c.waitPeriod(t0)
             except Exception as exc:
                 status, reason = "failed", f"link_error: {exc}"
@@ -502,6 +532,16 @@ class _Trajectory:
             "progress",
             {"index": index, "total": total, "actual_q": actual, "tracking_error": error},
         )
+
+
+SETTLED_POSITION = 1e-4  # rad
+SETTLED_VELOCITY = 1e-3  # rad/s
+
+
+def _settled(state: RobotState, target: NDArray[np.float64]) -> bool:
+    error = np.max(np.abs(np.asarray(state.actual_q) - target))
+    speed = np.max(np.abs(np.asarray(state.actual_qd)))
+    return bool(error < SETTLED_POSITION and speed < SETTLED_VELOCITY)
 
 
 def main(argv: list[str] | None = None) -> int:
