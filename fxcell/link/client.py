@@ -15,6 +15,7 @@ import enum
 import itertools
 import logging
 import socket
+import subprocess
 import sys
 import time
 from collections.abc import AsyncIterator, Callable
@@ -227,7 +228,7 @@ class LinkClient:
         self.last_failure = ""
         self._subscriptions: set[StateSubscription] = set()
         self._writer: asyncio.StreamWriter | None = None
-        self._process: asyncio.subprocess.Process | None = None
+        self._process: subprocess.Popen[bytes] | None = None
         self._supervisor: asyncio.Task[None] | None = None
         self._pending: dict[int, asyncio.Future[Any]] = {}
         self._trajectories: dict[int, TrajectoryHandle] = {}
@@ -280,7 +281,7 @@ class LinkClient:
 
     def kill_process(self) -> None:
         """Kill the link process abruptly (tests and benchmarks of the supervision)."""
-        if self._process is not None and self._process.returncode is None:
+        if self._process is not None and self._process.poll() is None:
             self._process.kill()
 
     # -- status
@@ -328,20 +329,24 @@ class LinkClient:
     async def _run_once(self) -> None:
         parent, child = socket.socketpair()
         try:
-            self._process = await asyncio.create_subprocess_exec(
-                sys.executable,
-                "-m",
-                "fxcell.link.process",
-                "--fd",
-                str(child.fileno()),
-                "--host",
-                self.host,
-                "--frequency",
-                str(self.frequency),
-                "--urcap-port",
-                str(self.urcap_port),
+            # Plain Popen (a quick fork/exec), reaped in _kill: the link's death is seen
+            # on the socket, so no asyncio child watcher is needed.
+            self._process = subprocess.Popen(  # noqa: ASYNC220
+                [
+                    sys.executable,
+                    "-m",
+                    "fxcell.link.process",
+                    "--fd",
+                    str(child.fileno()),
+                    "--host",
+                    self.host,
+                    "--frequency",
+                    str(self.frequency),
+                    "--urcap-port",
+                    str(self.urcap_port),
+                ],
                 pass_fds=(child.fileno(),),
-                stdin=asyncio.subprocess.DEVNULL,
+                stdin=subprocess.DEVNULL,
             )
         finally:
             child.close()
@@ -388,11 +393,11 @@ class LinkClient:
         process, self._process = self._process, None
         if process is None:
             return
-        if process.returncode is None:
+        if process.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 process.kill()
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(process.wait(), 5.0)
+            with contextlib.suppress(Exception):
+                await asyncio.to_thread(process.wait, 5.0)
 
     def _fail_all(self, reason: str) -> None:
         error = ConnectionLostError(f"robot link lost: {reason}")

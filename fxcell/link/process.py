@@ -23,6 +23,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -284,7 +285,8 @@ class Link:
                 self.send(wire.CONTROL, True, "already running")
                 return True
             if mode == "script" and c.isConnected():
-                c.reuploadScript()
+                with self.held():
+                    c.reuploadScript()
                 if not self._wait_playing(timeout):
                     raise CallError("timeout", "control script did not start")
                 self._probe(c, timeout)
@@ -297,8 +299,8 @@ class Link:
                 return True
             self._drop_control("reconnecting control interface")
         self._stop_leftover_program()
-        self.send(wire.HOLD, True)
         try:
+            self.send(wire.HOLD, True)
             if mode == "urcap":
                 c = rtde_control.RTDEControlInterface(
                     self.host,
@@ -364,7 +366,7 @@ class Link:
         self._stop_trajectory("external control stopped")
         c = self.control
         if c is not None:
-            with contextlib.suppress(Exception):
+            with self.held(), contextlib.suppress(Exception):
                 c.stopScript()
         if mode == "urcap":
             self.call_dashboard("stop")
@@ -374,9 +376,18 @@ class Link:
     def _drop_control(self, reason: str) -> None:
         c, self.control = self.control, None
         if c is not None:
-            with contextlib.suppress(Exception):
+            with self.held(), contextlib.suppress(Exception):
                 c.disconnect()
         self.send(wire.CONTROL, False, reason)
+
+    @contextlib.contextmanager
+    def held(self) -> Iterator[None]:
+        """Tell the client the state stream may pause: a ur_rtde call may hold the GIL."""
+        self.send(wire.HOLD, True)
+        try:
+            yield
+        finally:
+            self.send(wire.HOLD, False)
 
     def call_servo_stop(self) -> bool:
         self._stop_trajectory("servo stop")
