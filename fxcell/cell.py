@@ -16,10 +16,10 @@ import contextlib
 import importlib
 import logging
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine, Mapping
+from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.config import CellConfig
 from fxcell.errors import (
@@ -42,6 +42,9 @@ from fxcell.geometry import Pose
 from fxcell.link import LinkClient, LinkStatus, StateSubscription
 from fxcell.protocol import ProgramState, RobotMode, RobotState, SafetyMode
 from fxcell.statemachine import CellState, RobotStateMachine, observed_state
+
+if TYPE_CHECKING:
+    from fxcell.motion import MotionController, MoveResult
 
 log = logging.getLogger(__name__)
 
@@ -144,8 +147,9 @@ class Cell:
                 self._recorder = _start_recorder(Path(self._record), self)
             if self._host is None:
                 embedded = importlib.import_module("fxcell.embedded")
-                self._simulator = await embedded.start(**self._simulator_options)
-                self._host = str(self._simulator.host)
+                simulator = embedded.EmbeddedSimulator(**self._simulator_options)
+                self._host = str(await asyncio.to_thread(simulator.start))
+                self._simulator = simulator
             self._machine_task = asyncio.create_task(self.machine.run(), name="cell machine")
             robot = self.config.robot
             self.link = LinkClient(
@@ -175,7 +179,8 @@ class Cell:
             self._machine_task = None
         if self._simulator is not None:
             simulator, self._simulator = self._simulator, None
-            await simulator.stop()
+            await asyncio.to_thread(simulator.stop)
+            self._host = None
         if self._recorder is not None:
             recorder, self._recorder = self._recorder, None
             await asyncio.to_thread(recorder.close)
@@ -625,6 +630,121 @@ class Cell:
             await self._cancel_move(MoveStoppedError("stopped by stop()"))
             out["result"] = running
             return running
+
+    # ------------------------------------------------------------- move methods
+    # The logic lives in fxcell.motion (MotionController): validate, IK, collision
+    # check, plan, time, stream, brake. Here: guards, the move task, events.
+
+    def _moves(self) -> MotionController:
+        controller: MotionController | None = getattr(self, "_motion", None)
+        if controller is None:
+            from fxcell.motion import MotionController
+
+            controller = self._motion = MotionController(self.config, publish=self.bus.publish)
+        return controller
+
+    async def _move(
+        self, name: str, args: dict[str, Any], method: str, *plan_args: Any, **plan_kwargs: Any
+    ) -> MoveResult:
+        moves = self._moves()
+        vf, af = args.get("velocity_factor"), args.get("acceleration_factor")
+        idle = self._move_task is None or self._move_task.done()
+        if idle and self.state in (CellState.MOVING, CellState.STOPPING):
+            # The previous move's end is still queued in the state machine: let it land.
+            others = [st for st in CellState if st not in (CellState.MOVING, CellState.STOPPING)]
+            with contextlib.suppress(RobotTimeoutError):
+                await self.wait_for_state(*others, timeout=1.0)
+
+        async def body() -> MoveResult:
+            factors = moves.factors(vf, af)
+            start = self._sample().actual_q
+            plan = await moves.plan(method, start, *plan_args, *factors, **plan_kwargs)
+            return await moves.execute(plan, self._link())
+
+        return await self.run_move(name, {k: _jsonable(v) for k, v in args.items()}, body)
+
+    async def move_joint(
+        self,
+        target: Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> MoveResult:
+        """Move to joint positions (rad) on a jerk-limited, collision-free trajectory.
+
+        Factors in (0, 1] scale the joint velocity / acceleration limits for this move
+        (default: the cell's factors, see :meth:`set_velocity_factor`).
+        """
+        args = {"target": target, "velocity_factor": velocity_factor,
+                "acceleration_factor": acceleration_factor}  # fmt: skip
+        return await self._move("move_joint", args, "plan_joint", target)
+
+    async def go_home(
+        self, velocity_factor: float | None = None, acceleration_factor: float | None = None
+    ) -> MoveResult:
+        """Move to the configured home joints ([0, -π/2, 0, -π/2, 0, 0] by default)."""
+        args = {"velocity_factor": velocity_factor, "acceleration_factor": acceleration_factor}
+        return await self._move("go_home", args, "plan_joint", self.config.home)
+
+    async def move_pose(
+        self,
+        target: Pose | Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        linear: bool = False,
+    ) -> MoveResult:
+        """Move the TCP to a pose: a Pose, [x, y, z, qx, qy, qz, qw] or [x, y, z, r, p, y].
+
+        ``linear=True`` moves the TCP on a straight line (else a joint-space move to the
+        IK solution nearest the current joints).
+        """
+        args = {"target": target, "velocity_factor": velocity_factor,
+                "acceleration_factor": acceleration_factor, "linear": linear}  # fmt: skip
+        return await self._move("move_pose", args, "plan_pose", target, linear=linear)
+
+    async def move_distance(
+        self,
+        distance: Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> MoveResult:
+        """Move the TCP by [dx, dy, dz] (m, base axes) on a straight line, orientation kept."""
+        args = {"distance": distance, "velocity_factor": velocity_factor,
+                "acceleration_factor": acceleration_factor}  # fmt: skip
+        return await self._move("move_distance", args, "plan_distance", distance)
+
+    async def move_relative(
+        self,
+        start_pose: Pose | Sequence[float],
+        target_pose: Pose | Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> MoveResult:
+        """Move to ``start_pose``, then to ``target_pose`` (both checked before moving)."""
+        args = {"start_pose": start_pose, "target_pose": target_pose,
+                "velocity_factor": velocity_factor,
+                "acceleration_factor": acceleration_factor}  # fmt: skip
+        return await self._move("move_relative", args, "plan_relative", start_pose, target_pose)
+
+    async def set_velocity_factor(self, value: float) -> None:
+        """Default velocity factor of moves, in (0, 1]; InvalidFactorError otherwise."""
+        async with self._command("set_velocity_factor", value=_jsonable(value)):
+            self._moves().set_velocity_factor(value)
+
+    async def set_acceleration_factor(self, value: float) -> None:
+        """Default acceleration factor of moves, in (0, 1]; InvalidFactorError otherwise."""
+        async with self._command("set_acceleration_factor", value=_jsonable(value)):
+            self._moves().set_acceleration_factor(value)
+
+    async def get_velocity_factor(self) -> float:
+        return self._moves().velocity_factor
+
+    async def get_acceleration_factor(self) -> float:
+        return self._moves().acceleration_factor
+
+    async def get_max_acceleration(self) -> tuple[float, ...]:
+        """The joints' configured maximum accelerations (rad/s², before the factor)."""
+        return self._moves().max_acceleration
 
 
 def _running_states() -> set[CellState]:
