@@ -45,6 +45,12 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--robot", metavar="HOST", help="robot controller address (overrides robot.host)"
     )
+    p.add_argument(
+        "--sim-time-scale",
+        type=float,
+        metavar="X",
+        help="embedded simulator only: scale its controller delays (e.g. 0.2 for tests)",
+    )
     p.add_argument("--no-record", action="store_true", help="do not record MCAP logs")
     p.add_argument("--log-dir", help="MCAP directory (default: recorder.directory, logs/)")
     p.set_defaults(func=_run_daemon)
@@ -121,7 +127,8 @@ def _run_daemon(args: argparse.Namespace) -> int:
         data["robot"]["host"] = args.robot
     config = CellConfig.from_dict(data, source="command line")
     record = None if args.no_record else Path(args.log_dir or config.recorder.directory)
-    return serve(config, record=record)
+    sim = {"time_scale": args.sim_time_scale} if args.sim_time_scale else None
+    return serve(config, record=record, simulator_options=sim)
 
 
 # ----------------------------------------------------------------- client commands

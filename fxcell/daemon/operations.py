@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from fxcell.daemon.encoding import error_info, jsonable
+from fxcell.errors import MoveStoppedError
 
 log = logging.getLogger(__name__)
 
@@ -89,8 +90,9 @@ class OperationRegistry:
             op.status = "cancelled"
             op.error = {"type": "OperationCancelledError", "message": f"{op.name} was cancelled"}
         elif (exc := task.exception()) is not None:
-            # A move cancelled through the API brakes and ends with MoveStoppedError.
-            op.status = "cancelled" if op.cancel_requested else "failed"
+            # A move cancelled or stopped brakes to rest and ends with MoveStoppedError.
+            stopped = op.cancel_requested or isinstance(exc, MoveStoppedError)
+            op.status = "cancelled" if stopped else "failed"
             op.error = error_info(exc)
             if op.error["status"] >= 500:
                 log.warning("operation %s %s failed: %r", op.id, op.name, exc)

@@ -16,7 +16,7 @@ import logging
 import signal
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -76,11 +76,11 @@ class Daemon:
         config: CellConfig,
         *,
         record: Path | None,
-        open_cell: Callable[[CellConfig, Path | None], Any] | None = None,
+        simulator_options: Mapping[str, Any] | None = None,
     ) -> None:
         self.config = config
         self.record = record
-        self._open_cell = open_cell or default_open_cell
+        self.simulator_options = dict(simulator_options or {})
         self.token = load_or_create_token(config.daemon.token_file)
         check_bind(config.daemon.host, config.daemon.allow_remote, self.token)
         self.service = CellService(config, self.token)
@@ -173,7 +173,7 @@ class Daemon:
         while not self.stopping.is_set():
             started = time.monotonic()
             try:
-                cell = self._open_cell(self.config, self.record)
+                cell = open_cell(self.config, self.record, self.simulator_options)
                 self._cell = cell
                 await cell.open()
                 self.service.attach(cell)
@@ -208,24 +208,26 @@ class Daemon:
             await asyncio.sleep(interval)
 
 
-def default_open_cell(config: CellConfig, record: Path | None) -> Any:
+def open_cell(config: CellConfig, record: Path | None, simulator_options: Mapping[str, Any]) -> Any:
+    """The daemon's Cell: commands it sends are recorded with origin ``daemon``."""
     from fxcell.cell import Cell
     from fxcell.events import Origin
 
-    return Cell(config=config, record=record, origin=Origin.DAEMON)
+    return Cell(
+        config=config, record=record, origin=Origin.DAEMON, simulator_options=simulator_options
+    )
 
 
 def serve(
     config: CellConfig,
     *,
     record: Path | None,
+    simulator_options: Mapping[str, Any] | None = None,
 ) -> int:
     """Run the daemon until SIGTERM/SIGINT; the exit code (0 after a clean stop)."""
-    daemon_holder: list[Daemon] = []
 
     async def main() -> int:
-        daemon = Daemon(config, record=record)
-        daemon_holder.append(daemon)
+        daemon = Daemon(config, record=record, simulator_options=simulator_options)
         return await daemon.run()
 
     return asyncio.run(main())

@@ -85,7 +85,7 @@ const TCP = ["x (m)", "y (m)", "z (m)", "rx (rad)", "ry (rad)", "rz (rad)"];
 function stateClass(s) {
   if (s.includes("external_control_ready")) return "ready";
   if (s.includes("moving") || s.includes("stopping")) return "moving";
-  if (/stop|fault|emergency/.test(s)) return "alarm";
+  if (/protective_stop|safeguard_stop|emergency_stop|fault/.test(s)) return "alarm";
   if (/disconnected|power_off|booting|shutting/.test(s)) return "off";
   return "";
 }
@@ -104,6 +104,8 @@ function showState(state) {
 function showRobot(r) {
   page.robot = r;
   if (!r) return;
+  const form = $("#form-joint");
+  if (form.elements.q0.value === "") r.q.forEach((v, i) => { form.elements[`q${i}`].value = v.toFixed(4); });
   $("#robot-mode").textContent = r.robot_mode;
   $("#safety-mode").textContent = r.safety_mode;
   $("#runtime-state").textContent = r.runtime_state;
@@ -348,11 +350,11 @@ function requestDraw() {
 
 function drawArm() {
   const cv = $("#arm"), g = cv.getContext("2d");
-  const W = cv.width, H = cv.height, s = 520;
+  const W = cv.width, H = cv.height, s = H * 0.8;
   const ca = Math.cos(page.azimuth), sa = Math.sin(page.azimuth), ce = Math.cos(page.elevation), se = Math.sin(page.elevation);
   const project = ([x, y, z]) => {
     const u = ca * x - sa * y, v = sa * x + ca * y;   // rotate about z
-    return [W / 2 + s * u, H * 0.72 - s * (ce * z - se * v)];
+    return [W / 2 + s * u, H * 0.86 - s * (ce * z - se * v)];
   };
   g.clearRect(0, 0, W, H);
   g.fillStyle = "#fbfcfe"; g.fillRect(0, 0, W, H);

@@ -1,0 +1,130 @@
+"""Starting a daemon as a child process and waiting until it serves (tests, benchmarks).
+
+``with DaemonProcess.start(config_path, token=...) as daemon: daemon.url`` runs
+``python -m fxcell daemon`` on a free loopback port and stops it (SIGTERM) on exit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import select
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+
+from fxcell.errors import FxcellError
+
+_SERVING = re.compile(r"serving (http://\S+?)/?$")
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+class DaemonProcess:
+    """A running ``fxcell daemon`` child process."""
+
+    def __init__(self, proc: subprocess.Popen[str], url: str, token: str) -> None:
+        self.proc = proc
+        self.url = url
+        self.token = token
+        self.output: list[str] = []
+        self._reader = threading.Thread()
+
+    @classmethod
+    def start(
+        cls,
+        config: str | Path,
+        *,
+        token: str,
+        log_dir: str | Path | None = None,
+        token_file: str | Path | None = None,
+        extra_args: Sequence[str] = (),
+        env: dict[str, str] | None = None,
+        startup_timeout: float = 60.0,
+    ) -> DaemonProcess:
+        """Start a daemon on a free port; returns once it serves (or raises with its output)."""
+        port = free_port()
+        args = [sys.executable, "-m", "fxcell", "daemon", "--config", str(config)]
+        args += ["--port", str(port)]
+        args += ["--log-dir", str(log_dir)] if log_dir else ["--no-record"]
+        args += list(extra_args)
+        environ = {**os.environ, **(env or {}), "FXCELL_TOKEN": token, "PYTHONUNBUFFERED": "1"}
+        proc = subprocess.Popen(
+            args,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=environ,
+            start_new_session=True,
+        )
+        lines: list[str] = []
+        deadline = time.monotonic() + startup_timeout
+        assert proc.stdout is not None
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([proc.stdout], [], [], 0.2)
+            if ready:
+                line = proc.stdout.readline()
+                if not line:
+                    break
+                lines.append(line.rstrip())
+                match = _SERVING.search(line.strip())
+                if match:
+                    daemon = cls(proc, match.group(1), token)
+                    daemon.output = lines
+                    daemon._drain()
+                    return daemon
+            elif proc.poll() is not None:
+                break
+        proc.kill()
+        proc.wait(5)
+        raise FxcellError("the daemon did not start:\n" + "\n".join(lines[-40:]))
+
+    def _drain(self) -> None:
+        """Keep reading the daemon's output so that a full pipe never blocks it."""
+        stdout = self.proc.stdout
+        assert stdout is not None
+
+        def pump() -> None:
+            with contextlib.suppress(ValueError, OSError):
+                for line in stdout:
+                    self.output.append(line.rstrip())
+
+        self._reader = threading.Thread(target=pump, name="fxcell daemon output", daemon=True)
+        self._reader.start()
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int:
+        """Signal the daemon and wait for its exit code (killed if it overstays)."""
+        if self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(5)
+        if self._reader.ident is not None:
+            self._reader.join(5)
+        return self.proc.returncode
+
+    def __enter__(self) -> DaemonProcess:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
