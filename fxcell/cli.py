@@ -18,7 +18,12 @@ from fxcell._version import __version__
 from fxcell.errors import FxcellError
 
 # Modules that contribute subcommands, in the order ``--help`` lists them.
-SUBCOMMAND_MODULES: tuple[str, ...] = ("fxcell.info", "fxcell.statemachine", "fxcell.daemon.cli")
+SUBCOMMAND_MODULES: tuple[str, ...] = (
+    "fxcell.info",
+    "fxcell.statemachine",
+    "fxcell.daemon.cli",
+    "fxcell.sim.cli",
+)
 
 Handler = Callable[[argparse.Namespace], int]
 

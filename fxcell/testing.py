@@ -7,10 +7,19 @@ to get the fixtures below. This module is test support: the runtime never import
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
+import socket
+import time
+from collections.abc import AsyncIterator, Iterator, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any
 
 import pytest
 import pytest_asyncio
+
+from fxcell.embedded import EmbeddedSimulator
+
+TEST_TIME_SCALE = 0.05  # controller delays in tests: power on 0.1 s, brake release 75 ms
 
 
 def _describe(task: asyncio.Task[object]) -> str:
@@ -34,3 +43,115 @@ async def fxcell_no_leaked_tasks() -> AsyncIterator[None]:
             task.cancel()
         await asyncio.gather(*leaked, return_exceptions=True)
         pytest.fail(f"test leaked {len(leaked)} asyncio task(s): {names}", pytrace=False)
+
+
+# ----------------------------------------------------------------- the simulator
+
+
+class SimulatorHandle:
+    """A running simulator subprocess on its own loopback address (``.host``).
+
+    Use it with ``with`` or ``async with`` (see :func:`simulator`). ``inject`` triggers
+    a fault (``protective_stop``, ``emergency_stop``, ``stall_rtde``, 2.0, ...),
+    ``dashboard`` sends one raw Dashboard command, ``bring_up`` powers on and releases
+    the brakes, ``set_joints`` places the resting arm.
+    """
+
+    def __init__(self, time_scale: float, **options: Any) -> None:
+        self._sim = EmbeddedSimulator(time_scale=time_scale, **options)
+
+    @property
+    def host(self) -> str:
+        return self._sim._host()
+
+    @property
+    def running(self) -> bool:
+        return self._sim.running
+
+    def start(self) -> SimulatorHandle:
+        self._sim.start()
+        return self
+
+    def stop(self) -> None:
+        self._sim.stop()
+
+    def inject(self, fault: str, *args: object) -> str:
+        return self._sim.inject(fault, *args)
+
+    def state(self) -> dict[str, Any]:
+        return self._sim.state()
+
+    def set_joints(self, q: Sequence[float]) -> None:
+        self._sim.set_joints(q)
+
+    def dashboard(self, command: str, timeout: float = 5.0) -> str:
+        """Send one Dashboard command on a fresh connection; returns the reply line."""
+        with socket.create_connection((self.host, 29999), timeout=timeout) as s:
+            f = s.makefile("rwb")
+            f.readline()  # banner
+            f.write(command.encode() + b"\n")
+            f.flush()
+            return f.readline().decode().strip()
+
+    def wait_for(self, key: str, value: object, timeout: float = 10.0) -> None:
+        """Wait until the simulator's ``state()[key] == value``."""
+        deadline = time.monotonic() + timeout
+        while True:
+            current = self.state().get(key)
+            if current == value:
+                return
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"simulator {key} is {current!r}, not {value!r}")
+            time.sleep(0.01)
+
+    def bring_up(self, timeout: float = 10.0) -> None:
+        """Power on and release the brakes; returns once the robot mode is RUNNING."""
+        self.dashboard("power on")
+        self.wait_for("robot_mode", "IDLE", timeout)
+        self.dashboard("brake release")
+        self.wait_for("robot_mode", "RUNNING", timeout)
+
+    def __enter__(self) -> SimulatorHandle:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+    async def __aenter__(self) -> SimulatorHandle:
+        await asyncio.to_thread(self.start)
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await asyncio.to_thread(self.stop)
+
+
+def simulator(
+    time_scale: float = TEST_TIME_SCALE,
+    *,
+    config: str | Path | None = None,
+    joints: Sequence[float] | None = None,
+    **options: Any,
+) -> SimulatorHandle:
+    """A simulator on a free loopback address, for ``with`` and ``async with``.
+
+    >>> with simulator() as sim:  # doctest: +SKIP
+    ...     DashboardClient(sim.host)
+    """
+    return SimulatorHandle(time_scale, config=config, joints=joints, **options)
+
+
+@pytest.fixture
+def sim() -> Iterator[SimulatorHandle]:
+    """A fresh simulator (time scale 0.05) for one test; stopped afterwards."""
+    with simulator() as handle:
+        yield handle

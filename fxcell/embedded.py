@@ -1,0 +1,252 @@
+"""Launch the embedded UR3e controller simulator as a subprocess.
+
+The simulator runs in its own process (``python -m fxcell.sim``): ur_rtde holds the GIL
+while it connects, so an in-process simulator would deadlock its clients. Its ports are
+fixed, so each simulator gets its own loopback address (127.0.0.2 … 127.0.0.254),
+picked at random and checked by binding every port. This module never imports
+``fxcell.sim``; it talks to the process over its control port (fault injection, state).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import random
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from fxcell.errors import InvalidArgumentError, SimulatorError
+
+SIM_MODULE = "fxcell.sim"
+CONTROL_PORT = 29990  # the simulator's control port (fault injection, state)
+PORTS = (29999, 30004, 30003, 30002, CONTROL_PORT)
+FAULTS = (
+    "protective_stop",
+    "emergency_stop",
+    "emergency_stop_release",
+    "safeguard_stop",
+    "safeguard_stop_release",
+    "local_control",
+    "remote_control",
+    "drop_rtde",
+    "stall_rtde",
+    "stop_program",
+    "power_loss",
+)
+BIND_FAILED = 2  # the simulator's exit code when it cannot listen
+
+
+def address_is_free(host: str, ports: Sequence[int] = PORTS) -> bool:
+    """Whether every simulator port can be bound on ``host`` right now."""
+    for port in ports:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((host, port))
+            except OSError:
+                return False
+    return True
+
+
+def free_loopback_host(rng: random.Random | None = None, attempts: int = 200) -> str:
+    """A random 127.0.0.x address (x in 2..254) on which every simulator port is free."""
+    rng = rng or random.SystemRandom()
+    for _ in range(attempts):
+        host = f"127.0.0.{rng.randint(2, 254)}"
+        if address_is_free(host):
+            return host
+    raise SimulatorError("no free loopback address for the simulator (127.0.0.2-254 all busy)")
+
+
+def _request(host: str, line: str, timeout: float) -> str:
+    try:
+        with socket.create_connection((host, CONTROL_PORT), timeout=timeout) as s:
+            s.sendall(line.encode() + b"\n")
+            data = b""
+            while not data.endswith(b"\n"):
+                chunk = s.recv(65536)
+                if not chunk:
+                    break
+                data += chunk
+    except OSError as exc:
+        raise SimulatorError(f"simulator at {host} does not answer: {exc}") from None
+    return data.decode("utf-8", "replace").strip()
+
+
+def inject(host: str, fault: str, *args: object, timeout: float = 5.0) -> str:
+    """Inject ``fault`` (see :data:`FAULTS`) into the simulator at ``host``."""
+    if fault not in FAULTS:
+        raise InvalidArgumentError(f"unknown fault {fault!r}; known: {', '.join(FAULTS)}")
+    answer = _request(host, " ".join(["inject", fault, *map(str, args)]), timeout)
+    if not answer.startswith("ok"):
+        raise InvalidArgumentError(f"simulator refused {fault}: {answer}")
+    return answer[3:].strip()
+
+
+def state(host: str, timeout: float = 5.0) -> dict[str, Any]:
+    """The simulator's own view of the robot (modes, joints, recent log)."""
+    answer = _request(host, "state", timeout)
+    try:
+        result: dict[str, Any] = json.loads(answer)
+    except ValueError:
+        raise SimulatorError(f"simulator at {host} sent a bad state reply: {answer!r}") from None
+    return result
+
+
+def set_joints(host: str, q: Sequence[float], timeout: float = 5.0) -> None:
+    """Place the (resting) simulated arm at joint positions ``q`` without moving."""
+    answer = _request(host, "set_joints " + " ".join(repr(float(v)) for v in q), timeout)
+    if not answer.startswith("ok"):
+        raise SimulatorError(f"simulator refused set_joints: {answer}")
+
+
+class EmbeddedSimulator:
+    """One simulator subprocess. ``start()`` returns its address once it listens.
+
+    ``host=None`` picks a free loopback address (and another one if that is taken
+    before the simulator binds it). ``time_scale`` shortens controller delays.
+    """
+
+    def __init__(
+        self,
+        host: str | None = None,
+        *,
+        time_scale: float = 1.0,
+        config: str | Path | None = None,
+        joints: Sequence[float] | None = None,
+        startup_timeout: float = 30.0,
+        python: str | None = None,
+        extra_args: Sequence[str] = (),
+    ) -> None:
+        if not time_scale > 0:
+            raise InvalidArgumentError(f"time_scale must be > 0, got {time_scale!r}")
+        self.requested_host = host
+        self.host: str | None = None
+        self.time_scale = time_scale
+        self.config = config
+        self.joints = None if joints is None else [float(v) for v in joints]
+        self.startup_timeout = startup_timeout
+        self.python = python or sys.executable
+        self.extra_args = list(extra_args)
+        self.process: subprocess.Popen[bytes] | None = None
+        self._lines: queue.Queue[bytes] = queue.Queue()
+
+    def command(self, host: str) -> list[str]:
+        cmd = [
+            self.python,
+            "-m",
+            SIM_MODULE,
+            "--host",
+            host,
+            "--time-scale",
+            repr(self.time_scale),
+            "--exit-with-parent",
+        ]
+        if self.config is not None:
+            cmd += ["--config", str(self.config)]
+        if self.joints is not None:
+            cmd += ["--joints", ",".join(repr(v) for v in self.joints)]
+        return cmd + self.extra_args
+
+    def start(self) -> str:
+        """Start the process and wait for its ``listening`` line; returns the address."""
+        if self.process is not None:
+            raise SimulatorError("simulator already started")
+        attempts = 1 if self.requested_host is not None else 5
+        last = ""
+        for _ in range(attempts):
+            host = self.requested_host or free_loopback_host()
+            ok, last = self._launch(host)
+            if ok:
+                self.host = host
+                return host
+        raise SimulatorError(f"simulator did not start: {last}")
+
+    def _launch(self, host: str) -> tuple[bool, str]:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(
+            self.command(host), stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env
+        )
+        self.process = proc
+        self._lines = queue.Queue()
+        threading.Thread(target=self._drain, args=(proc, self._lines), daemon=True).start()
+        deadline = time.monotonic() + self.startup_timeout
+        while True:
+            try:
+                line = self._lines.get(timeout=max(0.0, min(0.5, deadline - time.monotonic())))
+            except queue.Empty:
+                line = None
+            if line is not None and b"listening" in line:
+                return True, ""
+            if line == b"" or proc.poll() is not None:
+                code = proc.wait()
+                self.process = None
+                if proc.stdout is not None:
+                    proc.stdout.close()
+                return False, f"exit code {code} on {host}"
+            if time.monotonic() > deadline:
+                self.stop()
+                return False, f"no 'listening' line within {self.startup_timeout} s on {host}"
+
+    @staticmethod
+    def _drain(proc: subprocess.Popen[bytes], lines: queue.Queue[bytes]) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.put(line)
+        lines.put(b"")
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Terminate the process (SIGTERM, then SIGKILL after ``timeout``)."""
+        proc, self.process = self.process, None
+        if proc is None:
+            return
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if proc.stdout is not None:
+            with contextlib.suppress(OSError):
+                proc.stdout.close()
+
+    @property
+    def running(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def _host(self) -> str:
+        if self.host is None:
+            raise SimulatorError("simulator not started")
+        return self.host
+
+    def inject(self, fault: str, *args: object) -> str:
+        return inject(self._host(), fault, *args)
+
+    def state(self) -> dict[str, Any]:
+        return state(self._host())
+
+    def set_joints(self, q: Sequence[float]) -> None:
+        set_joints(self._host(), q)
+
+    def __enter__(self) -> EmbeddedSimulator:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()

@@ -1,0 +1,3 @@
+from fxcell.sim.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,494 @@
+"""The simulated controller: robot and safety modes, programs, registers, faults.
+
+One :class:`Controller` is the whole robot as the network sees it. The server calls
+:meth:`Controller.tick` once per 2 ms control cycle; the Dashboard, RTDE and script
+servers call its methods. Everything runs on one event loop, so there is no locking.
+
+Controller delays (power on, brake release, program start, safety restart) are
+multiplied by ``time_scale``; the control cycle and motion always run in real time,
+and so does the 5 s protective-stop unlock rule.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from fxcell.protocol import (
+    CONTROL_PERIOD,
+    RobotMode,
+    RobotStatusBits,
+    RuntimeState,
+    SafetyMode,
+    SafetyStatusBits,
+)
+
+if TYPE_CHECKING:
+    from fxcell.sim.motion import Arm
+    from fxcell.sim.script import ControlScript
+
+log = logging.getLogger(__name__)
+
+# Real-controller delays in seconds, before time scaling.
+DELAYS = {
+    "boot": 2.0,
+    "power_on": 2.0,  # POWER_ON -> IDLE
+    "brake_release": 1.5,  # IDLE -> RUNNING
+    "program_start": 0.3,  # compile and start a program or an uploaded script
+    "restart_safety": 1.5,
+}
+UNLOCK_DELAY = 5.0  # protective stop: unlock refused until this long after the stop
+
+POLYSCOPE_VERSION = (5, 11, 1, 108318)
+SERIAL_NUMBER = "20235500001"
+ROBOT_MODEL = "UR3"
+PROGRAM_DIR = "/programs"
+URCAP_PROGRAM = "external_control.urp"
+KNOWN_PROGRAMS = frozenset({URCAP_PROGRAM, "fxcell.urp", "default.urp"})
+
+REGISTER_COUNT = 48
+
+# joint_mode values reported per robot mode
+JOINT_MODE = {
+    RobotMode.POWER_OFF: 239,
+    RobotMode.POWER_ON: 247,  # booting
+    RobotMode.BOOTING: 247,
+    RobotMode.IDLE: 255,
+    RobotMode.RUNNING: 254,
+}
+
+FAULTS = (
+    "protective_stop",
+    "emergency_stop",
+    "emergency_stop_release",
+    "safeguard_stop",
+    "safeguard_stop_release",
+    "local_control",
+    "remote_control",
+    "drop_rtde",
+    "stall_rtde",
+    "stop_program",
+    "power_loss",
+)
+
+
+class FaultError(ValueError):
+    """An injection request names an unknown fault or has bad arguments."""
+
+
+@dataclass
+class Registers:
+    """The RTDE general-purpose registers (input side written by clients)."""
+
+    in_int: list[int] = field(default_factory=lambda: [0] * REGISTER_COUNT)
+    in_double: list[float] = field(default_factory=lambda: [0.0] * REGISTER_COUNT)
+    in_bits: int = 0  # input bit registers 64..127 as one 64-bit word
+    out_int: list[int] = field(default_factory=lambda: [0] * REGISTER_COUNT)
+    out_double: list[float] = field(default_factory=lambda: [0.0] * REGISTER_COUNT)
+    out_bits: int = 0
+
+
+@dataclass
+class IOState:
+    """Digital and analog I/O as set by RTDE inputs."""
+
+    standard_digital: int = 0
+    configurable_digital: int = 0
+    tool_digital: int = 0
+    analog_out: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    speed_slider: float = 1.0
+
+    @property
+    def output_bits(self) -> int:
+        return (
+            (self.standard_digital & 0xFF)
+            | (self.configurable_digital & 0xFF) << 8
+            | (self.tool_digital & 0x3) << 16
+        )
+
+
+def program_name(path: str | None) -> str:
+    return path.rsplit("/", 1)[-1] if path else "null"
+
+
+class Controller:
+    """The state of the simulated robot and its controller."""
+
+    def __init__(self, arm: Arm, *, time_scale: float = 1.0) -> None:
+        self.arm = arm
+        self.time_scale = time_scale
+        self.time = 0.0  # controller time, s (ticks x 2 ms)
+        self.ticks = 0
+        self.robot_mode = RobotMode.POWER_OFF
+        self.safety_mode = SafetyMode.NORMAL
+        self.runtime_state = RuntimeState.STOPPED
+        self.remote_control = True
+        self.operational_mode = "NONE"
+        self.loaded_program: str | None = None
+        self.program_saved = True
+        self.protective_stop_time: float | None = None
+        self.registers = Registers()
+        self.io = IOState()
+        self.payload_mass = 0.0
+        self.payload_cog = (0.0, 0.0, 0.0)
+        self.tcp: tuple[float, ...] = (0.0,) * 6  # set by the program (set_tcp)
+        self.script: ControlScript | None = None
+        self.program_kind: str | None = None  # "urp" | "script" | None
+        self.last_stop_reason = ""
+        self.log_messages: list[str] = []
+        self.watchdog: tuple[str, float] | None = None  # (input variable, min frequency)
+        self.input_updated: dict[str, float] = {}  # input variable -> last update time
+        self.rtde_stalled_until = 0.0
+        self.shutdown_requested = False
+        self.client_host = "127.0.0.1"  # where the ExternalControl URCap asks for its program
+        # Hooks the server installs.
+        self.on_drop_rtde: Callable[[], None] = lambda: None
+        self.on_shutdown: Callable[[], None] = lambda: None
+        self.request_urcap_program: Callable[[], None] = lambda: None
+        self._timers: list[tuple[float, int, Callable[[], None]]] = []
+        self._timer_seq = 0
+        self._pending: dict[str, int] = {}  # name -> timer seq, for cancellable transitions
+
+    # ------------------------------------------------------------------ timing
+
+    def delay(self, name: str) -> float:
+        return DELAYS[name] * self.time_scale
+
+    def after(self, seconds: float, callback: Callable[[], None], name: str | None = None) -> None:
+        """Run ``callback`` after ``seconds`` of controller time (a named one replaces its last)."""
+        self._timer_seq += 1
+        self._timers.append((self.time + seconds, self._timer_seq, callback))
+        if name is not None:
+            self._pending[name] = self._timer_seq
+
+    def cancel(self, name: str) -> None:
+        seq = self._pending.pop(name, None)
+        if seq is not None:
+            self._timers = [t for t in self._timers if t[1] != seq]
+
+    def _run_timers(self) -> None:
+        if not self._timers:
+            return
+        due = [t for t in self._timers if t[0] <= self.time + 1e-9]
+        if not due:
+            return
+        self._timers = [t for t in self._timers if t[0] > self.time + 1e-9]
+        for _, seq, callback in sorted(due, key=lambda t: (t[0], t[1])):
+            for name, s in list(self._pending.items()):
+                if s == seq:
+                    del self._pending[name]
+            callback()
+
+    def tick(self) -> None:
+        """Advance one control cycle: timers, watchdog, script, motion, safety."""
+        self.ticks += 1
+        self.time = self.ticks * CONTROL_PERIOD
+        self._run_timers()
+        if self.watchdog is not None and self.runtime_state == RuntimeState.PLAYING:
+            self._check_watchdog()
+        if self.script is not None and self.runtime_state == RuntimeState.PLAYING:
+            self.script.step()
+        moving = self.robot_mode == RobotMode.RUNNING
+        violation = self.arm.step(CONTROL_PERIOD, enabled=moving)
+        if violation is not None:
+            self.protective_stop(violation)
+
+    # ------------------------------------------------------------------ status words
+
+    @property
+    def robot_status_bits(self) -> int:
+        bits = 0
+        if self.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING):
+            bits |= RobotStatusBits.POWER_ON
+        if self.runtime_state == RuntimeState.PLAYING:
+            bits |= RobotStatusBits.PROGRAM_RUNNING
+        return int(bits)
+
+    @property
+    def safety_status_bits(self) -> int:
+        m = self.safety_mode
+        b = SafetyStatusBits
+        if m == SafetyMode.NORMAL:
+            return int(b.NORMAL_MODE)
+        if m == SafetyMode.PROTECTIVE_STOP:
+            return int(b.PROTECTIVE_STOPPED | b.STOPPED_DUE_TO_SAFETY)
+        if m == SafetyMode.SAFEGUARD_STOP:
+            return int(b.SAFEGUARD_STOPPED | b.STOPPED_DUE_TO_SAFETY)
+        if m == SafetyMode.ROBOT_EMERGENCY_STOP:
+            return int(b.ROBOT_EMERGENCY_STOPPED | b.EMERGENCY_STOPPED | b.STOPPED_DUE_TO_SAFETY)
+        if m == SafetyMode.SYSTEM_EMERGENCY_STOP:
+            return int(b.SYSTEM_EMERGENCY_STOPPED | b.EMERGENCY_STOPPED | b.STOPPED_DUE_TO_SAFETY)
+        if m == SafetyMode.FAULT:
+            return int(b.FAULT | b.STOPPED_DUE_TO_SAFETY)
+        return 0
+
+    @property
+    def joint_mode(self) -> int:
+        return JOINT_MODE.get(self.robot_mode, 239)
+
+    @property
+    def program_state_name(self) -> str:
+        if self.runtime_state in (RuntimeState.PLAYING, RuntimeState.RESUMING):
+            return "PLAYING"
+        if self.runtime_state in (RuntimeState.PAUSED, RuntimeState.PAUSING):
+            return "PAUSED"
+        return "STOPPED"
+
+    @property
+    def can_move(self) -> bool:
+        return self.robot_mode == RobotMode.RUNNING and self.safety_mode == SafetyMode.NORMAL
+
+    # ------------------------------------------------------------------ life cycle
+
+    def power_on(self) -> None:
+        if self.safety_mode != SafetyMode.NORMAL and self.safety_mode != SafetyMode.PROTECTIVE_STOP:
+            return
+        if self.robot_mode != RobotMode.POWER_OFF:
+            return
+        self.robot_mode = RobotMode.POWER_ON
+        self.after(self.delay("power_on"), self._powered_on, name="power")
+
+    def _powered_on(self) -> None:
+        if self.robot_mode == RobotMode.POWER_ON:
+            self.robot_mode = RobotMode.IDLE
+
+    def power_off(self) -> None:
+        self.cancel("power")
+        self.cancel("brakes")
+        self._stop_program("robot powered off")
+        self.arm.halt()
+        self.robot_mode = RobotMode.POWER_OFF
+
+    def brake_release(self) -> None:
+        if self.robot_mode != RobotMode.IDLE or self.safety_mode not in (SafetyMode.NORMAL,):
+            return
+        self.after(self.delay("brake_release"), self._brakes_released, name="brakes")
+
+    def _brakes_released(self) -> None:
+        if self.robot_mode == RobotMode.IDLE and self.safety_mode == SafetyMode.NORMAL:
+            self.robot_mode = RobotMode.RUNNING
+
+    def restart_safety(self) -> None:
+        self.power_off()
+        self.safety_mode = SafetyMode.RECOVERY
+        self.protective_stop_time = None
+
+        def done() -> None:
+            self.safety_mode = SafetyMode.NORMAL
+
+        self.after(self.delay("restart_safety"), done, name="safety")
+
+    def unlock_protective_stop(self) -> str | None:
+        """Clear a protective stop; returns why not (reply text) or None."""
+        if self.safety_mode != SafetyMode.PROTECTIVE_STOP or self.protective_stop_time is None:
+            return "Cannot unlock protective stop, safetymode is not PROTECTIVE_STOP"
+        if self.time - self.protective_stop_time < UNLOCK_DELAY:
+            return (
+                "Cannot unlock protective stop until 5s after occurrence. "
+                "Always inspect cause of protective stop before unlocking"
+            )
+        self.safety_mode = SafetyMode.NORMAL
+        self.protective_stop_time = None
+        return None
+
+    def shutdown(self) -> None:
+        self.shutdown_requested = True
+        self.power_off()
+        self.on_shutdown()
+
+    # ------------------------------------------------------------------ programs
+
+    def load_program(self, path: str) -> tuple[bool, str]:
+        """Load a ``.urp``; returns (ok, full path)."""
+        full = path if path.startswith("/") else f"{PROGRAM_DIR}/{path}"
+        name = program_name(full)
+        if not name.endswith(".urp") or self.runtime_state != RuntimeState.STOPPED:
+            return False, full
+        if name not in KNOWN_PROGRAMS:
+            return False, full
+        self.loaded_program = full
+        self.program_saved = True
+        return True, full
+
+    def play(self) -> bool:
+        if self.runtime_state in (RuntimeState.PAUSED, RuntimeState.PAUSING):
+            if not self.can_move:
+                return False
+            self.runtime_state = RuntimeState.PLAYING
+            self.arm.resume()
+            return True
+        if self.loaded_program is None or not self.can_move:
+            return False
+        if self.runtime_state != RuntimeState.STOPPED:
+            return False
+        self.program_kind = "urp"
+        self.runtime_state = RuntimeState.PLAYING  # PolyScope reports PLAYING at once
+        if program_name(self.loaded_program) == URCAP_PROGRAM:
+            self.after(self.delay("program_start"), self.request_urcap_program, name="program")
+        return True
+
+    def stop(self, reason: str = "stopped") -> bool:
+        if self.runtime_state == RuntimeState.STOPPED:
+            return False
+        self._stop_program(reason)
+        self.arm.stop_motion()
+        return True
+
+    def pause(self) -> bool:
+        if self.runtime_state != RuntimeState.PLAYING:
+            return False
+        self.runtime_state = RuntimeState.PAUSED
+        self.arm.stop_motion(hold=True)
+        return True
+
+    def run_script(self, text: str, *, via_urcap: bool = False) -> bool:
+        """A complete program arrived on a script port (or from the URCap)."""
+        if not self.remote_control and not via_urcap:
+            log.warning("script refused: robot is in local control")
+            return False
+        if not self.can_move:
+            log.warning(
+                "script refused: robot mode %s, safety %s",
+                self.robot_mode.name,
+                self.safety_mode.name,
+            )
+            return False
+        from fxcell.sim.script import ControlScript, is_control_script
+
+        if self.script is not None or (
+            self.runtime_state != RuntimeState.STOPPED and not via_urcap
+        ):
+            self._stop_program("replaced by a new program")
+            self.arm.stop_motion()
+        self.cancel("program")
+
+        def start() -> None:
+            if not self.can_move:
+                self._stop_program("robot not ready when the program started")
+                return
+            if is_control_script(text):
+                self.script = ControlScript(self, text)
+            else:
+                self.script = None
+                log.info("simulator does not interpret URScript: program ends at once")
+                self.after(4 * CONTROL_PERIOD, lambda: self._stop_program("program finished"))
+            self.program_kind = "urp" if via_urcap else "script"
+            self.runtime_state = RuntimeState.PLAYING
+
+        if via_urcap:
+            start()
+        else:
+            self.after(self.delay("program_start"), start, name="program")
+        return True
+
+    def script_finished(self, reason: str) -> None:
+        """The control script ended by itself (stopScript, unsupported command, IK failure)."""
+        self._stop_program(reason)
+
+    def _stop_program(self, reason: str) -> None:
+        self.cancel("program")
+        if self.runtime_state != RuntimeState.STOPPED or self.script is not None:
+            log.info("program stopped: %s", reason)
+            self.last_stop_reason = reason
+            self.log_messages.append(f"program stopped: {reason}")
+        if self.script is not None:
+            self.script.terminate()
+            self.script = None
+        self.watchdog = None
+        self.runtime_state = RuntimeState.STOPPED
+        self.program_kind = None
+
+    def _check_watchdog(self) -> None:
+        assert self.watchdog is not None
+        name, frequency = self.watchdog
+        last = self.input_updated.get(name, self.watchdog_armed_at)
+        if self.time - max(last, self.watchdog_armed_at) > 1.0 / frequency:
+            log.warning("RTDE watchdog on %s starved: stopping the program", name)
+            self.stop("RTDE watchdog timeout")
+
+    def set_watchdog(self, variable: str, frequency: float) -> None:
+        self.watchdog = (variable, max(frequency, 1e-6))
+        self.watchdog_armed_at = self.time
+
+    watchdog_armed_at = 0.0
+
+    # ------------------------------------------------------------------ safety and faults
+
+    def protective_stop(self, reason: str) -> None:
+        if self.safety_mode in (SafetyMode.ROBOT_EMERGENCY_STOP, SafetyMode.SYSTEM_EMERGENCY_STOP):
+            return
+        log.warning("protective stop: %s", reason)
+        self.log_messages.append(f"protective stop: {reason}")
+        self.safety_mode = SafetyMode.PROTECTIVE_STOP
+        self.protective_stop_time = self.time
+        self.cancel("brakes")
+        self._stop_program(f"protective stop: {reason}")
+        self.arm.safety_stop()
+
+    def inject(self, fault: str, args: list[str]) -> str:
+        """Apply a fault injection; returns a short description."""
+        if fault not in FAULTS:
+            raise FaultError(f"unknown fault {fault!r}; known: {', '.join(FAULTS)}")
+        if fault == "stall_rtde":
+            if len(args) != 1:
+                raise FaultError("stall_rtde needs SECONDS")
+            try:
+                seconds = float(args[0])
+            except ValueError:
+                raise FaultError(f"stall_rtde: not a number: {args[0]!r}") from None
+            if not 0 <= seconds <= 3600:
+                raise FaultError("stall_rtde: SECONDS must be in [0, 3600]")
+            self.rtde_stalled_until = self.time + seconds
+            return f"RTDE stalled for {seconds:g} s"
+        if args:
+            raise FaultError(f"{fault} takes no arguments")
+        if fault == "protective_stop":
+            self.protective_stop("injected")
+        elif fault == "emergency_stop":
+            self.log_messages.append("emergency stop")
+            self.safety_mode = SafetyMode.ROBOT_EMERGENCY_STOP
+            self.protective_stop_time = None
+            self._stop_program("emergency stop")
+            self.arm.safety_stop()
+            self.cancel("power")
+            self.cancel("brakes")
+            self.robot_mode = RobotMode.POWER_OFF
+        elif fault == "emergency_stop_release":
+            if self.safety_mode in (
+                SafetyMode.ROBOT_EMERGENCY_STOP,
+                SafetyMode.SYSTEM_EMERGENCY_STOP,
+            ):
+                self.safety_mode = SafetyMode.NORMAL
+        elif fault == "safeguard_stop":
+            if self.safety_mode == SafetyMode.NORMAL:
+                self.safety_mode = SafetyMode.SAFEGUARD_STOP
+                if self.runtime_state == RuntimeState.PLAYING:
+                    self.runtime_state = RuntimeState.PAUSED
+                self.arm.stop_motion(hold=True)
+        elif fault == "safeguard_stop_release":
+            if self.safety_mode == SafetyMode.SAFEGUARD_STOP:
+                self.safety_mode = SafetyMode.NORMAL
+        elif fault == "local_control":
+            self.remote_control = False
+        elif fault == "remote_control":
+            self.remote_control = True
+        elif fault == "drop_rtde":
+            self.on_drop_rtde()
+        elif fault == "stop_program":
+            self.stop("stopped on the teach pendant")
+        elif fault == "power_loss":
+            self.cancel("power")
+            self.cancel("brakes")
+            self._stop_program("arm power lost")
+            self.arm.halt()
+            self.robot_mode = RobotMode.POWER_OFF
+        return fault.replace("_", " ")
+
+    # ------------------------------------------------------------------ inputs
+
+    def set_payload(self, mass: float, cog: tuple[float, float, float] | None) -> None:
+        self.payload_mass = mass
+        if cog is not None:
+            self.payload_cog = cog

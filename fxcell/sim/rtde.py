@@ -1,0 +1,452 @@
+"""RTDE server (port 30004, protocol version 2) of the simulator.
+
+Packets are ``>H`` size (header included), ``B`` type, payload. Output recipes are
+compiled once into a single ``struct`` call (generated code, no per-field Python work
+per sample); the controller's state is published into a :class:`StreamState` each cycle
+and every started connection packs and writes its recipes at its own frequency.
+
+Recipe ids are numbered per connection and per direction from 1, the way ur_rtde
+numbers its input recipes. An input variable belongs to the first connection that sets
+it up: another connection asking for it gets ``IN_USE`` (recipe id 0), until the owner
+disconnects. Unknown names are answered ``NOT_FOUND``. Oversized input packets are
+accepted (the recipe's fields are read from their start).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import struct
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from fxcell.sim.controller import REGISTER_COUNT
+
+if TYPE_CHECKING:
+    from fxcell.sim.controller import Controller
+
+log = logging.getLogger(__name__)
+
+HEADER = struct.Struct(">HB")
+TYPE_CODES = {
+    "BOOL": "?",
+    "UINT8": "B",
+    "UINT32": "I",
+    "UINT64": "Q",
+    "INT32": "i",
+    "DOUBLE": "d",
+    "VECTOR3D": "3d",
+    "VECTOR6D": "6d",
+    "VECTOR6INT32": "6i",
+    "VECTOR6UINT32": "6I",
+}
+VECTOR_TYPES = frozenset({"VECTOR3D", "VECTOR6D", "VECTOR6INT32", "VECTOR6UINT32"})
+MAX_WRITE_BUFFER = 4 * 1024 * 1024  # a client this far behind is dropped
+
+V6 = "VECTOR6D"
+# name -> (RTDE type, Python expression over the StreamState ``s`` and registers ``r``)
+OUTPUTS: dict[str, tuple[str, str]] = {
+    "timestamp": ("DOUBLE", "s.timestamp"),
+    "target_q": (V6, "s.target_q"),
+    "target_qd": (V6, "s.target_qd"),
+    "target_qdd": (V6, "s.target_qdd"),
+    "target_current": (V6, "s.current"),
+    "target_moment": (V6, "s.moment"),
+    "actual_q": (V6, "s.actual_q"),
+    "actual_qd": (V6, "s.actual_qd"),
+    "actual_current": (V6, "s.current"),
+    "actual_current_window": (V6, "s.zero6"),
+    "joint_control_output": (V6, "s.zero6"),
+    "actual_TCP_pose": (V6, "s.actual_tcp_pose"),
+    "actual_TCP_speed": (V6, "s.tcp_speed"),
+    "actual_TCP_force": (V6, "s.zero6"),
+    "target_TCP_pose": (V6, "s.target_tcp_pose"),
+    "target_TCP_speed": (V6, "s.tcp_speed"),
+    "actual_digital_input_bits": ("UINT64", "s.digital_input_bits"),
+    "joint_temperatures": (V6, "s.temperatures"),
+    "actual_execution_time": ("DOUBLE", "s.execution_time"),
+    "robot_mode": ("INT32", "s.robot_mode"),
+    "joint_mode": ("VECTOR6INT32", "s.joint_mode"),
+    "safety_mode": ("INT32", "s.safety_mode"),
+    "safety_status": ("INT32", "s.safety_mode"),
+    "actual_tool_accelerometer": ("VECTOR3D", "s.accelerometer"),
+    "speed_scaling": ("DOUBLE", "s.speed_scaling"),
+    "target_speed_fraction": ("DOUBLE", "s.target_speed_fraction"),
+    "actual_momentum": ("DOUBLE", "0.0"),
+    "actual_main_voltage": ("DOUBLE", "s.main_voltage"),
+    "actual_robot_voltage": ("DOUBLE", "s.robot_voltage"),
+    "actual_robot_current": ("DOUBLE", "s.robot_current"),
+    "actual_joint_voltage": (V6, "s.joint_voltage"),
+    "actual_digital_output_bits": ("UINT64", "s.digital_output_bits"),
+    "runtime_state": ("UINT32", "s.runtime_state"),
+    "elbow_position": ("VECTOR3D", "s.elbow_position"),
+    "elbow_velocity": ("VECTOR3D", "s.zero3"),
+    "robot_status_bits": ("UINT32", "s.robot_status_bits"),
+    "safety_status_bits": ("UINT32", "s.safety_status_bits"),
+    "analog_io_types": ("UINT32", "0"),
+    "standard_analog_input0": ("DOUBLE", "0.0"),
+    "standard_analog_input1": ("DOUBLE", "0.0"),
+    "standard_analog_output0": ("DOUBLE", "s.analog_out[0]"),
+    "standard_analog_output1": ("DOUBLE", "s.analog_out[1]"),
+    "io_current": ("DOUBLE", "0.0"),
+    "euromap67_input_bits": ("UINT32", "0"),
+    "euromap67_output_bits": ("UINT32", "0"),
+    "euromap67_24V_voltage": ("DOUBLE", "0.0"),
+    "euromap67_24V_current": ("DOUBLE", "0.0"),
+    "tool_mode": ("UINT32", "0"),
+    "tool_analog_input_types": ("UINT32", "0"),
+    "tool_analog_input0": ("DOUBLE", "0.0"),
+    "tool_analog_input1": ("DOUBLE", "0.0"),
+    "tool_output_voltage": ("INT32", "24"),
+    "tool_output_current": ("DOUBLE", "0.0"),
+    "tool_temperature": ("DOUBLE", "30.0"),
+    "tcp_force_scalar": ("DOUBLE", "0.0"),
+    "output_bit_registers0_to_31": ("UINT32", "r.out_bits & 0xFFFFFFFF"),
+    "output_bit_registers32_to_63": ("UINT32", "(r.out_bits >> 32) & 0xFFFFFFFF"),
+    "input_bit_registers0_to_31": ("UINT32", "r.in_bits & 0xFFFFFFFF"),
+    "input_bit_registers32_to_63": ("UINT32", "(r.in_bits >> 32) & 0xFFFFFFFF"),
+    "tool_output_mode": ("UINT8", "0"),
+    "tool_digital_output0_mode": ("UINT8", "0"),
+    "tool_digital_output1_mode": ("UINT8", "0"),
+    "payload": ("DOUBLE", "s.payload"),
+    "payload_cog": ("VECTOR3D", "s.payload_cog"),
+    "payload_inertia": (V6, "s.zero6"),
+    "script_control_line": ("UINT32", "0"),
+    "ft_raw_wrench": (V6, "s.zero6"),
+    "joint_position_deviation_ratio": (V6, "s.zero6"),
+    "collision_detection_ratio": ("DOUBLE", "0.0"),
+    "time_scale_source": ("INT32", "0"),
+}
+for _i in range(REGISTER_COUNT):
+    OUTPUTS[f"output_int_register_{_i}"] = ("INT32", f"r.out_int[{_i}]")
+    OUTPUTS[f"output_double_register_{_i}"] = ("DOUBLE", f"r.out_double[{_i}]")
+    OUTPUTS[f"input_int_register_{_i}"] = ("INT32", f"r.in_int[{_i}]")
+    OUTPUTS[f"input_double_register_{_i}"] = ("DOUBLE", f"r.in_double[{_i}]")
+for _i in range(64, 128):
+    OUTPUTS[f"output_bit_register_{_i}"] = ("BOOL", f"bool((r.out_bits >> {_i - 64}) & 1)")
+    OUTPUTS[f"input_bit_register_{_i}"] = ("BOOL", f"bool((r.in_bits >> {_i - 64}) & 1)")
+
+# Inputs: name -> RTDE type. Registers are written straight into the register file;
+# the I/O fields are collected per packet and applied together (mask + value).
+INPUTS: dict[str, str] = {
+    "speed_slider_mask": "UINT32",
+    "speed_slider_fraction": "DOUBLE",
+    "standard_digital_output_mask": "UINT8",
+    "standard_digital_output": "UINT8",
+    "configurable_digital_output_mask": "UINT8",
+    "configurable_digital_output": "UINT8",
+    "tool_digital_output_mask": "UINT8",
+    "tool_digital_output": "UINT8",
+    "standard_analog_output_mask": "UINT8",
+    "standard_analog_output_type": "UINT8",
+    "standard_analog_output_0": "DOUBLE",
+    "standard_analog_output_1": "DOUBLE",
+    "input_bit_registers0_to_31": "UINT32",
+    "input_bit_registers32_to_63": "UINT32",
+    "external_force_torque": "VECTOR6D",
+}
+for _i in range(REGISTER_COUNT):
+    INPUTS[f"input_int_register_{_i}"] = "INT32"
+    INPUTS[f"input_double_register_{_i}"] = "DOUBLE"
+for _i in range(64, 128):
+    INPUTS[f"input_bit_register_{_i}"] = "BOOL"
+
+
+class StreamState:
+    """The values the output recipes read, refreshed by the server once per cycle."""
+
+    def __init__(self) -> None:
+        z6: tuple[float, ...] = (0.0,) * 6
+        self.zero6 = z6
+        self.zero3: tuple[float, ...] = (0.0, 0.0, 0.0)
+        self.timestamp = 0.0
+        self.target_q = z6
+        self.target_qd = z6
+        self.target_qdd = z6
+        self.actual_q = z6
+        self.actual_qd = z6
+        self.current = z6
+        self.moment = z6
+        self.actual_tcp_pose = z6
+        self.target_tcp_pose = z6
+        self.tcp_speed = z6
+        self.digital_input_bits = 0
+        self.digital_output_bits = 0
+        self.temperatures = (30.0,) * 6
+        self.execution_time = 0.3
+        self.robot_mode = 0
+        self.joint_mode = (239,) * 6
+        self.safety_mode = 1
+        self.runtime_state = 1
+        self.robot_status_bits = 0
+        self.safety_status_bits = 1
+        self.accelerometer = (0.0, 0.0, 9.81)
+        self.speed_scaling = 1.0
+        self.target_speed_fraction = 1.0
+        self.main_voltage = 48.0
+        self.robot_voltage = 0.0
+        self.robot_current = 0.0
+        self.joint_voltage = z6
+        self.elbow_position = self.zero3
+        self.analog_out = [0.0, 0.0]
+        self.payload = 0.0
+        self.payload_cog = self.zero3
+
+
+def compile_output_recipe(names: list[str], recipe_id: int) -> Callable[[Any, Any], bytes]:
+    """A function ``pack(s, r) -> bytes`` writing one whole ``U`` packet for ``names``."""
+    fmt = ">HBB"
+    args = []
+    for name in names:
+        rtde_type, expr = OUTPUTS[name]
+        fmt += TYPE_CODES[rtde_type]
+        args.append(f"*{expr}" if rtde_type in VECTOR_TYPES else expr)
+    packer = struct.Struct(fmt)
+    source = (
+        "def pack(s, r, _pack=_pack):\n"
+        f"    return _pack({packer.size}, 85, {recipe_id}, {', '.join(args)})\n"
+    )
+    namespace: dict[str, Any] = {"_pack": packer.pack}
+    exec(compile(source, f"<rtde recipe {recipe_id}>", "exec"), namespace)
+    pack: Callable[[Any, Any], bytes] = namespace["pack"]
+    return pack
+
+
+class InputRecipe:
+    """One input recipe: how a ``U`` packet with its id writes into the controller."""
+
+    def __init__(self, names: list[str]) -> None:
+        self.names = names
+        self.struct = struct.Struct(">" + "".join(TYPE_CODES[INPUTS[n]] for n in names))
+        setters: list[tuple[str, int, int]] = []  # (kind, index, width)
+        for n in names:
+            width = 6 if INPUTS[n] == "VECTOR6D" else 1
+            if n.startswith("input_int_register_"):
+                setters.append(("i", int(n.rsplit("_", 1)[1]), width))
+            elif n.startswith("input_double_register_"):
+                setters.append(("d", int(n.rsplit("_", 1)[1]), width))
+            else:
+                setters.append(("io", 0, width))
+        self.setters = setters
+        self.watched = [n for n in names if "_register_" in n]
+
+    def apply(self, controller: Controller, payload: bytes) -> None:
+        values = self.struct.unpack_from(payload, 1)
+        regs = controller.registers
+        io: dict[str, Any] | None = None
+        pos = 0
+        for name, (kind, index, width) in zip(self.names, self.setters, strict=True):
+            if kind == "i":
+                regs.in_int[index] = values[pos]
+            elif kind == "d":
+                regs.in_double[index] = values[pos]
+            else:
+                if io is None:
+                    io = {}
+                io[name] = values[pos : pos + width] if width > 1 else values[pos]
+            pos += width
+        now = controller.time
+        updated = controller.input_updated
+        for name in self.watched:
+            updated[name] = now
+        if io is not None:
+            _apply_io(controller, io)
+
+
+def _apply_io(controller: Controller, io: dict[str, Any]) -> None:
+    state = controller.io
+    regs = controller.registers
+
+    def masked(old: int, mask_key: str, value_key: str) -> int:
+        mask = int(io.get(mask_key, 0xFF))
+        return (old & ~mask) | (int(io.get(value_key, 0)) & mask)
+
+    if "standard_digital_output" in io:
+        state.standard_digital = masked(
+            state.standard_digital, "standard_digital_output_mask", "standard_digital_output"
+        )
+    if "configurable_digital_output" in io:
+        state.configurable_digital = masked(
+            state.configurable_digital,
+            "configurable_digital_output_mask",
+            "configurable_digital_output",
+        )
+    if "tool_digital_output" in io:
+        state.tool_digital = masked(
+            state.tool_digital, "tool_digital_output_mask", "tool_digital_output"
+        )
+    if "speed_slider_fraction" in io and int(io.get("speed_slider_mask", 1)) & 1:
+        state.speed_slider = min(max(float(io["speed_slider_fraction"]), 0.0), 1.0)
+    mask = int(io.get("standard_analog_output_mask", 0))
+    for k in (0, 1):
+        key = f"standard_analog_output_{k}"
+        if key in io and mask & (1 << k):
+            state.analog_out[k] = float(io[key])
+    if "input_bit_registers0_to_31" in io:
+        regs.in_bits = (regs.in_bits & ~0xFFFFFFFF) | int(io["input_bit_registers0_to_31"])
+    if "input_bit_registers32_to_63" in io:
+        regs.in_bits = (regs.in_bits & 0xFFFFFFFF) | int(io["input_bit_registers32_to_63"]) << 32
+
+
+class OutputRecipe:
+    def __init__(self, names: list[str], recipe_id: int, frequency: float) -> None:
+        self.names = names
+        self.pack = compile_output_recipe(names, recipe_id)
+        self.step = frequency / 500.0
+        self.phase = 1.0  # send on the first cycle after start
+
+
+class RTDEHub:
+    """Every RTDE connection of the simulator, input ownership and the stream."""
+
+    def __init__(self, controller: Controller) -> None:
+        self.controller = controller
+        self.state = StreamState()
+        self.connections: set[RTDEConnection] = set()
+        self.owners: dict[str, RTDEConnection] = {}
+        self.packets_sent = 0
+
+    def protocol(self) -> RTDEConnection:
+        return RTDEConnection(self)
+
+    def stream(self) -> None:
+        """Called once per control cycle: send every due output packet."""
+        if self.controller.time < self.controller.rtde_stalled_until:
+            return
+        s = self.state
+        r = self.controller.registers
+        for conn in self.connections:
+            if not conn.started or conn.transport is None:
+                continue
+            for recipe in conn.outputs:
+                recipe.phase += recipe.step
+                if recipe.phase >= 0.999999:
+                    recipe.phase -= 1.0
+                    conn.transport.write(recipe.pack(s, r))
+                    self.packets_sent += 1
+            if conn.transport.get_write_buffer_size() > MAX_WRITE_BUFFER:
+                log.warning("RTDE client %s does not read: dropping it", conn.peer)
+                conn.transport.abort()
+
+    def drop_all(self) -> None:
+        for conn in list(self.connections):
+            if conn.transport is not None:
+                conn.transport.abort()
+
+    def release(self, conn: RTDEConnection) -> None:
+        for name in [n for n, c in self.owners.items() if c is conn]:
+            del self.owners[name]
+        self.connections.discard(conn)
+
+
+class RTDEConnection(asyncio.Protocol):
+    """One RTDE client connection."""
+
+    def __init__(self, hub: RTDEHub) -> None:
+        self.hub = hub
+        self.transport: asyncio.Transport | None = None
+        self.buffer = bytearray()
+        self.outputs: list[OutputRecipe] = []
+        self.inputs: dict[int, InputRecipe] = {}
+        self.started = False
+        self.peer = "?"
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        peer = transport.get_extra_info("peername")
+        self.peer = f"{peer[0]}:{peer[1]}" if peer else "?"
+        self.hub.connections.add(self)
+        log.debug("RTDE client %s connected", self.peer)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.hub.release(self)
+        self.transport = None
+        log.debug("RTDE client %s disconnected", self.peer)
+
+    def _send(self, kind: int, payload: bytes) -> None:
+        if self.transport is not None:
+            self.transport.write(HEADER.pack(len(payload) + 3, kind) + payload)
+
+    def data_received(self, data: bytes) -> None:
+        buf = self.buffer
+        buf += data
+        while len(buf) >= 3:
+            size, kind = HEADER.unpack_from(buf)
+            if size < 3:
+                log.warning("RTDE client %s sent a bad header: closing", self.peer)
+                if self.transport is not None:
+                    self.transport.abort()
+                return
+            if len(buf) < size:
+                break
+            payload = bytes(buf[3:size])
+            del buf[:size]
+            self._handle(kind, payload)
+
+    def _handle(self, kind: int, payload: bytes) -> None:
+        if kind == 85:  # 'U' data from the client
+            recipe = self.inputs.get(payload[0]) if payload else None
+            if recipe is None:
+                log.debug("RTDE %s: data for unknown input recipe", self.peer)
+                return
+            if len(payload) - 1 < recipe.struct.size:
+                log.warning("RTDE %s: short data packet for recipe %d", self.peer, payload[0])
+                return
+            recipe.apply(self.hub.controller, payload)
+        elif kind == 86:  # 'V' protocol version
+            version = struct.unpack_from(">H", payload)[0] if len(payload) >= 2 else 0
+            self._send(86, bytes([1 if version in (1, 2) else 0]))
+        elif kind == 118:  # 'v' controller version
+            from fxcell.sim.controller import POLYSCOPE_VERSION
+
+            self._send(118, struct.pack(">IIII", *POLYSCOPE_VERSION))
+        elif kind == 79:  # 'O' output setup
+            self._setup_outputs(payload)
+        elif kind == 73:  # 'I' input setup
+            self._setup_inputs(payload)
+        elif kind == 83:  # 'S' start
+            self.started = True
+            for output in self.outputs:
+                output.phase = 1.0
+            self._send(83, b"\x01")
+        elif kind == 80:  # 'P' pause
+            self.started = False
+            self._send(80, b"\x01")
+        else:
+            log.debug("RTDE %s: ignoring packet type %d", self.peer, kind)
+
+    def _setup_outputs(self, payload: bytes) -> None:
+        if len(payload) < 8:
+            self._send(79, b"\x00")
+            return
+        frequency = struct.unpack_from(">d", payload)[0]
+        names = [n.strip() for n in payload[8:].decode("ascii", "replace").split(",") if n.strip()]
+        types = [OUTPUTS[n][0] if n in OUTPUTS else "NOT_FOUND" for n in names]
+        if not names or "NOT_FOUND" in types or not frequency > 0:
+            self._send(79, b"\x00" + ",".join(types).encode())
+            return
+        frequency = min(frequency, 500.0)
+        recipe_id = len(self.outputs) + 1
+        self.outputs.append(OutputRecipe(names, recipe_id, frequency))
+        self._send(79, bytes([recipe_id]) + ",".join(types).encode())
+
+    def _setup_inputs(self, payload: bytes) -> None:
+        names = [n.strip() for n in payload.decode("ascii", "replace").split(",") if n.strip()]
+        types = []
+        for n in names:
+            owner = self.hub.owners.get(n)
+            if n not in INPUTS:
+                types.append("NOT_FOUND")
+            elif owner is not None and owner is not self:
+                types.append("IN_USE")
+            else:
+                types.append(INPUTS[n])
+        if not names or "NOT_FOUND" in types or "IN_USE" in types:
+            self._send(73, b"\x00" + ",".join(types).encode())
+            return
+        for n in names:
+            self.hub.owners[n] = self
+        recipe_id = len(self.inputs) + 1
+        self.inputs[recipe_id] = InputRecipe(names)
+        self._send(73, bytes([recipe_id]) + ",".join(types).encode())

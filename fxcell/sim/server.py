@@ -1,0 +1,383 @@
+"""The simulator process: servers on one loopback address and the 500 Hz control cycle.
+
+Everything runs on one asyncio loop built on ``select()`` (microsecond timeouts; epoll
+rounds to milliseconds). The cycle is scheduled on absolute deadlines: each wake-up
+first sends the due RTDE packets, then advances the controller by as many 2 ms steps as
+have elapsed (so controller time follows the wall clock even after a late wake-up).
+
+Ports: Dashboard 29999, RTDE 30004, script 30003 and 30002, and the simulator's own
+control port 29990 (fault injection and state queries, one text line per request,
+see :data:`CONTROL_PORT`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import selectors
+import signal
+import sys
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from fxcell.config import CellConfig
+from fxcell.geometry import matrix_to_rotvec
+from fxcell.protocol import (
+    CONTROL_PERIOD,
+    DASHBOARD_PORT,
+    RTDE_PORT,
+    SCRIPT_PORT,
+    SECONDARY_PORT,
+    URCAP_SCRIPT_PORT,
+    RobotMode,
+)
+from fxcell.sim.controller import Controller, FaultError
+from fxcell.sim.dashboard import Dashboard, DashboardConnection
+from fxcell.sim.motion import Arm, TableGuard
+from fxcell.sim.rtde import RTDEHub
+
+log = logging.getLogger(__name__)
+
+CONTROL_PORT = 29990  # simulator control: "inject FAULT [ARGS]", "state", "set_joints q1..q6"
+PORTS = (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, SECONDARY_PORT, CONTROL_PORT)
+URCAP_TIMEOUT = 5.0
+
+
+def _program_end(text: str) -> int:
+    """Index just past a complete ``def``/``sec`` program at the start of ``text``, or -1."""
+    pos = 0
+    while True:
+        nl = text.find("\n", pos)
+        if nl < 0:
+            return -1
+        line = text[pos:nl]
+        if line.rstrip() == "end" and pos > 0:
+            return nl + 1
+        pos = nl + 1
+
+
+class ScriptConnection(asyncio.Protocol):
+    """Port 30003/30002: collects URScript text and runs each complete program."""
+
+    def __init__(self, controller: Controller) -> None:
+        self.controller = controller
+        self.text = ""
+
+    def data_received(self, data: bytes) -> None:
+        self.text += data.decode("utf-8", "replace")
+        while True:
+            stripped = self.text.lstrip()
+            if not stripped:
+                self.text = ""
+                return
+            first = stripped.split("\n", 1)[0]
+            if first.startswith(("def ", "sec ")):
+                end = _program_end(stripped)
+                if end < 0:
+                    self.text = stripped
+                    return
+                program, self.text = stripped[:end], stripped[end:]
+            else:
+                if "\n" not in stripped:
+                    self.text = stripped
+                    return
+                program, self.text = first + "\n", stripped.split("\n", 1)[1]
+            log.info("script port: program of %d bytes received", len(program))
+            self.controller.run_script(program)
+
+
+class ControlConnection(asyncio.Protocol):
+    """The simulator's own control port: fault injection and state, one line each."""
+
+    def __init__(self, server: SimServer) -> None:
+        self.server = server
+        self.transport: asyncio.Transport | None = None
+        self.buffer = b""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+
+    def data_received(self, data: bytes) -> None:
+        self.buffer += data
+        while self.transport is not None and b"\n" in self.buffer:
+            raw, self.buffer = self.buffer.split(b"\n", 1)
+            answer = self.server.control_command(raw.decode("utf-8", "replace").strip())
+            self.transport.write((answer + "\n").encode())
+
+
+class SimServer:
+    """The simulator: controller, servers and the control cycle."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        *,
+        time_scale: float = 1.0,
+        config: CellConfig | None = None,
+        joints: Sequence[float] | None = None,
+        urcap_port: int = URCAP_SCRIPT_PORT,
+    ) -> None:
+        from fxcell.kinematics import Kinematics
+
+        self.host = host
+        self.config = config or CellConfig.load()
+        self.urcap_port = urcap_port
+        limits = (self.config.limits.position_min, self.config.limits.position_max)
+
+        def make_kinematics(tcp: Any) -> Kinematics:
+            return Kinematics.ur3e(tcp, limits)
+
+        table = next((o for o in self.config.scene.objects if o.name == "table"), None)
+        guard = TableGuard(table.position, table.size) if table is not None else None
+        start = joints if joints is not None else self.config.home
+        self.arm = Arm(make_kinematics(None), start, table=guard, make_kinematics=make_kinematics)
+        self.controller = Controller(self.arm, time_scale=time_scale)
+        self.controller.client_host = "127.0.0.1"
+        self.hub = RTDEHub(self.controller)
+        self.dashboard = Dashboard(self.controller)
+        self.controller.on_drop_rtde = self.hub.drop_all
+        self.controller.on_shutdown = self.request_stop
+        self.controller.request_urcap_program = self._start_urcap_request
+        self._servers: list[asyncio.Server] = []
+        self._stopping: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._deadline = 0.0
+        self._handle: asyncio.TimerHandle | None = None
+        self._urcap_task: asyncio.Task[None] | None = None
+        self._fk_version = -1
+        self._prev_tcp: tuple[np.ndarray, np.ndarray] | None = None
+        self.late_cycles = 0
+        self.publish_state()
+
+    # ------------------------------------------------------------------ state
+
+    def publish_state(self) -> None:
+        """Copy the controller's state into the RTDE stream state (FK only when q changed)."""
+        c, arm, s = self.controller, self.arm, self.hub.state
+        s.timestamp = c.time
+        q = tuple(arm.q.tolist())
+        s.actual_q = s.target_q = q
+        s.actual_qd = s.target_qd = tuple(arm.qd.tolist())
+        s.target_qdd = tuple(arm.qdd.tolist())
+        if arm.version != self._fk_version:
+            self._fk_version = arm.version
+            pose = arm.kinematics.forward(arm.q)
+            s.actual_tcp_pose = s.target_tcp_pose = pose.as_ur()
+            p, R = pose.position, pose.rotation
+            if self._prev_tcp is not None and arm.moving:
+                p0, R0 = self._prev_tcp
+                v = (p - p0) / CONTROL_PERIOD
+                w = np.asarray(matrix_to_rotvec(R @ R0.T)) / CONTROL_PERIOD
+                s.tcp_speed = (*v.tolist(), *w.tolist())
+            else:
+                s.tcp_speed = s.zero6
+            self._prev_tcp = (p, R)
+        elif s.tcp_speed is not s.zero6:
+            s.tcp_speed = s.zero6
+        powered = c.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
+        s.robot_mode = int(c.robot_mode)
+        s.safety_mode = int(c.safety_mode)
+        s.runtime_state = int(c.runtime_state)
+        s.robot_status_bits = c.robot_status_bits
+        s.safety_status_bits = c.safety_status_bits
+        s.joint_mode = (c.joint_mode,) * 6
+        s.robot_voltage = 48.0 if powered else 0.0
+        s.robot_current = 0.6 if powered else 0.0
+        s.joint_voltage = (48.0,) * 6 if powered else s.zero6
+        s.digital_output_bits = c.io.output_bits
+        s.analog_out = c.io.analog_out
+        s.target_speed_fraction = c.io.speed_slider
+        s.payload = c.payload_mass
+        s.payload_cog = c.payload_cog
+
+    # ------------------------------------------------------------------ cycle
+
+    def _cycle(self) -> None:
+        loop = self._loop
+        assert loop is not None
+        now = loop.time()
+        steps = 0
+        while self._deadline <= now + 5e-5:
+            self._deadline += CONTROL_PERIOD
+            steps += 1
+        if steps > 50:  # stalled (suspended process): resynchronise instead of catching up
+            self.late_cycles += steps
+            self._deadline = now + CONTROL_PERIOD
+            steps = 1
+        elif steps > 1:
+            self.late_cycles += steps - 1
+        self.hub.stream()
+        for _ in range(max(steps, 1)):
+            self.controller.tick()
+        self.publish_state()
+        self._handle = loop.call_at(self._deadline, self._cycle)
+
+    # ------------------------------------------------------------------ control port
+
+    def control_command(self, line: str) -> str:
+        words = line.split()
+        if not words:
+            return "error: empty request"
+        cmd, args = words[0].lower(), words[1:]
+        c = self.controller
+        if cmd == "inject" and args:
+            try:
+                return "ok: " + c.inject(args[0].lower(), args[1:])
+            except FaultError as exc:
+                return f"error: {exc}"
+        if cmd == "state":
+            return json.dumps(
+                {
+                    "time": c.time,
+                    "robot_mode": c.robot_mode.name,
+                    "safety_mode": c.safety_mode.name,
+                    "runtime_state": c.runtime_state.name,
+                    "remote_control": c.remote_control,
+                    "q": self.arm.q.tolist(),
+                    "qd": self.arm.qd.tolist(),
+                    "tcp": list(c.tcp),
+                    "program": c.loaded_program,
+                    "last_stop_reason": c.last_stop_reason,
+                    "late_cycles": self.late_cycles,
+                    "log": c.log_messages[-20:],
+                }
+            )
+        if cmd == "set_joints":
+            try:
+                q = [float(v) for v in args]
+            except ValueError:
+                return "error: set_joints needs 6 numbers"
+            if len(q) != 6 or not all(math.isfinite(v) and abs(v) <= 2 * math.pi for v in q):
+                return "error: set_joints needs 6 finite joint positions within ±2π"
+            if self.arm.moving or self.arm.generator is not None:
+                return "error: the arm is moving"
+            self.arm.set_state(q, None, None)
+            return "ok: joints set"
+        return f"error: unknown request {line!r} (inject FAULT [ARGS] | state | set_joints Q*6)"
+
+    # ------------------------------------------------------------------ URCap
+
+    def _start_urcap_request(self) -> None:
+        if self._urcap_task is not None and not self._urcap_task.done():
+            self._urcap_task.cancel()
+        self._urcap_task = asyncio.ensure_future(self._request_urcap_program())
+
+    async def _request_urcap_program(self) -> None:
+        host = self.controller.client_host
+        c = self.controller
+        try:
+            reader, writer = await asyncio.wait_for(
+                asyncio.open_connection(host, self.urcap_port), URCAP_TIMEOUT
+            )
+        except (OSError, TimeoutError) as exc:
+            c.stop(
+                f"ExternalControl: cannot reach the remote PC at {host}:{self.urcap_port} ({exc})"
+            )
+            return
+        try:
+            writer.write(b"request_program\n")
+            await writer.drain()
+            text = ""
+            deadline = time.monotonic() + URCAP_TIMEOUT
+            while _program_end(text.lstrip()) < 0:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError("no complete program received")
+                chunk = await asyncio.wait_for(reader.read(65536), remaining)
+                if not chunk:
+                    raise ConnectionError("connection closed before a complete program")
+                text += chunk.decode("utf-8", "replace")
+        except (OSError, TimeoutError, ConnectionError) as exc:
+            c.stop(f"ExternalControl: program request failed ({exc})")
+            return
+        finally:
+            writer.close()
+        if c.runtime_state.name == "PLAYING" and c.script is None:
+            log.info("ExternalControl: received a program of %d bytes", len(text))
+            c.run_script(text.lstrip(), via_urcap=True)
+
+    # ------------------------------------------------------------------ life
+
+    def request_stop(self) -> None:
+        if self._stopping is not None:
+            self._stopping.set()
+
+    async def serve(self, *, boot_delay: float = 0.0, announce: bool = True) -> None:
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._stopping = asyncio.Event()
+        if boot_delay > 0:
+            await asyncio.sleep(boot_delay)
+        factories: list[tuple[int, Any]] = [
+            (DASHBOARD_PORT, lambda: DashboardConnection(self.dashboard, self.controller.shutdown)),
+            (RTDE_PORT, self.hub.protocol),
+            (SCRIPT_PORT, lambda: ScriptConnection(self.controller)),
+            (SECONDARY_PORT, lambda: ScriptConnection(self.controller)),
+            (CONTROL_PORT, lambda: ControlConnection(self)),
+        ]
+        try:
+            for port, factory in factories:
+                server = await loop.create_server(factory, self.host, port, reuse_address=True)
+                self._servers.append(server)
+        except OSError:
+            for srv in self._servers:
+                srv.close()
+            raise
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, self.request_stop)
+        self._deadline = loop.time() + CONTROL_PERIOD
+        self._handle = loop.call_at(self._deadline, self._cycle)
+        if announce:
+            print(
+                f"fxcell sim listening on {self.host}: dashboard {DASHBOARD_PORT}, rtde "
+                f"{RTDE_PORT}, script {SCRIPT_PORT}/{SECONDARY_PORT}, control {CONTROL_PORT}",
+                flush=True,
+            )
+        try:
+            await self._stopping.wait()
+        finally:
+            if self._handle is not None:
+                self._handle.cancel()
+            if self._urcap_task is not None:
+                self._urcap_task.cancel()
+            self.hub.drop_all()
+            for srv in self._servers:
+                srv.close()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
+
+
+def new_event_loop() -> asyncio.AbstractEventLoop:
+    """An event loop whose timers have microsecond resolution (select, not epoll)."""
+    return asyncio.SelectorEventLoop(selectors.SelectSelector())
+
+
+def run(
+    host: str,
+    *,
+    time_scale: float = 1.0,
+    config: CellConfig | None = None,
+    joints: Sequence[float] | None = None,
+    urcap_port: int = URCAP_SCRIPT_PORT,
+) -> int:
+    """Run the simulator until SIGINT/SIGTERM or a dashboard ``shutdown``; exit code."""
+    from fxcell.sim.controller import DELAYS
+
+    sim = SimServer(
+        host, time_scale=time_scale, config=config, joints=joints, urcap_port=urcap_port
+    )
+    loop = new_event_loop()
+    try:
+        loop.run_until_complete(sim.serve(boot_delay=DELAYS["boot"] * time_scale))
+    except OSError as exc:
+        print(f"fxcell sim: cannot listen on {host}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    finally:
+        loop.close()
+    return 0

@@ -1,0 +1,202 @@
+"""The simulator's process, CLI and Dashboard server, seen by the real ur_rtde DashboardClient."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+from dashboard_client import DashboardClient
+
+from fxcell.cli import main
+from fxcell.embedded import EmbeddedSimulator, address_is_free
+from fxcell.errors import InvalidArgumentError, SimulatorError
+from fxcell.testing import SimulatorHandle, simulator
+
+
+def wait_until(predicate: object, timeout: float = 5.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():  # type: ignore[operator]
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+class RawDashboard:
+    """A plain-socket Dashboard client, to check the exact reply strings."""
+
+    def __init__(self, host: str) -> None:
+        self.sock = socket.create_connection((host, 29999), timeout=5)
+        self.file = self.sock.makefile("rwb")
+        self.banner = self.file.readline().decode().rstrip("\n")
+
+    def ask(self, line: str) -> str:
+        self.file.write(line.encode() + b"\n")
+        self.file.flush()
+        return self.file.readline().decode().rstrip("\n")
+
+    def close(self) -> None:
+        self.file.close()
+        self.sock.close()
+
+
+def test_life_cycle_power_on_brake_release_load_play_pause_stop(sim: SimulatorHandle) -> None:
+    d = DashboardClient(sim.host)
+    d.connect()
+    try:
+        assert d.robotmode() == "Robotmode: POWER_OFF"
+        d.powerOn()
+        wait_until(lambda: d.robotmode() == "Robotmode: IDLE", what="IDLE")
+        d.brakeRelease()
+        wait_until(lambda: d.robotmode() == "Robotmode: RUNNING", what="RUNNING")
+        d.loadURP("fxcell.urp")
+        assert d.getLoadedProgram() == "Loaded program: /programs/fxcell.urp"
+        assert d.programState() == "STOPPED fxcell.urp"
+        assert not d.running()
+        d.play()
+        assert d.running()
+        assert d.programState() == "PLAYING fxcell.urp"
+        d.pause()
+        assert d.programState() == "PAUSED fxcell.urp"
+        d.play()  # resumes
+        assert d.programState() == "PLAYING fxcell.urp"
+        d.stop()
+        assert d.programState() == "STOPPED fxcell.urp"
+        d.powerOff()
+        assert d.robotmode() == "Robotmode: POWER_OFF"
+        assert d.isInRemoteControl()
+        assert d.polyscopeVersion().startswith("5.11.1")
+        assert d.getSerialNumber() == "20235500001"
+        assert d.getRobotModel() == "UR3"
+    finally:
+        d.disconnect()
+
+
+def test_every_reply_form_is_the_polyscope_5_string(sim: SimulatorHandle) -> None:
+    d = RawDashboard(sim.host)
+    try:
+        assert d.banner == "Connected: Universal Robots Dashboard Server"
+        expected = {
+            "robotmode": "Robotmode: POWER_OFF",
+            "safetymode": "Safetymode: NORMAL",
+            "safetystatus": "Safetystatus: NORMAL",
+            "programState": "STOPPED null",
+            "running": "Program running: false",
+            "get loaded program": "No program loaded",
+            "PolyscopeVersion": "URSoftware 5.11.1.108318 (Mar 22 2021)",
+            "get serial number": "20235500001",
+            "get robot model": "UR3",
+            "is in remote control": "true",
+            "play": "Failed to execute: play",
+            "stop": "Failed to execute: stop",
+            "pause": "Failed to execute: pause",
+            "load missing.urp": "File not found: /programs/missing.urp",
+            "load notes.txt": "Error while loading program: /programs/notes.txt",
+            "load /programs/external_control.urp": (
+                "Loading program: /programs/external_control.urp"
+            ),
+            "isProgramSaved": "true external_control.urp",
+            "popup hello": "showing popup",
+            "close popup": "closing popup",
+            "close safety popup": "closing safety popup",
+            "addToLog hello": "Added log message",
+            "unlock protective stop": (
+                "Cannot unlock protective stop, safetymode is not PROTECTIVE_STOP"
+            ),
+            "get operational mode": "NONE",
+            "power on": "Powering on",
+            "brake release": "Brake releasing",
+            "power off": "Powering off",
+            "restart safety": "Restarting safety",
+            "no such command": "could not understand: 'no such command'",
+        }
+        for request, reply in expected.items():
+            assert d.ask(request) == reply, request
+        assert d.ask("quit") == "Disconnected"
+        assert d.file.readline() == b""  # the server closed the connection
+    finally:
+        d.close()
+
+
+def test_local_control_refuses_robot_commands_but_answers_queries(sim: SimulatorHandle) -> None:
+    sim.inject("local_control")
+    refusal = sim.dashboard("power on")
+    assert refusal.startswith("Command is not allowed due to safety reasons")
+    for command in ("brake release", "load fxcell.urp", "play", "stop", "unlock protective stop"):
+        assert sim.dashboard(command) == refusal, command
+    assert sim.dashboard("is in remote control") == "false"
+    assert sim.dashboard("robotmode") == "Robotmode: POWER_OFF"
+    d = DashboardClient(sim.host)
+    d.connect()
+    try:
+        assert not d.isInRemoteControl()
+        d.powerOn()  # the client does not check this reply: the robot must stay off
+        assert d.robotmode() == "Robotmode: POWER_OFF"
+        sim.inject("remote_control")
+        assert d.isInRemoteControl()
+        d.powerOn()
+        wait_until(lambda: d.robotmode() == "Robotmode: IDLE", what="IDLE")
+    finally:
+        d.disconnect()
+
+
+def test_restart_safety_goes_through_recovery_to_power_off(sim: SimulatorHandle) -> None:
+    sim.bring_up()
+    assert sim.dashboard("restart safety") == "Restarting safety"
+    assert sim.dashboard("robotmode") == "Robotmode: POWER_OFF"
+    wait_until(lambda: sim.dashboard("safetymode") == "Safetymode: NORMAL", what="NORMAL")
+
+
+def test_shutdown_ends_the_simulator_process() -> None:
+    with simulator() as sim:
+        assert sim.dashboard("shutdown") == "Shutting down"
+        wait_until(lambda: not sim.running, timeout=10, what="process exit")
+
+
+def test_cli_inject_reaches_the_simulator_and_rejects_unknown_faults(
+    sim: SimulatorHandle, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["sim", "inject", "--host", sim.host, "safeguard_stop"]) == 0
+    assert "safeguard stop" in capsys.readouterr().out
+    assert sim.dashboard("safetymode") == "Safetymode: SAFEGUARD_STOP"
+    with pytest.raises(SystemExit) as exc:
+        main(["sim", "inject", "--host", sim.host, "meteor_strike"])
+    assert exc.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+    with pytest.raises(InvalidArgumentError, match="stall_rtde needs SECONDS"):
+        sim.inject("stall_rtde")
+
+
+def test_help_lists_the_sim_subcommand(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["sim", "--help"])
+    out = capsys.readouterr().out
+    assert "--time-scale" in out
+    assert "inject" in out
+
+
+def test_simulators_run_side_by_side_on_their_own_addresses() -> None:
+    sims = [simulator() for _ in range(3)]
+    try:
+        for s in sims:
+            s.start()
+        hosts = {s.host for s in sims}
+        assert len(hosts) == 3
+        for i, s in enumerate(sims):
+            s.set_joints([0.1 * (i + 1), -1.5, 0.5, -1.0, -1.5, 0.0])
+        for i, s in enumerate(sims):
+            assert s.state()["q"][0] == pytest.approx(0.1 * (i + 1))
+        sims[0].dashboard("power on")
+        assert sims[1].dashboard("robotmode") == "Robotmode: POWER_OFF"
+    finally:
+        for s in sims:
+            s.stop()
+
+
+def test_a_taken_address_is_reported_not_hung() -> None:
+    with simulator() as first:
+        assert not address_is_free(first.host)
+        second = EmbeddedSimulator(first.host, time_scale=0.05, startup_timeout=20)
+        with pytest.raises(SimulatorError, match="exit code 2"):
+            second.start()
+        assert first.dashboard("robotmode") == "Robotmode: POWER_OFF"
