@@ -25,11 +25,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 import ruckig
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from fxcell.config import JointLimits
 from fxcell.errors import InvalidFactorError, PlanningError
@@ -79,7 +79,7 @@ class Limits:
             position_max=np.asarray(limits.position_max, float),
         )
 
-    def with_velocity(self, velocity: Sequence[float]) -> Limits:
+    def with_velocity(self, velocity: ArrayLike) -> Limits:
         return Limits(
             np.asarray(velocity, float),
             self.acceleration,
@@ -162,68 +162,97 @@ def _segment(
     return _solve(inp)
 
 
+def _evaluate(traj: ruckig.Trajectory, times: Array) -> tuple[Array, Array, Array]:
+    """Positions, velocities, accelerations (len(times), dof) of a Ruckig trajectory.
+
+    Vectorised over the seven constant-jerk phases of each joint's profile; falls back
+    to ``at_time`` for profiles with a braking or acceleration pre-phase.
+    """
+    dof = traj.degrees_of_freedom
+    n = len(times)
+    pos, vel, acc = np.empty((n, dof)), np.empty((n, dof)), np.empty((n, dof))
+    profiles = traj.profiles[0]
+    for d, prof in enumerate(profiles):
+        t = np.asarray(prof.t, float)
+        if prof.brake.duration > 0 or prof.accel.duration > 0:
+            break
+        starts = np.concatenate(([0.0], np.cumsum(t)))
+        k = np.clip(np.searchsorted(starts, times, side="right") - 1, 0, 6)
+        tau = np.clip(times - starts[k], 0.0, None)
+        tau = np.minimum(tau, t[k])  # past the end: hold the final state
+        j = np.asarray(prof.j, float)[k]
+        a0 = np.asarray(prof.a, float)[k]
+        v0 = np.asarray(prof.v, float)[k]
+        p0 = np.asarray(prof.p, float)[k]
+        pos[:, d] = p0 + tau * (v0 + tau * (a0 / 2 + tau * j / 6))
+        vel[:, d] = v0 + tau * (a0 + tau * j / 2)
+        acc[:, d] = a0 + tau * j
+    else:
+        return pos, vel, acc
+    for i, tk in enumerate(times):
+        pos[i], vel[i], acc[i] = traj.at_time(float(tk))
+    return pos, vel, acc
+
+
 class _Line:
     """A rest-to-rest straight joint segment, timed as a scalar profile (stays on the line)."""
 
     def __init__(self, start: Array, target: Array, limits: Limits) -> None:
         self.start = start
         self.delta = target - start
-        inp = ruckig.InputParameter(1)
-        inp.current_position = [0.0]
-        inp.target_position = [1.0]
-        v, a, j = _line_limits(self.delta, limits)
-        inp.max_velocity = [v]
-        inp.max_acceleration = [a]
-        inp.max_jerk = [j]
-        self._traj = ruckig.Trajectory(1)
-        result = ruckig.Ruckig(1).calculate(inp, self._traj)
-        if result not in (ruckig.Result.Working, ruckig.Result.Finished):
-            raise PlanningError(f"Ruckig could not time the segment: {result}")
+        self._traj = _scalar(*_line_limits(self.delta, limits))
         self.duration = float(self._traj.duration)
 
-    def at_time(self, t: float) -> tuple[Array, Array, Array]:
-        (s,), (sd,), (sdd,) = self._traj.at_time(t)
+    def evaluate(self, times: Array) -> tuple[Array, Array, Array]:
+        s, sd, sdd = _evaluate(self._traj, times)
         return self.start + s * self.delta, sd * self.delta, sdd * self.delta
 
 
+class _Ruckig:
+    def __init__(self, traj: ruckig.Trajectory) -> None:
+        self._traj = traj
+        self.duration = float(traj.duration)
+
+    def evaluate(self, times: Array) -> tuple[Array, Array, Array]:
+        return _evaluate(self._traj, times)
+
+
 class Piece(Protocol):
-    """A timed piece of a trajectory (a Ruckig trajectory or a :class:`_Line`)."""
+    """A timed piece of a trajectory."""
 
     @property
     def duration(self) -> float: ...
 
-    def at_time(self, t: float) -> Any: ...
+    def evaluate(self, times: Array) -> tuple[Array, Array, Array]: ...
 
 
-def _sample(pieces: Sequence[Piece]) -> Trajectory:
-    """Sample consecutive Ruckig trajectories on one global 2 ms grid."""
-    ends = np.cumsum([p.duration for p in pieces])
-    total = float(ends[-1])
+def _grid(total: float) -> Array:
+    """Sample times every DT from 0, the last one at ``total`` exactly."""
     n = max(round(math.ceil(total / DT - 1e-9)), 1) + 1
     t = np.arange(n, dtype=float) * DT
     t[-1] = total
-    pos = np.empty((n, DOF))
-    vel = np.empty((n, DOF))
-    acc = np.empty((n, DOF))
+    return t
+
+
+def _sample(pieces: Sequence[Piece]) -> Trajectory:
+    """Sample consecutive pieces on one global 2 ms grid."""
+    ends = np.cumsum([p.duration for p in pieces])
+    total = float(ends[-1])
+    t = _grid(total)
+    n = len(t)
+    pos, vel, acc = np.empty((n, DOF)), np.empty((n, DOF)), np.empty((n, DOF))
     which = np.minimum(np.searchsorted(ends, t, side="left"), len(pieces) - 1)
     starts = np.concatenate(([0.0], ends[:-1]))
-    for k in range(n):
-        j = int(which[k])
-        local = min(max(t[k] - starts[j], 0.0), pieces[j].duration)
-        p, v, a = pieces[j].at_time(local)
-        pos[k], vel[k], acc[k] = p, v, a
-    # Ruckig ends within ~1e-12 of the target; make the last sample exact.
+    for j, piece in enumerate(pieces):
+        mask = which == j
+        if mask.any():
+            local = np.clip(t[mask] - starts[j], 0.0, piece.duration)
+            pos[mask], vel[mask], acc[mask] = piece.evaluate(local)
     return Trajectory(pos, vel, acc, total, segments=len(pieces))
 
 
-# ----------------------------------------------------------------- public builders
-
-
-def _profile(v: float, a: float, j: float) -> tuple[Array, Array, Array, Array]:
-    """Sample the time-optimal rest-to-rest profile of a scalar s from 0 to 1.
-
-    Returns times, s, ds/dt and d²s/dt² on the 2 ms grid (last sample at the end time).
-    """
+def _scalar(v: float, a: float, j: float) -> ruckig.Trajectory:
+    """The time-optimal rest-to-rest profile of a scalar from 0 to 1."""
     inp = ruckig.InputParameter(1)
     inp.current_position = [0.0]
     inp.target_position = [1.0]
@@ -234,13 +263,22 @@ def _profile(v: float, a: float, j: float) -> tuple[Array, Array, Array, Array]:
     result = ruckig.Ruckig(1).calculate(inp, traj)
     if result not in (ruckig.Result.Working, ruckig.Result.Finished):
         raise PlanningError(f"Ruckig could not time the path: {result}")
-    total = float(traj.duration)
-    n = max(round(math.ceil(total / DT - 1e-9)), 1) + 1
-    t = np.arange(n, dtype=float) * DT
-    t[-1] = total
-    out = np.array([[x[0] for x in traj.at_time(float(tk))] for tk in t])
-    out[-1] = (1.0, 0.0, 0.0)
-    return t, np.clip(out[:, 0], 0.0, 1.0), out[:, 1], out[:, 2]
+    return traj
+
+
+# ----------------------------------------------------------------- public builders
+
+
+def _profile(v: float, a: float, j: float) -> tuple[Array, Array, Array, Array]:
+    """Sample the time-optimal rest-to-rest profile of a scalar s from 0 to 1.
+
+    Returns times, s, ds/dt and d²s/dt² on the 2 ms grid (last sample at the end time).
+    """
+    traj = _scalar(v, a, j)
+    t = _grid(float(traj.duration))
+    s, sd, sdd = (x[:, 0] for x in _evaluate(traj, t))
+    s[-1], sd[-1], sdd[-1] = 1.0, 0.0, 0.0
+    return t, np.clip(s, 0.0, 1.0), sd, sdd
 
 
 def _line_limits(delta: Array, limits: Limits) -> tuple[float, float, float]:
@@ -254,7 +292,7 @@ def _line_limits(delta: Array, limits: Limits) -> tuple[float, float, float]:
     )
 
 
-def minimum_duration(start: Sequence[float], target: Sequence[float], limits: Limits) -> float:
+def minimum_duration(start: ArrayLike, target: ArrayLike, limits: Limits) -> float:
     """Time-optimal rest-to-rest duration of a joint move under ``limits`` (the bound
     Ruckig computes with every joint free to move independently)."""
     zero = np.zeros(DOF)
@@ -265,7 +303,7 @@ def minimum_duration(start: Sequence[float], target: Sequence[float], limits: Li
     )
 
 
-def rest_to_rest(start: Sequence[float], target: Sequence[float], limits: Limits) -> Trajectory:
+def rest_to_rest(start: ArrayLike, target: ArrayLike, limits: Limits) -> Trajectory:
     """The time-optimal jerk-limited move along the straight joint-space line.
 
     On a straight line every joint moves in proportion, so the optimum is a scalar
@@ -343,7 +381,9 @@ def through_waypoints(
                 pieces.append(
                     _Line(wp[k], wp[k + 1], limits)
                     if rest
-                    else _segment(wp[k], wp[k + 1], vel[k], vel[k + 1], limits, phase=False)
+                    else _Ruckig(
+                        _segment(wp[k], wp[k + 1], vel[k], vel[k + 1], limits, phase=False)
+                    )
                 )
             except PlanningError:
                 if rest:
@@ -423,9 +463,9 @@ def along_path(
 
 
 def braking(
-    position: Sequence[float],
-    velocity: Sequence[float],
-    acceleration: Sequence[float],
+    position: ArrayLike,
+    velocity: ArrayLike,
+    acceleration: ArrayLike,
     limits: Limits,
 ) -> Trajectory:
     """The jerk-limited time-optimal stop from a moving state (sample 0 = that state).
@@ -435,27 +475,25 @@ def braking(
     inp = _input(limits)
     inp.control_interface = ruckig.ControlInterface.Velocity
     inp.synchronization = ruckig.Synchronization.Time
-    inp.current_position = [float(x) for x in position]
-    inp.current_velocity = [float(x) for x in velocity]
-    inp.current_acceleration = [float(x) for x in acceleration]
+    inp.current_position = np.asarray(position, float).tolist()
+    inp.current_velocity = np.asarray(velocity, float).tolist()
+    inp.current_acceleration = np.asarray(acceleration, float).tolist()
     inp.target_velocity = [0.0] * DOF
     inp.target_acceleration = [0.0] * DOF
-    traj = _sample([_solve(inp)])
+    traj = _sample([_Ruckig(_solve(inp))])
     traj.velocities[-1] = 0.0
     traj.accelerations[-1] = 0.0
     return traj
 
 
-def braking_duration(
-    velocity: Sequence[float], acceleration: Sequence[float], limits: Limits
-) -> float:
+def braking_duration(velocity: ArrayLike, acceleration: ArrayLike, limits: Limits) -> float:
     """The minimum time to rest from ``velocity``/``acceleration`` (the stop bound)."""
     inp = _input(limits)
     inp.control_interface = ruckig.ControlInterface.Velocity
     inp.synchronization = ruckig.Synchronization.No
     inp.current_position = [0.0] * DOF
-    inp.current_velocity = [float(x) for x in velocity]
-    inp.current_acceleration = [float(x) for x in acceleration]
+    inp.current_velocity = np.asarray(velocity, float).tolist()
+    inp.current_acceleration = np.asarray(acceleration, float).tolist()
     inp.target_velocity = [0.0] * DOF
     inp.target_acceleration = [0.0] * DOF
     return float(_solve(inp).duration)

@@ -1,0 +1,757 @@
+"""The logic of a move, kept apart from the Cell: check, IK, collision, plan, time, execute, stop.
+
+:class:`MotionPlanner` turns a target into a :class:`MovePlan` — validated factors and
+target, IK nearest the current joints and free of collision, a collision-free path
+(straight joint line, else OMPL; or a Cartesian straight line) and a jerk-limited
+trajectory sampled at 2 ms — or raises before anything moves. :class:`MoveExecution`
+streams a plan through the robot link (servoJ at 500 Hz in the link process) and, when
+stopped or cancelled, replaces the samples not yet sent by a jerk-limited braking
+profile computed with Ruckig from the planned state where the replacement takes over.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from fxcell.config import CellConfig
+from fxcell.errors import (
+    CollisionError,
+    ConnectionLostError,
+    EmergencyStopError,
+    InvalidArgumentError,
+    InvalidTargetError,
+    MoveError,
+    MoveStoppedError,
+    ProtectiveStopError,
+    RobotFaultError,
+    SafeguardStopError,
+    TrackingError,
+    UnreachableError,
+)
+from fxcell.events import MotionEvent, now
+from fxcell.geometry import Pose
+from fxcell.kinematics import Kinematics
+from fxcell.planning import DEFAULT_PLANNER, JointPlanner, cartesian_line
+from fxcell.protocol import RobotState
+from fxcell.trajectory import (
+    DT,
+    Limits,
+    Trajectory,
+    along_path,
+    braking,
+    rest_to_rest,
+    through_waypoints,
+    validate_factor,
+)
+
+if TYPE_CHECKING:
+    from fxcell.collision import CollisionChecker
+    from fxcell.link import LinkClient, StateSubscription, TrajectoryHandle, TrajectoryResult
+
+Array = NDArray[np.float64]
+MoveKind = Literal["joint", "pose", "linear", "distance"]
+
+__all__ = [
+    "ExecutionOptions",
+    "MotionController",
+    "MotionPlanner",
+    "MoveExecution",
+    "MovePlan",
+    "MoveResult",
+    "execute",
+    "validate_factor",
+]
+
+
+@dataclass(frozen=True)
+class MovePlan:
+    """A checked, timed move, ready to stream."""
+
+    kind: MoveKind
+    start_joints: Array
+    target_joints: Array
+    target_pose: Pose
+    """TCP pose at ``target_joints``."""
+    waypoints: Array
+    """The geometric path: joint waypoints (a Cartesian line's IK knots)."""
+    trajectory: Trajectory
+    planner: str
+    """``direct``, the OMPL planner's name, or ``cartesian``."""
+    planning_time: float
+    velocity_factor: float
+    acceleration_factor: float
+
+    @property
+    def duration(self) -> float:
+        return self.trajectory.duration
+
+
+@dataclass(frozen=True)
+class MoveResult:
+    """What a move did."""
+
+    target_joints: tuple[float, ...]
+    target_pose: tuple[float, ...]
+    """Target TCP pose as on the teach pendant (x, y, z, rx, ry, rz)."""
+    reached_joints: tuple[float, ...]
+    reached_pose: tuple[float, ...]
+    joint_error: float
+    """Largest |reached - target| over the joints (rad)."""
+    position_error: float
+    """TCP position error (m)."""
+    orientation_error: float
+    """TCP orientation error (rad)."""
+    planned_duration: float
+    executed_duration: float
+    """From the first streamed sample to the robot at rest (s)."""
+    planner: str
+    stopped: bool = False
+
+
+def _vector(value: object, n: int, what: str) -> Array:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InvalidTargetError(f"{what} must be {n} numbers, got {value!r}") from None
+    if arr.shape != (n,) or isinstance(value, str | bytes):
+        raise InvalidTargetError(f"{what} must be {n} numbers, got {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise InvalidTargetError(f"{what} must be finite, got {value!r}")
+    return arr
+
+
+class MotionPlanner:
+    """Plans moves in the configured cell: the UR3e with its TCP, limits and scene."""
+
+    def __init__(
+        self,
+        config: CellConfig,
+        *,
+        planner: str = DEFAULT_PLANNER,
+        planning_timeout: float = 1.0,
+        checker: CollisionChecker | None = None,
+        seed: int | None = None,
+    ) -> None:
+        self.config = config
+        self.limits = config.limits
+        self.kinematics = Kinematics.ur3e(tcp=config.tool.tcp, limits=config.limits)
+        if checker is None:
+            from fxcell.collision import CollisionChecker  # Pinocchio + coal: load on use
+
+            checker = CollisionChecker.for_config(config)
+        self.checker = checker
+        self.joint_planner = JointPlanner(
+            self.checker,
+            config.limits.position_min,
+            config.limits.position_max,
+            planner=planner,
+            timeout=planning_timeout,
+            seed=seed,
+        )
+        self._lower = np.asarray(config.limits.position_min, float)
+        self._upper = np.asarray(config.limits.position_max, float)
+
+    @property
+    def max_acceleration(self) -> tuple[float, ...]:
+        """The configured joint acceleration limits (rad/s², factor 1)."""
+        return tuple(self.limits.acceleration)
+
+    def scaled_limits(self, velocity_factor: float, acceleration_factor: float) -> Limits:
+        """Joint limits scaled by validated factors (InvalidFactorError otherwise)."""
+        return Limits.from_config(self.limits, velocity_factor, acceleration_factor)
+
+    def braking_limits(self) -> Limits:
+        """Limits for stopping: the full configured limits, whatever the move's factors."""
+        return Limits.from_config(self.limits)
+
+    def tcp_pose(self, joints: ArrayLike) -> Pose:
+        return self.kinematics.forward(np.asarray(joints, float))
+
+    # ------------------------------------------------------------ checks
+
+    def check_joints(self, target: object, what: str = "joint target") -> Array:
+        """Six finite joint values within the position limits, or InvalidTargetError."""
+        q = _vector(target, 6, what)
+        outside = np.flatnonzero((q < self._lower) | (q > self._upper))
+        if len(outside):
+            j = int(outside[0])
+            raise InvalidTargetError(
+                f"{what}: joint {j + 1} = {q[j]:.4f} rad is outside "
+                f"[{self._lower[j]:.4f}, {self._upper[j]:.4f}]"
+            )
+        return q
+
+    def parse_pose(self, target: object) -> Pose:
+        """A Pose, 7-list (quaternion) or 6-list (RPY) as :meth:`Pose.parse`; InvalidTargetError."""
+        try:
+            return target if isinstance(target, Pose) else Pose.parse(target)
+        except InvalidTargetError:
+            raise
+        except (TypeError, ValueError) as exc:
+            raise InvalidTargetError(f"not a pose: {target!r} ({exc})") from None
+
+    def solve(self, pose: Pose, seed: Array) -> Array:
+        """IK nearest ``seed`` among the collision-free solutions.
+
+        UnreachableError when no solution is within the limits, CollisionError when
+        every solution collides.
+        """
+        solutions = self.kinematics.inverse_all(pose, seed=seed)
+        if not solutions:
+            raise UnreachableError(f"no inverse-kinematics solution within the limits for {pose!r}")
+        for q in solutions:  # sorted nearest first
+            if not self.checker.in_collision(q):
+                return q
+        pairs = ", ".join(f"{a}–{b}" for a, b in self.checker.colliding_pairs(solutions[0]))
+        raise CollisionError(
+            f"every one of the {len(solutions)} IK solutions for {pose!r} is in collision "
+            f"(nearest: {pairs})"
+        )
+
+    # ------------------------------------------------------------ plans
+
+    def plan_joint(
+        self,
+        start: ArrayLike,
+        target: object,
+        velocity_factor: float = 1.0,
+        acceleration_factor: float = 1.0,
+        *,
+        kind: MoveKind = "joint",
+    ) -> MovePlan:
+        """Plan a joint-space move: the straight line if free, else OMPL, then Ruckig."""
+        t0 = time.perf_counter()
+        limits = self.scaled_limits(velocity_factor, acceleration_factor)
+        q1 = self.check_joints(target)
+        q0 = _vector(start, 6, "start joints")
+        path = self.joint_planner.plan(q0, q1)
+        if len(path.waypoints) == 2:
+            traj = rest_to_rest(q0, q1, limits)  # exactly on the checked straight line
+        else:
+            traj = through_waypoints(path.waypoints, limits, validate=self.checker.first_collision)
+        return MovePlan(
+            kind,
+            q0,
+            q1,
+            self.tcp_pose(q1),
+            path.waypoints,
+            traj,
+            path.planner,
+            time.perf_counter() - t0,
+            float(velocity_factor),
+            float(acceleration_factor),
+        )
+
+    def plan_pose(
+        self,
+        start: ArrayLike,
+        target: object,
+        velocity_factor: float = 1.0,
+        acceleration_factor: float = 1.0,
+        *,
+        linear: bool = False,
+    ) -> MovePlan:
+        """Plan a move of the TCP to a pose: joint-space (default) or a straight line."""
+        t0 = time.perf_counter()
+        limits = self.scaled_limits(velocity_factor, acceleration_factor)
+        pose = self.parse_pose(target)
+        q0 = _vector(start, 6, "start joints")
+        if linear:
+            return self._plan_line(
+                q0, pose, limits, t0, "linear", velocity_factor, acceleration_factor
+            )
+        q1 = self.solve(pose, q0)
+        plan = self.plan_joint(q0, q1, velocity_factor, acceleration_factor, kind="pose")
+        return MovePlan(
+            "pose",
+            q0,
+            q1,
+            self.tcp_pose(q1),
+            plan.waypoints,
+            plan.trajectory,
+            plan.planner,
+            time.perf_counter() - t0,
+            plan.velocity_factor,
+            plan.acceleration_factor,
+        )
+
+    def plan_distance(
+        self,
+        start: ArrayLike,
+        distance: object,
+        velocity_factor: float = 1.0,
+        acceleration_factor: float = 1.0,
+    ) -> MovePlan:
+        """Plan a straight TCP line by ``distance`` (x, y, z in the base frame, metres),
+        keeping the orientation."""
+        t0 = time.perf_counter()
+        limits = self.scaled_limits(velocity_factor, acceleration_factor)
+        try:
+            d = _vector(distance, 3, "distance vector")
+        except InvalidTargetError as exc:
+            raise InvalidArgumentError(str(exc)) from None
+        q0 = _vector(start, 6, "start joints")
+        here = self.tcp_pose(q0)
+        target = Pose(here.position + d, here.rotation)
+        return self._plan_line(
+            q0, target, limits, t0, "distance", velocity_factor, acceleration_factor
+        )
+
+    def plan_relative(
+        self,
+        start: ArrayLike,
+        start_pose: object,
+        target_pose: object,
+        velocity_factor: float = 1.0,
+        acceleration_factor: float = 1.0,
+        *,
+        linear: bool = False,
+    ) -> list[MovePlan]:
+        """The seed's ``move_relative``: to ``start_pose``, then to ``target_pose``.
+
+        Both legs are planned (and so checked) before anything moves.
+        """
+        first = self.plan_pose(start, start_pose, velocity_factor, acceleration_factor)
+        second = self.plan_pose(
+            first.target_joints, target_pose, velocity_factor, acceleration_factor, linear=linear
+        )
+        return [first, second]
+
+    def _plan_line(
+        self,
+        q0: Array,
+        target: Pose,
+        limits: Limits,
+        t0: float,
+        kind: MoveKind,
+        vf: float,
+        af: float,
+    ) -> MovePlan:
+        self.checker.check(q0, "start configuration")
+        line = cartesian_line(self.kinematics, self.checker, q0, target)
+        traj = along_path(line.joints, line.knots, limits)
+        q1 = line.target_joints
+        return MovePlan(
+            kind,
+            q0,
+            q1,
+            self.tcp_pose(q1),
+            line.knots,
+            traj,
+            "cartesian",
+            time.perf_counter() - t0,
+            float(vf),
+            float(af),
+        )
+
+
+# ----------------------------------------------------------------- execution
+
+_FAILURES: dict[str, type[Exception]] = {
+    "protective_stop": ProtectiveStopError,
+    "emergency_stop": EmergencyStopError,
+    "safeguard_stop": SafeguardStopError,
+    "fault": RobotFaultError,
+    "violation": RobotFaultError,
+    "link_lost": ConnectionLostError,
+}
+
+
+@dataclass
+class ExecutionOptions:
+    """How a plan is streamed."""
+
+    lookahead_time: float = 0.03
+    """servoJ lookahead (s): the smallest the controller takes, for the least lag."""
+    gain: float = 2000.0
+    """servoJ gain: the stiffest; the samples are already smooth and jerk-limited."""
+    compensate_lag: bool = True
+    """Lead the setpoints by servoJ's lag (≈ lookahead·(300/gain)^¼, URCL issue #86),
+    so the executed motion equals the planned one; the last sample is unchanged."""
+    brake_lead: int = 3
+    """Samples between deciding to brake and the sample the braking replaces (covers
+    the message's way to the link process)."""
+    settle_timeout: float = 0.5
+    """How long the target is held after the last sample for the robot to settle (s)."""
+    settle_position: float = 1e-6
+    """A move has arrived when every joint is within this of its target (rad)..."""
+    settle_velocity: float = 1e-3
+    """...and slower than this (rad/s)."""
+    rest_velocity: float = 1e-3
+    """After a stop, the robot is at rest below this joint speed (rad/s)."""
+
+    @property
+    def lag(self) -> float:
+        return float(self.lookahead_time * (300.0 / self.gain) ** 0.25)
+
+
+def lead_setpoints(traj: Trajectory, lag: float) -> Array:
+    """Setpoints that make servoJ's tracker follow ``traj`` sample for sample.
+
+    servoJ behaves like a critically damped second-order tracker with lag = 2/ω; fed
+    ``q + lag·q̇ + (lag²/4)·q̈`` it follows q without the lag. The derivatives are the
+    samples' own differences (backward velocity, central acceleration), which is what a
+    tracker stepping once per 2 ms cycle needs to land on the next sample exactly.
+    Samples at rest are unchanged (the last one is the target).
+    """
+    q = traj.positions
+    if len(q) < 2 or lag <= 0:
+        return q.copy()
+    prev = np.concatenate([q[:1], q[:-1]])
+    nxt = np.concatenate([q[1:], q[-1:]])
+    qd = (q - prev) / DT
+    qdd = (nxt - 2 * q + prev) / (DT * DT)
+    out: Array = q + lag * qd + (lag * lag / 4.0) * qdd
+    out[-1] = q[-1]
+    return out
+
+
+class MoveExecution:
+    """One plan being streamed through the link; :meth:`stop` brakes it to rest.
+
+    ``run()`` returns a :class:`MoveResult` when the target is reached, raises
+    :class:`MoveStoppedError` (with ``.result``) after :meth:`stop`, a safety-stop or
+    connection error when the robot or the link fails the move, and brakes before
+    re-raising when its task is cancelled.
+    """
+
+    def __init__(
+        self,
+        plan: MovePlan,
+        link: LinkClient,
+        planner: MotionPlanner,
+        options: ExecutionOptions | None = None,
+    ) -> None:
+        self.plan = plan
+        self.link = link
+        self.planner = planner
+        self.options = options or ExecutionOptions()
+        self._stop = asyncio.Event()
+        self._handle: TrajectoryHandle | None = None
+        self._sent_at = 0.0
+        self._braked = False
+        self.brake_duration = 0.0
+        """Duration of the braking profile that was used (0 if none)."""
+        self.brake_requested_at: float | None = None
+        self._finished = asyncio.Event()
+        self._settled = False
+        self._settled_at: float | None = None
+
+    @property
+    def handle(self) -> TrajectoryHandle | None:
+        return self._handle
+
+    def request_stop(self) -> None:
+        """Ask the running move to brake to rest (returns at once)."""
+        if self.brake_requested_at is None:
+            self.brake_requested_at = time.monotonic()
+        self._stop.set()
+
+    async def stop(self) -> None:
+        """Brake to rest and wait until the move has ended."""
+        self.request_stop()
+        await self._finished.wait()
+
+    async def run(self) -> MoveResult:
+        try:
+            return await self._run()
+        finally:
+            self._finished.set()
+
+    async def _run(self) -> MoveResult:
+        opts = self.options
+        traj = self.plan.trajectory
+        samples = lead_setpoints(traj, opts.lag) if opts.compensate_lag else traj.positions
+        samples[-1] = traj.positions[-1]
+        # Hold the target after the last sample: servoJ converges onto it, and the
+        # stream is ended as soon as the robot has settled there.
+        hold = np.repeat(samples[-1:], max(round(opts.settle_timeout / DT), 1), axis=0)
+        with self.link.subscribe(maxsize=4096) as states:
+            self._sent_at = time.monotonic()
+            handle = await self.link.execute_trajectory(
+                np.concatenate([samples, hold]),
+                lookahead_time=opts.lookahead_time,
+                gain=opts.gain,
+            )
+            self._handle = handle
+            try:
+                state = await self._watch(handle, states)
+                end = await handle.wait()
+            except asyncio.CancelledError:
+                # Our task was cancelled (stop(), a safety event, the caller): brake to
+                # rest before letting the cancellation through.
+                self.request_stop()
+                with contextlib.suppress(Exception):
+                    if not handle.done:
+                        await self._brake(handle)
+                    async with asyncio.timeout(self.brake_duration + 1.0):
+                        await handle.wait()
+                    await self._wait_rest(states)
+                raise
+            return self._finish(end, state)
+
+    async def _watch(self, handle: TrajectoryHandle, states: StateSubscription) -> RobotState:
+        """Follow the robot sample by sample until it has settled at the target (then end
+        the stream), the stream ends, or a stop request brakes it to rest."""
+        opts = self.options
+        target = self.plan.trajectory.positions[-1]
+        patience = self.plan.duration + 2 * opts.settle_timeout + 1.0
+        state = self.link.latest
+        async with asyncio.timeout(patience):
+            while True:
+                if self._stop.is_set() and not self._braked and not handle.done:
+                    await self._brake(handle)
+                if state is not None:
+                    q = np.asarray(state.actual_q)
+                    qd = np.asarray(state.actual_qd)
+                    moving = float(np.max(np.abs(qd)))
+                    if self._braked:
+                        if handle.done and moving < opts.rest_velocity:
+                            self._settled_at = state.received_at
+                            return state
+                    elif (
+                        float(np.max(np.abs(q - target))) <= opts.settle_position
+                        and moving < opts.settle_velocity
+                        and self._arrived(handle)
+                    ):
+                        self._settled_at = state.received_at
+                        self._settled = True
+                        if not handle.done:
+                            await handle.stop()
+                        return state
+                    elif handle.done:
+                        return state
+                try:
+                    async with asyncio.timeout(0.25):
+                        state = await states.__anext__()
+                except TimeoutError:
+                    if handle.done:
+                        return state if state is not None else RobotState()
+                    raise ConnectionLostError("no robot state for 0.25 s during a move") from None
+
+    def _arrived(self, handle: TrajectoryHandle) -> bool:
+        """Whether the stream has passed the planned samples (into the hold)."""
+        return self._current_index(handle) >= len(self.plan.trajectory) - 1
+
+    def _current_index(self, handle: TrajectoryHandle) -> float:
+        """The link's sample index now, from its last progress report and the clock."""
+        p = handle.progress
+        if p is None:
+            return (time.monotonic() - self._sent_at) / DT
+        return p.index + max(time.time() - p.time, 0.0) / DT
+
+    async def _brake(self, handle: TrajectoryHandle) -> None:
+        """Replace the samples not yet sent by the jerk-limited stop."""
+        if self._braked:
+            return
+        self._braked = True
+        traj = self.plan.trajectory
+        at = math.ceil(self._current_index(handle)) + self.options.brake_lead
+        if at >= len(traj) - 1:
+            return  # it ends within the lead anyway
+        p, v, a = traj.state(at)
+        stop = braking(p, v, a, self.planner.braking_limits())
+        self.brake_duration = stop.duration
+        samples = (
+            lead_setpoints(stop, self.options.lag)
+            if self.options.compensate_lag
+            else stop.positions
+        )
+        samples[-1] = stop.positions[-1]
+        await handle.replace_remaining(samples, at_index=at)
+
+    async def _wait_rest(self, states: StateSubscription) -> None:
+        """Wait (bounded) until the robot's joints are at rest."""
+        async with asyncio.timeout(self.options.settle_timeout):
+            state = self.link.latest
+            while state is None or max(map(abs, state.actual_qd)) >= self.options.rest_velocity:
+                state = await states.__anext__()
+
+    def _finish(self, end: TrajectoryResult, state: RobotState) -> MoveResult:
+        if end.status == "failed":
+            error = _FAILURES.get(end.reason, MoveError)
+            raise error(f"the move failed: {end.reason} (at sample {end.index} of {end.total})")
+        reached = np.asarray(state.actual_q, float)
+        result = self._result(reached, self._settled_at, end)
+        if self._braked or (end.status == "stopped" and not self._settled):
+            exc = MoveStoppedError(
+                f"the move was stopped at {[round(x, 4) for x in reached]} "
+                f"({result.executed_duration:.3f} s after it started)"
+            )
+            exc.result = result  # type: ignore[attr-defined]
+            raise exc
+        if not self._settled:
+            raise TrackingError(
+                f"the robot did not settle at the target (joint error {result.joint_error:.2e} "
+                f"rad, speed {max(map(abs, state.actual_qd)):.2e} rad/s)"
+            )
+        return result
+
+    def _result(
+        self, reached: Array, settled_at: float | None, end: TrajectoryResult
+    ) -> MoveResult:
+        plan = self.plan
+        kin = self.planner.kinematics
+        reached_pose = kin.forward(reached)
+        target_pose = plan.target_pose
+        finished = settled_at if settled_at is not None else time.monotonic()
+        return MoveResult(
+            target_joints=tuple(plan.target_joints.tolist()),
+            target_pose=target_pose.as_ur(),
+            reached_joints=tuple(reached.tolist()),
+            reached_pose=reached_pose.as_ur(),
+            joint_error=float(np.max(np.abs(reached - plan.target_joints))),
+            position_error=float(np.linalg.norm(reached_pose.position - target_pose.position)),
+            orientation_error=float(reached_pose.angle_to(target_pose)),
+            planned_duration=plan.duration,
+            executed_duration=finished - self._sent_at,
+            planner=plan.planner,
+            stopped=not self._settled,
+        )
+
+
+async def execute(
+    plan: MovePlan,
+    link: LinkClient,
+    planner: MotionPlanner,
+    options: ExecutionOptions | None = None,
+) -> MoveResult:
+    """Stream ``plan`` and wait for the robot to arrive (see :class:`MoveExecution`)."""
+    return await MoveExecution(plan, link, planner, options).run()
+
+
+# ----------------------------------------------------------------- the Cell's move logic
+
+Publish = Callable[[MotionEvent], None]
+
+
+class MotionController:
+    """What the Cell's move methods do, apart from guards and task ownership.
+
+    Holds the default velocity and acceleration factors (a move's own factor, when
+    given, is used for that move only), plans in a worker thread so the event loop keeps
+    serving the 500 Hz state stream, publishes the path, trajectory and result as
+    :class:`~fxcell.events.MotionEvent`, and executes. The planner (Pinocchio, coal,
+    OMPL) is built on first use.
+    """
+
+    def __init__(
+        self,
+        config: CellConfig,
+        *,
+        publish: Publish | None = None,
+        options: ExecutionOptions | None = None,
+        planner: str = DEFAULT_PLANNER,
+    ) -> None:
+        self.config = config
+        self.options = options or ExecutionOptions()
+        self._publish = publish
+        self._planner_name = planner
+        self._planner: MotionPlanner | None = None
+        self.velocity_factor = 1.0
+        self.acceleration_factor = 1.0
+        self.execution: MoveExecution | None = None
+        self._move_ids = 0
+
+    @property
+    def planner(self) -> MotionPlanner:
+        if self._planner is None:
+            self._planner = MotionPlanner(self.config, planner=self._planner_name)
+        return self._planner
+
+    def set_velocity_factor(self, value: object) -> None:
+        self.velocity_factor = validate_factor("velocity_factor", value)
+
+    def set_acceleration_factor(self, value: object) -> None:
+        self.acceleration_factor = validate_factor("acceleration_factor", value)
+
+    @property
+    def max_acceleration(self) -> tuple[float, ...]:
+        return tuple(self.config.limits.acceleration)
+
+    def factors(self, velocity: object | None, acceleration: object | None) -> tuple[float, float]:
+        """The move's factors: given ones validated, else the defaults."""
+        vf = (
+            self.velocity_factor
+            if velocity is None
+            else validate_factor("velocity_factor", velocity)
+        )
+        af = (
+            self.acceleration_factor
+            if acceleration is None
+            else validate_factor("acceleration_factor", acceleration)
+        )
+        return vf, af
+
+    async def plan(self, method: str, *args: object, **kwargs: object) -> MovePlan | list[MovePlan]:
+        """Run ``MotionPlanner.<method>(*args, **kwargs)`` in a worker thread."""
+        if self._planner is None:
+            await asyncio.to_thread(lambda: self.planner)
+        fn = getattr(self.planner, method)
+        result: MovePlan | list[MovePlan] = await asyncio.to_thread(fn, *args, **kwargs)
+        return result
+
+    async def execute(self, plans: MovePlan | Sequence[MovePlan], link: LinkClient) -> MoveResult:
+        """Stream each plan in turn; the result of the last (see :class:`MoveExecution`)."""
+        seq = [plans] if isinstance(plans, MovePlan) else list(plans)
+        result: MoveResult | None = None
+        for plan in seq:
+            self._move_ids += 1
+            move_id = self._move_ids
+            self._event(move_id, "path", _path_data(plan))
+            self._event(move_id, "trajectory", _trajectory_data(plan))
+            execution = MoveExecution(plan, link, self.planner, self.options)
+            self.execution = execution
+            try:
+                result = await execution.run()
+            except MoveStoppedError as exc:
+                stopped = getattr(exc, "result", None)
+                if stopped is not None:
+                    self._event(move_id, "result", asdict(stopped))
+                raise
+            finally:
+                self.execution = None
+            self._event(move_id, "result", asdict(result))
+        assert result is not None
+        return result
+
+    def _event(
+        self, move_id: int, kind: Literal["path", "trajectory", "result"], data: dict[str, Any]
+    ) -> None:
+        if self._publish is not None:
+            self._publish(MotionEvent(now(), move_id, kind, data))
+
+
+def _path_data(plan: MovePlan) -> dict[str, Any]:
+    return {
+        "kind": plan.kind,
+        "planner": plan.planner,
+        "planning_time": plan.planning_time,
+        "start_joints": plan.start_joints.tolist(),
+        "target_joints": plan.target_joints.tolist(),
+        "target_pose": list(plan.target_pose.as_ur()),
+        "waypoints": plan.waypoints.tolist() if len(plan.waypoints) <= 64 else len(plan.waypoints),
+        "velocity_factor": plan.velocity_factor,
+        "acceleration_factor": plan.acceleration_factor,
+    }
+
+
+def _trajectory_data(plan: MovePlan) -> dict[str, Any]:
+    traj = plan.trajectory
+    step = max(len(traj) // 200, 1)  # at most ~200 points: a preview, not the stream
+    return {
+        "duration": traj.duration,
+        "samples": len(traj),
+        "dt": DT,
+        "stops": traj.stops,
+        "preview": traj.positions[::step].tolist(),
+    }

@@ -1,0 +1,135 @@
+"""Joint-space planning (direct line, OMPL around obstacles) and Cartesian straight lines."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from fxcell.collision import CollisionChecker
+from fxcell.config import CellConfig
+from fxcell.errors import CollisionError, SingularityError, UnreachableError
+from fxcell.geometry import Pose
+from fxcell.kinematics import Kinematics
+from fxcell.planning import JointPlanner, cartesian_line, interpolate_pose
+from fxcell.trajectory import Limits, through_waypoints
+
+CONFIG = CellConfig.load()
+HOME = np.array(CONFIG.home)
+KIN = Kinematics.ur3e(tcp=CONFIG.tool.tcp, limits=CONFIG.limits)
+LIMITS = Limits.from_config(CONFIG.limits)
+DOWN = Pose.from_rpy([0, 0, 0], [math.pi, 0, 0]).rotation
+
+# Left of the fusion machine to right of it, gripper low: the straight joint line swings
+# the arm through the machine.
+LEFT_OF_MACHINE = np.array([-1.042, -1.271, 1.482, -1.781, -1.571, 2.099])
+RIGHT_OF_MACHINE = np.array([-2.792, -1.255, 1.46, -1.776, -1.571, 0.35])
+
+
+@pytest.fixture(scope="module")
+def checker() -> CollisionChecker:
+    return CollisionChecker.for_config(CONFIG)
+
+
+@pytest.fixture(scope="module")
+def planner(checker: CollisionChecker) -> JointPlanner:
+    return JointPlanner(checker, CONFIG.limits.position_min, CONFIG.limits.position_max)
+
+
+def test_a_free_straight_line_is_taken_without_planning(planner: JointPlanner) -> None:
+    target = HOME + np.array([0.8, 0.3, -0.4, 0.2, 0.5, 1.0])
+    path = planner.plan(HOME, target)
+    assert path.planner == "direct"
+    np.testing.assert_array_equal(path.waypoints, [HOME, target])
+
+
+def test_a_move_blocked_by_the_machine_is_planned_around_it(
+    planner: JointPlanner, checker: CollisionChecker
+) -> None:
+    assert not checker.in_collision(LEFT_OF_MACHINE)
+    assert not checker.in_collision(RIGHT_OF_MACHINE)
+    midway = 0.5 * (LEFT_OF_MACHINE + RIGHT_OF_MACHINE)
+    assert any("fusion_machine" in p for p in checker.colliding_pairs(midway))
+
+    path = planner.plan(LEFT_OF_MACHINE, RIGHT_OF_MACHINE)
+    assert path.planner == "RRTConnect"
+    assert len(path.waypoints) >= 3
+    np.testing.assert_array_equal(path.waypoints[0], LEFT_OF_MACHINE)
+    np.testing.assert_array_equal(path.waypoints[-1], RIGHT_OF_MACHINE)
+    for a, b in itertools.pairwise(path.waypoints):
+        assert checker.motion_free(a, b, resolution=0.005)
+
+    traj = through_waypoints(path.waypoints, LIMITS, validate=checker.first_collision)
+    dense = checker.resolution / 2
+    fine = CollisionChecker.for_config(CONFIG, resolution=dense)
+    assert fine.first_collision(traj.positions) is None
+    np.testing.assert_array_equal(traj.positions[-1], RIGHT_OF_MACHINE)
+
+
+def test_a_target_in_collision_is_refused_before_planning(planner: JointPlanner) -> None:
+    folded = np.array([0.0, -1.57, 2.6, 0.0, 0.0, 0.0])
+    with pytest.raises(CollisionError, match="target"):
+        planner.plan(HOME, folded)
+
+
+def test_another_ompl_planner_can_be_chosen(checker: CollisionChecker) -> None:
+    planner = JointPlanner(
+        checker, CONFIG.limits.position_min, CONFIG.limits.position_max, planner="BKPIECE1"
+    )
+    path = planner.plan(LEFT_OF_MACHINE, RIGHT_OF_MACHINE)
+    assert path.planner == "BKPIECE1"
+    with pytest.raises(ValueError, match="unknown planner"):
+        JointPlanner(checker, CONFIG.limits.position_min, CONFIG.limits.position_max, planner="X")
+
+
+def _start(x: float, y: float, z: float) -> np.ndarray:
+    q = KIN.inverse(Pose([x, y, z], DOWN), seed=np.array([0.4, -1.4, 1.6, -1.8, -1.57, 0.0]))
+    return np.asarray(q)
+
+
+def test_a_cartesian_line_keeps_the_tcp_on_the_segment(checker: CollisionChecker) -> None:
+    q0 = _start(-0.25, -0.25, 0.10)
+    start = KIN.forward(q0)
+    target = Pose(start.position + np.array([0.05, -0.03, 0.04]), start.rotation)
+    line = cartesian_line(KIN, checker, q0, target)
+    for s in np.linspace(0, 1, 37):
+        pose = KIN.forward(line.joints(float(s)))
+        on_line = start.position + s * (target.position - start.position)
+        np.testing.assert_allclose(pose.position, on_line, atol=1e-9)
+        assert pose.angle_to(start) < 1e-9
+    assert KIN.forward(line.target_joints).isclose(target, position_tol=1e-9, angle_tol=1e-9)
+    # consecutive knots stay on one IK branch
+    assert np.max(np.abs(np.diff(line.knots, axis=0))) < 0.05
+
+
+def test_a_cartesian_line_also_turns_the_tool(checker: CollisionChecker) -> None:
+    q0 = _start(-0.25, -0.25, 0.10)
+    start = KIN.forward(q0)
+    turned = Pose(
+        start.position + np.array([0.0, 0.0, 0.03]),
+        start.rotation @ Pose.from_rpy([0, 0, 0], [0, 0, 0.5]).rotation,
+    )
+    line = cartesian_line(KIN, checker, q0, turned)
+    half = KIN.forward(line.joints(0.5))
+    assert half.isclose(interpolate_pose(start, turned, 0.5), position_tol=1e-9, angle_tol=1e-9)
+    assert abs(half.angle_to(start) - 0.25) < 1e-9
+
+
+def test_a_line_into_the_table_is_refused(checker: CollisionChecker) -> None:
+    q0 = _start(-0.25, -0.25, 0.10)
+    start = KIN.forward(q0)
+    with pytest.raises(CollisionError, match="straight line collides"):
+        cartesian_line(
+            KIN, checker, q0, Pose(start.position - np.array([0, 0, 0.12]), start.rotation)
+        )
+
+
+def test_a_line_out_of_reach_is_refused(checker: CollisionChecker) -> None:
+    q0 = _start(-0.25, -0.25, 0.10)
+    start = KIN.forward(q0)
+    with pytest.raises((UnreachableError, SingularityError)):
+        cartesian_line(
+            KIN, checker, q0, Pose(start.position + np.array([-0.5, -0.5, 0.0]), start.rotation)
+        )
