@@ -390,6 +390,11 @@ class RTDEConnection(asyncio.Protocol):
             if recipe is None:
                 log.debug("RTDE %s: data for unknown input recipe", self.peer)
                 return
+            if len(payload) - 1 != recipe.struct.size:
+                log.debug(
+                    "RTDE %s: recipe %d data has %d bytes, expected %d",
+                    self.peer, payload[0], len(payload) - 1, recipe.struct.size,
+                )
             if len(payload) - 1 < recipe.struct.size:
                 log.warning("RTDE %s: short data packet for recipe %d", self.peer, payload[0])
                 return

@@ -1,0 +1,252 @@
+"""The control-script emulation, driven by the real ur_rtde RTDEControlInterface."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from rtde_control import RTDEControlInterface
+from rtde_receive import RTDEReceiveInterface
+
+from fxcell.testing import SimulatorHandle, simulator
+
+from .test_sim_rtde import dh_forward, rotvec_matrix
+
+START = [0.0, -1.2, 1.2, -1.57, -1.57, 0.0]  # tool down, well inside the workspace
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 5.0, what: str = "it") -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.002)
+
+
+def matrix_rotvec(R: np.ndarray) -> list[float]:
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2)))
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return (axis / (2 * math.sin(angle)) * angle).tolist()
+
+
+def pose_matrix(pose: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rotvec_matrix(pose[3:])
+    T[:3, 3] = pose[:3]
+    return T
+
+
+@dataclass
+class Robot:
+    sim: SimulatorHandle
+    c: RTDEControlInterface
+    r: RTDEReceiveInterface
+
+    def ensure_running(self) -> None:
+        if not self.c.isProgramRunning():
+            self.c.reuploadScript()
+            wait_until(self.c.isProgramRunning, what="the control script")
+
+
+@pytest.fixture(scope="module")
+def robot() -> Iterator[Robot]:
+    with simulator() as sim:
+        sim.set_joints(START)
+        sim.bring_up()
+        c = RTDEControlInterface(sim.host)
+        r = RTDEReceiveInterface(sim.host)
+        try:
+            yield Robot(sim, c, r)
+        finally:
+            c.stopScript()
+            c.disconnect()
+            r.disconnect()
+
+
+@pytest.fixture
+def ready(robot: Robot) -> Robot:
+    robot.ensure_running()
+    assert robot.c.moveJ(START, 3.0, 20.0)
+    return robot
+
+
+def test_movej_reaches_the_target_on_a_trapezoid(ready: Robot) -> None:
+    target = [0.8, -1.0, 1.0, -1.3, -1.57, 0.4]
+    t0 = time.monotonic()
+    assert ready.c.moveJ(target, 1.0, 2.0)
+    elapsed = time.monotonic() - t0
+    assert ready.r.getActualQ() == target
+    assert ready.r.getActualQd() == [0.0] * 6
+    # leading joint 0.8 rad at v=1, a=2: two 0.5 s ramps (0.5 rad) + 0.3 s cruise
+    assert 1.3 <= elapsed < 1.7
+
+
+def test_movel_moves_the_tool_on_a_straight_line(ready: Robot) -> None:
+    start = ready.r.getActualTCPPose()
+    target = [start[0] + 0.08, start[1] - 0.05, start[2] + 0.04, *start[3:]]
+    assert ready.c.moveL(target, 0.25, 1.0, True)
+    a, b = np.asarray(start[:3]), np.asarray(target[:3])
+    direction = (b - a) / np.linalg.norm(b - a)
+    samples = 0
+    while ready.c.getAsyncOperationProgressEx().isAsyncOperationRunning():
+        p = np.asarray(ready.r.getActualTCPPose()[:3]) - a
+        assert np.linalg.norm(p - direction * (p @ direction)) < 1e-6
+        samples += 1
+        time.sleep(0.01)
+    assert samples > 20
+    final = ready.r.getActualTCPPose()
+    assert np.abs(np.asarray(final) - np.asarray(target)).max() < 1e-9
+
+
+def test_movel_fk_and_movej_ik_reach_their_targets(ready: Robot) -> None:
+    q = [0.3, -1.1, 1.3, -1.7, -1.57, 0.2]
+    assert ready.c.moveL_FK(q, 0.3, 1.2)
+    assert np.abs(np.asarray(ready.r.getActualQ()) - q).max() < 1e-9
+    pose = ready.r.getActualTCPPose()
+    assert ready.c.moveJ(START, 2.0, 4.0)
+    assert ready.c.moveJ_IK(pose, 2.0, 4.0)
+    assert np.abs(np.asarray(ready.r.getActualQ()) - q).max() < 1e-9
+
+
+def test_async_movej_reports_progress_then_finishes(ready: Robot) -> None:
+    target = [0.5, -1.3, 1.1, -1.4, -1.57, 0.0]
+    assert ready.c.moveJ(target, 1.0, 2.0, True)
+    status = ready.c.getAsyncOperationProgressEx()
+    assert status.isAsyncOperationRunning()
+    assert ready.c.getAsyncOperationProgress() >= 0
+    wait_until(lambda: not ready.c.getAsyncOperationProgressEx().isAsyncOperationRunning())
+    assert ready.c.getAsyncOperationProgress() < 0
+    assert ready.r.getActualQ() == target
+
+
+def test_stopj_decelerates_a_running_move(ready: Robot) -> None:
+    target = [1.5, -1.2, 1.2, -1.57, -1.57, 0.0]
+    assert ready.c.moveJ(target, 1.0, 4.0, True)
+    wait_until(lambda: abs(ready.r.getActualQd()[0]) > 0.99, what="cruise speed")
+    t0 = time.monotonic()
+    ready.c.stopJ(2.0)  # returns nothing
+    elapsed = time.monotonic() - t0
+    assert ready.r.getActualQd() == [0.0] * 6
+    q0 = ready.r.getActualQ()[0]
+    assert 0.0 < q0 < 1.5
+    assert 0.4 <= elapsed < 0.9  # 1 rad/s at 2 rad/s²
+
+
+def test_servoj_tracks_with_lookahead_lag_and_settles_exactly(ready: Robot) -> None:
+    c, r = ready.c, ready.r
+    q0 = np.asarray(r.getActualQ())
+    n = 400
+    amplitude = 0.3
+    lags = []
+    for i in range(1, n + 1):
+        t_start = c.initPeriod()
+        s = 0.5 - 0.5 * math.cos(math.pi * i / n)  # smooth rest-to-rest ramp over 0.8 s
+        setpoint = q0 + np.array([amplitude * s, -0.5 * amplitude * s, 0, 0, 0, amplitude * s])
+        assert c.servoJ(setpoint.tolist(), 0.5, 0.5, 0.002, 0.1, 300)
+        if i == n // 2:
+            lags.append(setpoint[0] - r.getActualQ()[0])
+        c.waitPeriod(t_start)
+    last = setpoint
+    assert 0.0 < lags[0] < 0.12  # behind the setpoint, by about the lookahead time
+    kin_target = dh_forward(last.tolist())
+    wait_until(lambda: r.getActualQd() == [0.0] * 6, timeout=3, what="rest")
+    assert c.isSteady()
+    reached = pose_matrix(r.getActualTCPPose())
+    assert np.linalg.norm(reached[:3, 3] - kin_target[:3, 3]) <= 1e-5
+    assert np.abs(np.asarray(r.getActualQ()) - last).max() < 1e-9
+    assert c.servoStop(2.0)
+
+
+def test_speedj_integrates_the_commanded_velocity_and_speedstop_brakes(ready: Robot) -> None:
+    c, r = ready.c, ready.r
+    start = r.getActualQ()[5]
+    for _ in range(150):
+        t_start = c.initPeriod()
+        assert c.speedJ([0, 0, 0, 0, 0, 0.5], 2.0, 0.002)
+        c.waitPeriod(t_start)
+    assert r.getActualQd()[5] == pytest.approx(0.5)
+    assert c.speedStop(5.0)
+    assert r.getActualQd() == [0.0] * 6
+    assert r.getActualQ()[5] - start > 0.1
+
+
+def test_ik_fk_round_trip_and_tcp_offset(ready: Robot) -> None:
+    c, r = ready.c, ready.r
+    q = [0.4, -1.0, 1.4, -1.9, -1.4, 0.3]
+    tcp = [0.01, -0.02, 0.15, 0.0, 0.0, -1.5708]
+    expected = dh_forward(q) @ pose_matrix(tcp)
+    fk = c.getForwardKinematics(q, tcp)
+    assert np.abs(pose_matrix(fk) - expected).max() < 1e-9
+    # getForwardKinematics(q) alone (and, in ur_rtde 1.6.5, with an all-zero TCP) sends no
+    # TCP: the script then reads registers 6-11 as they are, like a real controller would.
+    T = dh_forward(q)
+    flange = [*T[:3, 3], *matrix_rotvec(T[:3, :3])]
+    assert np.abs(np.asarray(c.getInverseKinematics(flange, START)) - q).max() < 1e-9
+    assert c.getForwardKinematics() == r.getActualTCPPose()
+    assert c.setTcp(tcp)
+    wait_until(lambda: abs(r.getActualTCPPose()[2] - r.getTargetTCPPose()[2]) < 1e-12)
+    expected_now = dh_forward(r.getActualQ()) @ pose_matrix(tcp)
+    wait_until(
+        lambda: np.abs(pose_matrix(r.getActualTCPPose()) - expected_now).max() < 1e-9,
+        what="TCP pose with the new TCP",
+    )
+    assert c.poseTrans(flange, tcp) == pytest.approx(fk.copy(), abs=1e-12)
+    assert c.setTcp([0.0] * 6)
+
+
+def test_move_path_visits_each_waypoint_in_turn(ready: Robot) -> None:
+    c, r = ready.c, ready.r
+    path = [
+        [0.2, -1.2, 1.2, -1.57, -1.57, 0.0, 1.5, 3.0, 0.0],
+        [0.2, -1.0, 1.0, -1.57, -1.57, 0.0, 1.5, 3.0, 0.0],
+        [-0.2, -1.1, 1.3, -1.6, -1.57, 0.1, 1.5, 3.0, 0.0],
+    ]
+    assert c.moveJ(path, True)
+    seen = set()
+    while c.getAsyncOperationProgressEx().isAsyncOperationRunning():
+        seen.add(c.getAsyncOperationProgress())
+        time.sleep(0.005)
+    assert {0, 1, 2} <= seen
+    assert np.abs(np.asarray(r.getActualQ()) - path[-1][:6]).max() < 1e-9
+
+
+def test_payload_and_steady_state_are_reported(ready: Robot) -> None:
+    c, r = ready.c, ready.r
+    assert c.setPayload(1.2, [0.0, 0.01, 0.05])
+    wait_until(lambda: r.getPayload() == 1.2, what="payload")
+    assert r.getPayloadCog() == [0.0, 0.01, 0.05]
+    assert c.isSteady()
+    assert c.moveJ([0.6, -1.2, 1.2, -1.57, -1.57, 0.0], 0.5, 1.0, True)
+    wait_until(lambda: any(v != 0 for v in r.getActualQd()), what="motion")
+    assert not c.isSteady()
+    c.stopJ(4.0)
+
+
+def test_watchdog_stops_the_program_when_the_client_starves_it(ready: Robot) -> None:
+    c = ready.c
+    assert c.setWatchdog(20.0)
+    end = time.monotonic() + 0.4
+    while time.monotonic() < end:
+        assert c.kickWatchdog()
+        time.sleep(0.02)
+    assert c.isProgramRunning()
+    wait_until(lambda: not c.isProgramRunning(), timeout=1.0, what="watchdog stop")
+    assert "watchdog" in ready.sim.state()["last_stop_reason"]
+
+
+def test_unsupported_command_stops_the_program_instead_of_hanging(ready: Robot) -> None:
+    t0 = time.monotonic()
+    assert not ready.c.teachMode()
+    assert time.monotonic() - t0 < 2.0
+    assert not ready.c.isProgramRunning()
+    assert "not supported" in ready.sim.state()["last_stop_reason"]
+
+
+def test_stop_script_ends_the_program(ready: Robot) -> None:
+    ready.c.stopScript()
+    assert not ready.c.isProgramRunning()
+    assert ready.sim.dashboard("running") == "Program running: false"

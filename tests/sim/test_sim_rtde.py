@@ -1,0 +1,220 @@
+"""The simulator's RTDE server, seen by the real ur_rtde receive/IO interfaces and a raw client."""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+import time
+
+import numpy as np
+import pytest
+from rtde_io import RTDEIOInterface
+from rtde_receive import RTDEReceiveInterface
+
+from fxcell.testing import SimulatorHandle
+
+# UR3e DH parameters as UR publishes them, written out here independently of fxcell.
+D = (0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921)
+A = (0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0)
+ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
+
+
+def dh_forward(q: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    for theta, d, a, alpha in zip(q, D, A, ALPHA, strict=True):
+        ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
+        T = T @ np.array(
+            [
+                [ct, -st * ca, st * sa, a * ct],
+                [st, ct * ca, -ct * sa, a * st],
+                [0, sa, ca, d],
+                [0, 0, 0, 1],
+            ]
+        )
+    return T
+
+
+def rotvec_matrix(r: list[float]) -> np.ndarray:
+    v = np.asarray(r, dtype=float)
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = v / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+class RawRTDE:
+    """A minimal RTDE client on a plain socket."""
+
+    def __init__(self, host: str) -> None:
+        self.sock = socket.create_connection((host, 30004), timeout=5)
+        self.buf = b""
+
+    def send(self, kind: bytes, payload: bytes = b"") -> None:
+        self.sock.sendall(struct.pack(">HB", len(payload) + 3, kind[0]) + payload)
+
+    def recv(self) -> tuple[int, bytes]:
+        while len(self.buf) < 3 or len(self.buf) < struct.unpack_from(">H", self.buf)[0]:
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise ConnectionError("closed")
+            self.buf += chunk
+        size, kind = struct.unpack_from(">HB", self.buf)
+        payload, self.buf = self.buf[3:size], self.buf[size:]
+        return kind, payload
+
+    def ask(self, kind: bytes, payload: bytes = b"") -> bytes:
+        self.send(kind, payload)
+        while True:
+            k, p = self.recv()
+            if k == kind[0]:
+                return p
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def read_until_error(c: RawRTDE) -> Exception:
+    while True:
+        try:
+            c.recv()
+        except (OSError, ConnectionError) as exc:
+            return exc
+
+
+def test_receive_default_recipe_streams_at_500_hz(sim: SimulatorHandle) -> None:
+    r = RTDEReceiveInterface(sim.host)
+    try:
+        assert r.isConnected()
+        stamps = []
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            t = r.getTimestamp()
+            if not stamps or t != stamps[-1]:
+                stamps.append(t)
+            time.sleep(0.0003)
+        steps = np.diff(stamps)
+        # the client keeps only the newest packet: a busy test process may skip a few
+        assert len(stamps) > 300
+        assert np.median(steps) == pytest.approx(0.002, abs=1e-9)
+        assert r.getRobotMode() == 3
+        assert r.getSafetyMode() == 1
+        assert r.getRuntimeState() == 1
+        assert r.getJointMode() == [239] * 6
+        assert r.getSafetyStatusBits() == 1
+        assert r.getPayloadCog() == [0.0, 0.0, 0.0]
+    finally:
+        r.disconnect()
+
+
+def test_tcp_pose_matches_an_independent_dh_forward_kinematics(sim: SimulatorHandle) -> None:
+    rng = np.random.default_rng(7)
+    r = RTDEReceiveInterface(sim.host)
+    try:
+        for _ in range(4):
+            q = rng.uniform(-math.pi, math.pi, 6).tolist()
+            sim.set_joints(q)
+            deadline = time.monotonic() + 2
+            while r.getActualQ() != pytest.approx(q, abs=0) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert r.getActualQ() == q
+            T = dh_forward(q)
+            for pose in (r.getActualTCPPose(), r.getTargetTCPPose()):
+                assert np.abs(np.asarray(pose[:3]) - T[:3, 3]).max() < 1e-9
+                assert np.abs(rotvec_matrix(pose[3:]) - T[:3, :3]).max() < 1e-9
+                assert np.linalg.norm(pose[3:]) <= math.pi + 1e-12
+    finally:
+        r.disconnect()
+
+
+def test_unknown_output_variable_is_not_found(sim: SimulatorHandle) -> None:
+    with pytest.raises(RuntimeError, match=r"not found by the controller: \[no_such_variable\]"):
+        RTDEReceiveInterface(sim.host, 500.0, ["timestamp", "no_such_variable"])
+
+
+def test_raw_protocol_versions_recipes_and_frequency(sim: SimulatorHandle) -> None:
+    c = RawRTDE(sim.host)
+    try:
+        assert c.ask(b"V", struct.pack(">H", 3)) == b"\x00"
+        assert c.ask(b"V", struct.pack(">H", 2)) == b"\x01"
+        assert struct.unpack(">IIII", c.ask(b"v")) == (5, 11, 1, 108318)
+        out = c.ask(b"O", struct.pack(">d", 125.0) + b"timestamp,actual_q,robot_mode")
+        assert out == b"\x01DOUBLE,VECTOR6D,INT32"
+        assert c.ask(b"I", b"input_int_register_5") == b"\x01INT32"
+        assert c.ask(b"I", b"input_double_register_5,no_such_input") == b"\x00DOUBLE,NOT_FOUND"
+        assert c.ask(b"I", b"input_double_register_5") == b"\x02DOUBLE"
+        assert c.ask(b"S") == b"\x01"
+        first = None
+        count = 0
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            kind, payload = c.recv()
+            if kind == ord("U"):
+                assert payload[0] == 1
+                t, *_ = struct.unpack_from(">d6di", payload, 1)
+                first = t if first is None else first
+                last = t
+                count += 1
+        assert first is not None
+        assert count == round((last - first) * 125) + 1  # every 8 ms, none skipped
+        # an oversized input packet (more bytes than the recipe) is accepted
+        c.send(b"U", bytes([1]) + struct.pack(">i", 42) + b"\x00" * 8)
+        c.send(b"U", bytes([2]) + struct.pack(">d", 1.5))
+        assert c.ask(b"P") == b"\x01"
+        other = RawRTDE(sim.host)
+        try:
+            out2 = other.ask(
+                b"O", struct.pack(">d", 500.0) + b"input_int_register_5,input_double_register_5"
+            )
+            assert out2 == b"\x01INT32,DOUBLE"
+            assert other.ask(b"S") == b"\x01"
+            _, payload = other.recv()
+            assert struct.unpack_from(">id", payload, 1) == (42, 1.5)
+            # the registers belong to the first connection
+            assert other.ask(b"I", b"input_int_register_5") == b"\x00IN_USE"
+            c.close()
+            time.sleep(0.1)
+            assert other.ask(b"I", b"input_int_register_5") == b"\x01INT32"
+        finally:
+            other.close()
+    finally:
+        c.close()
+
+
+def test_io_interface_sets_outputs_and_owns_its_registers(sim: SimulatorHandle) -> None:
+    io = RTDEIOInterface(sim.host)
+    r = RTDEReceiveInterface(sim.host)
+    try:
+        assert io.setStandardDigitalOut(1, True)
+        assert io.setToolDigitalOut(0, True)
+        assert io.setSpeedSlider(0.5)
+        deadline = time.monotonic() + 2
+        while r.getActualDigitalOutputBits() != (1 << 1 | 1 << 16) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert r.getActualDigitalOutputBits() == 1 << 1 | 1 << 16
+        assert r.getTargetSpeedFraction() == 0.5
+        with pytest.raises(RuntimeError, match="already in use"):
+            RTDEIOInterface(sim.host)
+    finally:
+        io.disconnect()
+        r.disconnect()
+
+
+def test_stall_rtde_pauses_the_stream_and_drop_rtde_closes_it(sim: SimulatorHandle) -> None:
+    c = RawRTDE(sim.host)
+    try:
+        c.ask(b"O", struct.pack(">d", 500.0) + b"timestamp")
+        c.ask(b"S")
+        c.recv()
+        sim.inject("stall_rtde", 0.3)
+        c.buf = b""
+        c.sock.settimeout(0.2)
+        assert isinstance(read_until_error(c), TimeoutError)  # after what was already sent
+        c.sock.settimeout(5)
+        assert c.recv()[0] == ord("U")  # the stream resumes by itself
+        sim.inject("drop_rtde")
+        assert isinstance(read_until_error(c), ConnectionError)
+    finally:
+        c.close()
