@@ -393,7 +393,10 @@ class RTDEConnection(asyncio.Protocol):
             if len(payload) - 1 != recipe.struct.size:
                 log.debug(
                     "RTDE %s: recipe %d data has %d bytes, expected %d",
-                    self.peer, payload[0], len(payload) - 1, recipe.struct.size,
+                    self.peer,
+                    payload[0],
+                    len(payload) - 1,
+                    recipe.struct.size,
                 )
             if len(payload) - 1 < recipe.struct.size:
                 log.warning("RTDE %s: short data packet for recipe %d", self.peer, payload[0])
