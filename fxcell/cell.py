@@ -333,7 +333,11 @@ class Cell:
         return reply
 
     async def _await_effect(
-        self, command: str, wanted: set[CellState], within: float | None
+        self,
+        command: str,
+        wanted: set[CellState],
+        within: float | None,
+        ignore: CellState | None = None,
     ) -> CellState:
         """Wait until the state is in ``wanted``; typed errors on safety stops or timeout."""
         limit = within if within is not None else self.command_timeout
@@ -343,7 +347,7 @@ class Cell:
                     state = self.state
                     if state in wanted:
                         return state
-                    error = _FAILURE_STATES.get(state)
+                    error = _FAILURE_STATES.get(state) if state is not ignore else None
                     if error is not None:
                         raise error(f"{command}(): the robot went to {state.value}")
                     await self.machine.wait_changed()
@@ -457,6 +461,7 @@ class Cell:
                 "unlock_protective_stop",
                 {CellState.IDLE, CellState.POWER_OFF, *_running_states()},
                 timeout,
+                ignore=CellState.PROTECTIVE_STOP,
             )
             if self._control_wanted and self.state is CellState.PROGRAM_STOPPED:
                 await link.start_control(

@@ -225,6 +225,8 @@ class LinkClient:
         self.control_ready = False
         self.pid: int | None = None
         self.restarts = 0
+        self.messages_sent = 0
+        """Requests sent to the link process (calls and trajectory messages)."""
         self.last_failure = ""
         self._subscriptions: set[StateSubscription] = set()
         self._writer: asyncio.StreamWriter | None = None
@@ -492,6 +494,7 @@ class LinkClient:
         if self._writer is None or self.status is not LinkStatus.UP:
             raise ConnectionLostError(f"no robot link to {self.host} ({self.status.value})")
         self._writer.write(wire.encode(message))
+        self.messages_sent += 1
 
     async def call(self, method: str, within: float = 5.0, **kwargs: Any) -> Any:
         """Run ``method`` in the link process; typed fxcell errors on failure."""

@@ -207,7 +207,7 @@ class Link:
                     self.send(wire.STATE, wire.state_to_tuple(state))
                     time.sleep(0.0012)
                     continue
-                if time.monotonic() - last_new > 0.05 and not r.isConnected():
+                if time.monotonic() - last_new > 0.004 and not r.isConnected():
                     self.lost("RTDE connection dropped")
                     return
             except Exception as exc:
@@ -326,13 +326,15 @@ class Link:
     def _probe(self, c: Any, timeout: float) -> None:
         """Wait until the control script answers a harmless command (it accepts commands)."""
         deadline = time.monotonic() + timeout
+        why = "no answer"
         while True:
             try:
-                c.isSteady()
-                return
+                if c.servoStop():  # harmless; True only once the script processed it
+                    return
             except Exception as exc:
-                if time.monotonic() > deadline:
-                    raise CallError("timeout", f"control script does not answer: {exc}") from None
+                why = str(exc)
+            if time.monotonic() > deadline:
+                raise CallError("timeout", f"control script does not answer: {why}")
             time.sleep(0.01)
 
     def _stop_leftover_program(self) -> None:
