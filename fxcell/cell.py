@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import importlib
 import logging
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequence
@@ -22,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.config import CellConfig
+from fxcell.embedded import EmbeddedSimulator
 from fxcell.errors import (
     ConnectionLostError,
     EmergencyStopError,
@@ -146,8 +146,7 @@ class Cell:
             if self._record is not None:
                 self._recorder = _start_recorder(Path(self._record), self)
             if self._host is None:
-                embedded = importlib.import_module("fxcell.embedded")
-                simulator = embedded.EmbeddedSimulator(**self._simulator_options)
+                simulator = EmbeddedSimulator(**self._simulator_options)
                 self._host = str(await asyncio.to_thread(simulator.start))
                 self._simulator = simulator
             self._machine_task = asyncio.create_task(self.machine.run(), name="cell machine")

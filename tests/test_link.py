@@ -1,0 +1,174 @@
+"""The robot link against the simulator: state stream, calls, supervision, trajectories."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from fxcell.errors import InvalidArgumentError, RobotLinkError
+from fxcell.link import LinkClient, LinkStatus
+from fxcell.protocol import CONTROL_PERIOD, RobotMode, RuntimeState
+from fxcell.testing import simulator
+
+TIME_SCALE = 0.05
+
+
+@pytest.fixture(scope="module")
+def sim() -> Iterator[Any]:
+    with simulator(time_scale=TIME_SCALE) as handle:
+        yield handle
+
+
+@pytest.fixture
+async def link(sim: Any) -> AsyncIterator[LinkClient]:
+    async with LinkClient(sim.host, connect_timeout=20) as client:
+        yield client
+
+
+async def _until(predicate: Any, within: float = 10.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + within
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.002)
+
+
+async def _ready_for_control(link: LinkClient) -> None:
+    """Bring the simulated robot to RUNNING with the control script playing."""
+    assert link.latest is not None
+    if link.latest.robot_mode != RobotMode.RUNNING:
+        await link.dashboard("power on")
+        await _until(lambda: link.latest is not None and link.latest.robot_mode == RobotMode.IDLE)
+        await link.dashboard("brake release")
+        await _until(
+            lambda: link.latest is not None and link.latest.robot_mode == RobotMode.RUNNING
+        )
+    await link.start_control("script", "external_control.urp", 10.0)
+    assert link.control_ready
+
+
+async def test_state_stream_delivers_consecutive_samples(link: LinkClient) -> None:
+    stamps: list[float] = []
+    with link.subscribe() as sub:
+        async for sample in sub:
+            stamps.append(sample.timestamp)
+            if len(stamps) == 100:
+                break
+    steps = np.round(np.diff(stamps) / CONTROL_PERIOD)
+    assert np.all(steps >= 1)
+    # consecutive controller cycles for the large majority even on a loaded machine
+    assert np.mean(steps == 1) > 0.9
+
+
+async def test_dashboard_call_returns_the_reply_line(link: LinkClient) -> None:
+    reply = await link.dashboard("robotmode")
+    assert reply.startswith("Robotmode: ")
+    assert link.latest is not None
+    assert reply.split(": ")[1] == RobotMode(link.latest.robot_mode).name
+
+
+async def test_unreachable_controller_reports_each_failed_client() -> None:
+    client = LinkClient("127.0.0.254", connect_timeout=1.5)
+    try:
+        with pytest.raises(RobotLinkError) as info:
+            await client.start()
+        assert "dashboard" in str(info.value) or "rtde_receive" in str(info.value)
+    finally:
+        await client.close()
+
+
+async def test_killed_link_process_is_detected_and_restarted(link: LinkClient) -> None:
+    old_pid = link.pid
+    seen: list[LinkStatus] = []
+    t0 = time.monotonic()
+    link.kill_process()
+    await _until(lambda: not link.up, 1.0, "link down")
+    detected = time.monotonic() - t0
+    seen.append(link.status)
+    await link.wait_up(20)
+    assert detected < 0.1
+    assert seen == [LinkStatus.DOWN]
+    assert link.pid != old_pid
+    assert link.latest is not None
+
+
+async def test_stalled_rtde_marks_the_link_down_then_up(link: LinkClient, sim: Any) -> None:
+    sim.inject("stall_rtde", "0.5")
+    t0 = time.monotonic()
+    await _until(lambda: not link.up, 1.0, "link down")
+    assert time.monotonic() - t0 < 0.3  # 100 ms watchdog + injection round trip
+    await link.wait_up(10)
+
+
+async def test_bad_trajectory_is_refused_before_sending(link: LinkClient) -> None:
+    with pytest.raises(InvalidArgumentError):
+        await link.execute_trajectory(np.zeros((10, 5)))
+    with pytest.raises(InvalidArgumentError):
+        await link.execute_trajectory(np.full((10, 6), np.nan))
+    with pytest.raises(InvalidArgumentError):
+        await link.execute_trajectory(np.zeros((10, 6)), gain=5)
+
+
+def _ramp(q0: Any, dq: float, seconds: float) -> np.ndarray:
+    n = round(seconds / CONTROL_PERIOD)
+    s = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, n))
+    samples = np.repeat(np.asarray(q0, dtype=float)[None, :], n, axis=0)
+    samples[:, 0] += dq * s
+    return samples
+
+
+async def test_trajectory_streams_to_its_target_with_progress(link: LinkClient) -> None:
+    await _ready_for_control(link)
+    assert link.latest is not None
+    q0 = np.asarray(link.latest.actual_q)
+    samples = _ramp(q0, 0.2, 0.4)
+    handle = await link.execute_trajectory(samples, lookahead_time=0.05, gain=500)
+    progress = await handle.next_progress()
+    assert progress is not None
+    assert progress.total == len(samples)
+    result = await handle.wait()
+    assert result.status == "completed", result
+    assert result.index == len(samples)
+    await _until(
+        lambda: link.latest is not None and abs(link.latest.actual_q[0] - samples[-1, 0]) < 2e-3,
+        2.0,
+        "robot at the last sample",
+    )
+
+
+async def test_replace_remaining_ends_the_trajectory_early(link: LinkClient) -> None:
+    await _ready_for_control(link)
+    assert link.latest is not None
+    q0 = np.asarray(link.latest.actual_q)
+    samples = _ramp(q0, -0.3, 2.0)
+    handle = await link.execute_trajectory(samples)
+    await handle.next_progress()
+    hold = np.repeat(np.asarray(link.latest.actual_q)[None, :], 10, axis=0)
+    assert await handle.replace_remaining(hold) is True
+    result = await handle.wait()
+    assert result.status == "completed"
+    assert result.duration < 1.5
+
+
+async def test_trajectory_fails_on_protective_stop(link: LinkClient, sim: Any) -> None:
+    await _ready_for_control(link)
+    assert link.latest is not None
+    samples = _ramp(link.latest.actual_q, 0.3, 2.0)
+    handle = await link.execute_trajectory(samples)
+    await handle.next_progress()
+    sim.inject("protective_stop")
+    result = await handle.wait()
+    assert result.status == "failed"
+    assert result.reason == "protective_stop"
+    assert link.latest is not None
+    assert link.latest.runtime_state == RuntimeState.STOPPED
+    # leave the shared simulator usable: the controller allows unlocking after 5 s
+    deadline = time.monotonic() + 8
+    while "releasing" not in (await link.dashboard("unlock protective stop")).lower():
+        assert time.monotonic() < deadline
+        await asyncio.sleep(0.25)
