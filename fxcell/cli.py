@@ -23,6 +23,8 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "fxcell.statemachine",
     "fxcell.daemon.cli",
     "fxcell.sim.cli",
+    "fxcell.replay",
+    "fxcell.recorder.commands",
 )
 
 Handler = Callable[[argparse.Namespace], int]

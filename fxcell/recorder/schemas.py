@@ -1,0 +1,265 @@
+"""Schemas of every topic, and the JSON encoding of the low-rate messages.
+
+Low-rate topics are JSON with a JSON Schema (draft 2020-12) so that Foxglove and
+any JSON tool read them; ``foxglove.FrameTransforms`` and ``foxglove.Log`` follow
+Foxglove's published JSON schemas (timestamps as ``{sec, nsec}``). The 500 Hz
+robot state is protobuf (:mod:`fxcell.recorder.protobuf`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import json
+import math
+from pathlib import PurePath
+from typing import Any, Final
+
+from fxcell.recorder import topics
+from fxcell.recorder.protobuf import robot_state_schema
+
+_DRAFT: Final = "https://json-schema.org/draft/2020-12/schema"
+
+
+def _object(title: str, properties: dict[str, Any], required: list[str]) -> dict[str, Any]:
+    return {
+        "$schema": _DRAFT,
+        "title": title,
+        "type": "object",
+        "properties": properties,
+        "required": required,
+    }
+
+
+_TIMESTAMP: Final = {
+    "type": "object",
+    "title": "time",
+    "properties": {
+        "sec": {"type": "integer", "minimum": 0},
+        "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999},
+    },
+    "required": ["sec", "nsec"],
+}
+_STR: Final = {"type": "string"}
+_NUM: Final = {"type": "number"}
+_OPT_NUM: Final = {"type": ["number", "null"]}
+_OPT_STR: Final = {"type": ["string", "null"]}
+
+COMMAND_SCHEMA: Final = _object(
+    topics.SCHEMA_COMMAND,
+    {
+        "command_id": {"type": "integer"},
+        "name": _STR,
+        "args": {"type": "object"},
+        "origin": {"enum": ["library", "daemon", "replay", "internal"]},
+        "phase": {"enum": ["start", "end"]},
+        "started": _NUM,
+        "ended": _OPT_NUM,
+        "outcome": {"enum": ["started", "ok", "error"]},
+        "error_type": _OPT_STR,
+        "error_message": _OPT_STR,
+        "result": {},
+    },
+    ["command_id", "name", "args", "origin", "phase", "started", "outcome"],
+)
+
+TRANSITION_SCHEMA: Final = _object(
+    topics.SCHEMA_TRANSITION,
+    {
+        "time": _NUM,
+        "source": _STR,
+        "dest": _STR,
+        "trigger": _STR,
+        "cause": {"enum": ["command", "observed"]},
+        "detail": _STR,
+    },
+    ["time", "source", "dest", "trigger", "cause"],
+)
+
+ROBOT_MODES_SCHEMA: Final = _object(
+    topics.SCHEMA_ROBOT_MODES,
+    {
+        "controller_time": _NUM,
+        "robot_mode": _STR,
+        "safety_mode": _STR,
+        "runtime_state": _STR,
+        "robot_status_bits": {"type": "integer"},
+        "safety_status_bits": {"type": "integer"},
+    },
+    ["robot_mode", "safety_mode", "runtime_state"],
+)
+
+MOTION_SCHEMA: Final = _object(
+    topics.SCHEMA_MOTION,
+    {
+        "time": _NUM,
+        "move_id": {"type": "integer"},
+        "kind": {"enum": ["path", "trajectory", "tracking", "result"]},
+        "data": {"type": "object"},
+    },
+    ["time", "move_id", "kind", "data"],
+)
+
+RECORDER_SCHEMA: Final = _object(
+    topics.SCHEMA_RECORDER,
+    {
+        "level": {"enum": ["info", "warning", "error"]},
+        "message": _STR,
+        "dropped": {"type": "integer"},
+        "written": {"type": "integer"},
+    },
+    ["level", "message"],
+)
+
+STRING_SCHEMA: Final = _object(topics.SCHEMA_STRING, {"data": _STR}, ["data"])
+
+_VECTOR3: Final = {
+    "type": "object",
+    "properties": {"x": _NUM, "y": _NUM, "z": _NUM},
+    "required": ["x", "y", "z"],
+}
+_QUATERNION: Final = {
+    "type": "object",
+    "properties": {"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM},
+    "required": ["x", "y", "z", "w"],
+}
+FRAME_TRANSFORMS_SCHEMA: Final = _object(
+    topics.SCHEMA_FRAME_TRANSFORMS,
+    {
+        "transforms": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.FrameTransform",
+                "type": "object",
+                "properties": {
+                    "timestamp": _TIMESTAMP,
+                    "parent_frame_id": _STR,
+                    "child_frame_id": _STR,
+                    "translation": _VECTOR3,
+                    "rotation": _QUATERNION,
+                },
+                "required": [
+                    "timestamp",
+                    "parent_frame_id",
+                    "child_frame_id",
+                    "translation",
+                    "rotation",
+                ],
+            },
+        }
+    },
+    ["transforms"],
+)
+
+LOG_SCHEMA: Final = _object(
+    topics.SCHEMA_LOG,
+    {
+        "timestamp": _TIMESTAMP,
+        "level": {
+            "title": "foxglove.LogLevel",
+            "description": "0 unknown, 1 debug, 2 info, 3 warning, 4 error, 5 fatal",
+            "type": "integer",
+            "oneOf": [
+                {"title": name, "const": value}
+                for name, value in (
+                    ("UNKNOWN", 0),
+                    ("DEBUG", 1),
+                    ("INFO", 2),
+                    ("WARNING", 3),
+                    ("ERROR", 4),
+                    ("FATAL", 5),
+                )
+            ],
+        },
+        "message": _STR,
+        "name": _STR,
+        "file": _STR,
+        "line": {"type": "integer", "minimum": 0},
+    },
+    ["timestamp", "level", "message", "name", "file", "line"],
+)
+
+# topic -> (schema name, schema encoding, schema data, message encoding)
+SchemaSpec = tuple[str, str, bytes, str]
+
+
+def _json_spec(schema: dict[str, Any]) -> SchemaSpec:
+    return (schema["title"], topics.JSONSCHEMA, json.dumps(schema).encode(), topics.JSON)
+
+
+def topic_schemas() -> dict[str, SchemaSpec]:
+    """Schema of every topic the recorder writes."""
+    return {
+        topics.COMMANDS: _json_spec(COMMAND_SCHEMA),
+        topics.TRANSITIONS: _json_spec(TRANSITION_SCHEMA),
+        topics.ROBOT_STATE: (
+            topics.SCHEMA_ROBOT_STATE,
+            topics.PROTOBUF,
+            robot_state_schema(),
+            topics.PROTOBUF,
+        ),
+        topics.ROBOT_MODES: _json_spec(ROBOT_MODES_SCHEMA),
+        topics.MOTION: _json_spec(MOTION_SCHEMA),
+        topics.TF: _json_spec(FRAME_TRANSFORMS_SCHEMA),
+        topics.LOG: _json_spec(LOG_SCHEMA),
+        topics.ROBOT_DESCRIPTION: _json_spec(STRING_SCHEMA),
+        topics.RECORDER: _json_spec(RECORDER_SCHEMA),
+    }
+
+
+# ----------------------------------------------------------------- JSON encoding
+
+
+def to_jsonable(value: Any) -> Any:
+    """Turn command arguments, results and motion data into JSON-compatible values.
+
+    numpy arrays become lists, enums their values (names for string enums),
+    dataclasses dicts, poses ``{position, quaternion}``; unknown objects their ``repr``.
+    Non-finite floats become strings so the output stays valid JSON.
+    """
+    if value is None or isinstance(value, bool | int | str):
+        return value.value if isinstance(value, enum.Enum) else value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if isinstance(value, enum.Enum):
+        return to_jsonable(value.value)
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [to_jsonable(v) for v in value]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, PurePath):
+        return str(value)
+    tolist = getattr(value, "tolist", None)  # numpy arrays and scalars
+    if callable(tolist):
+        return to_jsonable(tolist())
+    if hasattr(value, "position") and hasattr(value, "quaternion"):  # fxcell.geometry.Pose
+        return {
+            "position": to_jsonable(value.position),
+            "quaternion": to_jsonable(value.quaternion),
+        }
+    if isinstance(value, BaseException):
+        return f"{type(value).__name__}: {value}"
+    return repr(value)
+
+
+def dumps(message: dict[str, Any]) -> bytes:
+    """Compact JSON of a message whose values are already JSON-compatible."""
+    return json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
+
+
+def timestamp(ns: int) -> dict[str, int]:
+    """A Foxglove ``time`` object from nanoseconds."""
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
+LOG_LEVELS: Final = ((50, 5), (40, 4), (30, 3), (20, 2), (10, 1))
+
+
+def foxglove_log_level(level: int) -> int:
+    """``foxglove.LogLevel`` of a Python logging level."""
+    for threshold, fox in LOG_LEVELS:
+        if level >= threshold:
+            return fox
+    return 0

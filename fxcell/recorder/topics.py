@@ -1,0 +1,70 @@
+"""Topic names, schema names and encodings of fxcell's MCAP logs: the one place for them.
+
+Replay, the daemon and Foxglove layouts refer to topics through these constants.
+Well-known Foxglove schema names are used verbatim so Foxglove recognises them.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+# ----------------------------------------------------------------- topics
+COMMANDS: Final = "/fxcell/commands"
+"""Every API call, once when it starts and once when it ends (JSON)."""
+TRANSITIONS: Final = "/fxcell/transitions"
+"""Robot-mode state-machine transitions (JSON)."""
+ROBOT_STATE: Final = "/robot/state"
+"""Every 500 Hz RTDE sample, nothing decimated (protobuf ``fxcell.RobotState``)."""
+ROBOT_MODES: Final = "/robot/modes"
+"""A message whenever robot mode, safety mode, runtime state or status bits change (JSON)."""
+MOTION: Final = "/motion"
+"""Planned paths, trajectories, tracking reports and results of moves (JSON)."""
+TF: Final = "/tf"
+"""``foxglove.FrameTransforms`` of the robot links, for the 3D panel (JSON)."""
+LOG: Final = "/log"
+"""``foxglove.Log`` records (JSON)."""
+ROBOT_DESCRIPTION: Final = "/robot_description"
+"""The UR3e URDF as a string message, published once per file (JSON)."""
+RECORDER: Final = "/fxcell/recorder"
+"""The recorder's own notices: drops, disk errors, file rotation (JSON)."""
+
+ALL_TOPICS: Final = (
+    COMMANDS,
+    TRANSITIONS,
+    ROBOT_STATE,
+    ROBOT_MODES,
+    MOTION,
+    TF,
+    LOG,
+    ROBOT_DESCRIPTION,
+    RECORDER,
+)
+EVENT_TOPICS: Final = (COMMANDS, TRANSITIONS, ROBOT_MODES, LOG, RECORDER)
+"""The low-rate topics a timeline lists."""
+
+# ----------------------------------------------------------------- schema names
+SCHEMA_COMMAND: Final = "fxcell.Command"
+SCHEMA_TRANSITION: Final = "fxcell.Transition"
+SCHEMA_ROBOT_STATE: Final = "fxcell.RobotState"
+SCHEMA_ROBOT_MODES: Final = "fxcell.RobotModes"
+SCHEMA_MOTION: Final = "fxcell.Motion"
+SCHEMA_RECORDER: Final = "fxcell.RecorderNotice"
+SCHEMA_STRING: Final = "fxcell.String"
+SCHEMA_FRAME_TRANSFORMS: Final = "foxglove.FrameTransforms"
+SCHEMA_LOG: Final = "foxglove.Log"
+
+# ----------------------------------------------------------------- encodings
+JSON: Final = "json"
+JSONSCHEMA: Final = "jsonschema"
+PROTOBUF: Final = "protobuf"
+
+# ----------------------------------------------------------------- metadata, attachments
+METADATA_NAME: Final = "fxcell"
+"""Name of the MCAP metadata record: fxcell version, config snapshot, controller, serial."""
+RECOVERY_METADATA_NAME: Final = "fxcell.recovery"
+URDF_ATTACHMENT: Final = "ur3e.urdf"
+URDF_MEDIA_TYPE: Final = "application/xml"
+
+# ----------------------------------------------------------------- frames
+BASE_FRAME: Final = "base"
+"""Root frame: the controller base frame as on the teach pendant (not ROS base_link)."""

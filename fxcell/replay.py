@@ -1,0 +1,360 @@
+"""``fxcell replay FILE``: see what happened in the cell from its MCAP log.
+
+``--summary`` (the default) prints time range, metadata, per-topic counts and rates,
+commands with outcomes, transitions, errors and protective stops; ``--timeline`` lists
+commands, transitions, mode changes and log records in order; ``--plot OUT.png`` draws
+joints, velocities and the TCP over time with commands and state changes marked;
+``--re-execute`` re-issues the recorded commands against the embedded simulator and
+compares the new state trace with the recorded one; ``--serve`` streams the file to
+Foxglove over its WebSocket protocol with play, pause and seek.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from fxcell.errors import InvalidArgumentError, RecorderError
+from fxcell.recorder import topics
+from fxcell.recorder.reading import LogMessage, LogReader
+
+PROTECTIVE_STOP = "PROTECTIVE_STOP"
+
+
+# ----------------------------------------------------------------- summary
+
+
+@dataclass
+class CommandRecord:
+    """One API call as recorded: its start and (if it ended in the file) its end."""
+
+    command_id: int
+    name: str
+    args: dict[str, Any]
+    origin: str
+    started: float
+    ended: float | None = None
+    outcome: str = "started"
+    logged: float = 0.0
+    """When the recorder received the start (the time base of the state samples)."""
+    error_type: str | None = None
+    error_message: str | None = None
+
+
+@dataclass
+class Summary:
+    path: Path
+    finished: bool
+    start: float | None
+    end: float | None
+    metadata: dict[str, dict[str, str]]
+    counts: dict[str, int]
+    commands: list[CommandRecord] = field(default_factory=list)
+    transitions: list[dict[str, Any]] = field(default_factory=list)
+    errors: list[tuple[float, str]] = field(default_factory=list)
+    protective_stops: list[float] = field(default_factory=list)
+
+    @property
+    def duration(self) -> float:
+        return 0.0 if self.start is None or self.end is None else self.end - self.start
+
+    def rate(self, topic: str) -> float:
+        d = self.duration
+        n = self.counts.get(topic, 0)
+        return (n - 1) / d if d > 0 and n > 1 else 0.0
+
+
+def commands_of(messages: Iterable[tuple[LogMessage, Any]]) -> list[CommandRecord]:
+    """Pair the start and end records of each command, in start order."""
+    by_id: dict[int, CommandRecord] = {}
+    for msg, m in messages:
+        rec = by_id.get(m["command_id"])
+        if rec is None:
+            rec = by_id[m["command_id"]] = CommandRecord(
+                m["command_id"], m["name"], m.get("args") or {}, m["origin"], m["started"]
+            )
+            rec.logged = msg.time
+        if m.get("phase") == "end" or m.get("outcome") != "started":
+            rec.ended = m.get("ended")
+            rec.outcome = m["outcome"]
+            rec.error_type = m.get("error_type")
+            rec.error_message = m.get("error_message")
+    return sorted(by_id.values(), key=lambda c: (c.started, c.command_id))
+
+
+def summarize(path: str | Path) -> Summary:
+    """Read what ``--summary`` shows (fast: only the low-rate topics are decoded)."""
+    reader = LogReader(path)
+    s = Summary(
+        reader.path,
+        reader.finished,
+        None if reader.start_time is None else reader.start_time / 1e9,
+        None if reader.end_time is None else reader.end_time / 1e9,
+        reader.metadata,
+        reader.counts,
+    )
+    command_msgs = []
+    in_stop = False
+    wanted = (topics.COMMANDS, topics.TRANSITIONS, topics.ROBOT_MODES, topics.LOG, topics.RECORDER)
+    for msg, m in reader.decoded(wanted):
+        if msg.topic == topics.COMMANDS:
+            command_msgs.append((msg, m))
+            if m.get("outcome") == "error":
+                s.errors.append(
+                    (msg.time, f"{m['name']}: {m.get('error_type')}: {m.get('error_message')}")
+                )
+        elif msg.topic == topics.TRANSITIONS:
+            s.transitions.append({**m, "logged": msg.time})
+        elif msg.topic == topics.ROBOT_MODES:
+            stopped = m.get("safety_mode") == PROTECTIVE_STOP
+            if stopped and not in_stop:
+                s.protective_stops.append(msg.time)
+            in_stop = stopped
+        elif msg.topic == topics.LOG and m.get("level", 0) >= 4:
+            s.errors.append((msg.time, f"log {m.get('name')}: {m.get('message')}"))
+        elif msg.topic == topics.RECORDER and m.get("level") == "error":
+            s.errors.append((msg.time, f"recorder: {m.get('message')}"))
+    s.commands = commands_of(command_msgs)
+    return s
+
+
+def _utc(t: float | None) -> str:
+    if t is None:
+        return "-"
+    return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + " UTC"
+
+
+def _rel(t: float | None, t0: float | None) -> str:
+    if t is None or t0 is None:
+        return "        -"
+    return f"{t - t0:+9.3f}s"
+
+
+def _args(args: dict[str, Any], limit: int = 70) -> str:
+    text = ", ".join(f"{k}={v}" for k, v in args.items())
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def format_summary(s: Summary) -> str:
+    lines = [f"file: {s.path}" + ("" if s.finished else "  (unfinished: read to its last chunk)")]
+    lines.append(f"time: {_utc(s.start)} → {_utc(s.end)} ({s.duration:.3f} s)")
+    meta = s.metadata.get(topics.METADATA_NAME, {})
+    for key in ("fxcell_version", "controller_version", "serial", "robot"):
+        if key in meta:
+            lines.append(f"{key}: {meta[key]}")
+    if topics.RECOVERY_METADATA_NAME in s.metadata:
+        rec = s.metadata[topics.RECOVERY_METADATA_NAME]
+        lines.append(
+            f"recovered after a crash: kept {rec.get('kept_bytes')} of "
+            f"{rec.get('source_bytes')} bytes"
+        )
+    lines.append("topics:")
+    for topic in sorted(s.counts):
+        lines.append(f"  {topic:<22} {s.counts[topic]:>9} msgs  {s.rate(topic):9.2f} Hz")
+    ok = sum(c.outcome == "ok" for c in s.commands)
+    err = sum(c.outcome == "error" for c in s.commands)
+    lines.append(f"commands: {len(s.commands)} ({ok} ok, {err} failed)")
+    for c in s.commands:
+        took = f" in {c.ended - c.started:.3f} s" if c.ended is not None else ""
+        outcome = c.outcome if c.outcome != "error" else f"error {c.error_type}"
+        lines.append(f"  {_rel(c.started, s.start)}  {c.name}({_args(c.args)}) → {outcome}{took}")
+    lines.append(f"transitions: {len(s.transitions)}")
+    for t in s.transitions:
+        lines.append(
+            f"  {_rel(t['time'], s.start)}  {t['source']} → {t['dest']} "
+            f"({t['trigger']}, {t['cause']})"
+        )
+    lines.append(f"protective stops: {len(s.protective_stops)}")
+    for t0 in s.protective_stops:
+        lines.append(f"  {_rel(t0, s.start)}")
+    lines.append(f"errors: {len(s.errors)}")
+    for t0, text in s.errors:
+        lines.append(f"  {_rel(t0, s.start)}  {text}")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------- timeline
+
+
+def timeline(
+    path: str | Path,
+    *,
+    topic_names: Sequence[str] | None = None,
+    start: float | None = None,
+    end: float | None = None,
+) -> list[str]:
+    """Readable lines of the low-rate topics; ``start``/``end`` in seconds from the file start."""
+    reader = LogReader(path)
+    wanted = list(topic_names) if topic_names else list(topics.EVENT_TOPICS)
+    unknown = [t for t in wanted if t not in topics.ALL_TOPICS]
+    if unknown:
+        raise InvalidArgumentError(f"unknown topic(s) {unknown}; topics: {topics.ALL_TOPICS}")
+    t0 = reader.start_time or 0
+    lo = None if start is None else t0 + int(start * 1e9)
+    hi = None if end is None else t0 + int(end * 1e9)
+    lines = []
+    for msg, m in reader.decoded(wanted, start=lo, end=hi):
+        lines.append(f"{_rel(msg.time, t0 / 1e9)}  {msg.topic:<20} {_describe(msg.topic, m)}")
+    return lines
+
+
+def _describe(topic: str, m: Any) -> str:
+    if topic == topics.COMMANDS:
+        if m.get("phase") == "start":
+            return f"▶ #{m['command_id']} {m['name']}({_args(m.get('args') or {})}) [{m['origin']}]"
+        took = ""
+        if m.get("ended") is not None:
+            took = f" after {m['ended'] - m['started']:.3f} s"
+        if m["outcome"] == "error":
+            return (
+                f"✗ #{m['command_id']} {m['name']}: {m['error_type']}: {m['error_message']}{took}"
+            )
+        return f"✓ #{m['command_id']} {m['name']}{took}"
+    if topic == topics.TRANSITIONS:
+        detail = f" — {m['detail']}" if m.get("detail") else ""
+        return f"{m['source']} → {m['dest']} ({m['trigger']}, {m['cause']}){detail}"
+    if topic == topics.ROBOT_MODES:
+        return f"robot {m['robot_mode']}, safety {m['safety_mode']}, program {m['runtime_state']}"
+    if topic == topics.LOG:
+        level = ("?", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL")[int(m.get("level", 0)) % 6]
+        return f"{level} {m.get('name')}: {m.get('message')}"
+    if topic == topics.RECORDER:
+        return f"{m.get('level')}: {m.get('message')}"
+    if topic == topics.MOTION:
+        return f"move #{m['move_id']} {m['kind']}"
+    if topic == topics.ROBOT_STATE:
+        return f"q={[round(v, 4) for v in m.actual_q]} mode={m.robot_mode.name}"
+    text = str(m)
+    return text if len(text) < 100 else text[:99] + "…"
+
+
+# ----------------------------------------------------------------- plot
+
+
+def plot(path: str | Path, out: str | Path, *, max_points: int = 20_000) -> Path:
+    """Joint positions, velocities and TCP position over time, commands and transitions marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    reader = LogReader(path)
+    n = reader.counts.get(topics.ROBOT_STATE, 0)
+    if n == 0:
+        raise RecorderError(f"{path} has no {topics.ROBOT_STATE} samples to plot")
+    stride = max(1, math.ceil(n / max_points))
+    t0 = (reader.start_time or 0) / 1e9
+    times, q, qd, tcp = [], [], [], []
+    for i, (msg, s) in enumerate(reader.decoded([topics.ROBOT_STATE])):
+        if i % stride:
+            continue
+        times.append(msg.time - t0)
+        q.append(s.actual_q)
+        qd.append(s.actual_qd)
+        tcp.append(s.actual_tcp_pose[:3])
+    summary = summarize(path)
+    fig, axes = plt.subplots(3, 1, figsize=(12, 9), sharex=True)
+    t = np.asarray(times)
+    for ax, data, label in (
+        (axes[0], q, "joint position (rad)"),
+        (axes[1], qd, "joint velocity (rad/s)"),
+    ):
+        arr = np.asarray(data)
+        for j in range(arr.shape[1]):
+            ax.plot(t, arr[:, j], lw=0.8, label=f"q{j + 1}")
+        ax.set_ylabel(label)
+        ax.legend(loc="upper right", ncol=6, fontsize=7)
+    arr = np.asarray(tcp)
+    for j, name in enumerate("xyz"):
+        axes[2].plot(t, arr[:, j], lw=0.8, label=name)
+    axes[2].set_ylabel("TCP position (m)")
+    axes[2].set_xlabel(f"time (s) from {_utc(t0)}")
+    axes[2].legend(loc="upper right", ncol=3, fontsize=7)
+    for c in summary.commands:
+        colour = "tab:red" if c.outcome == "error" else "tab:green"
+        for ax in axes:
+            ax.axvline(c.logged - t0, color=colour, lw=0.6, ls="--")
+        axes[0].annotate(
+            c.name, (c.logged - t0, 1), xycoords=("data", "axes fraction"),
+            rotation=90, fontsize=6, va="top", color=colour,
+        )  # fmt: skip
+    for tr in summary.transitions:
+        for ax in axes:
+            ax.axvline(tr["logged"] - t0, color="tab:purple", lw=0.6, ls=":")
+        axes[2].annotate(
+            tr["dest"], (tr["logged"] - t0, 0), xycoords=("data", "axes fraction"),
+            rotation=90, fontsize=6, va="bottom", color="tab:purple",
+        )  # fmt: skip
+    for ps in summary.protective_stops:
+        for ax in axes:
+            ax.axvline(ps - t0, color="black", lw=1.2)
+    fig.suptitle(f"{Path(path).name}: commands (dashed), transitions (dotted), protective stops")
+    fig.tight_layout()
+    out = Path(out)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+# ----------------------------------------------------------------- CLI
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "replay",
+        help="summarise, list, plot, re-execute or serve an MCAP log",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("file", type=Path, help="an fxcell .mcap log")
+    what = p.add_mutually_exclusive_group()
+    what.add_argument("--summary", action="store_true", help="overview (the default)")
+    what.add_argument("--timeline", action="store_true", help="chronological listing")
+    what.add_argument("--plot", metavar="OUT.png", type=Path, help="plot joints and TCP")
+    what.add_argument(
+        "--re-execute", action="store_true", help="re-issue the commands against the simulator"
+    )
+    what.add_argument("--serve", action="store_true", help="stream to Foxglove (WebSocket)")
+    p.add_argument("--topic", action="append", help="timeline: only this topic (repeatable)")
+    p.add_argument("--start", type=float, help="timeline: from this many seconds into the file")
+    p.add_argument("--end", type=float, help="timeline: up to this many seconds into the file")
+    p.add_argument("--host", default="127.0.0.1", help="serve: address to bind")
+    p.add_argument("--port", type=int, default=8765, help="serve: WebSocket port")
+    p.add_argument("--speed", type=float, default=1.0, help="serve: initial playback speed")
+    p.add_argument(
+        "--tolerance", type=float, default=None, help="re-execute: joint deviation (rad) allowed"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.timeline:
+        for line in timeline(args.file, topic_names=args.topic, start=args.start, end=args.end):
+            print(line)
+        return 0
+    if args.plot is not None:
+        out = plot(args.file, args.plot)
+        print(f"wrote {out}")
+        return 0
+    if args.re_execute:
+        return reexecute_cli(args.file, tolerance=args.tolerance)
+    if args.serve:
+        from fxcell.recorder.serve import serve
+
+        serve(args.file, host=args.host, port=args.port, speed=args.speed)
+        return 0
+    print(format_summary(summarize(args.file)))
+    return 0
+
+
+# ----------------------------------------------------------------- re-execute
+
+
+def reexecute_cli(path: Path, *, tolerance: float | None) -> int:
+    raise RecorderError("--re-execute needs fxcell.cell.Cell, which is not available yet")

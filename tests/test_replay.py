@@ -1,0 +1,163 @@
+"""``fxcell replay``: summary, timeline, plot and Foxglove serving of recorded sessions."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import shutil
+import struct
+import threading
+from pathlib import Path
+
+import pytest
+
+from fxcell.cli import main
+from fxcell.errors import InvalidArgumentError
+from fxcell.recorder import Recorder, is_finished, topics
+from fxcell.recorder.protobuf import decode_robot_state
+from fxcell.recorder.reading import LogReader
+from fxcell.recorder.synthetic import SyntheticSession, play
+from fxcell.replay import format_summary, summarize, timeline
+
+
+@pytest.fixture(scope="module")
+def log_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    directory = tmp_path_factory.mktemp("logs")
+    rec = Recorder(directory, chunk_duration=0.1, metadata={"serial": "20235500042"})
+    play(SyntheticSession(1.5, move_every=0.4, protective_stop_at=0.95), rec.submit, realtime=True)
+    rec.close()
+    (path,) = rec.stats.files
+    return path
+
+
+def test_summary_lists_commands_transitions_errors_and_stops(log_file: Path) -> None:
+    s = summarize(log_file)
+    assert s.finished
+    assert 1.45 < s.duration < 3.0  # the session plus the recorder's start
+    assert s.counts[topics.ROBOT_STATE] == 750
+    assert 250 < s.rate(topics.ROBOT_STATE) < 520
+    names = [c.name for c in s.commands]
+    assert names[:2] == ["power_on", "brake_release"]
+    assert "unlock_protective_stop" in names
+    failed = [c for c in s.commands if c.outcome == "error"]
+    assert [c.error_type for c in failed] == ["ProtectiveStopError"]
+    assert all(c.ended is not None and c.ended >= c.started for c in s.commands)
+    assert [t["dest"] for t in s.transitions] == ["idle", "ready", "protective_stop", "ready"]
+    assert len(s.protective_stops) == 1
+    assert any("ProtectiveStopError" in text for _, text in s.errors)
+    assert any("protective stop" in text for _, text in s.errors)  # the ERROR log record
+    text = format_summary(s)
+    assert "serial: 20235500042" in text
+    assert "protective stops: 1" in text
+    assert "move_joint" in text
+
+
+def test_timeline_is_chronological_and_filters_by_topic_and_time(log_file: Path) -> None:
+    lines = timeline(log_file)
+    stamps = [float(line.split("s", 1)[0]) for line in lines]
+    assert stamps == sorted(stamps)
+    assert any("power_off → idle" in line for line in lines)
+    assert any("✗" in line and "ProtectiveStopError" in line for line in lines)
+    only = timeline(log_file, topic_names=[topics.TRANSITIONS])
+    assert len(only) == 4
+    assert all(topics.TRANSITIONS in line for line in only)
+    late = timeline(log_file, topic_names=[topics.TRANSITIONS], start=0.5)
+    assert [line.split("→")[1].split()[0] for line in late] == ["protective_stop", "ready"]
+    with pytest.raises(InvalidArgumentError):
+        timeline(log_file, topic_names=["/nope"])
+
+
+def test_plot_writes_a_png(log_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "session.png"
+    assert main(["replay", str(log_file), "--plot", str(out)]) == 0
+    header = out.read_bytes()[:24]
+    assert header[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = struct.unpack(">II", header[16:24])
+    assert width > 800
+    assert height > 600
+
+
+def test_cli_prints_the_summary_and_timeline(
+    log_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["replay", str(log_file)]) == 0
+    out = capsys.readouterr().out
+    assert "commands:" in out
+    assert topics.ROBOT_STATE in out
+    assert main(["replay", str(log_file), "--timeline", "--topic", topics.COMMANDS]) == 0
+    out = capsys.readouterr().out
+    assert "▶ #1 power_on" in out
+    assert "transitions" not in out
+
+
+def test_reader_reads_an_unfinished_file_to_its_last_chunk(log_file: Path, tmp_path: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = log_file.read_bytes()
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    assert not is_finished(cut)
+    reader = LogReader(cut)
+    full = LogReader(log_file)
+    assert 0 < reader.counts[topics.ROBOT_STATE] < full.counts[topics.ROBOT_STATE]
+    states = [s for _m, s in reader.decoded([topics.ROBOT_STATE])]
+    assert len(states) == reader.counts[topics.ROBOT_STATE]
+    assert "unfinished" in format_summary(summarize(cut))
+
+
+def test_indexed_and_linear_reads_agree(log_file: Path, tmp_path: Path) -> None:
+    linear = tmp_path / "linear.mcap"
+    data = log_file.read_bytes()
+    linear.write_bytes(data[: data.rindex(b"\x89MCAP0\r\n")])  # drop the footer magic
+    wanted = [topics.COMMANDS, topics.TRANSITIONS, topics.LOG]
+    a = [(m.topic, m.log_time, m.data) for m in LogReader(log_file).messages(wanted)]
+    b = [(m.topic, m.log_time, m.data) for m in LogReader(linear).messages(wanted)]
+    assert a == b
+    assert len(a) > 10
+    reader = LogReader(log_file)
+    start = next(reader.messages([topics.ROBOT_STATE])).log_time
+    window = list(reader.messages([topics.ROBOT_STATE], start=start, end=start + 100_000_000))
+    assert 45 <= len(window) <= 55  # 100 ms at 500 Hz
+
+
+def test_serve_streams_the_file_over_the_foxglove_websocket_protocol(
+    log_file: Path, tmp_path: Path
+) -> None:
+    from websockets.sync.client import connect
+
+    from fxcell.recorder.serve import Player
+
+    player = Player(shutil.copy(log_file, tmp_path / "x.mcap"), port=0, autoplay=False)
+    runner = threading.Thread(target=player.run, kwargs={"until": 30})
+    runner.start()
+    try:
+        with connect(f"ws://127.0.0.1:{player.port}", subprotocols=["foxglove.sdk.v1"]) as ws:
+            info = json.loads(ws.recv(timeout=5))
+            assert info["op"] == "serverInfo"
+            assert "playbackControl" in info["capabilities"]
+            channels: dict[str, dict[str, object]] = {}
+            while topics.ROBOT_STATE not in channels:
+                msg = ws.recv(timeout=5)
+                if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
+                    channels.update({c["topic"]: c for c in json.loads(msg)["channels"]})
+            assert channels[topics.TF]["schemaName"] == "foxglove.FrameTransforms"
+            assert channels[topics.ROBOT_STATE]["schemaName"] == topics.SCHEMA_ROBOT_STATE
+            sub = {"id": 3, "channelId": channels[topics.ROBOT_STATE]["id"]}
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [sub]}))
+            # seek to 1 s into the file and play (0.5 s of data left)
+            reader = LogReader(log_file)
+            assert reader.start_time is not None
+            player.control(seek=reader.start_time + 1_000_000_000, play=True, speed=1.0)
+            received = []
+            while len(received) < 20:
+                msg = ws.recv(timeout=5)
+                if isinstance(msg, bytes) and msg[0] == 0x01:
+                    sub_id, log_time = struct.unpack_from("<IQ", msg, 1)
+                    assert sub_id == 3
+                    received.append((log_time, decode_robot_state(msg[13:])))
+            assert received[0][0] >= reader.start_time + 1_000_000_000
+            assert all(b[0] > a[0] for a, b in itertools.pairwise(received))
+            player.control(play=False)
+            assert not player.playing
+    finally:
+        player.stop()
+        runner.join(10)
+    assert not runner.is_alive()
