@@ -138,7 +138,7 @@ def test_move_relative_plans_both_legs_before_moving(planner: MotionPlanner) -> 
 def test_lower_factors_make_slower_moves(planner: MotionPlanner) -> None:
     fast = planner.plan_joint(HOME, WORK)
     slow = planner.plan_joint(HOME, WORK, velocity_factor=0.3, acceleration_factor=0.3)
-    assert slow.duration > 2 * fast.duration
+    assert slow.duration > 1.5 * fast.duration  # acceleration-bound: about 1/√0.3
     assert (
         np.max(np.abs(slow.trajectory.velocities) / np.asarray(CONFIG.limits.velocity))
         <= 0.3 + 1e-9
