@@ -417,7 +417,11 @@ class Controller:
     # ------------------------------------------------------------------ safety and faults
 
     def protective_stop(self, reason: str) -> None:
-        if self.safety_mode in (SafetyMode.ROBOT_EMERGENCY_STOP, SafetyMode.SYSTEM_EMERGENCY_STOP):
+        if self.safety_mode in (
+            SafetyMode.PROTECTIVE_STOP,
+            SafetyMode.ROBOT_EMERGENCY_STOP,
+            SafetyMode.SYSTEM_EMERGENCY_STOP,
+        ):
             return
         log.warning("protective stop: %s", reason)
         self.log_messages.append(f"protective stop: {reason}")

@@ -399,14 +399,14 @@ class TableGuard:
 
     def check(self, frames: Sequence[FloatArray]) -> str | None:
         origins = [np.asarray(f)[:3, 3] for f in frames]
-        # frames: base, after joint 1..6, tcp. Links from the elbow on can reach the table.
+        # frames: base, after joint 1..6, tcp; the base column (base to shoulder) is skipped.
         names = ("upper arm", "forearm", "wrist 1", "wrist 2", "wrist 3", "tool")
-        for i in range(2, len(origins) - 1):
+        for i in range(1, len(origins) - 1):
             a, b = origins[i], origins[i + 1]
             for k in range(self.samples + 1):
                 p = a + (b - a) * (k / self.samples)
                 if np.all(p >= self.low) and np.all(p <= self.high):
-                    return names[min(i - 1, len(names) - 1)]
+                    return names[i - 1]
         return None
 
 
