@@ -171,6 +171,9 @@ def test_link_frames_compose_to_the_forward_kinematics() -> None:
                 [tr["x"], tr["y"], tr["z"]], [rot["x"], rot["y"], rot["z"], rot["w"]]
             ).matrix
             world[t["child_frame_id"]] = world[t["parent_frame_id"]] @ T
+        encoded = frames.transforms_json(list(q), 0, 0)
+        assert encoded is not None
+        assert json.loads(encoded) == {"transforms": transforms}  # the fast path agrees
         fk = kin.joint_frames(q)
         np.testing.assert_allclose(world["flange"], fk[6], atol=1e-12)
         np.testing.assert_allclose(world["tcp"], fk[7], atol=1e-12)

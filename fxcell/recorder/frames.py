@@ -11,6 +11,8 @@ angles, cheap enough for the writer thread at tens of Hz.
 
 from __future__ import annotations
 
+import functools
+import json
 import math
 from collections.abc import Sequence
 from typing import Any, Final
@@ -90,6 +92,43 @@ class LinkFrames:
             _transform(stamp, FLANGE, TCP, self._tcp_xyz, {"x": tx, "y": ty, "z": tz, "w": tw})
         )
         return out
+
+    def transforms_json(self, q: Sequence[float], sec: int, nsec: int) -> bytes | None:
+        """The ``foxglove.FrameTransforms`` message of :meth:`transforms` as JSON, fast.
+
+        One ``%`` formatting of a template made once: about ten times cheaper than
+        building dicts and ``json.dumps`` (the writer thread does this tens of times a second).
+        """
+        if len(q) != 6:
+            return None
+        args: list[float] = []
+        for (sa, ca), qi in zip(self._half_alpha, q, strict=True):
+            sz, cz = math.sin(qi / 2), math.cos(qi / 2)
+            args += (sec, nsec, sa * cz, -sa * sz, ca * sz, ca * cz)
+        args += (sec, nsec, sec, nsec)
+        return (self._template % tuple(args)).encode()
+
+    @functools.cached_property
+    def _template(self) -> str:
+        stamp = {"sec": 111111, "nsec": 222222}
+        rot = {"x": 333333.5, "y": 444444.5, "z": 555555.5, "w": 666666.5}
+        parts = [
+            _transform(stamp, parent, child, xyz, rot) for parent, child, xyz, _ in self._joints
+        ]
+        fixed = self.transforms([0.0] * 6, stamp)
+        assert fixed is not None
+        parts += fixed[6:]
+        text = json.dumps({"transforms": parts}, separators=(",", ":")).replace("%", "%%")
+        for marker, code in (
+            ("111111", "%d"),
+            ("222222", "%d"),
+            ("333333.5", "%r"),
+            ("444444.5", "%r"),
+            ("555555.5", "%r"),
+            ("666666.5", "%r"),
+        ):
+            text = text.replace(marker, code)
+        return text
 
     def urdf(self) -> str:
         """The arm as URDF: links named as in UR's ROS description, cylinders as geometry."""

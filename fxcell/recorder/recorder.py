@@ -105,6 +105,7 @@ class Recorder:
     tool centre point in the flange frame for the ``/tf`` frames (``None``: flange).
     ``on_error(message)`` is called from the writer thread when the recorder starts
     dropping messages or cannot write; use ``loop.call_soon_threadsafe`` in it.
+    ``clock`` stamps each event's log time (ns since the epoch) as it is submitted.
     """
 
     def __init__(
@@ -116,7 +117,7 @@ class Recorder:
         rotate_duration: float = 3600.0,
         metadata: Mapping[str, Any] | None = None,
         tcp: Sequence[float] | None = None,
-        tf_rate: float = 50.0,
+        tf_rate: float = 30.0,
         max_queue: int = 30_000,
         fsync: bool = True,
         compression: str = "zstd",
@@ -124,6 +125,7 @@ class Recorder:
         recover: bool = True,
         on_error: ErrorCallback | None = None,
         retry_interval: float = RETRY_INTERVAL,
+        clock: Callable[[], int] = time.time_ns,
     ) -> None:
         if not chunk_duration > 0:
             raise InvalidArgumentError(f"chunk_duration must be > 0 s, got {chunk_duration!r}")
@@ -157,7 +159,8 @@ class Recorder:
         self._max_queue = max_queue
         self._on_error = on_error
         self._retry_interval = retry_interval
-        self._poll = min(0.02, self.chunk_duration / 4)
+        self._clock = clock
+        self._poll = min(0.1, self.chunk_duration / 4)
         self._tf_period_ns = int(1e9 / tf_rate) if tf_rate > 0 else 0
         self._frames = LinkFrames(tcp) if tf_rate > 0 else None
         self._schemas = topic_schemas()
@@ -221,7 +224,7 @@ class Recorder:
         if len(self._queue) >= self._max_queue:
             self._dropped_full += 1
             return
-        self._queue.append((time.time_ns(), event))
+        self._queue.append((self._clock(), event))
 
     def close(self, timeout: float = 30.0) -> None:
         """Write what is queued, finish the current file and stop the writer thread."""
@@ -355,9 +358,9 @@ class Recorder:
             self._add(topics.ROBOT_MODES, t, dumps(msg), t)
         if self._frames is not None and t - self._last_tf_ns >= self._tf_period_ns:
             self._last_tf_ns = t
-            transforms = self._frames.transforms(s.actual_q, timestamp(t))
-            if transforms is not None:
-                self._add(topics.TF, t, dumps({"transforms": transforms}), t)
+            data = self._frames.transforms_json(s.actual_q, t // 1_000_000_000, t % 1_000_000_000)
+            if data is not None:
+                self._add(topics.TF, t, data, t)
 
     def _on_command(self, t: int, e: CommandEvent) -> None:
         msg = {
@@ -451,7 +454,7 @@ class Recorder:
             if self._frames is not None:
                 urdf = self._frames.urdf()
                 if urdf is not None:
-                    ns = time.time_ns()
+                    ns = self._clock()
                     writer.add_attachment(
                         ns, ns, topics.URDF_ATTACHMENT, topics.URDF_MEDIA_TYPE, urdf.encode()
                     )
@@ -579,7 +582,7 @@ class Recorder:
             notice = {"level": "error", "message": message, "dropped": dropped,
                       "written": self._written}  # fmt: skip
             try:
-                t = time.time_ns()
+                t = self._clock()
                 self._add(topics.RECORDER, t, dumps(notice), t)
             except OSError as exc:
                 self._fail(exc)
