@@ -47,11 +47,12 @@ def error_info(exc: BaseException) -> dict[str, Any]:
 
 
 def jsonable(value: Any) -> Any:
-    """A JSON-compatible copy of ``value`` (enums by name, arrays as lists, NaN as null)."""
-    if value is None or isinstance(value, bool | int | str):
-        return value.name if isinstance(value, enum.Enum) else value
+    """A JSON-compatible copy of ``value`` (string enums by value, other enums by name,
+    arrays as lists, NaN as null)."""
     if isinstance(value, enum.Enum):
-        return value.name
+        return str(value.value) if isinstance(value, str) else value.name
+    if value is None or isinstance(value, bool | int | str):
+        return value
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, Mapping):
@@ -62,6 +63,9 @@ def jsonable(value: Any) -> Any:
         return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, Path):
         return str(value)
+    model_dump = getattr(value, "model_dump", None)  # pydantic models (configuration)
+    if callable(model_dump):
+        return jsonable(model_dump())
     tolist = getattr(value, "tolist", None)  # numpy arrays and scalars
     if callable(tolist):
         return jsonable(tolist())

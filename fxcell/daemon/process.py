@@ -51,7 +51,7 @@ class DaemonProcess:
         token_file: str | Path | None = None,
         extra_args: Sequence[str] = (),
         env: dict[str, str] | None = None,
-        startup_timeout: float = 60.0,
+        startup_timeout: float = 40.0,
     ) -> DaemonProcess:
         """Start a daemon on a free port; returns once it serves (or raises with its output)."""
         port = free_port()
@@ -86,9 +86,25 @@ class DaemonProcess:
                     return daemon
             elif proc.poll() is not None:
                 break
-        proc.kill()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(5)
+        proc.stdout.close()
         raise FxcellError("the daemon did not start:\n" + "\n".join(lines[-40:]))
+
+    def wait_connected(self, within: float = 60.0) -> dict[str, object]:
+        """Wait until the daemon's Cell is connected; returns the state snapshot."""
+        import httpx
+
+        deadline = time.monotonic() + within
+        while True:
+            snapshot: dict[str, object] = httpx.get(f"{self.url}/api/state", timeout=5).json()
+            if snapshot["connected"] and snapshot["state"] != "disconnected":
+                return snapshot
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                tail = "\n".join(self.output[-30:])
+                raise FxcellError(f"the daemon's cell did not connect: {snapshot}\n{tail}")
+            time.sleep(0.05)
 
     def _drain(self) -> None:
         """Keep reading the daemon's output so that a full pipe never blocks it."""
@@ -116,6 +132,8 @@ class DaemonProcess:
                 self.proc.wait(5)
         if self._reader.ident is not None:
             self._reader.join(5)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
         return self.proc.returncode
 
     def __enter__(self) -> DaemonProcess:

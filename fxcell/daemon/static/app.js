@@ -105,7 +105,10 @@ function showRobot(r) {
   page.robot = r;
   if (!r) return;
   const form = $("#form-joint");
-  if (form.elements.q0.value === "") r.q.forEach((v, i) => { form.elements[`q${i}`].value = v.toFixed(4); });
+  if (!page.prefilled) {   // once: later the operator's input is left alone
+    page.prefilled = true;
+    r.q.forEach((v, i) => { form.elements[`q${i}`].value = v.toFixed(4); });
+  }
   $("#robot-mode").textContent = r.robot_mode;
   $("#safety-mode").textContent = r.safety_mode;
   $("#runtime-state").textContent = r.runtime_state;
