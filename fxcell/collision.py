@@ -46,8 +46,11 @@ BASE_HEIGHT = 0.09
 
 DEFAULT_SCENE_MARGIN = 0.005
 """Clearance (m) demanded between the robot and the scene objects."""
-DEFAULT_RESOLUTION = 0.01
-"""Largest joint step (rad) between two checked states along a motion."""
+DEFAULT_RESOLUTION = 0.006
+"""Largest displacement (m) of any point of the robot between two checked states."""
+LEVER_ARMS = np.array([0.65, 0.65, 0.45, 0.30, 0.25, 0.09])
+"""Farthest point of the arm and gripper from each joint axis (m), rounded up: a joint
+step δ moves no point by more than lever·δ, which sets how densely motions are checked."""
 
 
 @dataclass(frozen=True)
@@ -218,7 +221,7 @@ class CollisionChecker:
     def first_collision(self, samples: ArrayLike) -> int | None:
         """Index of the first colliding state among consecutive ``samples`` (N, 6), or None.
 
-        States are checked at most ``resolution`` (joint-space, max norm) apart, plus
+        States are checked at most ``resolution`` (metres of motion) apart, plus
         the last; a hit is reported at the checked sample.
         """
         s = np.asarray(samples, float)
@@ -231,10 +234,10 @@ class CollisionChecker:
         self, start: ArrayLike, end: ArrayLike, resolution: float | None = None
     ) -> bool:
         """True if the straight joint-space motion from ``start`` to ``end`` is free
-        (checked every ``resolution`` rad, default :attr:`resolution`)."""
+        (checked every ``resolution`` metres of motion, default :attr:`resolution`)."""
         a, b = np.asarray(start, float), np.asarray(end, float)
         step = self.resolution if resolution is None else float(resolution)
-        n = max(math.ceil(float(np.max(np.abs(b - a))) / step), 1)
+        n = max(math.ceil(float(np.max(np.abs(b - a) * LEVER_ARMS)) / step), 1)
         # Check the end first (cheap rejection of a bad target), then bisect the middle.
         order = [n, *_bisection_order(n)]
         return not any(self.in_collision(a + (b - a) * (k / n)) for k in order)
@@ -242,7 +245,8 @@ class CollisionChecker:
     def _checkpoints(self, s: Array) -> Iterable[int]:
         if len(s) == 0:
             return []
-        steps = np.max(np.abs(np.diff(s, axis=0)), axis=1) if len(s) > 1 else np.zeros(0)
+        moved = np.abs(np.diff(s, axis=0)) * LEVER_ARMS
+        steps = np.max(moved, axis=1) if len(s) > 1 else np.zeros(0)
         travelled = np.concatenate(([0.0], np.cumsum(steps)))
         idx = np.searchsorted(travelled, np.arange(0.0, travelled[-1], self.resolution))
         return sorted({*idx.tolist(), len(s) - 1})

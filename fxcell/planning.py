@@ -183,7 +183,7 @@ class JointPlanner:
         while i < len(pts) - 1:
             j = len(pts) - 1
             while j > i + 1 and not self.checker.motion_free(
-                pts[i], pts[j], self.planning_resolution
+                pts[i], pts[j], 3 * self.checker.resolution
             ):
                 j -= 1
             out.append(pts[j])

@@ -59,7 +59,7 @@ def test_a_move_blocked_by_the_machine_is_planned_around_it(
     np.testing.assert_array_equal(path.waypoints[0], LEFT_OF_MACHINE)
     np.testing.assert_array_equal(path.waypoints[-1], RIGHT_OF_MACHINE)
     for a, b in itertools.pairwise(path.waypoints):
-        assert checker.motion_free(a, b, resolution=0.005)
+        assert checker.motion_free(a, b, resolution=0.003)
 
     traj = through_waypoints(path.waypoints, LIMITS, validate=checker.first_collision)
     dense = checker.resolution / 2
