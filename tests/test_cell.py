@@ -321,11 +321,6 @@ def _urcap_port_lock() -> Iterator[None]:
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
-@pytest.mark.xfail(
-    reason="simulator does not yet run the snippet ur_rtde's ScriptSender serves on 50002 "
-    "(# HEADER_BEGIN ... # NODE_CONTROL_LOOP_ENDS, no def/end)",
-    strict=False,
-)
 async def test_external_control_through_the_urcap_program(shared_sim: SimulatorHandle) -> None:
     await asyncio.to_thread(_reset, shared_sim)
     with _urcap_port_lock():

@@ -1,16 +1,23 @@
 """The robot link: a supervised process holding the ur_rtde clients, and its asyncio client.
 
-Only the client is imported here; ``fxcell.link.process`` runs in its own process.
+Names load lazily, so that the link process (``python -m fxcell.link.process``) does not
+import the asyncio client.
 """
 
-from fxcell.link.client import (
-    LinkClient,
-    LinkStatus,
-    StateSubscription,
-    TrajectoryHandle,
-    TrajectoryProgress,
-    TrajectoryResult,
-)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from fxcell.link.client import (
+        LinkClient,
+        LinkStatus,
+        StateSubscription,
+        TrajectoryHandle,
+        TrajectoryProgress,
+        TrajectoryResult,
+    )
 
 __all__ = [
     "LinkClient",
@@ -20,3 +27,11 @@ __all__ = [
     "TrajectoryProgress",
     "TrajectoryResult",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in __all__:
+        raise AttributeError(f"module 'fxcell.link' has no attribute {name!r}")
+    value = getattr(importlib.import_module("fxcell.link.client"), name)
+    globals()[name] = value
+    return value

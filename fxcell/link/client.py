@@ -163,6 +163,54 @@ _ERROR_KINDS: dict[str, type[FxcellError]] = {
 }
 
 
+class _LinkProtocol(asyncio.Protocol):
+    """Splits the link socket's bytes into frames and hands each message on.
+
+    A protocol rather than a StreamReader: one wake-up parses every buffered frame,
+    which keeps the 500 Hz stream cheap for the event loop.
+    """
+
+    def __init__(self, handle: Callable[[tuple[Any, ...]], None]) -> None:
+        self._handle = handle
+        self._buffer = bytearray()
+        loop = asyncio.get_running_loop()
+        self.first_state: asyncio.Future[None] = loop.create_future()
+        self.closed: asyncio.Future[None] = loop.create_future()
+        self.error: str | None = None
+
+    def data_received(self, data: bytes) -> None:
+        buf = self._buffer
+        buf += data
+        offset = 0
+        header = wire.HEADER
+        try:
+            while len(buf) - offset >= header.size:
+                (size,) = header.unpack_from(buf, offset)
+                if size > wire.MAX_FRAME:
+                    raise ValueError(f"oversized link frame ({size} bytes)")
+                end = offset + header.size + size
+                if len(buf) < end:
+                    break
+                message = wire.decode(bytes(buf[offset + header.size : end]))
+                offset = end
+                if message[0] == wire.STATE and not self.first_state.done():
+                    self.first_state.set_result(None)
+                try:
+                    self._handle(message)
+                except Exception:  # a broken callback must not drop the link
+                    log.exception("robot link: handling %r failed", message[0])
+        except Exception as exc:  # a corrupt stream: drop the link, it restarts
+            self.error = f"bad link message: {exc}"
+            log.exception("robot link: bad message")
+            if not self.closed.done():
+                self.closed.set_result(None)
+        del buf[:offset]
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.closed.done():
+            self.closed.set_result(None)
+
+
 class StateSubscription:
     """An async iterator over state samples with a bounded buffer (oldest dropped)."""
 
@@ -196,6 +244,9 @@ class StateSubscription:
 class LinkClient:
     """Asyncio client of a supervised robot-link process for one controller.
 
+    ``receiver``: ``stream`` (default) reads every RTDE sample with fxcell's own reader;
+    ``ur_rtde`` polls ``RTDEReceiveInterface`` (which keeps only the newest sample).
+
     ``on_state`` is called for every sample, ``on_status`` when the link goes up or
     down and ``on_control`` when external control starts or ends (all synchronous).
     """
@@ -208,6 +259,7 @@ class LinkClient:
         connect_timeout: float = 10.0,
         backoff_max: float = 5.0,
         urcap_port: int = URCAP_SCRIPT_PORT,
+        receiver: Literal["stream", "ur_rtde"] = "stream",
         on_state: Callable[[RobotState], None] | None = None,
         on_status: Callable[[LinkStatus, str], None] | None = None,
         on_control: Callable[[bool, str], None] | None = None,
@@ -217,6 +269,7 @@ class LinkClient:
         self.connect_timeout = connect_timeout
         self.backoff_max = backoff_max
         self.urcap_port = urcap_port
+        self.receiver = receiver
         self._on_state = on_state
         self._on_status = on_status
         self._on_control = on_control
@@ -229,7 +282,7 @@ class LinkClient:
         """Requests sent to the link process (calls and trajectory messages)."""
         self.last_failure = ""
         self._subscriptions: set[StateSubscription] = set()
-        self._writer: asyncio.StreamWriter | None = None
+        self._writer: asyncio.Transport | None = None
         self._process: subprocess.Popen[bytes] | None = None
         self._supervisor: asyncio.Task[None] | None = None
         self._pending: dict[int, asyncio.Future[Any]] = {}
@@ -331,9 +384,10 @@ class LinkClient:
     async def _run_once(self) -> None:
         parent, child = socket.socketpair()
         try:
-            # Plain Popen (a quick fork/exec), reaped in _kill: the link's death is seen
-            # on the socket, so no asyncio child watcher is needed.
-            self._process = subprocess.Popen(  # noqa: ASYNC220
+            # Plain Popen, reaped in _kill: the link's death is seen on the socket, so no
+            # asyncio child watcher is needed. Forking from a thread keeps the loop free.
+            self._process = await asyncio.to_thread(
+                subprocess.Popen,
                 [
                     sys.executable,
                     "-m",
@@ -346,6 +400,8 @@ class LinkClient:
                     str(self.frequency),
                     "--urcap-port",
                     str(self.urcap_port),
+                    "--receiver",
+                    self.receiver,
                 ],
                 pass_fds=(child.fileno(),),
                 stdin=subprocess.DEVNULL,
@@ -353,32 +409,33 @@ class LinkClient:
         finally:
             child.close()
         self.pid = self._process.pid
-        reader, writer = await asyncio.open_connection(sock=parent)
-        self._writer = writer
+        loop = asyncio.get_running_loop()
+        protocol = _LinkProtocol(self._handle)
+        transport, _ = await loop.create_connection(lambda: protocol, sock=parent)
+        self._writer = transport
         self._hold = True  # until the first sample: connecting may block the process
         self._last_sample = time.monotonic()
         watchdog = asyncio.create_task(self._watchdog(), name="link watchdog")
         try:
-            async with asyncio.timeout(self.connect_timeout) as connect_deadline:
-                while True:
-                    header = await reader.readexactly(wire.HEADER.size)
-                    (size,) = wire.HEADER.unpack(header)
-                    if size > wire.MAX_FRAME:
-                        raise RobotLinkError(f"oversized link frame ({size} bytes)")
-                    message = wire.decode(await reader.readexactly(size))
-                    if message[0] == wire.STATE and connect_deadline.when() is not None:
-                        connect_deadline.reschedule(None)
-                    self._handle(message)
-        except asyncio.IncompleteReadError:
-            if not self.last_failure:
+            try:
+                async with asyncio.timeout(self.connect_timeout):
+                    await asyncio.wait(
+                        {protocol.first_state, protocol.closed},
+                        return_when=asyncio.FIRST_COMPLETED,
+                    )
+            except TimeoutError:
+                self.last_failure = f"no state from {self.host} within {self.connect_timeout:g} s"
+                return
+            await protocol.closed
+            if protocol.error is not None:
+                self.last_failure = protocol.error
+            elif not self.last_failure:
                 self.last_failure = "link process exited"
-        except TimeoutError:
-            self.last_failure = f"no state from {self.host} within {self.connect_timeout:g} s"
         finally:
             watchdog.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await watchdog
-            writer.close()
+            transport.close()
             self._writer = None
 
     async def _watchdog(self) -> None:

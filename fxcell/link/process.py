@@ -7,9 +7,10 @@ the controller link breaks it reports why and exits, and the client starts a fre
 process (with backoff).
 
 Threads: the main thread reads requests; a worker runs calls one at a time (dashboard
-round trips, starting the control script); the pump samples ``RTDEReceiveInterface``
-and forwards every new 500 Hz sample; a trajectory thread streams ``servoJ`` with
-``initPeriod``/``waitPeriod``.
+round trips, starting the control script); the pump forwards every 500 Hz RTDE sample
+(read by :class:`~fxcell.link.rtde_stream.RTDEStream`, or polled from ur_rtde's
+``RTDEReceiveInterface`` with ``--receiver ur_rtde``); a trajectory thread streams
+``servoJ`` with ``initPeriod``/``waitPeriod``.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fxcell.link import wire
+from fxcell.link.rtde_stream import RTDEStream
 from fxcell.protocol import (
     CONTROL_PERIOD,
     RobotState,
@@ -82,6 +84,7 @@ class Link:
         self._stop = threading.Event()
         self.dashboard: Any = None
         self.receive: Any = None
+        self.stream: RTDEStream | None = None
         self.control: Any = None
         self.latest: RobotState | None = None
         self._traj_lock = threading.Lock()
@@ -101,7 +104,6 @@ class Link:
 
     def connect(self) -> bool:
         import dashboard_client
-        import rtde_receive
 
         failures: dict[str, str] = {}
         try:
@@ -110,7 +112,13 @@ class Link:
         except Exception as exc:
             failures["dashboard"] = str(exc) or type(exc).__name__
         try:
-            self.receive = rtde_receive.RTDEReceiveInterface(self.host, self.args.frequency)
+            if self.args.receiver == "ur_rtde":
+                import rtde_receive
+
+                self.receive = rtde_receive.RTDEReceiveInterface(self.host, self.args.frequency)
+            else:
+                self.stream = RTDEStream(self.host, self.args.frequency, self.args.timeout)
+                self.stream.connect()
         except Exception as exc:
             failures["rtde_receive"] = str(exc) or type(exc).__name__
         if failures:
@@ -193,6 +201,28 @@ class Link:
     # -- state pump
 
     def _pump(self) -> None:
+        if self.stream is not None:
+            self._pump_stream()
+        else:
+            self._pump_ur_rtde()
+
+    def _publish(self, state: RobotState) -> None:
+        self.latest = state
+        self.send(wire.STATE, wire.state_to_tuple(state))
+
+    def _pump_stream(self) -> None:
+        """Forward every RTDE packet (the kernel buffers them: a late wake-up loses none)."""
+        assert self.stream is not None
+        try:
+            for state in self.stream.samples():
+                if self._stop.is_set():
+                    return
+                self._publish(state)
+        except Exception as exc:
+            self.lost(f"RTDE connection dropped: {exc}")
+
+    def _pump_ur_rtde(self) -> None:
+        """Poll RTDEReceiveInterface (it keeps only the newest sample: late polls lose some)."""
         r = self.receive
         last = None
         last_new = time.monotonic()
@@ -202,9 +232,7 @@ class Link:
                 if ts != last:
                     last = ts
                     last_new = time.monotonic()
-                    state = self._sample(r, ts)
-                    self.latest = state
-                    self.send(wire.STATE, wire.state_to_tuple(state))
+                    self._publish(self._sample(r, ts))
                     time.sleep(0.0012)
                     continue
                 if time.monotonic() - last_new > 0.004 and not r.isConnected():
@@ -564,6 +592,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frequency", type=float, default=500.0)
     parser.add_argument("--timeout", type=float, default=2.0)
     parser.add_argument("--urcap-port", type=int, default=50002)
+    parser.add_argument(
+        "--receiver",
+        choices=("stream", "ur_rtde"),
+        default="stream",
+        help="state source: fxcell's RTDE reader (every sample) or RTDEReceiveInterface",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     sock = socket.socket(fileno=args.fd)

@@ -1,0 +1,150 @@
+"""A minimal RTDE output reader that keeps every 500 Hz sample.
+
+ur_rtde's ``RTDEReceiveInterface`` keeps only the newest packet, so a reader that
+wakes late (two cores shared with everything else) loses samples. This reader owns
+its own RTDE connection (protocol version 2: ``V``, ``O``, ``S``, then ``U`` packets,
+all big-endian) and decodes every packet the kernel has buffered, so the link process
+forwards each controller cycle exactly once. It runs in the robot-link process only.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+from collections.abc import Iterator
+
+from fxcell.protocol import RTDE_PORT, RobotState
+
+HEADER = struct.Struct(">HB")
+PROTOCOL_VERSION = 2
+_V, _O, _S, _U, _M = ord("V"), ord("O"), ord("S"), ord("U"), ord("M")
+
+# Output fields, in the order RobotState takes them.
+FIELDS: tuple[str, ...] = (
+    "timestamp",
+    "robot_mode",
+    "safety_mode",
+    "runtime_state",
+    "robot_status_bits",
+    "safety_status_bits",
+    "target_q",
+    "target_qd",
+    "target_qdd",
+    "actual_q",
+    "actual_qd",
+    "actual_current",
+    "target_TCP_pose",
+    "actual_TCP_pose",
+    "actual_TCP_speed",
+    "speed_scaling",
+)
+_CODES = {
+    "BOOL": ("?", 1),
+    "UINT8": ("B", 1),
+    "UINT32": ("I", 1),
+    "UINT64": ("Q", 1),
+    "INT32": ("i", 1),
+    "DOUBLE": ("d", 1),
+    "VECTOR3D": ("3d", 3),
+    "VECTOR6D": ("6d", 6),
+    "VECTOR6INT32": ("6i", 6),
+    "VECTOR6UINT32": ("6I", 6),
+}
+
+
+class RTDEError(ConnectionError):
+    """The RTDE session could not be set up or broke."""
+
+
+class RTDEStream:
+    """One RTDE output session on ``host``; iterate :meth:`samples` in a thread."""
+
+    def __init__(self, host: str, frequency: float = 500.0, timeout: float = 2.0) -> None:
+        self.host = host
+        self.frequency = frequency
+        self.timeout = timeout
+        self._sock: socket.socket | None = None
+        self._buffer = bytearray()
+        self._struct: struct.Struct | None = None
+        self._widths: list[int] = []
+
+    def connect(self) -> None:
+        sock = socket.create_connection((self.host, RTDE_PORT), timeout=self.timeout)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock = sock
+        self._request(_V, struct.pack(">H", PROTOCOL_VERSION))
+        if not self._reply(_V)[0]:
+            raise RTDEError(f"controller refused RTDE protocol version {PROTOCOL_VERSION}")
+        self._request(_O, struct.pack(">d", self.frequency) + ",".join(FIELDS).encode())
+        reply = self._reply(_O)
+        types = reply[1:].decode().split(",")
+        missing = [n for n, t in zip(FIELDS, types, strict=False) if t == "NOT_FOUND"]
+        if missing or len(types) != len(FIELDS):
+            raise RTDEError(f"controller lacks RTDE outputs {missing or types}")
+        fmt = ">B"
+        self._widths = []
+        for t in types:
+            code, width = _CODES[t]
+            fmt += code
+            self._widths.append(width)
+        self._struct = struct.Struct(fmt)
+        self._request(_S, b"")
+        if not self._reply(_S)[0]:
+            raise RTDEError("controller refused to start the RTDE stream")
+        sock.settimeout(None)
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def _request(self, kind: int, payload: bytes) -> None:
+        assert self._sock is not None
+        self._sock.sendall(HEADER.pack(HEADER.size + len(payload), kind) + payload)
+
+    def _reply(self, kind: int) -> bytes:
+        for got, payload in self._packets():
+            if got == kind:
+                return payload
+            if got not in (_M, _U):
+                raise RTDEError(
+                    f"unexpected RTDE reply {chr(got)!r} while waiting for {chr(kind)!r}"
+                )
+        raise RTDEError("RTDE connection closed during setup")
+
+    def _packets(self) -> Iterator[tuple[int, bytes]]:
+        """Every packet, reading the socket when the buffer holds no complete one."""
+        assert self._sock is not None
+        buf = self._buffer
+        while True:
+            while len(buf) >= HEADER.size:
+                size, kind = HEADER.unpack_from(buf)
+                if size < HEADER.size:
+                    raise RTDEError(f"malformed RTDE packet of size {size}")
+                if len(buf) < size:
+                    break
+                payload = bytes(buf[HEADER.size : size])
+                del buf[:size]
+                yield kind, payload
+            chunk = self._sock.recv(65536)
+            if not chunk:
+                return
+            buf += chunk
+
+    def samples(self) -> Iterator[RobotState]:
+        """Every state sample until the connection closes (then raises RTDEError)."""
+        assert self._struct is not None
+        unpack = self._struct.unpack_from
+        need = self._struct.size
+        widths = self._widths
+        for kind, payload in self._packets():
+            if kind != _U or len(payload) < need:
+                continue
+            flat = unpack(payload)
+            values: list[object] = []
+            i = 1
+            for w in widths:
+                values.append(flat[i] if w == 1 else flat[i : i + w])
+                i += w
+            yield RobotState(*values)  # type: ignore[arg-type]
+        raise RTDEError("RTDE connection closed by the controller")
