@@ -7,7 +7,11 @@ to get the fixtures below. This module is test support: the runtime never import
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import fcntl
+import os
 import socket
+import tempfile
 import time
 from collections.abc import AsyncIterator, Iterator, Sequence
 from pathlib import Path
@@ -155,3 +159,43 @@ def sim() -> Iterator[SimulatorHandle]:
     """A fresh simulator (time scale 0.05) for one test; stopped afterwards."""
     with simulator() as handle:
         yield handle
+
+
+URCAP_PORT = 50002
+
+
+@contextlib.contextmanager
+def urcap_port(timeout: float = 120.0, port: int = URCAP_PORT) -> Iterator[int]:
+    """Hold the machine-wide ExternalControl port (the PC side, fixed at 50002) for a test.
+
+    ur_rtde's ExternalControl server listens on every interface, so only one such test can
+    run at a time on a machine. This waits (up to ``timeout``) for an exclusive lock shared
+    by fxcell tests and for the port to be bindable, then yields it; it fails clearly if the
+    port never frees.
+    """
+    path = os.path.join(tempfile.gettempdir(), f"fxcell-urcap-{port}.lock")
+    deadline = time.monotonic() + timeout
+    with open(path, "a+") as lock:
+        while True:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    pytest.fail(f"another fxcell test held port {port} for {timeout:.0f} s")
+                time.sleep(0.05)
+        try:
+            while True:
+                with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+                    probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                    try:
+                        probe.bind(("0.0.0.0", port))
+                        break
+                    except OSError:
+                        pass
+                if time.monotonic() > deadline:
+                    pytest.fail(f"port {port} (ExternalControl) stayed in use for {timeout:.0f} s")
+                time.sleep(0.05)
+            yield port
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)

@@ -42,7 +42,8 @@ log = logging.getLogger(__name__)
 REALTIME = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
 # Commands that only adjust force-mode or dynamics settings in this script version.
 NO_OPS = frozenset({20, 21, 59, 67, 68, 69, 70, 71})
-SCRIPT_MARKER = "def rtde_control():"
+# Both the uploaded program and the bare body the ExternalControl URCap receives have it.
+SCRIPT_MARKER = "def rtde_cmd():"
 
 _OFFSET_INT = re.compile(r"global\s+reg_offset_int\s*=\s*(\d+)")
 _OFFSET_FLOAT = re.compile(r"global\s+reg_offset_float\s*=\s*(\d+)")

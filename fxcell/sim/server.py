@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 CONTROL_PORT = 29990  # simulator control: "inject FAULT [ARGS]", "state", "set_joints q1..q6"
 PORTS = (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, SECONDARY_PORT, CONTROL_PORT)
 URCAP_TIMEOUT = 5.0
+URCAP_END_MARKER = "# NODE_CONTROL_LOOP_ENDS"
 
 
 def _program_end(text: str) -> int:
@@ -59,6 +60,33 @@ def _program_end(text: str) -> int:
         if line.rstrip() == "end" and pos > 0:
             return nl + 1
         pos = nl + 1
+
+
+async def _read_program(reader: asyncio.StreamReader) -> str:
+    """The script an ExternalControl server sends: a ``def`` program or a bare body.
+
+    The body has no closing ``end`` and the sender keeps the connection open, so the text
+    is complete at the control-loop end marker, at a complete program, or after a pause.
+    """
+    text = ""
+    deadline = time.monotonic() + URCAP_TIMEOUT
+    while True:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise TimeoutError("no program received")
+        try:
+            chunk = await asyncio.wait_for(reader.read(65536), min(remaining, 0.2))
+        except TimeoutError:
+            if text.strip():
+                return text.lstrip()  # a pause after some text: that was all of it
+            continue
+        if not chunk:
+            if text.strip():
+                return text.lstrip()
+            raise ConnectionError("connection closed before a program was sent")
+        text += chunk.decode("utf-8", "replace")
+        if URCAP_END_MARKER in text or _program_end(text.lstrip()) >= 0:
+            return text.lstrip()
 
 
 class ScriptConnection(asyncio.Protocol):
@@ -243,6 +271,7 @@ class SimServer:
                     "qd": self.arm.qd.tolist(),
                     "tcp": list(c.tcp),
                     "program": c.loaded_program,
+                    "control_script": c.script is not None,
                     "last_stop_reason": c.last_stop_reason,
                     "late_cycles": self.late_cycles,
                     "log": c.log_messages[-20:],
@@ -283,16 +312,7 @@ class SimServer:
         try:
             writer.write(b"request_program\n")
             await writer.drain()
-            text = ""
-            deadline = time.monotonic() + URCAP_TIMEOUT
-            while _program_end(text.lstrip()) < 0:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise TimeoutError("no complete program received")
-                chunk = await asyncio.wait_for(reader.read(65536), remaining)
-                if not chunk:
-                    raise ConnectionError("connection closed before a complete program")
-                text += chunk.decode("utf-8", "replace")
+            text = await _read_program(reader)
         except (OSError, TimeoutError, ConnectionError) as exc:
             c.stop(f"ExternalControl: program request failed ({exc})")
             return
