@@ -35,12 +35,14 @@ JointValidity = Callable[[FloatArray], bool]
 
 TWO_PI = 2.0 * math.pi
 
-_WRIST_EPS = 1e-12
-"""|sin θ5| below which the wrist counts as exactly singular (θ4 + θ6 is all that matters)."""
+_WRIST_EPS = 1e-14
+"""|sin θ5| below which the wrist counts as exactly singular (θ6 free: see _singular_arm)."""
 _CLIP_EPS = 1e-12
 """Rounding slack on the cosines at the reach boundaries (≈ 1e-13 m of position)."""
 _NEAR_WRIST = 1e-6
 """|sin θ5| below which a failed closed form is retried as a wrist singularity."""
+_POLISH_TOL = 1e-10
+"""Pose error (m, rad) accepted from a solution polished by Newton steps."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
 
@@ -272,9 +274,17 @@ class Kinematics:
                 n = len(out)
                 self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5a, zz, math.atan2(-zy, zx), out, 0)
                 self._arm(f, p5x, p5y, p5z, t1, s1, c1, -s5a, zz, math.atan2(zy, -zx), out, 0)
+                if len(out) == n:
+                    # Near the shoulder or wrist singularity θ1 or θ6 carry amplified rounding
+                    # error, which can throw a stretched arm just out of reach: accept a
+                    # looser stretch, then polish with Newton steps.
+                    rough: list[list[float]] = []
+                    t6a, t6b = math.atan2(-zy, zx), math.atan2(zy, -zx)
+                    self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5a, zz, t6a, rough, 0, 1e-6)
+                    self._arm(f, p5x, p5y, p5z, t1, s1, c1, -s5a, zz, t6b, rough, 0, 1e-6)
+                    out.extend(p for sol in rough if (p := self._polish(sol, pose)))
                 if len(out) == n and s5a < _NEAR_WRIST:
-                    # θ6 is known only to rounding / s5, which can throw a stretched arm out
-                    # of reach: search θ6 as at the singularity, then polish with Newton.
+                    # still nothing: search θ6 as at the singularity, then polish
                     for s5 in (s5a, -s5a):
                         for elbow in (1, -1):
                             sol = self._singular_arm(
@@ -291,10 +301,14 @@ class Kinematics:
         return out
 
     def _polish(self, sol: list[float], pose: Pose) -> list[float] | None:
-        """``sol`` after Newton steps, or None if it still misses ``pose`` by over 1e-12."""
-        q = self.refine(np.array(sol), pose)
+        """``sol`` after Newton steps, or None if it still misses ``pose`` by over 1e-10.
+
+        Only near two singularities at once, where the pose pins some joints down to no
+        better than ~1e-10 m of pose error (far below the robot's 3e-5 m repeatability).
+        """
+        q = self.refine(np.array(sol), pose, iterations=60)
         reached = self.forward(q)
-        if reached.distance(pose) > 1e-12 or reached.angle_to(pose) > 1e-12:
+        if reached.distance(pose) > _POLISH_TOL or reached.angle_to(pose) > _POLISH_TOL:
             return None
         out: list[float] = q.tolist()
         return out
@@ -368,38 +382,58 @@ class Kinematics:
     ) -> list[float] | None:
         """Wrist singular (θ5 = 0 or π): axes 2, 3, 4 and 6 are parallel and θ6 is free.
 
-        The solution nearest ``seed`` along the continuum: a grid over θ6, then a
-        golden-section search around the best grid point. Runs only at exact singularities.
+        θ6 turns axis 5 in the arm plane and so moves frame 4's origin on a circle of radius
+        d5 around the wrist centre; the arm reaches it for θ6 in (at most) two intervals,
+        computed here. Within them, the solution nearest ``seed``: a grid, then a
+        golden-section search around the best grid point. Runs only at singularities.
         """
+        r00, r01, _, r10, r11, _, r20, r21 = f[:8]
+        d1, d5 = self.dh.d[0], self.dh.d[4]
+        a2, a3 = self.dh.a[1], self.dh.a[2]
+        # wrist centre from the shoulder, in the arm plane (x1, z0 coordinates)
+        X5, Y5 = c1 * p5x + s1 * p5y, p5z - d1
+        D = math.hypot(X5, Y5)
+        ex, ey = (X5 / D, Y5 / D) if D > 0.0 else (1.0, 0.0)
+        # z4·e = -(A s6 + B c6) = -k cos(θ6 - γ), with x6, y6 projected on e
+        A = (c1 * r00 + s1 * r10) * ex + r20 * ey
+        B = (c1 * r01 + s1 * r11) * ex + r21 * ey
+        k, gamma = math.hypot(A, B), math.atan2(A, B)
+        # |frame-4 origin - shoulder|² = D² + d5² + 2 d5 D k cos(θ6 - γ) within the 2R reach
+        den = 2.0 * d5 * D * k
+        if den < 1e-15:
+            intervals = [(gamma - math.pi, gamma + math.pi)]
+        else:
+            lo_c = ((a2 - a3) ** 2 - D * D - d5 * d5) / den
+            hi_c = ((a2 + a3) ** 2 - D * D - d5 * d5) / den
+            if lo_c > 1.0 + _CLIP_EPS or hi_c < -1.0 - _CLIP_EPS:
+                return None
+            near = math.acos(min(max(hi_c, -1.0), 1.0))
+            far = math.acos(min(max(lo_c, -1.0), 1.0))
+            intervals = [(gamma + near, gamma + far), (gamma - far, gamma - near)]
 
         def solve(t6: float) -> tuple[float, list[float]] | None:
             found: list[list[float]] = []
-            self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t6, found, elbow, 4e-15)
+            self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t6, found, elbow)
             return self._nearest(found[0], seed) if found else None
 
-        n = 48
-        step = TWO_PI / n
-        grid = [seed[5] + k * step for k in range(-n // 2, n // 2)]
-        scored = [(c[0], t6) for t6 in grid if (c := solve(t6)) is not None]
-        if not scored:
-            return None
-        _, t_best = min(scored)
-        lo, hi = t_best - step, t_best + step
-        g = (math.sqrt(5.0) - 1.0) / 2.0
-        inf = (math.inf, [])
-        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-        fa, fb = solve(a) or inf, solve(b) or inf
-        for _ in range(40):
-            if fa[0] < fb[0]:
-                hi, b, fb = b, a, fa
-                a = hi - g * (hi - lo)
-                fa = solve(a) or inf
-            else:
-                lo, a, fa = a, b, fb
-                b = lo + g * (hi - lo)
-                fb = solve(b) or inf
-        best = min((fa, fb, solve(t_best) or inf), key=lambda c: c[0])
-        return best[1] or None
+        best: tuple[float, list[float]] | None = None
+        for lo, hi in intervals:
+            n = 24
+            step = (hi - lo) / n
+            scored = [
+                (c[0], t6)
+                for t6 in (lo + i * step for i in range(n + 1))
+                if (c := solve(t6)) is not None
+            ]
+            if not scored:
+                continue
+            _, t_best = min(scored)
+            a_lo, a_hi = max(lo, t_best - step), min(hi, t_best + step)
+            cands = [c for c in (solve(t_best), _golden(solve, a_lo, a_hi)) if c is not None]
+            for c in cands:
+                if best is None or c[0] < best[0]:
+                    best = c
+        return None if best is None else best[1]
 
     def _nearest(self, sol: list[float], seed: list[float]) -> tuple[float, list[float]] | None:
         """The 2π-equivalent of ``sol`` nearest ``seed`` within the limits, and its distance²."""
@@ -473,23 +507,30 @@ class Kinematics:
         ranked = sorted(c for c in (self._nearest(b, s) for b in self._branches(target, s)) if c)
         return [np.array(sol) for _, sol in ranked]
 
-    def refine(self, q: ArrayLike, pose: Pose, *, iterations: int = 4) -> FloatArray:
-        """Newton steps on the TCP pose error from ``q`` (damped least squares near
-        singularities); stops when the error stops shrinking."""
+    def refine(self, q: ArrayLike, pose: Pose, *, iterations: int = 8) -> FloatArray:
+        """Gauss-Newton steps on the TCP pose error from ``q``, damped Levenberg-Marquardt
+        style near singularities; each accepted step lowers the error."""
         qq = np.array(_joints(q))
         err = _pose_error(self.forward(qq), pose)
+        norm = float(np.linalg.norm(err))
+        lam = 1e-14
+        eye = np.eye(6)
         for _ in range(iterations):
-            norm = float(np.linalg.norm(err))
             if norm < 1e-15:
                 break
             J = self.jacobian(qq)
-            lam = 1e-12
-            dq = J.T @ np.linalg.solve(J @ J.T + lam * np.eye(6), err)
-            trial = qq + dq
-            trial_err = _pose_error(self.forward(trial), pose)
-            if float(np.linalg.norm(trial_err)) >= norm:
-                break
-            qq, err = trial, trial_err
+            JJt = J @ J.T
+            while True:
+                trial = qq + J.T @ np.linalg.solve(JJt + lam * eye, err)
+                trial_err = _pose_error(self.forward(trial), pose)
+                trial_norm = float(np.linalg.norm(trial_err))
+                if trial_norm < norm:
+                    qq, err, norm = trial, trial_err, trial_norm
+                    lam = max(lam * 0.1, 1e-14)
+                    break
+                lam *= 10.0
+                if lam > 1.0:
+                    return qq
         return qq
 
 
@@ -539,3 +580,24 @@ def _default_limits() -> tuple[Sequence[float], Sequence[float]]:
 
     lim = JointLimits()
     return lim.position_min, lim.position_max
+
+
+def _golden(
+    fn: Callable[[float], tuple[float, list[float]] | None], lo: float, hi: float
+) -> tuple[float, list[float]] | None:
+    """Golden-section search for the smallest ``fn(t)[0]`` on [lo, hi] (None = infeasible)."""
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    worst: tuple[float, list[float]] = (math.inf, [])
+    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+    fa, fb = fn(a) or worst, fn(b) or worst
+    for _ in range(40):
+        if fa[0] < fb[0]:
+            hi, b, fb = b, a, fa
+            a = hi - g * (hi - lo)
+            fa = fn(a) or worst
+        else:
+            lo, a, fa = a, b, fb
+            b = lo + g * (hi - lo)
+            fb = fn(b) or worst
+    best = fa if fa[0] < fb[0] else fb
+    return best if best[1] else None

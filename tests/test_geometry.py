@@ -21,6 +21,8 @@ from fxcell.geometry import (
     rpy_to_matrix,
 )
 
+FAST = settings(max_examples=40)
+
 finite = st.floats(-10.0, 10.0, allow_nan=False, allow_infinity=False)
 angles = st.floats(-math.pi, math.pi, allow_nan=False)
 unit_vectors = (
@@ -57,6 +59,7 @@ def _assert_rotation(R: np.ndarray) -> None:
 
 
 @given(unit_vectors, st.floats(0.0, math.pi))
+@FAST
 def test_rotation_vector_round_trips_for_every_angle(axis: np.ndarray, angle: float) -> None:
     R = rotvec_to_matrix(axis * angle)
     _assert_rotation(R)
@@ -66,6 +69,7 @@ def test_rotation_vector_round_trips_for_every_angle(axis: np.ndarray, angle: fl
 
 
 @given(unit_vectors, st.floats(0.0, 1e-7))
+@FAST
 def test_rotation_vector_is_exact_near_zero(axis: np.ndarray, angle: float) -> None:
     v = axis * angle
     R = rotvec_to_matrix(v)
@@ -76,6 +80,7 @@ def test_rotation_vector_is_exact_near_zero(axis: np.ndarray, angle: float) -> N
 
 
 @given(unit_vectors, st.floats(0.0, 1e-7))
+@FAST
 def test_rotation_vector_is_stable_near_pi(axis: np.ndarray, eps: float) -> None:
     angle = math.pi - eps
     R = rotvec_to_matrix(axis * angle)
@@ -95,6 +100,7 @@ def test_rotation_vector_conventions_match_axis_rotations() -> None:
 
 
 @given(quaternions)
+@FAST
 def test_quaternion_round_trips_up_to_sign(q: np.ndarray) -> None:
     R = quaternion_to_matrix(q)
     _assert_rotation(R)
@@ -111,6 +117,7 @@ def test_quaternion_is_x_y_z_w() -> None:
 
 
 @given(angles, st.floats(-math.pi / 2, math.pi / 2), angles)
+@FAST
 def test_rpy_is_rz_ry_rx_and_round_trips(roll: float, pitch: float, yaw: float) -> None:
     R = rpy_to_matrix((roll, pitch, yaw))
     assert np.allclose(R, _rot_z(yaw) @ _rot_y(pitch) @ _rot_x(roll), atol=1e-15)
@@ -120,6 +127,7 @@ def test_rpy_is_rz_ry_rx_and_round_trips(roll: float, pitch: float, yaw: float) 
 
 
 @given(angles, angles, st.sampled_from([-1.0, 1.0]), st.floats(0.0, 1e-9))
+@FAST
 def test_rpy_reproduces_the_rotation_at_gimbal_lock(
     roll: float, yaw: float, side: float, eps: float
 ) -> None:
@@ -128,6 +136,7 @@ def test_rpy_reproduces_the_rotation_at_gimbal_lock(
 
 
 @given(unit_vectors, st.floats(0.0, math.pi))
+@FAST
 def test_rotation_angle_is_the_rotation_vector_norm(axis: np.ndarray, angle: float) -> None:
     assert rotation_angle(rotvec_to_matrix(axis * angle)) == pytest.approx(angle, abs=1e-12)
 
@@ -141,6 +150,7 @@ poses = st.builds(
 
 
 @given(poses)
+@FAST
 def test_pose_forms_round_trip(pose: Pose) -> None:
     for other in (
         Pose.from_ur(pose.as_ur()),

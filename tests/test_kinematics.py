@@ -63,7 +63,7 @@ def test_forward_is_the_product_of_dh_transforms_and_the_tcp(q: np.ndarray) -> N
 
 @pytest.mark.parametrize("kin", [FLANGE, SEED], ids=["flange", "seed_tcp"])
 @given(q=configurations)
-@settings(max_examples=150)
+@settings(max_examples=60)
 def test_inverse_of_forward_returns_the_configuration(kin: Kinematics, q: np.ndarray) -> None:
     pose = kin.forward(q)
     sol = kin.inverse(pose, seed=q)
@@ -79,7 +79,7 @@ def test_inverse_of_forward_returns_the_configuration(kin: Kinematics, q: np.nda
 
 @pytest.mark.parametrize("kin", [FLANGE, SEED], ids=["flange", "seed_tcp"])
 @given(q=configurations, seed=configurations)
-@settings(max_examples=150)
+@settings(max_examples=60)
 def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
     kin: Kinematics, q: np.ndarray, seed: np.ndarray
 ) -> None:
