@@ -31,7 +31,6 @@ from fxcell.errors import (
     NotInRemoteControlError,
     ProtectiveStopError,
     ProtectiveStopUnlockTooSoonError,
-    RecorderError,
     RobotCommandError,
     RobotFaultError,
     RobotTimeoutError,
@@ -85,7 +84,8 @@ class Cell:
 
     ``host=None`` starts the embedded controller simulator (``fxcell.embedded``).
     Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
-    ``record`` names a directory for an MCAP flight record of the session.
+    ``record`` names a directory for an MCAP flight record of the session (default:
+    the configuration's ``recorder.directory`` when ``recorder.enabled``).
     """
 
     def __init__(
@@ -104,6 +104,8 @@ class Cell:
         self._host = host if host is not None else robot.host
         self.external_control = external_control or robot.external_control
         self.command_timeout = command_timeout or robot.command_timeout
+        if record is None and self.config.recorder.enabled:
+            record = self.config.recorder.directory
         self._record = record
         self._origin = origin
         self._simulator_options = dict(simulator_options or {})
@@ -766,10 +768,20 @@ def _jsonable(value: Any) -> Any:
 
 
 def _start_recorder(directory: Path, cell: Cell) -> Any:
-    try:
-        from fxcell.recorder import Recorder
-    except ImportError as exc:  # pragma: no cover - the recorder ships with fxcell
-        raise RecorderError(f"the MCAP recorder is not available: {exc}") from None
-    recorder = Recorder(directory, metadata={"host": str(cell.host)})
+    from fxcell.recorder import Recorder
+
+    rec = cell.config.recorder
+    recorder = Recorder(
+        directory,
+        chunk_duration=rec.chunk_duration,
+        rotate_size=rec.rotate_size,
+        rotate_duration=rec.rotate_duration,
+        metadata={
+            "host": str(cell.host) if cell.host is not None else "embedded simulator",
+            "external_control": cell.external_control,
+            "config": cell.config.model_dump(mode="json"),
+        },
+        tcp=cell.config.tool.tcp,
+    )
     recorder.attach(cell.bus)
     return recorder

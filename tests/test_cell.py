@@ -398,3 +398,32 @@ async def test_lost_link_cancels_the_running_move(cell: Cell) -> None:
     cell._link().kill_process()
     with pytest.raises(ConnectionLostError):
         await task
+
+
+# ----------------------------------------------------------------- recording
+
+
+async def test_record_writes_commands_transitions_and_states_to_mcap(
+    shared_sim: SimulatorHandle, tmp_path: Any
+) -> None:
+    from mcap.reader import make_reader
+
+    from fxcell.recorder import topics as recorder_topics
+
+    await asyncio.to_thread(_reset, shared_sim)
+    async with Cell(host=shared_sim.host, record=tmp_path) as cell:
+        await cell.wait_for_state(CellState.POWER_OFF)
+        await cell.power_on()
+    files = sorted(tmp_path.glob("*.mcap"))
+    assert len(files) == 1
+    with files[0].open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    assert summary.statistics is not None
+    topics = {
+        c.topic: summary.statistics.channel_message_counts.get(c.id, 0)
+        for c in summary.channels.values()
+    }
+    assert topics[recorder_topics.COMMANDS] == 2  # power_on started + ended
+    assert topics[recorder_topics.TRANSITIONS] >= 2  # powering_on, idle
+    assert topics[recorder_topics.ROBOT_STATE] > 10
