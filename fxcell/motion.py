@@ -503,7 +503,7 @@ class MoveExecution:
         """Follow the robot sample by sample until it has settled at the target (then end
         the stream), the stream ends, or a stop request brakes it to rest."""
         opts = self.options
-        target = self.plan.trajectory.positions[-1]
+        target = self.plan.trajectory.positions[-1].tolist()
         patience = self.plan.duration + 2 * opts.settle_timeout + 1.0
         state = self.link.latest
         async with asyncio.timeout(patience):
@@ -511,15 +511,15 @@ class MoveExecution:
                 if self._stop.is_set() and not self._braked and not handle.done:
                     await self._brake(handle)
                 if state is not None:
-                    q = np.asarray(state.actual_q)
-                    qd = np.asarray(state.actual_qd)
-                    moving = float(np.max(np.abs(qd)))
+                    # plain floats: this runs for every 500 Hz sample
+                    moving = max(map(abs, state.actual_qd))
                     if self._braked:
                         if handle.done and moving < opts.rest_velocity:
                             self._settled_at = state.received_at
                             return state
                     elif (
-                        float(np.max(np.abs(q - target))) <= opts.settle_position
+                        max(abs(a - b) for a, b in zip(state.actual_q, target, strict=True))
+                        <= opts.settle_position
                         and moving < opts.settle_velocity
                         and self._arrived(handle)
                     ):
@@ -561,11 +561,18 @@ class MoveExecution:
         p, v, a = traj.state(at)
         stop = braking(p, v, a, self.planner.braking_limits())
         self.brake_duration = stop.duration
-        samples = (
-            lead_setpoints(stop, self.options.lag)
-            if self.options.compensate_lag
-            else stop.positions
-        )
+        samples = stop.positions
+        if self.options.compensate_lag:
+            # Lead the braking samples with the planned ones before them as history, so
+            # the setpoints continue exactly where the replaced ones leave off.
+            history = traj.positions[max(at - 1, 0) : at]
+            joined = Trajectory(
+                np.concatenate([history, stop.positions]),
+                np.zeros((len(history) + len(stop), 6)),
+                np.zeros((len(history) + len(stop), 6)),
+                stop.duration,
+            )
+            samples = lead_setpoints(joined, self.options.lag)[len(history) :]
         samples[-1] = stop.positions[-1]
         await handle.replace_remaining(samples, at_index=at)
 
@@ -613,7 +620,7 @@ class MoveExecution:
             position_error=float(np.linalg.norm(reached_pose.position - target_pose.position)),
             orientation_error=float(reached_pose.angle_to(target_pose)),
             planned_duration=plan.duration,
-            executed_duration=finished - self._sent_at,
+            executed_duration=max(finished - self._sent_at, 0.0),
             planner=plan.planner,
             stopped=not self._settled,
         )
