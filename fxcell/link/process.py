@@ -10,7 +10,9 @@ Threads: the main thread reads requests; a worker runs calls one at a time (dash
 round trips, starting the control script); the pump forwards every 500 Hz RTDE sample
 (read by :class:`~fxcell.link.rtde_stream.RTDEStream`, or polled from ur_rtde's
 ``RTDEReceiveInterface`` with ``--receiver ur_rtde``); a trajectory thread streams
-``servoJ`` with ``initPeriod``/``waitPeriod``.
+``servoJ`` every 2 ms. It keeps time with ``time.sleep`` on absolute deadlines rather than
+ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which
+starved the state pump for up to 20 ms per period.
 """
 
 from __future__ import annotations
@@ -488,6 +490,7 @@ class _Trajectory:
         samples = self.samples
         i = 0
         settle_until: float | None = None
+        next_tick: float | None = None
         status, reason = "completed", ""
         if c is None:
             status, reason = "failed", "no_external_control"
@@ -524,7 +527,8 @@ class _Trajectory:
                         if why is not None:
                             status, reason = "failed", why
                             break
-                    t0 = c.initPeriod()
+                    if next_tick is None:
+                        next_tick = time.perf_counter()
                     target = samples[min(i, len(samples) - 1)]
                     ok = c.servoJ(
                         target.tolist(), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain
@@ -540,7 +544,14 @@ class _Trajectory:
                         if i % self.PROGRESS_EVERY == 0:
                             self._progress(i, len(samples), samples[i])
                         i += 1
-                    c.waitPeriod(t0)
+                    next_tick += CONTROL_PERIOD
+                    delay = next_tick - time.perf_counter()
+                    if delay > 0:
+                        time.sleep(delay)
+                    elif delay < -0.5 * CONTROL_PERIOD:
+                        # Late (a busy machine): never catch up with a burst of setpoints,
+                        # the controller would see a jump; the trajectory stretches instead.
+                        next_tick = time.perf_counter()
             except Exception as exc:
                 status, reason = "failed", f"link_error: {exc}"
             with contextlib.suppress(Exception):
