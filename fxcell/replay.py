@@ -12,6 +12,7 @@ Foxglove over its WebSocket protocol with play, pause and seek.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -42,6 +43,7 @@ class CommandRecord:
     outcome: str = "started"
     logged: float = 0.0
     """When the recorder received the start (the time base of the state samples)."""
+    result: Any = None
     error_type: str | None = None
     error_message: str | None = None
 
@@ -84,6 +86,7 @@ def commands_of(messages: Iterable[tuple[LogMessage, Any]]) -> list[CommandRecor
             rec.outcome = m["outcome"]
             rec.error_type = m.get("error_type")
             rec.error_message = m.get("error_message")
+            rec.result = m.get("result")
     return sorted(by_id.values(), key=lambda c: (c.started, c.command_id))
 
 
@@ -330,6 +333,10 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--tolerance", type=float, default=None, help="re-execute: joint deviation (rad) allowed"
     )
+    p.add_argument("--config", type=Path, help="re-execute: cell configuration under test")
+    p.add_argument(
+        "--time-scale", type=float, default=1.0, help="re-execute: simulator controller delays"
+    )
     p.set_defaults(func=run)
 
 
@@ -343,7 +350,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {out}")
         return 0
     if args.re_execute:
-        return reexecute_cli(args.file, tolerance=args.tolerance)
+        return reexecute_cli(
+            args.file, tolerance=args.tolerance, config=args.config, time_scale=args.time_scale
+        )
     if args.serve:
         from fxcell.recorder.serve import serve
 
@@ -355,6 +364,272 @@ def run(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------- re-execute
 
+MOVE_COMMANDS = frozenset({"move_joint", "go_home", "move_pose", "move_distance", "move_relative"})
+JOINT_TOLERANCE = 0.01
+"""rad: largest joint deviation of a re-executed move (time-aligned) that counts as equal."""
+RESULT_TOLERANCE = 1e-3
+"""Largest difference of numeric command results (m, rad) that counts as equal."""
+MAX_SHIFT = 0.06
+"""s: a re-executed move may start this much earlier or later than recorded."""
 
-def reexecute_cli(path: Path, *, tolerance: float | None) -> int:
-    raise RecorderError("--re-execute needs fxcell.cell.Cell, which is not available yet")
+
+@dataclass
+class Trace:
+    """Joint positions over time (s, wall clock) of a session."""
+
+    times: list[float] = field(default_factory=list)
+    q: list[tuple[float, ...]] = field(default_factory=list)
+
+    def window(self, start: float, end: float) -> tuple[Any, Any]:
+        import numpy as np
+
+        t = np.asarray(self.times)
+        i, j = np.searchsorted(t, start), np.searchsorted(t, end, side="right")
+        return t[i:j] - start, np.asarray(self.q[i:j]).reshape(-1, 6)
+
+    def at(self, when: float) -> tuple[float, ...] | None:
+        import bisect
+
+        i = bisect.bisect_right(self.times, when) - 1
+        return self.q[i] if i >= 0 else None
+
+
+@dataclass
+class Comparison:
+    """One recorded command and its re-execution."""
+
+    name: str
+    args: dict[str, Any]
+    recorded_outcome: str
+    outcome: str
+    recorded_duration: float | None
+    duration: float | None
+    joint_deviation: float | None = None
+    """rad: largest joint difference of the two state traces over the command."""
+    result_deviation: float | None = None
+    problems: list[str] = field(default_factory=list)
+
+
+@dataclass
+class ReexecuteReport:
+    path: Path
+    comparisons: list[Comparison]
+
+    @property
+    def unexpected(self) -> list[str]:
+        return [f"{c.name}: {p}" for c in self.comparisons for p in c.problems]
+
+    def format(self) -> str:
+        lines = [f"re-executed {len(self.comparisons)} commands of {self.path}"]
+        for c in self.comparisons:
+            dev = "" if c.joint_deviation is None else f"  Δq {c.joint_deviation:.2e} rad"
+            res = "" if c.result_deviation is None else f"  Δresult {c.result_deviation:.2e}"
+            took = "" if c.duration is None else f" {c.duration:.3f} s"
+            was = "" if c.recorded_duration is None else f" (recorded {c.recorded_duration:.3f} s)"
+            flag = "  ✗ " + "; ".join(c.problems) if c.problems else "  ✓"
+            lines.append(
+                f"  {c.name}({_args(c.args, 40)}) → {c.outcome}{took}{was}{dev}{res}{flag}"
+            )
+        n = len(self.unexpected)
+        lines.append(f"unexpected deviations: {n}" + ("" if n else " (matches the recording)"))
+        return "\n".join(lines)
+
+
+def top_level_commands(commands: Sequence[CommandRecord]) -> list[CommandRecord]:
+    """The commands a user issued: drop those another (non-move) command issued itself.
+
+    ``init()`` calls ``power_on()``, ``brake_release()``, ... which are recorded too;
+    re-issuing both would do things twice. Calls during a move (``stop()``) are kept.
+    """
+    out = []
+    for c in commands:
+        inner = any(
+            o.command_id < c.command_id
+            and o.name not in MOVE_COMMANDS
+            and o.ended is not None
+            and c.ended is not None
+            and o.started <= c.started
+            and c.ended <= o.ended
+            for o in commands
+        )
+        if not inner and c.origin != "internal":
+            out.append(c)
+    return out
+
+
+def _numeric_deviation(a: Any, b: Any) -> float | None:
+    """Largest absolute difference of two JSON values of the same shape (None: not numeric)."""
+    if isinstance(a, bool) or isinstance(b, bool):
+        return None if a == b else math.inf
+    if isinstance(a, int | float) and isinstance(b, int | float):
+        return abs(float(a) - float(b))
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return math.inf
+        devs = [_numeric_deviation(x, y) for x, y in zip(a, b, strict=True)]
+        nums = [d for d in devs if d is not None]
+        return max(nums) if nums else None
+    return None if a == b else math.inf
+
+
+def _trajectory_deviation(rec: tuple[Any, Any], new: tuple[Any, Any]) -> float | None:
+    """Largest joint difference of two traces, the second shifted in time to fit best."""
+    import numpy as np
+
+    (t_rec, q_rec), (t_new, q_new) = rec, new
+    if len(t_rec) < 2 or len(t_new) < 2:
+        return None
+    best = math.inf
+    for shift in np.arange(-MAX_SHIFT, MAX_SHIFT + 1e-9, 0.002):
+        t = t_rec + shift
+        keep = (t >= t_new[0]) & (t <= t_new[-1])
+        if keep.sum() < 2:
+            continue
+        dev = max(
+            float(np.max(np.abs(np.interp(t[keep], t_new, q_new[:, j]) - q_rec[keep, j])))
+            for j in range(6)
+        )
+        best = min(best, dev)
+    return None if best == math.inf else best
+
+
+async def reexecute(
+    path: str | Path,
+    *,
+    config: Any = None,
+    time_scale: float = 1.0,
+    joint_tolerance: float = JOINT_TOLERANCE,
+    result_tolerance: float = RESULT_TOLERANCE,
+) -> ReexecuteReport:
+    """Re-issue the recorded commands against a fresh embedded simulator, on the recorded timing.
+
+    The simulator starts at the recorded first joint positions; each command goes out
+    at its recorded offset from the first one (never before the command it followed
+    has finished). Outcomes, numeric results and, for moves, the time-aligned joint
+    traces are compared with the recording; ``config`` (a CellConfig, default the
+    standard configuration) is the setup under test — a different TCP shows up as a
+    deviation of pose results and pose moves.
+    """
+    import asyncio
+    import time
+
+    from fxcell.cell import Cell
+    from fxcell.events import Event, Origin, StateEvent
+
+    reader = LogReader(path)
+    recorded = Trace()
+    for msg, sample in reader.decoded([topics.ROBOT_STATE]):
+        recorded.times.append(msg.time)
+        recorded.q.append(tuple(sample.actual_q))
+    summary = summarize(path)
+    commands = top_level_commands(summary.commands)
+    if not commands:
+        raise RecorderError(f"{path} has no commands to re-execute")
+    first_q = recorded.q[0] if recorded.q else None
+
+    new = Trace()
+
+    def on_event(event: Event) -> None:
+        if isinstance(event, StateEvent):
+            new.times.append(time.time())
+            new.q.append(tuple(event.sample.actual_q))
+
+    options: dict[str, Any] = {"time_scale": time_scale}
+    if first_q is not None and len(first_q) == 6:
+        options["joints"] = list(first_q)
+    cell = Cell(None, config=config, origin=Origin.REPLAY, simulator_options=options)
+    cell.bus.subscribe(on_event)
+    results: dict[int, tuple[str, Any, float, float]] = {}
+
+    async def issue(c: CommandRecord) -> None:
+        t0 = time.time()
+        try:
+            value = await getattr(cell, c.name)(**c.args)
+            outcome: tuple[str, Any] = ("ok", value)
+        except Exception as exc:
+            outcome = (f"error {type(exc).__name__}", None)
+        results[c.command_id] = (outcome[0], outcome[1], t0, time.time())
+
+    async with cell:
+        from fxcell.statemachine import CellState
+
+        await cell.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
+        start_new = time.time()
+        start_rec = commands[0].started
+        running: list[asyncio.Task[None]] = []
+        previous: CommandRecord | None = None
+        for c in commands:
+            if not hasattr(cell, c.name):
+                results[c.command_id] = ("error unknown command", None, time.time(), time.time())
+                continue
+            sequential = (
+                previous is not None
+                and previous.ended is not None
+                and (c.started >= previous.ended)
+            )
+            if sequential and running:
+                await asyncio.gather(*running)
+                running.clear()
+            delay = start_new + (c.started - start_rec) - time.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            running.append(asyncio.create_task(issue(c)))
+            previous = c
+        await asyncio.gather(*running)
+
+    comparisons = []
+    for c in commands:
+        outcome, value, t0, t1 = results[c.command_id]
+        rec_outcome = "ok" if c.outcome == "ok" else f"error {c.error_type}"
+        comp = Comparison(
+            c.name,
+            c.args,
+            rec_outcome,
+            outcome,
+            None if c.ended is None else c.ended - c.started,
+            t1 - t0,
+        )
+        if outcome != rec_outcome:
+            comp.problems.append(f"outcome {outcome}, recorded {rec_outcome}")
+        if c.name in MOVE_COMMANDS and c.ended is not None:
+            comp.joint_deviation = _trajectory_deviation(
+                recorded.window(c.logged, c.logged + (c.ended - c.started)), new.window(t0, t1)
+            )
+        else:
+            a, b = recorded.at(c.logged), new.at(t0)
+            if a is not None and b is not None:
+                comp.joint_deviation = max(abs(x - y) for x, y in zip(a, b, strict=False))
+        if comp.joint_deviation is not None and comp.joint_deviation > joint_tolerance:
+            comp.problems.append(f"joints differ by {comp.joint_deviation:.4f} rad")
+        if c.name not in MOVE_COMMANDS and outcome == "ok" and c.outcome == "ok":
+            comp.result_deviation = _numeric_deviation(c.result, _jsonable_result(value))
+            if comp.result_deviation is not None and comp.result_deviation > result_tolerance:
+                comp.problems.append(f"result differs by {comp.result_deviation:.4g}")
+        comparisons.append(comp)
+    return ReexecuteReport(Path(path), comparisons)
+
+
+def _jsonable_result(value: Any) -> Any:
+    from fxcell.recorder.schemas import to_jsonable
+
+    return json.loads(json.dumps(to_jsonable(value)))
+
+
+def reexecute_cli(
+    path: Path, *, tolerance: float | None, config: Path | None = None, time_scale: float = 1.0
+) -> int:
+    import asyncio
+
+    from fxcell.config import CellConfig
+
+    cfg = CellConfig.load(config)
+    report = asyncio.run(
+        reexecute(
+            path,
+            config=cfg,
+            time_scale=time_scale,
+            joint_tolerance=tolerance if tolerance is not None else JOINT_TOLERANCE,
+        )
+    )
+    print(report.format())
+    return 1 if report.unexpected else 0
