@@ -52,17 +52,21 @@ async def _ready_for_control(link: LinkClient) -> None:
     assert link.control_ready
 
 
-async def test_state_stream_delivers_consecutive_samples(link: LinkClient) -> None:
+async def test_state_stream_delivers_every_sample_the_controller_sent(
+    link: LinkClient, sim: Any
+) -> None:
+    late_before = (await asyncio.to_thread(sim.state))["late_cycles"]
     stamps: list[float] = []
     with link.subscribe() as sub:
         async for sample in sub:
             stamps.append(sample.timestamp)
-            if len(stamps) == 100:
+            if len(stamps) == 250:
                 break
-    steps = np.round(np.diff(stamps) / CONTROL_PERIOD)
+    late = (await asyncio.to_thread(sim.state))["late_cycles"] - late_before
+    steps = np.round(np.diff(stamps) / CONTROL_PERIOD).astype(int)
     assert np.all(steps >= 1)
-    # consecutive controller cycles for the large majority even on a loaded machine
-    assert np.mean(steps == 1) > 0.9
+    # cycles the simulator skipped while it ran late (a busy machine) were never sent
+    assert int(np.sum(steps - 1)) <= late
 
 
 async def test_dashboard_call_returns_the_reply_line(link: LinkClient) -> None:
@@ -73,11 +77,15 @@ async def test_dashboard_call_returns_the_reply_line(link: LinkClient) -> None:
 
 
 async def test_unreachable_controller_reports_each_failed_client() -> None:
-    client = LinkClient("127.0.0.254", connect_timeout=1.5)
+    client = LinkClient("127.0.0.254", connect_timeout=10)
     try:
+        await client.start(wait=False)
+        await _until(lambda: "dashboard" in client.last_failure, 20.0, "a failure report")
+        assert "rtde_receive" in client.last_failure
+        assert client.status is not LinkStatus.UP
         with pytest.raises(RobotLinkError) as info:
-            await client.start()
-        assert "dashboard" in str(info.value) or "rtde_receive" in str(info.value)
+            await client.wait_up(0.05)
+        assert "dashboard" in str(info.value)
     finally:
         await client.close()
 
