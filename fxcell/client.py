@@ -57,8 +57,6 @@ def build_error(info: dict[str, Any], status: int = 0) -> errors.FxcellError:
     name = str(info.get("type", "RemoteError"))
     message = str(info.get("message", ""))
     cls = getattr(errors, name, None)
-    if name == "OperationCancelledError":
-        cls = errors.MoveStoppedError
     if not (isinstance(cls, type) and issubclass(cls, errors.FxcellError)):
         return errors.RemoteError(f"{name}: {message}", status=status or 500)
     exc = cls.__new__(cls)

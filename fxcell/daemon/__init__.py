@@ -1,10 +1,8 @@
 """The cell daemon: HTTP + JSON API (OpenAPI), WebSocket stream and the operator page.
 
 Run it with ``fxcell daemon``; drive it with :class:`fxcell.client.RemoteCell`, the
-``fxcell`` operator commands or the web page it serves at ``/``.
+``fxcell`` operator commands or the web page it serves at ``/``. Submodules:
+``app`` (routes), ``service`` (what the routes serve), ``server`` (running it),
+``operations``, ``control``, ``auth``, ``stream``, ``notify``, ``cli``. Nothing is
+imported here, so that the CLI's registration stays cheap.
 """
-
-from fxcell.daemon.app import create_app
-from fxcell.daemon.service import CellService
-
-__all__ = ["CellService", "create_app"]

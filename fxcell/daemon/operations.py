@@ -40,6 +40,7 @@ class Operation:
     error: dict[str, Any] | None = None
     done: asyncio.Event = field(default_factory=asyncio.Event)
     cancel_requested: bool = False
+    move: bool = False
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -69,7 +70,13 @@ class OperationRegistry:
         self._on_change = on_change
 
     def start(
-        self, name: str, args: Mapping[str, Any], client: str, coro: Awaitable[Any]
+        self,
+        name: str,
+        args: Mapping[str, Any],
+        client: str,
+        coro: Awaitable[Any],
+        *,
+        move: bool = False,
     ) -> Operation:
         op_id = f"op-{next(self._ids)}"
 
@@ -77,7 +84,7 @@ class OperationRegistry:
             return await coro
 
         task = asyncio.create_task(run(), name=f"fxcell daemon {op_id} {name}")
-        op = Operation(op_id, name, dict(args), client, time.time(), task)
+        op = Operation(op_id, name, dict(args), client, time.time(), task, move=move)
         self._ops[op_id] = op
         task.add_done_callback(lambda t: self._finished(op, t))
         self._on_change(op)
@@ -88,7 +95,16 @@ class OperationRegistry:
         op.ended = time.time()
         if task.cancelled():
             op.status = "cancelled"
-            op.error = {"type": "OperationCancelledError", "message": f"{op.name} was cancelled"}
+            if op.move:  # the Cell braked the robot to rest, as for stop()
+                error: BaseException = MoveStoppedError(f"{op.name}() was cancelled ({op.id})")
+                op.error = error_info(error)
+            else:
+                op.error = {
+                    "type": "OperationCancelledError",
+                    "message": f"{op.name}() was cancelled ({op.id})",
+                    "status": 409,
+                    "detail": {},
+                }
         elif (exc := task.exception()) is not None:
             # A move cancelled or stopped brakes to rest and ends with MoveStoppedError.
             stopped = op.cancel_requested or isinstance(exc, MoveStoppedError)

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import queue
 import re
-import select
 import signal
 import socket
 import subprocess
@@ -40,6 +40,7 @@ class DaemonProcess:
         self.token = token
         self.output: list[str] = []
         self._reader = threading.Thread()
+        self._lines: queue.Queue[str | None] = queue.Queue()
 
     @classmethod
     def start(
@@ -68,28 +69,29 @@ class DaemonProcess:
             env=environ,
             start_new_session=True,
         )
-        lines: list[str] = []
+        daemon = cls(proc, "", token)
+        daemon._drain()
         deadline = time.monotonic() + startup_timeout
-        assert proc.stdout is not None
         while time.monotonic() < deadline:
-            ready, _, _ = select.select([proc.stdout], [], [], 0.2)
-            if ready:
-                line = proc.stdout.readline()
-                if not line:
+            try:
+                line = daemon._lines.get(timeout=0.2)
+            except queue.Empty:
+                if proc.poll() is not None and not daemon._reader.is_alive():
                     break
-                lines.append(line.rstrip())
-                match = _SERVING.search(line.strip())
-                if match:
-                    daemon = cls(proc, match.group(1), token)
-                    daemon.output = lines
-                    daemon._drain()
-                    return daemon
-            elif proc.poll() is not None:
+                continue
+            if line is None:  # end of output: the daemon exited
                 break
+            match = _SERVING.search(line.strip())
+            if match:
+                daemon.url = match.group(1)
+                return daemon
+        lines = daemon.output
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(5)
-        proc.stdout.close()
+        daemon._reader.join(5)
+        if proc.stdout is not None:
+            proc.stdout.close()
         raise FxcellError("the daemon did not start:\n" + "\n".join(lines[-40:]))
 
     def wait_connected(self, within: float = 60.0) -> dict[str, object]:
@@ -115,6 +117,8 @@ class DaemonProcess:
             with contextlib.suppress(ValueError, OSError):
                 for line in stdout:
                     self.output.append(line.rstrip())
+                    self._lines.put(line.rstrip())
+            self._lines.put(None)
 
         self._reader = threading.Thread(target=pump, name="fxcell daemon output", daemon=True)
         self._reader.start()

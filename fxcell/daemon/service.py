@@ -117,7 +117,7 @@ class CellService:
         if needs_control:
             self.control.acquire(client)
         self.require_cell()
-        return self.operations.start(name, args, client, call())
+        return self.operations.start(name, args, client, call(), move=name in _GUARD_NAME)
 
     async def call(self, name: str, **kwargs: Any) -> Any:
         cell = self.require_cell()

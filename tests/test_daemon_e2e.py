@@ -1,0 +1,416 @@
+"""The daemon on the embedded simulator, driven over HTTP and WebSocket like an operator's
+client: life cycle, moves as operations, refusals, and a clean SIGTERM mid-move."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import signal
+import time
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import websockets
+
+from fxcell.daemon.process import DaemonProcess
+
+TOKEN = "e2e-test-token-0123456789abcdef"
+CONFIG = "robot:\n  host: null\ndaemon:\n  token_file: {token_file}\n"
+SIM_ARGS = ("--sim-time-scale", "0.2")
+
+pytestmark = pytest.mark.slow
+
+
+def write_config(tmp: Path) -> Path:
+    config = tmp / "cell.yaml"
+    config.write_text(CONFIG.format(token_file=tmp / "token"))
+    return config
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
+    tmp = tmp_path_factory.mktemp("daemon")
+    with DaemonProcess.start(write_config(tmp), token=TOKEN, extra_args=SIM_ARGS) as process:
+        process.wait_connected()
+        yield process
+    assert process.proc.returncode == 0, "\n".join(process.output[-30:])
+
+
+def headers(client: str = "tester", token: str | None = TOKEN) -> dict[str, str]:
+    out = {"X-Fxcell-Client": client}
+    if token:
+        out["Authorization"] = f"Bearer {token}"
+    return out
+
+
+@pytest.fixture
+async def http(daemon: DaemonProcess) -> AsyncIterator[httpx.AsyncClient]:
+    async with httpx.AsyncClient(base_url=daemon.url, timeout=30) as client:
+        yield client
+        # leave the cell free for the next test
+        await client.delete("/api/control", headers=headers())
+
+
+class Watcher:
+    """Collects stream messages in the background of a test."""
+
+    def __init__(self, url: str, rate: float = 50) -> None:
+        self.url = url.replace("http://", "ws://") + f"/api/stream?rate={rate}"
+        self.messages: list[dict[str, Any]] = []
+        self._task: asyncio.Task[None] | None = None
+        self._ready = asyncio.Event()
+
+    async def _run(self) -> None:
+        async with websockets.connect(self.url, max_size=None) as ws:
+            async for text in ws:
+                self.messages.append(json.loads(text))
+                self._ready.set()
+
+    async def __aenter__(self) -> Watcher:
+        self._task = asyncio.create_task(self._run())
+        await asyncio.wait_for(self._ready.wait(), 10)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self._task is not None
+        self._task.cancel()
+        await asyncio.gather(self._task, return_exceptions=True)
+
+    def of(self, kind: str) -> list[dict[str, Any]]:
+        return [m for m in self.messages if m["type"] == kind]
+
+    async def wait_for(self, test: Any, within: float = 20, after: int = 0) -> dict[str, Any]:
+        """The first message (from index ``after`` on) that passes ``test``."""
+        deadline = time.monotonic() + within
+        seen = after
+        while time.monotonic() < deadline:
+            for message in self.messages[seen:]:
+                if test(message):
+                    return message
+            seen = len(self.messages)
+            await asyncio.sleep(0.01)
+        raise AssertionError(f"no matching stream message in {within} s")
+
+
+async def state(http: httpx.AsyncClient) -> dict[str, Any]:
+    r = await http.get("/api/state")
+    r.raise_for_status()
+    return r.json()  # type: ignore[no-any-return]
+
+
+async def ensure_ready(http: httpx.AsyncClient) -> None:
+    r = await http.post("/api/cell/init", headers=headers())
+    assert r.status_code == 200, r.text
+    assert (await state(http))["state"] == "running.external_control_ready"
+
+
+async def test_full_life_cycle_over_http_and_websocket(
+    daemon: DaemonProcess, http: httpx.AsyncClient
+) -> None:
+    async with Watcher(daemon.url) as watcher:
+        hello = watcher.of("hello")[0]
+        assert hello["snapshot"]["connected"] is True
+        steps = [
+            ("power_off", "power_off"),
+            ("power_on", "idle"),
+            ("brake_release", "running.program_stopped"),
+            ("start_external_control", "running.external_control_ready"),
+            ("stop_external_control", "running.program_stopped"),
+            ("power_off", "power_off"),
+            ("init", "running.external_control_ready"),
+        ]
+        for command, expected in steps:
+            r = await http.post(f"/api/cell/{command}", headers=headers())
+            assert r.status_code == 200, f"{command}: {r.text}"
+            op = r.json()
+            assert op["status"] == "succeeded"
+            assert op["name"] == command
+            assert (await state(http))["state"] == expected, command
+        r = await http.get("/api/cell/get_robot_mode")
+        assert r.json() == {"result": "RUNNING"}
+        r = await http.get("/api/cell/get_current_joint_values")
+        assert len(r.json()["result"]) == 6
+        r = await http.get("/api/cell/get_current_pose")
+        pose = r.json()["result"]
+        assert len(pose) == 7
+        assert math.isclose(sum(v * v for v in pose[3:]), 1.0, rel_tol=1e-6)
+        await watcher.wait_for(
+            lambda m: m["type"] == "transition" and m["dest"] == "running.external_control_ready"
+        )
+        await watcher.wait_for(lambda m: m["type"] == "state")
+    dests = [m["dest"] for m in watcher.of("transition")]
+    for expected in ("power_off", "idle", "running.program_stopped"):
+        assert expected in dests
+    commands = [(m["name"], m["outcome"]) for m in watcher.of("command")]
+    assert ("power_on", "ok") in commands
+    assert all(m["origin"] == "daemon" for m in watcher.of("command"))
+    ops = [m for m in watcher.of("operation") if m["status"] == "succeeded"]
+    assert [m["name"] for m in ops][-1] == "init"
+
+
+async def test_move_runs_as_an_operation_and_cancel_stops_it(
+    daemon: DaemonProcess, http: httpx.AsyncClient
+) -> None:
+    await ensure_ready(http)
+    start_q = (await state(http))["robot"]["q"]
+    target = [start_q[0] + 1.5, *start_q[1:]]
+    async with Watcher(daemon.url, rate=100) as watcher:
+        r = await http.post(
+            "/api/cell/move_joint",
+            json={"target": target, "velocity_factor": 0.3, "acceleration_factor": 0.5},
+            headers=headers(),
+        )
+        assert r.status_code == 202, r.text
+        op = r.json()
+        assert op["status"] == "running"
+        listed = (await http.get("/api/operations", params={"running": "true"})).json()
+        assert [o["id"] for o in listed] == [op["id"]], listed
+        await watcher.wait_for(lambda m: m["type"] == "state" and abs(m["qd"][0]) > 0.05, within=20)
+        r = await http.post(f"/api/operations/{op['id']}/cancel", headers=headers())
+        assert r.status_code == 200
+        cancelled = r.json()
+        assert cancelled["status"] == "cancelled"
+        assert cancelled["error"]["type"] == "MoveStoppedError"
+        rest = await watcher.wait_for(
+            lambda m: m["type"] == "state" and max(abs(v) for v in m["qd"]) < 1e-4,
+            after=len(watcher.messages),
+        )
+        assert start_q[0] + 0.01 < rest["q"][0] < target[0] - 0.01
+        r = await http.post(f"/api/operations/{op['id']}/wait", params={"timeout": 1})
+        assert r.json()["status"] == "cancelled"
+    assert (await state(http))["state"] == "running.external_control_ready"
+    dests = [m["dest"] for m in watcher.of("transition")]
+    assert "running.moving" in dests
+
+
+async def test_move_completes_and_can_be_awaited(
+    daemon: DaemonProcess, http: httpx.AsyncClient
+) -> None:
+    await ensure_ready(http)
+    start_q = (await state(http))["robot"]["q"]
+    target = [start_q[0] - 0.1, *start_q[1:]]
+    r = await http.post(
+        "/api/cell/move_joint", json={"target": target}, params={"wait": "true"}, headers=headers()
+    )
+    assert r.status_code == 200, r.text
+    assert r.json()["status"] == "succeeded"
+    q = (await state(http))["robot"]["q"]
+    assert max(abs(a - b) for a, b in zip(q, target, strict=True)) < 1e-4
+
+
+async def test_unauthorised_commands_are_refused_and_nothing_changes(
+    daemon: DaemonProcess, http: httpx.AsyncClient
+) -> None:
+    await ensure_ready(http)
+    before = await state(http)
+    for token in (None, "wrong-token"):
+        for path, body in (
+            ("/api/cell/power_off", None),
+            ("/api/cell/move_joint", {"target": [0.5, -1.5, 0, -1.5, 0, 0]}),
+        ):
+            r = await http.post(path, json=body, headers=headers("intruder", token))
+            assert r.status_code == 401, r.text
+            assert "Bearer" in r.json()["error"]["message"]
+    after = await state(http)
+    assert after["state"] == before["state"] == "running.external_control_ready"
+    assert after["robot"]["q"] == pytest.approx(before["robot"]["q"], abs=1e-6)
+    assert after["control"] is None or after["control"]["client"] != "intruder"
+
+
+async def test_a_second_controller_is_refused(
+    daemon: DaemonProcess, http: httpx.AsyncClient
+) -> None:
+    await ensure_ready(http)  # "tester" holds control now
+    before = await state(http)
+    r = await http.post(
+        "/api/cell/move_joint",
+        json={"target": [0.3, -1.5, 0, -1.5, 0, 0]},
+        headers=headers("second@other-pc"),
+    )
+    assert r.status_code == 409
+    error = r.json()["error"]
+    assert error["type"] == "ControlHeldError"
+    assert "controlled by 'tester'" in error["message"]
+    r = await http.post("/api/cell/power_off", headers=headers("second@other-pc"))
+    assert r.status_code == 409
+    assert (await state(http))["state"] == before["state"]
+    assert (await http.get("/api/control")).json()["client"] == "tester"
+
+
+@pytest.mark.parametrize(
+    ("body", "status"),
+    [
+        ({"target": [10.0, 0, 0, 0, 0, 0]}, 422),  # beyond the joint limits
+        ({"target": [0, 0, 0, 0, 0]}, 422),
+        ({"target": [0, 0, 0, 0, 0, 0], "velocity_factor": 1.4}, 422),
+        ({"target": "home"}, 422),
+        ({"targets": [0, 0, 0, 0, 0, 0]}, 422),
+    ],
+)
+async def test_malformed_requests_are_refused_without_motion(
+    daemon: DaemonProcess, http: httpx.AsyncClient, body: dict[str, Any], status: int
+) -> None:
+    await ensure_ready(http)
+    before = await state(http)
+    r = await http.post("/api/cell/move_joint", json=body, headers=headers(), params={"wait": "1"})
+    assert r.status_code == status, r.text
+    assert r.json()["error"]["message"]
+    after = await state(http)
+    assert after["state"] == "running.external_control_ready"
+    assert after["robot"]["q"] == pytest.approx(before["robot"]["q"], abs=1e-6)
+
+
+async def test_command_in_the_wrong_state_is_refused_with_the_state_named(
+    daemon: DaemonProcess, http: httpx.AsyncClient
+) -> None:
+    await ensure_ready(http)
+    r = await http.post("/api/cell/power_on", headers=headers())
+    assert r.status_code == 409
+    error = r.json()["error"]
+    assert error["type"] == "InvalidStateError"
+    assert error["detail"]["state"] == "running.external_control_ready"
+    assert "idle" in error["detail"]["allowed"]
+
+
+async def test_stream_rate_is_selectable(daemon: DaemonProcess) -> None:
+    for rate in (50, 200):
+        async with Watcher(daemon.url, rate=rate) as watcher:
+            await watcher.wait_for(lambda m: m["type"] == "state")
+            first = len(watcher.of("state"))
+            t0 = time.monotonic()
+            await asyncio.sleep(1.0)  # the measuring window, not a wait for a condition
+            count = len(watcher.of("state")) - first
+        assert rate * 0.85 < count / (time.monotonic() - t0) < rate * 1.15, (rate, count)
+
+
+def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
+    tmp_path: Path,
+) -> None:
+    from mcap.reader import make_reader
+
+    logs = tmp_path / "logs"
+    with DaemonProcess.start(
+        write_config(tmp_path), token=TOKEN, log_dir=logs, extra_args=SIM_ARGS
+    ) as daemon, httpx.Client(base_url=daemon.url, timeout=30) as http:  # fmt: skip
+        daemon.wait_connected()
+        assert http.post("/api/cell/init", headers=headers()).status_code == 200
+        q = http.get("/api/state").json()["robot"]["q"]
+        r = http.post(
+            "/api/cell/move_joint",
+            json={"target": [q[0] + 1.5, *q[1:]], "velocity_factor": 0.3},
+            headers=headers(),
+        )
+        assert r.status_code == 202
+        deadline = time.monotonic() + 20
+        while abs(http.get("/api/state").json()["robot"]["qd"][0]) < 0.05:
+            assert time.monotonic() < deadline, "the move did not start"
+            time.sleep(0.01)
+        t0 = time.monotonic()
+        code = daemon.stop(signal.SIGTERM, timeout=10)
+        elapsed = time.monotonic() - t0
+    assert code == 0, "\n".join(daemon.output[-30:])
+    assert elapsed < 3.0
+    files = sorted(logs.glob("*.mcap"))
+    assert files, f"no MCAP file in {logs}"
+    with files[-1].open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()  # a finished file has its summary section
+        assert summary is not None
+        transitions = [
+            json.loads(msg.data)
+            for _, _, msg in reader.iter_messages(topics=["/fxcell/transitions"])
+        ]
+    dests = [t.get("dest") or t.get("to") for t in transitions]
+    assert "running.moving" in dests
+    after_move = dests[dests.index("running.moving") + 1 :]
+    assert after_move, "the log ends while moving"
+    assert after_move[0] in ("running.stopping", "running.external_control_ready")
+
+
+# ----------------------------------------------------------------- RemoteCell and the CLI
+
+
+async def test_remote_cell_has_the_cells_await_style_api(daemon: DaemonProcess) -> None:
+    from fxcell.client import RemoteCell
+    from fxcell.errors import InvalidStateError
+    from fxcell.protocol import RobotMode, SafetyMode
+
+    async with RemoteCell(daemon.url, TOKEN, name="remote tester") as cell:
+        await cell.init()
+        assert await cell.get_state() == "running.external_control_ready"
+        assert await cell.get_robot_mode() is RobotMode.RUNNING
+        assert await cell.get_safety_status() is SafetyMode.NORMAL
+        assert await cell.is_in_remote_control() is True
+        q = await cell.get_current_joint_values()
+        result = await cell.move_joint([q[0] + 0.05, *q[1:]], velocity_factor=0.5)
+        assert result is not None
+        reached = await cell.get_current_joint_values()
+        assert reached[0] == pytest.approx(q[0] + 0.05, abs=1e-4)
+        with pytest.raises(InvalidStateError) as refused:
+            await cell.power_on()
+        assert refused.value.state == "running.external_control_ready"
+        assert "idle" in refused.value.allowed
+        assert (await cell.control())["client"] == "remote tester"  # type: ignore[index]
+    assert (await RemoteCell(daemon.url).control()) is None  # released on exit
+
+
+async def test_cancelling_a_remote_move_stops_the_robot(daemon: DaemonProcess) -> None:
+    from fxcell.client import RemoteCell
+
+    async with RemoteCell(daemon.url, TOKEN, name="remote canceller") as cell:
+        await cell.init()
+        q = await cell.get_current_joint_values()
+        move = asyncio.create_task(cell.move_joint([q[0] - 1.5, *q[1:]], velocity_factor=0.3))
+        deadline = time.monotonic() + 20
+        while abs((await cell.get_velocity())[0]) < 0.05:
+            assert time.monotonic() < deadline, "the move did not start"
+        move.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await move
+        ops = await cell.operations()
+        assert ops[-1]["name"] == "move_joint"
+        assert ops[-1]["status"] == "cancelled"
+        assert await cell.get_state() == "running.external_control_ready"
+        assert max(abs(v) for v in await cell.get_velocity()) < 1e-4
+
+
+async def test_remote_refusals_are_typed(daemon: DaemonProcess) -> None:
+    from fxcell.client import RemoteCell
+    from fxcell.errors import ControlHeldError, NotAuthorizedError
+
+    async with (
+        RemoteCell(daemon.url, TOKEN, name="first") as first,
+        RemoteCell(daemon.url, TOKEN, name="second") as second,
+        RemoteCell(daemon.url, "wrong", name="intruder") as intruder,
+    ):
+        await first.take_control()
+        with pytest.raises(ControlHeldError, match="controlled by 'first'"):
+            await second.power_off()
+        with pytest.raises(NotAuthorizedError):
+            await intruder.power_off()
+        assert await first.release_control() is True
+
+
+def test_operator_cli_talks_to_the_daemon(daemon: DaemonProcess) -> None:
+    import subprocess
+    import sys
+
+    def fxcell(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "fxcell", *args, "--url", daemon.url, "--token", TOKEN],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+
+    out = fxcell("status")
+    assert out.returncode == 0, out.stderr
+    assert "state:" in out.stdout
+    assert "robot mode:" in out.stdout
+    out = fxcell("power-on")  # refused in the current state: a clear error, exit 1
+    assert out.returncode == 1
+    assert "InvalidStateError" in out.stderr or "not allowed in state" in out.stderr

@@ -1,0 +1,315 @@
+"""The operator page in headless Chromium (Debian's chromium, driven over the DevTools
+protocol): power the simulated robot on through the buttons, start and stop a move,
+and check a screenshot.
+
+Chromium is looked up on the PATH (``chromium``, ``chromium-browser``, ``google-chrome``)
+or taken from ``$FXCELL_CHROMIUM``. Without one the test is skipped, unless
+``FXCELL_REQUIRE_BROWSER=1`` (set by CI) makes that a failure.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import io
+import itertools
+import json
+import math
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import websockets
+
+from fxcell.daemon.process import DaemonProcess
+
+TOKEN = "web-test-token-0123456789abcdef"
+CONFIG = "robot:\n  host: null\ndaemon:\n  token_file: {token_file}\n"
+SCREENSHOT_DIR = Path(os.environ.get("FXCELL_SCREENSHOT_DIR", tempfile.gettempdir()))
+
+pytestmark = pytest.mark.slow
+
+
+def find_chromium() -> str | None:
+    explicit = os.environ.get("FXCELL_CHROMIUM")
+    if explicit:
+        return explicit
+    for name in ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+class Browser:
+    """Just enough of the Chrome DevTools protocol: evaluate, click, screenshot."""
+
+    def __init__(self, ws: Any) -> None:
+        self._ws = ws
+        self._ids = itertools.count(1)
+        self.console: list[str] = []
+
+    async def call(self, method: str, **params: Any) -> dict[str, Any]:
+        msg_id = next(self._ids)
+        await self._ws.send(json.dumps({"id": msg_id, "method": method, "params": params}))
+        while True:
+            msg = json.loads(await self._ws.recv())
+            if msg.get("id") == msg_id:
+                if "error" in msg:
+                    raise AssertionError(f"{method}: {msg['error']}")
+                return msg.get("result", {})  # type: ignore[no-any-return]
+            if msg.get("method") == "Runtime.exceptionThrown":
+                self.console.append(json.dumps(msg["params"]["exceptionDetails"])[:500])
+            elif msg.get("method") == "Runtime.consoleAPICalled":
+                args = msg["params"].get("args", [])
+                self.console.append(" ".join(str(a.get("value", "")) for a in args))
+
+    async def js(self, expression: str) -> Any:
+        result = await self.call(
+            "Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True
+        )
+        if "exceptionDetails" in result:
+            raise AssertionError(f"{expression}: {result['exceptionDetails']}")
+        return result["result"].get("value")
+
+    async def wait_for(self, expression: str, within: float = 20.0) -> Any:
+        """Poll a JavaScript expression until it is truthy."""
+        deadline = time.monotonic() + within
+        while True:
+            try:
+                value = await self.js(expression)
+            except AssertionError:  # e.g. the page is still loading
+                value = None
+            if value:
+                return value
+            if time.monotonic() > deadline:
+                state = await self.js("document.querySelector('#cell-state').textContent")
+                log = await self.js("document.querySelector('#log').innerText")
+                log += "\nform errors: " + await self.js(
+                    "[...document.querySelectorAll('.error')].map(e => e.textContent).join(' | ')"
+                )
+                raise AssertionError(
+                    f"timed out waiting for {expression} (state {state}); log:\n{log}\n"
+                    f"console: {self.console}"
+                )
+            await asyncio.sleep(0.05)
+
+    async def click(self, selector: str) -> None:
+        """A real mouse click in the middle of the element (fails if it is disabled)."""
+        box = await self.js(
+            f"(() => {{ const e = document.querySelector({json.dumps(selector)});"
+            "e.scrollIntoView({block: 'center'}); const r = e.getBoundingClientRect();"
+            "return {x: r.x + r.width / 2, y: r.y + r.height / 2, disabled: e.disabled}; })()"
+        )
+        assert not box["disabled"], f"{selector} is disabled"
+        for kind in ("mousePressed", "mouseReleased"):
+            await self.call(
+                "Input.dispatchMouseEvent",
+                type=kind,
+                x=box["x"],
+                y=box["y"],
+                button="left",
+                clickCount=1,
+            )
+
+    async def screenshot(self) -> bytes:
+        result = await self.call("Page.captureScreenshot", format="png")
+        return base64.b64decode(result["data"])
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
+    tmp = tmp_path_factory.mktemp("web")
+    config = tmp / "cell.yaml"
+    config.write_text(CONFIG.format(token_file=tmp / "token"))
+    with DaemonProcess.start(
+        config, token=TOKEN, extra_args=("--sim-time-scale", "0.2")
+    ) as process:
+        process.wait_connected()
+        yield process
+
+
+@pytest.fixture
+async def browser(daemon: DaemonProcess, tmp_path: Path) -> AsyncIterator[Browser]:
+    chromium = find_chromium()
+    if chromium is None:
+        if os.environ.get("FXCELL_REQUIRE_BROWSER"):
+            pytest.fail("no Chromium found (apt-get install chromium)")
+        pytest.skip("no Chromium found (apt-get install chromium); set FXCELL_CHROMIUM")
+    profile = tmp_path / "profile"
+    proc = subprocess.Popen(  # noqa: ASYNC220 - started once, before the loop is busy
+        [
+            chromium,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--disable-dev-shm-usage",
+            "--hide-scrollbars",
+            f"--user-data-dir={profile}",
+            "--remote-debugging-port=0",
+            "--window-size=1440,1100",
+            "about:blank",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        port_file = profile / "DevToolsActivePort"
+        deadline = time.monotonic() + 30
+        while not (port_file.exists() and port_file.read_text().count("\n") >= 1):
+            assert proc.poll() is None, "chromium exited while starting"
+            assert time.monotonic() < deadline, "chromium did not open its DevTools port"
+            await asyncio.sleep(0.05)
+        port = int(port_file.read_text().split()[0])
+        targets = await asyncio.to_thread(_get_json, f"http://127.0.0.1:{port}/json/list")
+        page = next(t for t in targets if t["type"] == "page")
+        async with websockets.connect(page["webSocketDebuggerUrl"], max_size=None) as ws:
+            browser = Browser(ws)
+            await browser.call("Runtime.enable")
+            await browser.call("Page.enable")
+            await browser.call(
+                "Emulation.setDeviceMetricsOverride", width=1440, height=1100,
+                deviceScaleFactor=1, mobile=False,
+            )  # fmt: skip
+            yield browser
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+def _get_json(url: str) -> Any:
+    import urllib.request
+
+    with urllib.request.urlopen(url, timeout=10) as response:
+        return json.loads(response.read())
+
+
+def state_is(*states: str) -> str:
+    names = json.dumps(list(states))
+    return f"{names}.includes(document.querySelector('#cell-state').dataset.state)"
+
+
+async def test_operator_powers_on_moves_and_stops_from_the_page(
+    browser: Browser, daemon: DaemonProcess, tmp_path: Path
+) -> None:
+    await browser.call("Page.navigate", url=f"{daemon.url}/#token={TOKEN}")
+    await browser.wait_for("document.querySelector('#link').textContent === 'live'")
+    await browser.wait_for(state_is("power_off"))
+    assert await browser.js("location.hash") == ""  # the token left the address bar
+    disabled = await browser.js(
+        "Object.fromEntries([...document.querySelectorAll('button[data-command]')]"
+        ".map(b => [b.dataset.command, b.disabled]))"
+    )
+    assert disabled["power_on"] is False
+    assert disabled["brake_release"] is True  # the statechart forbids it with power off
+    assert disabled["go_home"] is True  # moves need external control
+    assert await browser.js("document.querySelector('#form-joint button[type=submit]').disabled")
+
+    await browser.click("button[data-command=power_on]")
+    await browser.wait_for(state_is("idle"))
+    await browser.click("button[data-command=brake_release]")
+    await browser.wait_for(state_is("running.program_stopped"))
+    await browser.click("button[data-command=start_external_control]")
+    await browser.wait_for(state_is("running.external_control_ready"))
+    assert await browser.js("document.querySelector('#form-joint button[type=submit]').disabled") \
+        is False  # fmt: skip
+
+    # a malformed form is refused in the page and nothing moves
+    await browser.js("document.querySelector('#form-joint').elements.q0.value = ''")
+    await browser.click("#form-joint button[type=submit]")
+    assert "enter a number" in await browser.js(
+        "document.querySelector('#form-joint .error').textContent"
+    )
+
+    # start a long base move, then press STOP
+    await browser.click("#copy-joints")
+    q0 = await browser.js("Number(document.querySelector('#form-joint').elements.q0.value)")
+    await browser.js(
+        f"document.querySelector('#form-joint').elements.q0.value = {q0 + 1.5};"
+        "document.querySelector('#vf').value = 0.3; document.querySelector('#af').value = 0.5;"
+    )
+    await browser.click("#form-joint button[type=submit]")
+    await browser.wait_for(state_is("running.moving"))
+    await browser.wait_for("Math.abs(Number(document.querySelector('#v0').textContent)) > 0.05")
+    await browser.click("#stop")
+    await browser.wait_for(state_is("running.external_control_ready"))
+    await browser.wait_for(
+        "document.querySelector('#operations li[data-status=cancelled]') !== null"
+    )
+    await browser.wait_for("Math.abs(Number(document.querySelector('#v0').textContent)) < 1e-3")
+    reached = await browser.js("Number(document.querySelector('#q0').textContent)")
+    assert q0 + 0.01 < reached < q0 + 1.5 - 0.01  # it moved, and stopped short of the target
+
+    # the state-machine diagram highlights the current state
+    current = await browser.js(
+        "[...document.querySelectorAll('#statechart .state.current')].map(e => e.dataset.state)"
+    )
+    assert current == ["running.external_control_ready"]
+    log = await browser.js("document.querySelector('#log').innerText")
+    assert "running.moving" in log
+    assert "running.stopping" in log or "running.external_control_ready" in log
+
+    png = await browser.screenshot()
+    path = SCREENSHOT_DIR / "fxcell-web-page.png"
+    path.write_bytes(png)
+    (tmp_path / "page.png").write_bytes(png)
+    regions = await browser.js(
+        "Object.fromEntries(['#stop', '#arm', '#statechart .state.current rect', '#cell-state']"
+        ".map(s => { const r = document.querySelector(s).getBoundingClientRect();"
+        "return [s, [r.x, r.y, r.width, r.height]]; }))"
+    )
+    check_screenshot(png, regions)
+    assert not [c for c in browser.console if "Error" in c], browser.console
+
+
+def check_screenshot(png: bytes, regions: dict[str, list[float]]) -> None:
+    """Non-blank, the red STOP button, the arm drawn, the current state highlighted."""
+    import numpy as np
+    from PIL import Image
+
+    image = Image.open(io.BytesIO(png)).convert("RGB")
+    assert image.size == (1440, 1100)
+    small = np.asarray(image.resize((144, 110))).reshape(-1, 3)
+    assert len({tuple(p) for p in small}) > 50  # not a blank page
+
+    def crop(selector: str) -> Image.Image:
+        x, y, w, h = regions[selector]
+        return image.crop((math.ceil(x), math.ceil(y), int(x + w), int(y + h)))
+
+    def share(region: Image.Image, test: Any) -> float:
+        pixels = [tuple(int(c) for c in p) for p in np.asarray(region).reshape(-1, 3)]
+        return sum(1 for p in pixels if test(p)) / len(pixels)
+
+    def reddish(p: tuple[int, int, int]) -> bool:
+        return p[0] > 150 and p[1] < 80 and p[2] < 90
+
+    def accent(p: tuple[int, int, int]) -> bool:
+        return p[2] > 180 and p[0] < 80 and 80 < p[1] < 150
+
+    def arm(p: tuple[int, int, int]) -> bool:  # the arm's links #3d5a80 and joints
+        return p[2] > p[0] + 30 and p[0] < 90 and p[1] < 110
+
+    assert share(crop("#stop"), reddish) > 0.5
+    assert share(crop("#statechart .state.current rect"), accent) > 0.5
+    assert share(crop("#arm"), arm) > 0.003  # a stick figure of ~0.9 m on a 1.2 m view
+
+    def greenish(p: tuple[int, int, int]) -> bool:  # the "ready" colours
+        return p[1] > p[0] + 15 and p[1] > p[2] + 10
+
+    assert share(crop("#cell-state"), greenish) > 0.5
