@@ -18,7 +18,7 @@ import atexit
 import logging
 import math
 import threading
-from collections.abc import Coroutine
+from collections.abc import Coroutine, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -112,6 +112,60 @@ def _ok(name: str, coro_factory: Any) -> bool:
     return True
 
 
+# ----------------------------------------------------------------- kinematic functions
+
+
+def _move(name: str, factory: Any) -> bool:
+    return _ok(name, factory)
+
+
+def fx_go_home(velocity_factor: float = 1, acceleration_factor: float = 1) -> bool:
+    """Move to the home joints [0, -π/2, 0, -π/2, 0, 0] (or the configured home)."""
+    return _move("fx_go_home", lambda c: c.go_home(velocity_factor, acceleration_factor))
+
+
+def fx_move_distance(
+    distance_vector: Sequence[float], velocity_factor: float = 1, acceleration_factor: float = 1
+) -> bool:
+    """Move the TCP by [dx, dy, dz] metres along the base axes."""
+    return _move(
+        "fx_move_distance",
+        lambda c: c.move_distance(list(distance_vector), velocity_factor, acceleration_factor),
+    )
+
+
+def fx_move_joint(
+    target: Sequence[float], velocity_factor: float = 1, acceleration_factor: float = 1
+) -> bool:
+    """Move to joint values (rad, 1x6)."""
+    return _move(
+        "fx_move_joint",
+        lambda c: c.move_joint(list(target), velocity_factor, acceleration_factor),
+    )
+
+
+def fx_move_pose(target: Any, velocity_factor: float = 1, acceleration_factor: float = 1) -> bool:
+    """Move the TCP to a pose: [x, y, z, qx, qy, qz, qw] or [x, y, z, roll, pitch, yaw]."""
+    return _move(
+        "fx_move_pose", lambda c: c.move_pose(target, velocity_factor, acceleration_factor)
+    )
+
+
+def fx_move_relative(
+    start_pose: Any, target_pose: Any, velocity_factor: float = 1, acceleration_factor: float = 1
+) -> bool:
+    """Move to ``start_pose``, then to ``target_pose``."""
+    return _move(
+        "fx_move_relative",
+        lambda c: c.move_relative(start_pose, target_pose, velocity_factor, acceleration_factor),
+    )
+
+
+def fx_stop() -> bool:
+    """Stop a running move (from another thread); True once the robot is stopped."""
+    return _ok("fx_stop", lambda c: c.stop())
+
+
 # ----------------------------------------------------------------- general functions
 
 
@@ -198,6 +252,7 @@ def fx_set_acceleration_factor(acceleration_factor: float) -> bool:
     if not _valid_factor(acceleration_factor):
         return False
     _acceleration_factor = float(acceleration_factor)
+    _apply_factors()
     return True
 
 
@@ -212,7 +267,17 @@ def fx_set_velocity_factor(velocity_factor: float) -> bool:
     if not _valid_factor(velocity_factor):
         return False
     _velocity_factor = float(velocity_factor)
+    _apply_factors()
     return True
+
+
+def _apply_factors() -> None:
+    """Make the factors the open Cell's defaults (moves of this module pass their own)."""
+    with _lock:
+        cell = _cell
+    if cell is not None:
+        _run(cell.set_velocity_factor(_velocity_factor))
+        _run(cell.set_acceleration_factor(_acceleration_factor))
 
 
 def fx_get_max_acceleration() -> list[float]:
