@@ -187,7 +187,8 @@ class CollisionChecker:
     @classmethod
     def for_config(cls, config: CellConfig, **options: float | bool) -> CollisionChecker:
         """The checker for a cell: the UR3e model, the gripper and the configured scene."""
-        return cls(_arm_model(), config.scene, **options)  # type: ignore[arg-type]
+        model, flange = _arm_model(config)
+        return cls(model, config.scene, flange_in_joint6=flange, **options)  # type: ignore[arg-type]
 
     # ------------------------------------------------------------ queries
 
@@ -252,21 +253,22 @@ class CollisionChecker:
         return sorted({*idx.tolist(), len(s) - 1})
 
 
-def _arm_model() -> pin.Model:
-    """The UR3e's Pinocchio model from :mod:`fxcell.robot_model`, or (until that module
-    exists) a bare chain of the six revolute joints from UR's DH parameters."""
+def _arm_model(config: CellConfig) -> tuple[pin.Model, pin.SE3 | None]:
+    """The UR3e's Pinocchio model and flange placement from :mod:`fxcell.robot_model`, or
+    (where that module is missing) a bare chain of the six revolute joints from UR's DH
+    parameters (the flange placement is then derived from :mod:`fxcell.kinematics`)."""
     try:
         robot_model = importlib.import_module("fxcell.robot_model")
-    except ImportError:
+        robot = robot_model.RobotModel.ur3e(limits=config.limits)
+        return robot.model, robot.flange_in_joint6
+    except (ImportError, AttributeError, TypeError):
         model = pin.Model()
         parent, placement = 0, pin.SE3.Identity()
         for i in range(6):
             parent = model.addJoint(parent, pin.JointModelRZ(), placement, f"joint{i + 1}")
             T = dh_transform(0.0, UR3E_DH.d[i], UR3E_DH.a[i], UR3E_DH.alpha[i])
             placement = pin.SE3(T[:3, :3], T[:3, 3])
-        return model
-    built: pin.Model = robot_model.ur3e_model()
-    return built
+        return model, None
 
 
 def _bisection_order(n: int) -> Sequence[int]:
