@@ -3,11 +3,12 @@
 Three parts, one process:
 
 1. micro: CPU per message, in rounds of 2000 messages of a realistic session (states
-   at 500 Hz with commands, transitions, motion and log records), for
+   at 500 Hz with commands, transitions, motion and log records; log times on a simulated
+   clock at the session's pace, so chunks hold 1 s of data as in real use), for
    - fxcell: ``Recorder.submit`` on the caller plus the writer thread's CPU (encoding,
      /tf frames, chunking, zstd, file writes), measured with the thread's CPU clock;
-   - peer ``mcap raw``: the bare ``mcap`` Writer given bytes that are already encoded
-     (the library's own floor);
+   - peer ``mcap raw``: the bare ``mcap`` Writer given the state samples already encoded,
+     flushed every 500 (1 s chunks): the library's own floor;
    - peer ``mcap + json``: the same Writer with the states encoded as JSON, the common
      approach (performance anchors: about 20 µs per message).
 2. session: a real-time session at 500 Hz for ``--duration`` seconds (default 600):
@@ -36,7 +37,7 @@ from mcap.writer import Writer
 from fxcell.events import Event, StateEvent
 from fxcell.recorder import Recorder
 from fxcell.recorder.protobuf import encode_robot_state
-from fxcell.recorder.synthetic import SyntheticSession, play
+from fxcell.recorder.synthetic import Planned, SyntheticSession, play
 from fxcell.replay import format_summary, summarize
 
 ROUND = 2000
@@ -60,21 +61,27 @@ def fmt(values: list[float]) -> str:
 # ----------------------------------------------------------------- 1. micro
 
 
-def events_for(seconds: float) -> list[Event]:
+def planned_for(seconds: float) -> list[Planned]:
     session = SyntheticSession(seconds, move_every=1.0, protective_stop_at=seconds / 2, tcp=TCP)
-    return [p.event for p in session.events()]
+    return list(session.events())
 
 
 def micro(rounds: int, directory: Path) -> dict[str, list[float]]:
-    events = events_for(ROUND / 500 + 0.1)[:ROUND]
+    planned = planned_for(ROUND / 500 + 0.1)[:ROUND]
+    events = [p.event for p in planned]
     results: dict[str, list[float]] = {"fxcell": [], "mcap raw": [], "mcap + json": []}
 
-    rec = Recorder(directory / "micro", tcp=TCP, fsync=False)
+    # log times advance as in the real session (2 ms per sample), so chunks hold 1 s of data
+    now = [time.time_ns()]
+    rec = Recorder(directory / "micro", tcp=TCP, fsync=False, clock=lambda: now[0])
     writer_thread = rec._thread
-    for _ in range(rounds):
+    base = now[0]
+    for r in range(rounds):
+        offset = base + int(r * (ROUND / 500 + 0.1) * 1e9)
         c0, s0 = thread_cpu(writer_thread), time.thread_time()
-        for e in events:
-            rec.submit(e)
+        for p in planned:
+            now[0] = offset + int(p.at * 1e9)
+            rec.submit(p.event)
         s1 = time.thread_time()
         while rec._queue:  # wait until the writer thread has taken the whole round
             time.sleep(0.002)
@@ -102,6 +109,8 @@ def micro(rounds: int, directory: Path) -> dict[str, list[float]]:
                 for i in range(len(states)):
                     t += 2_000_000
                     w.add_message(cid, t, encode(i), t)
+                    if i % 500 == 499:  # 1 s chunks, as the recorder writes them
+                        w.flush()
                 w.flush()
                 results[label].append((time.thread_time() - c0) / len(states) * 1e6)
             w.finish()

@@ -84,6 +84,8 @@ class LogEvent:
     level: int
     name: str
     message: str
+    file: str = ""
+    line: int = 0
 
 
 Event = CommandEvent | TransitionEvent | StateEvent | MotionEvent | LogEvent

@@ -394,3 +394,19 @@ def test_command_arguments_of_any_type_are_recorded(tmp_path: Path) -> None:
     assert cmd["args"]["mode"] == 1
     assert cmd["args"]["nan"] == "nan"
     assert cmd["origin"] == "daemon"
+
+
+def test_fxcell_warnings_are_recorded_as_foxglove_logs(tmp_path: Path) -> None:
+    import logging
+
+    with Recorder(tmp_path) as rec:
+        logging.getLogger("fxcell.cell").warning("gripper %s did not open", "hand-e")
+        logging.getLogger("elsewhere").warning("not ours")
+    (entry,) = [json.loads(d) for t, _, d in read_all(rec.stats.files[0]) if t == topics.LOG]
+    assert entry["message"] == "gripper hand-e did not open"
+    assert entry["name"] == "fxcell.cell"
+    assert entry["level"] == 3
+    assert entry["file"].endswith("test_recorder.py")
+    assert entry["line"] > 0
+    capture = [h for h in logging.getLogger("fxcell").handlers if type(h).__name__ == "_LogCapture"]
+    assert capture == []  # removed on close

@@ -106,6 +106,8 @@ class Recorder:
     ``on_error(message)`` is called from the writer thread when the recorder starts
     dropping messages or cannot write; use ``loop.call_soon_threadsafe`` in it.
     ``clock`` stamps each event's log time (ns since the epoch) as it is submitted.
+    ``capture_logs``: records of the ``fxcell`` loggers at this level or above (as far as
+    the loggers emit them) go to ``/log`` too; ``None`` turns that off.
     """
 
     def __init__(
@@ -126,6 +128,7 @@ class Recorder:
         on_error: ErrorCallback | None = None,
         retry_interval: float = RETRY_INTERVAL,
         clock: Callable[[], int] = time.time_ns,
+        capture_logs: int | None = logging.INFO,
     ) -> None:
         if not chunk_duration > 0:
             raise InvalidArgumentError(f"chunk_duration must be > 0 s, got {chunk_duration!r}")
@@ -208,6 +211,10 @@ class Recorder:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fxcell-recorder", daemon=True)
         self._thread.start()
+        self._log_handler: logging.Handler | None = None
+        if capture_logs is not None:
+            self._log_handler = _LogCapture(self.submit, capture_logs)
+            logging.getLogger("fxcell").addHandler(self._log_handler)
 
     # ------------------------------------------------------------- producer side
 
@@ -231,6 +238,9 @@ class Recorder:
         if self._unsubscribe is not None:
             self._unsubscribe()
             self._unsubscribe = None
+        if self._log_handler is not None:
+            logging.getLogger("fxcell").removeHandler(self._log_handler)
+            self._log_handler = None
         self._closed = True
         self._stop.set()
         self._thread.join(timeout)
@@ -401,8 +411,8 @@ class Recorder:
             "level": foxglove_log_level(e.level),
             "message": e.message,
             "name": e.name,
-            "file": "",
-            "line": 0,
+            "file": e.file,
+            "line": e.line,
         }
         self._add(topics.LOG, t, dumps(msg), ns)
 
@@ -586,6 +596,26 @@ class Recorder:
                 self._add(topics.RECORDER, t, dumps(notice), t)
             except OSError as exc:
                 self._fail(exc)
+
+
+class _LogCapture(logging.Handler):
+    """Hands ``fxcell`` log records to the recorder as LogEvents (from any thread)."""
+
+    def __init__(self, submit: Callable[[Event], None], level: int) -> None:
+        super().__init__(level)
+        self._submit = submit
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            message = record.getMessage()
+        except Exception:  # a malformed record must not break the caller
+            message = str(record.msg)
+        self._submit(
+            LogEvent(
+                record.created, record.levelno, record.name, message, record.pathname,
+                record.lineno or 0,
+            )
+        )  # fmt: skip
 
 
 def _name(value: Any) -> str:
