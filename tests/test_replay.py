@@ -168,3 +168,45 @@ def test_serve_streams_the_file_over_the_foxglove_websocket_protocol(
         player.stop()
         runner.join(10)
     assert not runner.is_alive()
+
+
+def test_reexecute_compares_traces_with_the_start_shift_removed() -> None:
+    import numpy as np
+
+    from fxcell.replay import _numeric_deviation, _trajectory_deviation
+
+    t = np.arange(0, 1.0, 0.002)
+    q = np.column_stack([np.sin(2 * t + j) for j in range(6)])
+    later = t + 0.03  # the re-executed move started 30 ms later: same motion
+    shifted = np.column_stack([np.sin(2 * (later - 0.03) + j) for j in range(6)])
+    assert _trajectory_deviation((t, q), (later, shifted)) == pytest.approx(0, abs=1e-6)
+    offset = q + np.array([0, 0, 0.05, 0, 0, 0])  # another path: no time shift explains it
+    deviation = _trajectory_deviation((t, q), (t, offset))
+    assert deviation is not None
+    assert 0.03 < deviation <= 0.05
+    assert _numeric_deviation([0.1, [0.2, 0.3]], [0.1, [0.2, 0.35]]) == pytest.approx(0.05)
+    assert _numeric_deviation("a", "a") is None
+    assert _numeric_deviation("a", "b") == float("inf")
+    assert _numeric_deviation([1, 2], [1]) == float("inf")
+
+
+def test_reexecute_reissues_only_the_commands_a_user_issued() -> None:
+    from fxcell.replay import CommandRecord, top_level_commands
+
+    def cmd(i: int, name: str, start: float, end: float) -> CommandRecord:
+        return CommandRecord(i, name, {}, "library", start, end, "ok")
+
+    commands = [
+        cmd(1, "init", 0.0, 1.0),
+        cmd(2, "power_on", 0.1, 0.4),  # issued by init
+        cmd(3, "brake_release", 0.4, 0.8),  # issued by init
+        cmd(4, "move_joint", 2.0, 5.0),
+        cmd(5, "stop", 3.0, 3.1),  # a user's stop during the move: kept
+        cmd(6, "power_off", 6.0, 6.1),
+    ]
+    assert [c.name for c in top_level_commands(commands)] == [
+        "init",
+        "move_joint",
+        "stop",
+        "power_off",
+    ]
