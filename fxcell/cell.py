@@ -594,6 +594,8 @@ class Cell:
                 return result
             except asyncio.CancelledError:
                 if not task.done():  # our caller was cancelled: stop the move too
+                    self._stopping = True
+                    self._observe(self.robot_state, f"{name} cancelled")
                     task.cancel()
                     with contextlib.suppress(BaseException):
                         await task
@@ -618,12 +620,22 @@ class Cell:
                 self._move_error = error
             task.cancel()
 
-    async def _cancel_move(self, error: FxcellError) -> None:
+    async def _cancel_move(self, error: FxcellError, graceful: bool = False) -> None:
         task = self._move_task
         if task is None or task.done():
             return
         self._stopping = True
         self._observe(self.robot_state, "stop")
+        controller: MotionController | None = getattr(self, "_motion", None)
+        execution = controller.execution if controller is not None else None
+        if graceful and execution is not None:
+            # Let the move brake itself: its MoveStoppedError carries what it did.
+            execution.request_stop()
+            with contextlib.suppress(BaseException):
+                async with asyncio.timeout(10.0):
+                    await asyncio.shield(task)
+            if task.done():
+                return
         self._abort_move(error)
         with contextlib.suppress(BaseException):
             await task
@@ -633,7 +645,7 @@ class Cell:
         async with self._command("stop") as out:
             self.machine.check("stop")
             running = self._move_task is not None and not self._move_task.done()
-            await self._cancel_move(MoveStoppedError("stopped by stop()"))
+            await self._cancel_move(MoveStoppedError("stopped by stop()"), graceful=True)
             out["result"] = running
             return running
 

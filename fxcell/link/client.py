@@ -344,6 +344,8 @@ class LinkClient:
     def _set_status(self, status: LinkStatus, reason: str) -> None:
         if status is self.status:
             return
+        if status is LinkStatus.DOWN and self.status is LinkStatus.UP:
+            log.warning("robot link to %s down: %s", self.host, reason)
         self.status = status
         if status is not LinkStatus.UP:
             self.latest = None
