@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -115,6 +116,8 @@ class MoveResult:
     """From the first streamed sample to the robot at rest (s)."""
     planner: str
     stopped: bool = False
+    max_tracking_error: float = 0.0
+    """Largest |actual - planned| joint difference seen while streaming (rad)."""
 
 
 def _vector(value: object, n: int, what: str) -> Array:
@@ -394,6 +397,10 @@ class ExecutionOptions:
         return float(self.lookahead_time * (300.0 / self.gain) ** 0.25)
 
 
+TRACKING_EVERY = 25
+"""State samples (50 ms) between two tracking reports of a running move."""
+
+
 def lead_setpoints(traj: Trajectory, lag: float) -> Array:
     """Setpoints that make servoJ's tracker follow ``traj`` sample for sample.
 
@@ -430,11 +437,16 @@ class MoveExecution:
         link: LinkClient,
         planner: MotionPlanner,
         options: ExecutionOptions | None = None,
+        on_tracking: Callable[[dict[str, Any]], None] | None = None,
     ) -> None:
         self.plan = plan
         self.link = link
         self.planner = planner
         self.options = options or ExecutionOptions()
+        self.on_tracking = on_tracking
+        """Called about every 50 ms while the plan streams with where the robot is
+        against the plan (for MotionEvent(kind="tracking"))."""
+        self.max_tracking_error = 0.0
         self._stop = asyncio.Event()
         self._handle: TrajectoryHandle | None = None
         self._sent_at = 0.0
@@ -506,6 +518,7 @@ class MoveExecution:
         target = self.plan.trajectory.positions[-1].tolist()
         patience = self.plan.duration + 2 * opts.settle_timeout + 1.0
         state = self.link.latest
+        count = 0
         async with asyncio.timeout(patience):
             while True:
                 if self._stop.is_set() and not self._braked and not handle.done:
@@ -513,6 +526,9 @@ class MoveExecution:
                 if state is not None:
                     # plain floats: this runs for every 500 Hz sample
                     moving = max(map(abs, state.actual_qd))
+                    count += 1
+                    if not self._braked and count % TRACKING_EVERY == 0:
+                        self._track(handle, state)
                     if self._braked:
                         if handle.done and moving < opts.rest_velocity:
                             self._settled_at = state.received_at
@@ -537,6 +553,20 @@ class MoveExecution:
                     if handle.done:
                         return state if state is not None else RobotState()
                     raise ConnectionLostError("no robot state for 0.25 s during a move") from None
+
+    def _track(self, handle: TrajectoryHandle, state: RobotState) -> None:
+        """Compare the robot with the planned sample for now (index from the link's
+        progress and the clock, so ±1 sample of timing is part of the figure)."""
+        traj = self.plan.trajectory
+        index = min(round(self._current_index(handle)), len(traj) - 1)
+        planned = traj.positions[index]
+        error = max(abs(a - b) for a, b in zip(state.actual_q, planned.tolist(), strict=True))
+        self.max_tracking_error = max(self.max_tracking_error, error)
+        if self.on_tracking is not None:
+            self.on_tracking(
+                {"index": index, "planned": planned.tolist(),
+                 "actual": list(state.actual_q), "error": error}
+            )  # fmt: skip
 
     def _arrived(self, handle: TrajectoryHandle) -> bool:
         """Whether the stream has passed the planned samples (into the hold)."""
@@ -623,6 +653,7 @@ class MoveExecution:
             executed_duration=max(finished - self._sent_at, 0.0),
             planner=plan.planner,
             stopped=not self._settled,
+            max_tracking_error=self.max_tracking_error,
         )
 
 
@@ -716,7 +747,13 @@ class MotionController:
             move_id = self._move_ids
             self._event(move_id, "path", _path_data(plan))
             self._event(move_id, "trajectory", _trajectory_data(plan))
-            execution = MoveExecution(plan, link, self.planner, self.options)
+            execution = MoveExecution(
+                plan,
+                link,
+                self.planner,
+                self.options,
+                on_tracking=functools.partial(self._event, move_id, "tracking"),
+            )
             self.execution = execution
             try:
                 result = await execution.run()
@@ -732,7 +769,10 @@ class MotionController:
         return result
 
     def _event(
-        self, move_id: int, kind: Literal["path", "trajectory", "result"], data: dict[str, Any]
+        self,
+        move_id: int,
+        kind: Literal["path", "trajectory", "tracking", "result"],
+        data: dict[str, Any],
     ) -> None:
         if self._publish is not None:
             self._publish(MotionEvent(now(), move_id, kind, data))

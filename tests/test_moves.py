@@ -142,6 +142,8 @@ async def test_move_joint_reaches_three_joint_targets(sim: _Simulators) -> None:
             assert result.joint_error < 1e-5
             assert result.planner == "direct"
             assert result.executed_duration >= result.planned_duration * 0.9
+            # follows the plan (the figure includes a few ms of timing uncertainty)
+            assert result.max_tracking_error < 0.03
             await assert_at_rest(cell)
 
 
