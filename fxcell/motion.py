@@ -342,6 +342,9 @@ class MotionPlanner:
         self.checker.check(q0, "start configuration")
         line = cartesian_line(self.kinematics, self.checker, q0, target)
         traj = along_path(line.joints, line.knots, limits)
+        bad = self.checker.first_collision(traj.positions)
+        if bad is not None:  # between two checked knots: rare, but the samples are what moves
+            raise CollisionError(f"the straight line collides after {bad * DT:.3f} s")
         q1 = line.target_joints
         return MovePlan(
             kind,
