@@ -39,7 +39,7 @@ from fxcell.errors import (
 from fxcell.events import CommandEvent, EventBus, EventStream, Origin, StateEvent, TransitionEvent
 from fxcell.geometry import Pose
 from fxcell.link import LinkClient, LinkStatus, StateSubscription
-from fxcell.protocol import ProgramState, RobotMode, RobotState, SafetyMode
+from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.statemachine import CellState, RobotStateMachine, observed_state
 
 if TYPE_CHECKING:
@@ -123,6 +123,7 @@ class Cell:
         self._move_error: FxcellError | None = None
         self._stopping = False
         self._kinematics: Any = None
+        self._restore: asyncio.Task[None] | None = None
         self._opened = False
 
     @classmethod
@@ -171,6 +172,11 @@ class Cell:
     async def close(self) -> None:
         """Cancel any move, stop the link (and the embedded simulator), finish the record."""
         await self._cancel_move(MoveStoppedError("the cell is closing"))
+        if self._restore is not None:
+            self._restore.cancel()
+            with contextlib.suppress(BaseException):
+                await self._restore
+            self._restore = None
         if self.link is not None:
             await self.link.close()
         if self._machine_task is not None:
@@ -246,6 +252,37 @@ class Cell:
         if status is not LinkStatus.UP:
             self._shutting_down = False
             self._observe(None, reason)
+        elif self._control_wanted and (self._restore is None or self._restore.done()):
+            self._restore = asyncio.create_task(self._restore_control(), name="restore control")
+
+    async def _restore_control(self) -> None:
+        """After the link came back: take over the control script it left playing.
+
+        A new link process has no control interface, but the script of the old one may
+        still be PLAYING on the controller (a crashed link does not stop it). If external
+        control was on and that program still plays, start it again (the link replaces
+        the orphan); a program stopped meanwhile (pendant, safety) stays stopped.
+        """
+        try:
+            await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
+            sample = self.robot_state
+            if (
+                self._control_wanted
+                and self.state is CellState.PROGRAM_STOPPED
+                and sample is not None
+                and sample.runtime_state == RuntimeState.PLAYING
+            ):
+                async with self._command("restore_external_control"):
+                    await self._link().start_control(
+                        self.external_control,
+                        self.config.robot.urcap_program,
+                        self.command_timeout,
+                    )
+                    await self._await_effect(
+                        "restore_external_control", {CellState.EXTERNAL_CONTROL_READY}, None
+                    )
+        except FxcellError as exc:
+            log.warning("could not restore external control after reconnecting: %s", exc)
 
     def _on_control(self, ready: bool, reason: str) -> None:
         if self.link is not None:

@@ -295,6 +295,16 @@ async def test_protective_stop_recovery_restores_external_control(
     assert shared_sim.state()["safety_mode"] == "NORMAL"
 
 
+async def test_link_crash_under_external_control_reconnects_and_restores_control(
+    cell: Cell,
+) -> None:
+    await cell.init()
+    cell._link().kill_process()
+    await cell.wait_for_state(CellState.DISCONNECTED, timeout=1)
+    await cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY, timeout=20)
+    assert cell._link().control_ready
+
+
 async def test_killed_link_process_goes_disconnected_then_reconnects(cell: Cell) -> None:
     await cell.power_on()
     waiter = asyncio.create_task(_transition_to(cell, CellState.DISCONNECTED))
