@@ -13,6 +13,9 @@ from fxcell.errors import InvalidStateError
 from fxcell.events import TransitionEvent
 from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.statemachine import (
+    DOC,
+    DOC_BEGIN,
+    DOC_END,
     STATECHART,
     CellState,
     RobotStateMachine,
@@ -20,12 +23,23 @@ from fxcell.statemachine import (
     load_statechart,
     observed_state,
     to_mermaid,
+    with_diagram,
 )
 
 
 def test_statechart_diagram_is_current() -> None:
-    on_disk = diagram_path(STATECHART).read_text()
-    assert on_disk == to_mermaid(load_statechart()), "run `fxcell statechart` and commit it"
+    drawn = to_mermaid(load_statechart())
+    assert diagram_path(STATECHART).read_text() == drawn, "run `fxcell statechart`, commit it"
+    doc = DOC.read_text()
+    assert DOC_BEGIN in doc
+    assert with_diagram(doc, drawn) == doc, "run `fxcell statechart`: the docs' copy is stale"
+
+
+def test_diagram_goes_between_the_markers_only() -> None:
+    doc = f"intro\n{DOC_BEGIN}\nold\n{DOC_END}\noutro\n"
+    new = with_diagram(doc, "stateDiagram-v2\n")
+    assert new == f"intro\n{DOC_BEGIN}\n```mermaid\nstateDiagram-v2\n```\n{DOC_END}\noutro\n"
+    assert with_diagram("no markers", "x") == "no markers"
 
 
 def test_statechart_cli_check_reports_current(capsys: pytest.CaptureFixture[str]) -> None:
