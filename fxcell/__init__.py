@@ -11,6 +11,7 @@ from fxcell.errors import FxcellError
 if TYPE_CHECKING:
     from fxcell.cell import Cell, ProgramStatus
     from fxcell.config import CellConfig
+    from fxcell.motion import MoveResult
     from fxcell.protocol import ProgramState, RobotMode, RobotState, SafetyMode
     from fxcell.statemachine import CellState
 
@@ -21,6 +22,7 @@ _LAZY = {
     "ProgramStatus": "fxcell.cell",
     "CellConfig": "fxcell.config",
     "CellState": "fxcell.statemachine",
+    "MoveResult": "fxcell.motion",
     "ProgramState": "fxcell.protocol",
     "RobotMode": "fxcell.protocol",
     "RobotState": "fxcell.protocol",
@@ -42,6 +44,7 @@ __all__ = [
     "CellConfig",
     "CellState",
     "FxcellError",
+    "MoveResult",
     "ProgramState",
     "ProgramStatus",
     "RobotMode",
