@@ -437,3 +437,22 @@ async def test_record_writes_commands_transitions_and_states_to_mcap(
     assert topics[recorder_topics.COMMANDS] == 2  # power_on started + ended
     assert topics[recorder_topics.TRANSITIONS] >= 2  # powering_on, idle
     assert topics[recorder_topics.ROBOT_STATE] > 10
+
+
+# ----------------------------------------------------------------- configuration
+
+
+async def test_without_a_host_the_cell_runs_the_embedded_simulator(tmp_path: Any) -> None:
+    config_file = tmp_path / "cell.yaml"
+    config_file.write_text("robot:\n  command_timeout: 5\n")
+    cell = Cell.from_config(config_file, simulator_options={"time_scale": TIME_SCALE})
+    assert cell.host is None
+    assert cell.command_timeout == 5
+    async with cell:
+        host = cell.host
+        assert host is not None
+        await cell.power_on()
+        assert cell.state is CellState.IDLE
+        simulator_process = cell._simulator.process
+    assert cell.host is None
+    assert simulator_process.poll() is not None  # stopped with the cell
