@@ -472,13 +472,25 @@ def _numeric_deviation(a: Any, b: Any) -> float | None:
     return None if a == b else math.inf
 
 
+def _onset(t: Any, q: Any, eps: float = 1e-4) -> float:
+    """Time of the first sample at which any joint has moved ``eps`` from where it started."""
+    import numpy as np
+
+    moved = np.nonzero(np.max(np.abs(q - q[0]), axis=1) > eps)[0]
+    return float(t[moved[0]]) if len(moved) else 0.0
+
+
 def _trajectory_deviation(rec: tuple[Any, Any], new: tuple[Any, Any]) -> float | None:
-    """Largest joint difference of two traces, the second shifted in time to fit best."""
+    """Largest joint difference of two traces, aligned on their onset of motion and then
+    shifted in time (± ``MAX_SHIFT``) to fit best."""
     import numpy as np
 
     (t_rec, q_rec), (t_new, q_new) = rec, new
     if len(t_rec) < 2 or len(t_new) < 2:
         return None
+    # align on the onset of motion: planning time before it varies from run to run
+    t_rec = t_rec - _onset(t_rec, q_rec)
+    t_new = t_new - _onset(t_new, q_new)
     best = math.inf
     for shift in np.arange(-MAX_SHIFT, MAX_SHIFT + 1e-9, 0.002):
         t = t_rec + shift
