@@ -620,7 +620,7 @@ class Cell:
         async with self._command(name, **args) as out:
             if self._move_task is not None and not self._move_task.done():
                 raise MoveInProgressError(f"{name}(): another move is running")
-            self.machine.check("move")
+            self.machine.check("move", name)
             self._move_error = None
             self._stopping = False
             task: asyncio.Task[T] = asyncio.create_task(body(), name=f"move {name}")

@@ -349,13 +349,17 @@ class RobotStateMachine:
     def allowed(self, command: str) -> frozenset[CellState]:
         return self._allowed[command]
 
-    def check(self, command: str) -> CellState:
-        """Raise :class:`InvalidStateError` unless ``command`` is allowed now."""
+    def check(self, command: str, name: str | None = None) -> CellState:
+        """Raise :class:`InvalidStateError` unless ``command`` is allowed now.
+
+        ``name``: the public call to name in the error when it differs from the guard
+        (``move_joint`` is guarded as ``move``).
+        """
         state = self.state
         allowed = self._allowed[command]
         if state not in allowed:
             order = [s for s in CellState if s in allowed]
-            raise InvalidStateError(command, state.value, [s.value for s in order])
+            raise InvalidStateError(name or command, state.value, [s.value for s in order])
         return state
 
     # -- input
