@@ -91,7 +91,12 @@ def _watch_parent() -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import faulthandler
+    import signal
+
     from fxcell.config import CellConfig
+
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # kill -USR1: where is it?
     from fxcell.sim.server import run as serve
 
     if args.exit_with_parent:

@@ -74,6 +74,25 @@ FAULTS = (
 )
 
 
+_POWERED = frozenset({RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING})
+_POWER_ON_BIT = int(RobotStatusBits.POWER_ON)
+_PROGRAM_RUNNING_BIT = int(RobotStatusBits.PROGRAM_RUNNING)
+_B = SafetyStatusBits
+_SAFETY_BITS = {
+    SafetyMode.NORMAL: int(_B.NORMAL_MODE),
+    SafetyMode.PROTECTIVE_STOP: int(_B.PROTECTIVE_STOPPED | _B.STOPPED_DUE_TO_SAFETY),
+    SafetyMode.SAFEGUARD_STOP: int(_B.SAFEGUARD_STOPPED | _B.STOPPED_DUE_TO_SAFETY),
+    SafetyMode.ROBOT_EMERGENCY_STOP: int(
+        _B.ROBOT_EMERGENCY_STOPPED | _B.EMERGENCY_STOPPED | _B.STOPPED_DUE_TO_SAFETY
+    ),
+    SafetyMode.SYSTEM_EMERGENCY_STOP: int(
+        _B.SYSTEM_EMERGENCY_STOPPED | _B.EMERGENCY_STOPPED | _B.STOPPED_DUE_TO_SAFETY
+    ),
+    SafetyMode.RECOVERY: int(_B.RECOVERY_MODE),
+    SafetyMode.FAULT: int(_B.FAULT | _B.STOPPED_DUE_TO_SAFETY),
+}
+
+
 class FaultError(ValueError):
     """An injection request names an unknown fault or has bad arguments."""
 
@@ -199,30 +218,14 @@ class Controller:
 
     @property
     def robot_status_bits(self) -> int:
-        bits = 0
-        if self.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING):
-            bits |= RobotStatusBits.POWER_ON
+        bits = _POWER_ON_BIT if self.robot_mode in _POWERED else 0
         if self.runtime_state == RuntimeState.PLAYING:
-            bits |= RobotStatusBits.PROGRAM_RUNNING
-        return int(bits)
+            bits |= _PROGRAM_RUNNING_BIT
+        return bits
 
     @property
     def safety_status_bits(self) -> int:
-        m = self.safety_mode
-        b = SafetyStatusBits
-        if m == SafetyMode.NORMAL:
-            return int(b.NORMAL_MODE)
-        if m == SafetyMode.PROTECTIVE_STOP:
-            return int(b.PROTECTIVE_STOPPED | b.STOPPED_DUE_TO_SAFETY)
-        if m == SafetyMode.SAFEGUARD_STOP:
-            return int(b.SAFEGUARD_STOPPED | b.STOPPED_DUE_TO_SAFETY)
-        if m == SafetyMode.ROBOT_EMERGENCY_STOP:
-            return int(b.ROBOT_EMERGENCY_STOPPED | b.EMERGENCY_STOPPED | b.STOPPED_DUE_TO_SAFETY)
-        if m == SafetyMode.SYSTEM_EMERGENCY_STOP:
-            return int(b.SYSTEM_EMERGENCY_STOPPED | b.EMERGENCY_STOPPED | b.STOPPED_DUE_TO_SAFETY)
-        if m == SafetyMode.FAULT:
-            return int(b.FAULT | b.STOPPED_DUE_TO_SAFETY)
-        return 0
+        return _SAFETY_BITS.get(self.safety_mode, 0)
 
     @property
     def joint_mode(self) -> int:

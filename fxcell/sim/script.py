@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -266,7 +267,9 @@ class ControlScript:
                 self.servo = ServoTrack(arm)
                 arm.run(self.servo)
                 self.speed = None
-            self.servo.command(arm, q, self._float(8), self._float(9), self._float(10), self.c.time)
+            self.servo.command(
+                arm, q, self._float(8), self._float(9), self._float(10), time.monotonic()
+            )
         elif cmd == C.SPEEDJ or cmd == C.SPEEDL:
             if self.speed is None or arm.generator is not self.speed:
                 self.speed = SpeedTrack(arm)

@@ -179,6 +179,7 @@ class SimServer:
         self._handle: asyncio.TimerHandle | None = None
         self._urcap_task: asyncio.Task[None] | None = None
         self._fk_version = -1
+        self._qd_published: object = None
         self._prev_tcp: tuple[np.ndarray, np.ndarray] | None = None
         self.late_cycles = 0
         self.publish_state()
@@ -189,12 +190,13 @@ class SimServer:
         """Copy the controller's state into the RTDE stream state (FK only when q changed)."""
         c, arm, s = self.controller, self.arm, self.hub.state
         s.timestamp = c.time
-        q = tuple(arm.q.tolist())
-        s.actual_q = s.target_q = q
-        s.actual_qd = s.target_qd = tuple(arm.qd.tolist())
-        s.target_qdd = tuple(arm.qdd.tolist())
+        if arm.version != self._fk_version or arm.qd is not self._qd_published:
+            self._qd_published = arm.qd
+            s.actual_qd = s.target_qd = tuple(arm.qd.tolist())
+            s.target_qdd = tuple(arm.qdd.tolist())
         if arm.version != self._fk_version:
             self._fk_version = arm.version
+            s.actual_q = s.target_q = tuple(arm.q.tolist())
             pose = arm.kinematics.forward(arm.q)
             s.actual_tcp_pose = s.target_tcp_pose = pose.as_ur()
             p, R = pose.position, pose.rotation
@@ -234,7 +236,7 @@ class SimServer:
         while self._deadline <= now + 5e-5:
             self._deadline += CONTROL_PERIOD
             steps += 1
-        if steps > 50:  # stalled (suspended process): resynchronise instead of catching up
+        if steps > 1250:  # stalled 2.5 s (suspended process): resynchronise, do not catch up
             self.late_cycles += steps
             self._deadline = now + CONTROL_PERIOD
             steps = 1
