@@ -34,6 +34,7 @@ FloatArray = NDArray[np.float64]
 JointValidity = Callable[[FloatArray], bool]
 
 TWO_PI = 2.0 * math.pi
+_INV_TWO_PI = 1.0 / TWO_PI
 
 _WRIST_EPS = 1e-14
 """|sin θ5| below which the wrist counts as exactly singular (θ6 free: see _singular_arm)."""
@@ -41,6 +42,8 @@ _CLIP_EPS = 1e-12
 """Rounding slack on the cosines at the reach boundaries (≈ 1e-13 m of position)."""
 _NEAR_WRIST = 1e-6
 """|sin θ5| below which a failed closed form is retried as a wrist singularity."""
+_NEAR_MISS = 1e-6
+"""How far beyond full stretch (in cos θ3) a branch is still polished rather than dropped."""
 _POLISH_TOL = 1e-10
 """Pose error (m, rad) accepted from a solution polished by Newton steps."""
 _LIMIT_EPS = 1e-12
@@ -117,6 +120,7 @@ class Kinematics:
         self.lower: tuple[float, ...] = tuple(lo)
         self.upper: tuple[float, ...] = tuple(hi)
         self._lo_hi = tuple(zip(lo, hi, strict=True))
+        self._geom = (dh.d[0], dh.d[3], dh.d[4], dh.d[5], dh.a[1], dh.a[2])
         self._dh_rows = [
             (dh.d[i], dh.a[i], math.cos(dh.alpha[i]), math.sin(dh.alpha[i])) for i in range(6)
         ]
@@ -146,42 +150,52 @@ class Kinematics:
     # ------------------------------------------------------------ forward
 
     def _flange(self, q: Sequence[float]) -> list[float]:
-        """Flange transform as 12 floats: rotation row-major, then position."""
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
-        px = py = pz = 0.0
-        for theta, (d, a, ca, sa) in zip(q, self._dh_rows, strict=True):
-            ct, st = math.cos(theta), math.sin(theta)
-            # local DH matrix columns: x=(ct, st, 0), y=(-st ca, ct ca, sa), z=(st sa, -ct sa, ca)
-            yx, yy, zx, zy = -st * ca, ct * ca, st * sa, -ct * sa
-            px, py, pz = (
-                px + r02 * d + a * (r00 * ct + r01 * st),
-                py + r12 * d + a * (r10 * ct + r11 * st),
-                pz + r22 * d + a * (r20 * ct + r21 * st),
-            )
-            r00, r01, r02 = (
-                r00 * ct + r01 * st,
-                r00 * yx + r01 * yy + r02 * sa,
-                r00 * zx + r01 * zy + r02 * ca,
-            )
-            r10, r11, r12 = (
-                r10 * ct + r11 * st,
-                r10 * yx + r11 * yy + r12 * sa,
-                r10 * zx + r11 * zy + r12 * ca,
-            )
-            r20, r21, r22 = (
-                r20 * ct + r21 * st,
-                r20 * yx + r21 * yy + r22 * sa,
-                r20 * zx + r21 * zy + r22 * ca,
-            )
-        return [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
+        """Flange transform as 12 floats: rotation row-major, then position.
+
+        The DH chain written out for the UR geometry (axes 2, 3, 4 parallel), frame axes as
+        vectors: about a third of the work of the generic product.
+        """
+        q1, q2, q3, q4, q5, q6 = q
+        d1, d4, d5, d6, a2, a3 = self._geom
+        c1, s1 = math.cos(q1), math.sin(q1)
+        q23 = q2 + q3
+        q234 = q23 + q4
+        c2, s2 = math.cos(q2), math.sin(q2)
+        c23, s23 = math.cos(q23), math.sin(q23)
+        c234, s234 = math.cos(q234), math.sin(q234)
+        c5, s5 = math.cos(q5), math.sin(q5)
+        c6, s6 = math.cos(q6), math.sin(q6)
+        # frame 1: x1 = (c1, s1, 0), y1 = (0, 0, 1), z1 = (s1, -c1, 0); frame 4 turns about z1
+        x4x, x4y, x4z = c234 * c1, c234 * s1, s234
+        z4x, z4y, z4z = s234 * c1, s234 * s1, -c234
+        # frame 5: x5 = c5 x4 + s5 z1, y5 = -z4, z5 = -s5 x4 + c5 z1
+        x5x, x5y, x5z = c5 * x4x + s5 * s1, c5 * x4y - s5 * c1, c5 * x4z
+        z5x, z5y, z5z = -s5 * x4x + c5 * s1, -s5 * x4y - c5 * c1, -s5 * x4z
+        # frame 6 turns about z5
+        x6x, x6y, x6z = c6 * x5x - s6 * z4x, c6 * x5y - s6 * z4y, c6 * x5z - s6 * z4z
+        y6x, y6y, y6z = -s6 * x5x - c6 * z4x, -s6 * x5y - c6 * z4y, -s6 * x5z - c6 * z4z
+        reach = a2 * c2 + a3 * c23  # along x1
+        return [
+            x6x,
+            y6x,
+            z5x,
+            x6y,
+            y6y,
+            z5y,
+            x6z,
+            y6z,
+            z5z,
+            reach * c1 + d4 * s1 + d5 * z4x + d6 * z5x,
+            reach * s1 - d4 * c1 + d5 * z4y + d6 * z5y,
+            d1 + a2 * s2 + a3 * s23 + d5 * z4z + d6 * z5z,
+        ]
 
     def forward(self, q: ArrayLike) -> Pose:
         """TCP pose in UR's base frame for joint positions ``q`` (rad)."""
         f = self._flange(_joints(q))
         if not self._tcp_is_identity:
             f = _compose(f, self._tcp)
-        R = np.array(f[:9]).reshape(3, 3)
-        return Pose._raw(np.array(f[9:]), R)
+        return Pose._raw(np.array(f[9:]), np.array((f[0:3], f[3:6], f[6:9])))
 
     def forward_flange(self, q: ArrayLike) -> Pose:
         """Flange (``tool0``) pose, whatever the TCP."""
@@ -272,17 +286,14 @@ class Kinematics:
             s5a = math.sqrt(zx * zx + zy * zy)
             if s5a > _WRIST_EPS:
                 n = len(out)
-                self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5a, zz, math.atan2(-zy, zx), out, 0)
-                self._arm(f, p5x, p5y, p5z, t1, s1, c1, -s5a, zz, math.atan2(zy, -zx), out, 0)
-                if len(out) == n:
-                    # Near the shoulder or wrist singularity θ1 or θ6 carry amplified rounding
-                    # error, which can throw a stretched arm just out of reach: accept a
-                    # looser stretch, then polish with Newton steps.
-                    rough: list[list[float]] = []
-                    t6a, t6b = math.atan2(-zy, zx), math.atan2(zy, -zx)
-                    self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5a, zz, t6a, rough, 0, 1e-6)
-                    self._arm(f, p5x, p5y, p5z, t1, s1, c1, -s5a, zz, t6b, rough, 0, 1e-6)
-                    out.extend(p for sol in rough if (p := self._polish(sol, pose)))
+                # Near the shoulder or wrist singularity θ1 or θ6 carry amplified rounding
+                # error, which can throw a stretched arm just out of reach: such branches
+                # come back in ``rough`` (stretch clipped) and are polished by Newton steps.
+                rough: list[list[float]] = []
+                t6a, t6b = math.atan2(-zy, zx), math.atan2(zy, -zx)
+                self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5a, zz, t6a, out, 0, rough=rough)
+                self._arm(f, p5x, p5y, p5z, t1, s1, c1, -s5a, zz, t6b, out, 0, rough=rough)
+                out.extend(p for sol in rough if (p := self._polish(sol, pose)))
                 if len(out) == n and s5a < _NEAR_WRIST:
                     # still nothing: search θ6 as at the singularity, then polish
                     for s5 in (s5a, -s5a):
@@ -328,11 +339,13 @@ class Kinematics:
         out: list[list[float]],
         elbow: int,
         clip: float = _CLIP_EPS,
+        rough: list[list[float]] | None = None,
     ) -> None:
         """Append the solutions for given θ1, θ5 (as sine, cosine) and θ6 to ``out``.
 
         ``elbow`` 0 appends both elbow branches, +1 / -1 only that sign of sin θ3; ``clip``
-        is the rounding slack accepted beyond full stretch or fold.
+        is the rounding slack accepted beyond full stretch or fold. Solutions that miss the
+        stretch by less than ``_NEAR_MISS`` go to ``rough`` if given.
         """
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = f[:9]
         d1, d5 = self.dh.d[0], self.dh.d[4]
@@ -354,7 +367,9 @@ class Kinematics:
         c3 = (X * X + Y * Y - a2 * a2 - a3 * a3) / (2.0 * a2 * a3)
         if c3 > 1.0 or c3 < -1.0:
             if abs(c3) > 1.0 + clip:
-                return
+                if rough is None or abs(c3) > 1.0 + _NEAR_MISS:
+                    return
+                out = rough
             c3 = 1.0 if c3 > 0.0 else -1.0
         s3a = math.sqrt(1.0 - c3 * c3)
         t5 = math.atan2(s5, c5)
@@ -440,16 +455,132 @@ class Kinematics:
         total = 0.0
         out = []
         for v, s, (lo, hi) in zip(sol, seed, self._lo_hi, strict=True):
-            v += TWO_PI * round((s - v) / TWO_PI)
-            if v > hi:  # a solution exactly at the limit may come out a rounding error beyond
-                v = hi if v - hi < _LIMIT_EPS else v - TWO_PI
-            elif v < lo:
-                v = lo if lo - v < _LIMIT_EPS else v + TWO_PI
-            if v > hi or v < lo:
+            w = _near(v, s, lo, hi)
+            if w != w:  # NaN: no equivalent within the limits
                 return None
-            total += (v - s) * (v - s)
-            out.append(v)
+            total += (w - s) * (w - s)
+            out.append(w)
         return total, out
+
+    def _fast_nearest(self, target: Pose, seed: list[float]) -> list[float] | None:
+        """The hot path of :meth:`inverse`: the nearest solution without building every branch.
+
+        Same result as ranking :meth:`_branches` with :meth:`_nearest`, with shared terms
+        computed once per shoulder and wrist branch, branches pruned as soon as their
+        partial distance exceeds the best, and the 2π shift toward the seed inlined
+        (``_near`` only when the shifted angle leaves the limits). Returns None, to fall
+        back on the general path, near the singularities that need its special handling or
+        when nothing fits.
+        """
+        f = target._R.ravel().tolist() + target._p.tolist()
+        if not self._tcp_is_identity:
+            f = _compose(f, self._tcp_inv)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz = f
+        d1, d4, d5, d6, a2, a3 = self._geom
+        s0, s1_, s2, s3, s4, s5 = seed
+        (lo0, hi0), (lo1, hi1), (lo2, hi2), (lo3, hi3), (lo4, hi4), (lo5, hi5) = self._lo_hi
+        tau, inv = TWO_PI, _INV_TWO_PI
+        atan2, sqrt = math.atan2, math.sqrt
+        p5x, p5y, p5z = px - d6 * r02, py - d6 * r12, pz - d6 * r22
+        rho2 = p5x * p5x + p5y * p5y
+        h2 = rho2 - d4 * d4
+        if h2 <= 1e-12:  # at or near the shoulder singularity
+            return None
+        h = sqrt(h2)
+        k3 = 1.0 / (2.0 * a2 * a3)
+        l3 = a2 * a2 + a3 * a3
+        best = math.inf
+        best_q: list[float] | None = None
+        near_miss = False
+        shoulders = []
+        for hs in (h, -h):
+            c1 = (p5x * hs - p5y * d4) / rho2
+            sn1 = (p5y * hs + p5x * d4) / rho2
+            t = atan2(sn1, c1)
+            v1 = t + tau * (((s0 - t) * inv + 0.5) // 1.0)
+            if not lo0 <= v1 <= hi0:
+                v1 = _near(t, s0, lo0, hi0)
+                if v1 != v1:
+                    continue
+            shoulders.append(((v1 - s0) * (v1 - s0), v1, c1, sn1))
+        if len(shoulders) == 2 and shoulders[1][0] < shoulders[0][0]:
+            shoulders.reverse()  # nearest θ1 first: the pruning bites early
+        for e1, v1, c1, sn1 in shoulders:
+            if e1 >= best:
+                continue
+            zx = r00 * sn1 - r10 * c1
+            zy = r01 * sn1 - r11 * c1
+            zz = r02 * sn1 - r12 * c1
+            s5a = sqrt(zx * zx + zy * zy)
+            if s5a < _NEAR_WRIST:
+                return None
+            c6, sn6 = zx / s5a, -zy / s5a
+            t6 = atan2(-zy, zx)
+            t5 = atan2(s5a, zz)
+            z4x = -(sn6 * r00 + c6 * r01)
+            z4y = -(sn6 * r10 + c6 * r11)
+            z4z = -(sn6 * r20 + c6 * r21)
+            u, v, w = zz * c6, -zz * sn6, -s5a
+            x4x = r00 * u + r01 * v + r02 * w
+            x4y = r10 * u + r11 * v + r12 * w
+            x4z = r20 * u + r21 * v + r22 * w
+            x4p = c1 * x4x + sn1 * x4y
+            for flip in (False, True):
+                # the other wrist: θ5 → -θ5, θ6 → θ6 + π, which turns z4 and x4 over
+                if flip:
+                    t5, t6 = -t5, t6 + math.pi
+                    t234 = atan2(-x4z, -x4p)
+                    ox, oy, oz = p5x + d5 * z4x, p5y + d5 * z4y, p5z + d5 * z4z
+                else:
+                    t234 = atan2(x4z, x4p)
+                    ox, oy, oz = p5x - d5 * z4x, p5y - d5 * z4y, p5z - d5 * z4z
+                v5 = t5 + tau * (((s4 - t5) * inv + 0.5) // 1.0)
+                if not lo4 <= v5 <= hi4:
+                    v5 = _near(t5, s4, lo4, hi4)
+                    if v5 != v5:
+                        continue
+                v6 = t6 + tau * (((s5 - t6) * inv + 0.5) // 1.0)
+                if not lo5 <= v6 <= hi5:
+                    v6 = _near(t6, s5, lo5, hi5)
+                    if v6 != v6:
+                        continue
+                e6 = e1 + (v5 - s4) * (v5 - s4) + (v6 - s5) * (v6 - s5)
+                if e6 >= best:
+                    continue
+                X = c1 * ox + sn1 * oy
+                Y = oz - d1
+                c3 = (X * X + Y * Y - l3) * k3
+                if c3 > 1.0 or c3 < -1.0:
+                    if abs(c3) > 1.0 + _CLIP_EPS:
+                        near_miss = near_miss or abs(c3) <= 1.0 + _NEAR_MISS
+                        continue
+                    c3 = 1.0 if c3 > 0.0 else -1.0
+                s3a = sqrt(1.0 - c3 * c3)
+                base = atan2(Y, X)
+                g = atan2(a3 * s3a, a2 + a3 * c3)
+                t3 = atan2(s3a, c3)
+                for t2, t3e in ((base - g, t3), (base + g, -t3)):
+                    v2 = t2 + tau * (((s1_ - t2) * inv + 0.5) // 1.0)
+                    if not lo1 <= v2 <= hi1:
+                        v2 = _near(t2, s1_, lo1, hi1)
+                        if v2 != v2:
+                            continue
+                    v3 = t3e + tau * (((s2 - t3e) * inv + 0.5) // 1.0)
+                    if not lo2 <= v3 <= hi2:
+                        v3 = _near(t3e, s2, lo2, hi2)
+                        if v3 != v3:
+                            continue
+                    t4 = t234 - t2 - t3e
+                    v4 = t4 + tau * (((s3 - t4) * inv + 0.5) // 1.0)
+                    if not lo3 <= v4 <= hi3:
+                        v4 = _near(t4, s3, lo3, hi3)
+                        if v4 != v4:
+                            continue
+                    e = e6 + (v2 - s1_) * (v2 - s1_) + (v3 - s2) * (v3 - s2) + (v4 - s3) * (v4 - s3)
+                    if e < best:
+                        best = e
+                        best_q = [v1, v2, v3, v4, v5, v6]
+        return None if near_miss else best_q
 
     def inverse(
         self,
@@ -469,6 +600,10 @@ class Kinematics:
         """
         target = pose if isinstance(pose, Pose) else Pose.parse(pose)
         s = [0.0] * 6 if seed is None else _joints(seed)
+        if valid is None and not refine:
+            fast = self._fast_nearest(target, s)
+            if fast is not None:
+                return np.array(fast)
         branches = self._branches(target, s)
         if not branches:
             raise UnreachableError(f"pose out of reach of the arm: {target!r}")
@@ -534,6 +669,20 @@ class Kinematics:
         return qq
 
 
+def _near(v: float, s: float, lo: float, hi: float) -> float:
+    """The 2π-equivalent of angle ``v`` nearest ``s`` within [lo, hi], or NaN if none."""
+    v += TWO_PI * round((s - v) * _INV_TWO_PI)
+    if v > hi:  # a solution exactly at the limit may come out a rounding error beyond
+        v = hi if v - hi < _LIMIT_EPS else v - TWO_PI
+        if v < lo:
+            return math.nan
+    elif v < lo:
+        v = lo if lo - v < _LIMIT_EPS else v + TWO_PI
+        if v > hi:
+            return math.nan
+    return v
+
+
 def _pose_error(current: Pose, target: Pose) -> FloatArray:
     """Twist (base frame) from ``current`` to ``target``: position difference, rotation vector."""
     dp = target.position - current.position
@@ -562,15 +711,19 @@ def _compose(a: list[float], b: Sequence[float]) -> list[float]:
 
 
 def _joints(q: ArrayLike) -> list[float]:
-    """Six finite joint values as floats, or InvalidTargetError."""
-    if isinstance(q, list) and all(type(v) is float for v in q):
-        out: list[float] = q
+    """Six finite joint values as floats (a list of six floats is returned as is, not
+    copied: callers must not modify it), or InvalidTargetError."""
+    if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == (6,):
+        out: list[float] = q.tolist()
+    elif isinstance(q, list) and len(q) == 6 and all(type(v) is float for v in q):
+        out = q
     else:
         arr = np.asarray(q) if not isinstance(q, str | bytes) else np.asarray(None)
-        if arr.dtype.kind not in "iuf":
+        if arr.dtype.kind not in "iuf" or arr.shape != (6,):
             raise InvalidTargetError(f"joint positions must be 6 numbers, got {q!r}")
-        out = arr.astype(np.float64).ravel().tolist() if arr.ndim == 1 else []
-    if len(out) != 6 or not all(map(math.isfinite, out)):
+        out = arr.astype(np.float64).tolist()
+    total = out[0] + out[1] + out[2] + out[3] + out[4] + out[5]
+    if total - total != 0.0:  # NaN or inf somewhere (or a sum beyond 1e308: not joints either)
         raise InvalidTargetError(f"joint positions must be 6 finite numbers, got {q!r}")
     return out
 

@@ -28,6 +28,13 @@ def _pose_error(a: Pose, b: Pose) -> tuple[float, float]:
     return a.distance(b), a.angle_to(b)
 
 
+def _tolerance(kin: Kinematics, q: np.ndarray) -> float:
+    """Exact to rounding away from singularities; within 1e-10 (m, rad) next to them, where
+    branches the closed form misses by rounding are polished by Newton steps."""
+    shoulder, elbow, wrist = kin.singularity_margins(q)
+    return 1e-12 if min(shoulder, elbow, wrist) > 1e-3 else 1e-10
+
+
 def test_zero_configuration_matches_the_dh_table_by_hand() -> None:
     # all θ = 0: arm stretched along -x, rotation Rx(α1 + α4 + α5) = Rx(π/2)
     pose = FLANGE.forward([0.0] * 6)
@@ -69,8 +76,8 @@ def test_inverse_of_forward_returns_the_configuration(kin: Kinematics, q: np.nda
     sol = kin.inverse(pose, seed=q)
     assert np.all(np.abs(sol) <= 2 * math.pi)
     dp, dr = _pose_error(kin.forward(sol), pose)
-    assert dp < 1e-12
-    assert dr < 1e-12
+    assert dp < _tolerance(kin, q)
+    assert dr < _tolerance(kin, q)
     # from its own configuration the nearest solution is that configuration (away from the
     # wrist continuum and the elbow, where 1e-16 of pose can be 1e-7 of joint angle)
     if min(kin.singularity_margins(q)[1:]) > 1e-3:
@@ -86,10 +93,11 @@ def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
     pose = kin.forward(q)
     sols = kin.inverse_all(pose, seed=seed)
     assert 1 <= len(sols) <= 8
+    tol = _tolerance(kin, q)
     for s in sols:
         dp, dr = _pose_error(kin.forward(s), pose)
-        assert dp < 1e-12
-        assert dr < 1e-12
+        assert dp < tol
+        assert dr < tol
         assert np.all(np.abs(s) <= 2 * math.pi)
         for shifted in (s + 2 * math.pi, s - 2 * math.pi):  # nearest 2π-equivalent per joint
             inside = np.abs(shifted) <= 2 * math.pi
@@ -97,7 +105,9 @@ def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
     best = kin.inverse(pose, seed=seed)
     dists = [float(np.linalg.norm(s - seed)) for s in sols]
     assert dists == sorted(dists)
-    assert float(np.linalg.norm(best - seed)) == pytest.approx(dists[0], abs=1e-9)
+    # the same branch (a stretched elbow turns rounding ε into √ε of joint angle, up to 1e-6)
+    assert float(np.linalg.norm(best - seed)) == pytest.approx(dists[0], abs=1e-5)
+    assert kin.forward(best).isclose(pose, position_tol=tol, angle_tol=tol)
 
 
 def test_generic_configuration_has_eight_distinct_solutions() -> None:

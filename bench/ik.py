@@ -1,0 +1,200 @@
+"""Inverse kinematics of the UR3e on random reachable poses, against two peers.
+
+Poses: random joint vectors uniform within the joint limits (±2π) → forward kinematics →
+inverse kinematics from a random seed (uniform within the limits), in the same interleaved
+loop for every solver so machine noise hits them alike:
+
+- ``fxcell``: ``Kinematics.inverse(pose, seed)`` (closed form, nearest solution to the seed);
+- ``ur_analytic_ik``: ``inverse_kinematics_closest`` (C++ via nanobind). It uses UR's base
+  frame and the same UR3e parameters as fxcell (its forward kinematics is checked to agree
+  to 1e-12 below), so no ``base_link`` conversion is needed; the TCP case uses its
+  ``*_with_tcp`` variant with the 4×4 TCP matrix;
+- ``pinocchio CLIK``: damped least squares on the Pinocchio model's TCP frame (``log6``
+  error, Newton steps, damping 1e-10), restarts from random configurations after 100
+  iterations, 50 ms budget per pose.
+
+Solved = position error < 1e-6 m, rotation error < 1e-6 rad (checked with fxcell's forward
+kinematics) and every joint within ±2π. Each call is timed alone (perf_counter_ns, GC off);
+the pose is built beforehand in each solver's own input type (fxcell ``Pose``, 4×4 array).
+
+Targets (issue 5): 100 % solved; fxcell median ≤ 1.5 × ur_analytic_ik's.
+
+    ./dev bench ik [--poses N] [--tcp flange|seed|both] [--clik-poses N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import math
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pinocchio as pin
+import ur_analytic_ik
+
+from fxcell.config import SEED_TCP, JointLimits
+from fxcell.errors import UnreachableError
+from fxcell.geometry import Pose
+from fxcell.kinematics import Kinematics
+from fxcell.robot_model import RobotModel
+
+TOL = 1e-6
+Solver = Callable[[int], "np.ndarray | None"]
+
+
+class Clik:
+    """Pinocchio closed-loop IK (damped least squares) with random restarts."""
+
+    def __init__(self, robot: RobotModel, rng: np.random.Generator) -> None:
+        self.model = robot.model
+        self.data = self.model.createData()
+        self.fid = robot.tcp_frame_id
+        self.rng = rng
+        self.lo = self.model.lowerPositionLimit
+        self.hi = self.model.upperPositionLimit
+
+    def solve(
+        self, target: pin.SE3, seed: np.ndarray, *, iterations: int = 100, budget: float = 0.05
+    ) -> np.ndarray | None:
+        model, data, fid = self.model, self.data, self.fid
+        deadline = time.perf_counter() + budget
+        q = seed.copy()
+        eye = np.eye(6)
+        while True:
+            for _ in range(iterations):
+                pin.forwardKinematics(model, data, q)
+                pin.updateFramePlacement(model, data, fid)
+                iMd = data.oMf[fid].actInv(target)
+                err = pin.log6(iMd).vector
+                if np.linalg.norm(err[:3]) < 1e-9 and np.linalg.norm(err[3:]) < 1e-9:
+                    return np.mod(q + np.pi, 2 * np.pi) - np.pi  # wrap into the limits
+                J = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL)
+                J = -pin.Jlog6(iMd.inverse()) @ J
+                q = q - J.T @ np.linalg.solve(J @ J.T + 1e-10 * eye, err)
+            if time.perf_counter() > deadline:
+                return None
+            q = self.rng.uniform(self.lo, self.hi)
+
+
+def _summary(name: str, times_ns: list[int], solved: int, attempted: int) -> dict[str, float]:
+    us = sorted(t / 1000.0 for t in times_ns)
+    med = statistics.median(us)
+    p99 = us[min(len(us) - 1, int(0.99 * len(us)))]
+    rate = 100.0 * solved / attempted
+    print(
+        f"  {name:<16} solved {solved:>6}/{attempted:<6} ({rate:7.3f} %)   "
+        f"median {med:8.2f} µs   p99 {p99:8.2f} µs   max {us[-1]:9.1f} µs"
+    )
+    return {"median": med, "p99": p99, "rate": rate}
+
+
+def run(tcp_name: str, n: int, n_clik: int, seed: int) -> dict[str, dict[str, float]]:
+    tcp = None if tcp_name == "flange" else SEED_TCP
+    rng = np.random.default_rng(seed)
+    limits = JointLimits()
+    lo, hi = np.array(limits.position_min), np.array(limits.position_max)
+    kin = Kinematics.ur3e(tcp, limits)
+    robot = RobotModel.ur3e(tcp, limits)
+    tcp_matrix = np.ascontiguousarray(kin.tcp.matrix)
+    ur = ur_analytic_ik.ur3e
+
+    qs = rng.uniform(lo, hi, size=(n, 6))
+    seeds = rng.uniform(lo, hi, size=(n, 6))
+    poses = [kin.forward(q) for q in qs]
+    matrices = [np.ascontiguousarray(p.matrix) for p in poses]
+    se3s = [pin.SE3(p.rotation.copy(), p.position.copy()) for p in poses]
+    seed_lists = [s.tolist() for s in seeds]
+
+    # the peer's frame and parameters are fxcell's: its flange FK equals ours
+    fk_gap = max(
+        float(np.abs(ur.forward_kinematics(*q) - kin.forward_flange(q).matrix).max())
+        for q in qs[:200]
+    )
+    assert fk_gap < 1e-12, f"ur_analytic_ik forward kinematics differs by {fk_gap}"
+
+    def ours(i: int) -> np.ndarray | None:
+        try:
+            return kin.inverse(poses[i], seed_lists[i])
+        except UnreachableError:
+            return None
+
+    if tcp is None:
+
+        def peer(i: int) -> np.ndarray | None:
+            sols = ur.inverse_kinematics_closest(matrices[i], *seed_lists[i])
+            return sols[0] if sols else None
+    else:
+
+        def peer(i: int) -> np.ndarray | None:
+            sols = ur.inverse_kinematics_closest_with_tcp(matrices[i], tcp_matrix, *seed_lists[i])
+            return sols[0] if sols else None
+
+    clik = Clik(robot, np.random.default_rng(seed + 1))
+
+    def clik_solve(i: int) -> np.ndarray | None:
+        return clik.solve(se3s[i], seeds[i])
+
+    solvers: list[tuple[str, Solver, int]] = [
+        ("fxcell", ours, n),
+        ("ur_analytic_ik", peer, n),
+        ("pinocchio CLIK", clik_solve, min(n_clik, n)),
+    ]
+    times: dict[str, list[int]] = {name: [] for name, _, _ in solvers}
+    solved = dict.fromkeys(times, 0)
+    for _name, fn, count in solvers:  # warm-up
+        for i in range(min(count, 50)):
+            fn(i)
+    gc.collect()
+    gc.disable()
+    try:
+        for i in range(n):
+            for name, fn, count in solvers:
+                if i >= count:
+                    continue
+                t0 = time.perf_counter_ns()
+                q = fn(i)
+                times[name].append(time.perf_counter_ns() - t0)
+                if q is not None and _is_solution(kin, q, poses[i]):
+                    solved[name] += 1
+    finally:
+        gc.enable()
+
+    print(f"\nTCP = {tcp_name}: {n} random reachable poses, random seeds within ±2π")
+    results = {name: _summary(name, times[name], solved[name], count) for name, _, count in solvers}
+    ratio = results["fxcell"]["median"] / results["ur_analytic_ik"]["median"]
+    print(
+        f"  median ratio fxcell / ur_analytic_ik = {ratio:.2f}  (target ≤ 1.5)   "
+        f"fxcell / CLIK = {results['fxcell']['median'] / results['pinocchio CLIK']['median']:.3f}"
+    )
+    return results
+
+
+def _is_solution(kin: Kinematics, q: np.ndarray, pose: Pose) -> bool:
+    q = np.asarray(q, dtype=float)
+    if q.shape != (6,) or not np.all(np.abs(q) <= 2 * math.pi):
+        return False
+    reached = kin.forward(q)
+    return reached.distance(pose) < TOL and reached.angle_to(pose) < TOL
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--poses", type=int, default=10_000)
+    parser.add_argument("--clik-poses", type=int, default=2_000, help="CLIK is ~20× slower")
+    parser.add_argument("--tcp", choices=("flange", "seed", "both"), default="both")
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args()
+    names = ("flange", "seed") if args.tcp == "both" else (args.tcp,)
+    ok = True
+    for name in names:
+        res = run(name, args.poses, args.clik_poses, args.seed)
+        ratio = res["fxcell"]["median"] / res["ur_analytic_ik"]["median"]
+        ok = ok and res["fxcell"]["rate"] == 100.0 and ratio <= 1.5
+    print("\ntargets met" if ok else "\ntargets NOT met")
+
+
+if __name__ == "__main__":
+    main()
