@@ -383,9 +383,10 @@ class ExecutionOptions:
     compensate_lag: bool = True
     """Lead the setpoints by servoJ's lag (≈ lookahead·(300/gain)^¼, URCL issue #86),
     so the executed motion equals the planned one; the last sample is unchanged."""
-    brake_lead: int = 3
-    """Samples between deciding to brake and the sample the braking replaces (covers
-    the message's way to the link process)."""
+    brake_lead: int = 1
+    """Samples between the link's estimated index and the sample the braking replaces.
+    Erring late costs nothing: the link then joins the braking profile a few samples in,
+    where it differs from the original by ~½·Δa·t² (µrad); erring early delays the stop."""
     settle_timeout: float = 0.5
     """How long the target is held after the last sample for the robot to settle (s)."""
     settle_position: float = 1e-6
