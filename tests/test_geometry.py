@@ -243,3 +243,25 @@ def test_from_matrix_cleans_up_rounding_in_the_rotation() -> None:
     R = Pose.from_matrix(T).rotation
     _assert_rotation(R)
     assert np.allclose(R, _rot_z(0.3), atol=1e-8)
+
+
+junk = st.one_of(
+    st.none(),
+    st.text(max_size=8),
+    st.floats(),
+    st.lists(st.one_of(st.floats(), st.integers(), st.text(max_size=2), st.none()), max_size=9),
+    st.dictionaries(st.text(max_size=2), st.floats(), max_size=3),
+)
+
+
+@given(junk)
+@FAST
+def test_parse_gives_a_pose_or_an_invalid_target_error(obj: object) -> None:
+    try:
+        pose = Pose.parse(obj)
+    except InvalidTargetError:
+        return
+    assert isinstance(obj, list)
+    assert len(obj) in (6, 7)
+    assert np.all(np.isfinite(pose.matrix))
+    _assert_rotation(pose.rotation)

@@ -263,3 +263,16 @@ def test_importing_kinematics_does_not_import_pinocchio() -> None:
     code = "import sys, fxcell.kinematics; print('pinocchio' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+@given(configurations)
+@settings(max_examples=40)
+def test_forward_agrees_with_an_independent_ur_implementation(q: np.ndarray) -> None:
+    # ur_analytic_ik (C++, bench extra) computes UR's kinematics in UR's base frame as well
+    ur_analytic_ik = pytest.importorskip("ur_analytic_ik")
+    assert np.allclose(
+        ur_analytic_ik.ur3e.forward_kinematics(*q), FLANGE.forward(q).matrix, atol=1e-12
+    )
+    tcp = Pose.from_ur(SEED_TCP).matrix
+    theirs = ur_analytic_ik.ur3e.forward_kinematics_with_tcp(*q, tcp)
+    assert np.allclose(theirs, SEED.forward(q).matrix, atol=1e-12)
