@@ -513,8 +513,19 @@ class Cell:
         """Shut down the robot and its controller; returns when the controller is gone."""
         async with self._command("shutdown"):
             self.machine.check("shutdown")
-            await self._dashboard("shutdown", "Shutting down")
+            await self._require_remote()
+            link = self._link()
             self._control_wanted = False
+            sent = link.messages_sent
+            try:
+                reply = await link.dashboard("shutdown")
+            except ConnectionLostError:
+                if link.messages_sent == sent:  # never left: the link was already down
+                    raise
+                # The controller went down before its reply reached us: the effect asked.
+                reply = "Shutting down"
+            if "shutting down" not in reply.lower():
+                raise RobotCommandError(f"'shutdown' failed: controller replied {reply!r}")
             self._shutting_down = True
             self._observe(self.robot_state, "shutdown sent")
             await self.wait_for_state(
