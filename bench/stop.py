@@ -3,11 +3,11 @@
 A +2.5 rad base move (full speed, configured limits) runs against the embedded simulator;
 ``stop()`` is called at several moments (accelerating, near peak speed, decelerating).
 Measured from the ``stop()`` call to the first 500 Hz state sample with every joint slower
-than 1e-3 rad/s; distance = base travel in that time.
+than 1e-4 rad/s; distance = base travel in that time.
 
 Peer, same run: the physical bound — the jerk-limited time-optimal braking from the
-robot's state at the ``stop()`` call (the planned state at that time since the motion
-began) under the configured limits (Ruckig), and its distance.
+robot's state at the ``stop()`` call (the planned state where the plan passes the robot's
+position then) under the configured limits (Ruckig), and its distance.
 (The seed slept v/a after MoveIt's stop.)
 
 Target: time to rest <= bound + 10 ms.
@@ -21,17 +21,19 @@ import contextlib
 import statistics
 import time
 
+import numpy as np
+
 from fxcell.cell import Cell
 from fxcell.config import CellConfig
 from fxcell.errors import MoveStoppedError
 from fxcell.events import StateEvent
 from fxcell.protocol import RobotState
 from fxcell.testing import simulator
-from fxcell.trajectory import DT, Limits, braking, braking_duration, rest_to_rest
+from fxcell.trajectory import Limits, braking, braking_duration, rest_to_rest
 
 CONFIG = CellConfig.load()
 LIMITS = Limits.from_config(CONFIG.limits)
-REST = 1e-3
+REST = 1e-4  # rad/s: a jerk-limited stop crosses 1e-3 rad/s some 14 ms before its end
 
 
 async def trial(cell: Cell, target: list[float], after: float) -> dict[str, float]:
@@ -66,10 +68,11 @@ async def trial(cell: Cell, target: list[float], after: float) -> dict[str, floa
         unsubscribe()
     rest = next(s for s in states if s.received_at > called and max(map(abs, s.actual_qd)) < REST)
     # The robot follows the planned trajectory (servoJ lag compensated): its state at the
-    # stop() call is the planned one at that time since the motion started.
-    assert started is not None
+    # stop() call is the planned state where the plan passes its position (a busy machine
+    # may stretch the timing, never the path).
     planned = rest_to_rest(states[0].actual_q, target, LIMITS)
-    p, qd, qdd = planned.state(round((called - started) / DT))
+    index = int(np.searchsorted(planned.positions[:, 0], at_stop.actual_q[0]))
+    p, qd, qdd = planned.state(index)
     bound = braking_duration(qd, qdd, LIMITS)
     profile = braking(p, qd, qdd, LIMITS)
     return {
