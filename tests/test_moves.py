@@ -33,10 +33,12 @@ from fxcell.geometry import Pose
 from fxcell.kinematics import Kinematics
 from fxcell.statemachine import CellState
 from fxcell.testing import SimulatorHandle, simulator
+from fxcell.trajectory import Limits, braking
 
 CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)
 KIN = Kinematics.ur3e(tcp=CONFIG.tool.tcp, limits=CONFIG.limits)
+LIMITS = Limits.from_config(CONFIG.limits)
 WORK = np.array([0.4, -1.4, 1.6, -1.8, -1.57, 0.0])  # gripper down over the table
 POSITION_TOL = 1e-5  # m
 ANGLE_TOL = 1e-4  # rad
@@ -185,11 +187,19 @@ async def test_stop_during_a_quarter_turn_of_the_base_brakes_to_rest(
     async with ready_cell(sim, HOME) as cell:
         move = asyncio.create_task(cell.move_joint(list(target)))
         await wait_until_moving(cell, 0, 0.5)
+        assert cell.robot_state is not None
+        at_stop = cell.robot_state
         assert await cell.stop() is True
-        with pytest.raises(MoveStoppedError):
+        with pytest.raises(MoveStoppedError) as info:
             await move
         await assert_at_rest(cell)
         q0 = (await cell.get_current_joint_values())[0]
+        # It braked on the jerk-limited profile: no farther than the braking distance from
+        # its speed then (plus what the acceleration at that moment can add).
+        speed = abs(at_stop.actual_qd[0])
+        bound = braking(at_stop.actual_q, [speed, 0, 0, 0, 0, 0], [0.7, 0, 0, 0, 0, 0], LIMITS)
+        assert q0 - at_stop.actual_q[0] <= bound.positions[-1][0] - at_stop.actual_q[0] + 0.02
+        assert info.value.result.stopped  # type: ignore[attr-defined]
         assert 0.1 < q0 < math.pi / 2 - 0.1  # stopped on the way, not at either end
         await cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY, timeout=2.0)
         # and the cell moves again
