@@ -126,9 +126,12 @@ def main() -> None:
         config.write_text(f"robot:\n  host: null\ndaemon:\n  token_file: {tmp}/token\n")
         print("starting the daemon on the embedded simulator ...", flush=True)
         with DaemonProcess.start(config, token=TOKEN) as daemon:
+            daemon.wait_connected()
             headers = {"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": "bench"}
             with httpx.Client(base_url=daemon.url, headers=headers, timeout=10) as client:
+                print("powering on ...", flush=True)
                 client.post("/api/cell/power_on").raise_for_status()
+                print("measuring ...", flush=True)
                 peer_proc, peer_url = start_peer()
                 try:
                     with httpx.Client(base_url=peer_url, timeout=10) as peer_client:

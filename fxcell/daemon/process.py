@@ -31,6 +31,14 @@ def free_port(host: str = "127.0.0.1") -> int:
         return int(sock.getsockname()[1])
 
 
+def _die_with_parent() -> None:
+    """In the child: get SIGTERM when the parent dies (Linux), so no daemon is orphaned."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 class DaemonProcess:
     """A running ``fxcell daemon`` child process."""
 
@@ -68,23 +76,28 @@ class DaemonProcess:
             text=True,
             env=environ,
             start_new_session=True,
+            preexec_fn=_die_with_parent,
         )
         daemon = cls(proc, "", token)
         daemon._drain()
         deadline = time.monotonic() + startup_timeout
-        while time.monotonic() < deadline:
-            try:
-                line = daemon._lines.get(timeout=0.2)
-            except queue.Empty:
-                if proc.poll() is not None and not daemon._reader.is_alive():
+        try:
+            while time.monotonic() < deadline:
+                try:
+                    line = daemon._lines.get(timeout=0.2)
+                except queue.Empty:
+                    if proc.poll() is not None and not daemon._reader.is_alive():
+                        break
+                    continue
+                if line is None:  # end of output: the daemon exited
                     break
-                continue
-            if line is None:  # end of output: the daemon exited
-                break
-            match = _SERVING.search(line.strip())
-            if match:
-                daemon.url = match.group(1)
-                return daemon
+                match = _SERVING.search(line.strip())
+                if match:
+                    daemon.url = match.group(1)
+                    return daemon
+        except BaseException:  # e.g. a test timeout: leave no daemon behind
+            daemon.stop(signal.SIGKILL, timeout=5)
+            raise
         lines = daemon.output
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
