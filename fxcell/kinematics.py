@@ -472,10 +472,30 @@ class Kinematics:
         back on the general path, near the singularities that need its special handling or
         when nothing fits.
         """
-        f = target._R.ravel().tolist() + target._p.tolist()
-        if not self._tcp_is_identity:
-            f = _compose(f, self._tcp_inv)
-        r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz = f
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = target._R.tolist()
+        px, py, pz = target._p.tolist()
+        if not self._tcp_is_identity:  # flange = target · tcp⁻¹, written out
+            b00, b01, b02, b10, b11, b12, b20, b21, b22, bx, by, bz = self._tcp_inv
+            px, py, pz = (
+                r00 * bx + r01 * by + r02 * bz + px,
+                r10 * bx + r11 * by + r12 * bz + py,
+                r20 * bx + r21 * by + r22 * bz + pz,
+            )
+            r00, r01, r02 = (
+                r00 * b00 + r01 * b10 + r02 * b20,
+                r00 * b01 + r01 * b11 + r02 * b21,
+                r00 * b02 + r01 * b12 + r02 * b22,
+            )
+            r10, r11, r12 = (
+                r10 * b00 + r11 * b10 + r12 * b20,
+                r10 * b01 + r11 * b11 + r12 * b21,
+                r10 * b02 + r11 * b12 + r12 * b22,
+            )
+            r20, r21, r22 = (
+                r20 * b00 + r21 * b10 + r22 * b20,
+                r20 * b01 + r21 * b11 + r22 * b21,
+                r20 * b02 + r21 * b12 + r22 * b22,
+            )
         d1, d4, d5, d6, a2, a3 = self._geom
         s0, s1_, s2, s3, s4, s5 = seed
         (lo0, hi0), (lo1, hi1), (lo2, hi2), (lo3, hi3), (lo4, hi4), (lo5, hi5) = self._lo_hi
