@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import functools
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -703,6 +704,7 @@ class MotionController:
         self.acceleration_factor = 1.0
         self.execution: MoveExecution | None = None
         self._move_ids = 0
+        self._plan_lock = threading.Lock()
 
     @property
     def planner(self) -> MotionPlanner:
@@ -735,12 +737,18 @@ class MotionController:
         return vf, af
 
     async def plan(self, method: str, *args: object, **kwargs: object) -> MovePlan | list[MovePlan]:
-        """Run ``MotionPlanner.<method>(*args, **kwargs)`` in a worker thread."""
-        if self._planner is None:
-            await asyncio.to_thread(lambda: self.planner)
-        fn = getattr(self.planner, method)
-        result: MovePlan | list[MovePlan] = await asyncio.to_thread(fn, *args, **kwargs)
-        return result
+        """Run ``MotionPlanner.<method>(*args, **kwargs)`` in a worker thread.
+
+        One plan at a time: a move cancelled while planning leaves its thread running to
+        the end, and the planner's Pinocchio data must not be shared with the next one.
+        """
+
+        def locked() -> MovePlan | list[MovePlan]:
+            with self._plan_lock:
+                result: MovePlan | list[MovePlan] = getattr(self.planner, method)(*args, **kwargs)
+                return result
+
+        return await asyncio.to_thread(locked)
 
     async def execute(self, plans: MovePlan | Sequence[MovePlan], link: LinkClient) -> MoveResult:
         """Stream each plan in turn; the result of the last (see :class:`MoveExecution`)."""
