@@ -366,26 +366,32 @@ def run(args: argparse.Namespace) -> int:
 
 MOVE_COMMANDS = frozenset({"move_joint", "go_home", "move_pose", "move_distance", "move_relative"})
 JOINT_TOLERANCE = 0.01
-"""rad: largest joint deviation of a re-executed move (time-aligned) that counts as equal."""
+"""rad: largest joint deviation of a re-executed move's path that counts as equal."""
 RESULT_TOLERANCE = 1e-3
 """Largest difference of numeric command results (m, rad) that counts as equal."""
-MAX_SHIFT = 0.06
-"""s: a re-executed move may start this much earlier or later than recorded."""
 
 
 @dataclass
 class Trace:
-    """Joint positions over time (s, wall clock) of a session."""
+    """Joint positions of a session: host receive time (s, wall clock), controller time, q."""
 
     times: list[float] = field(default_factory=list)
+    controller: list[float] = field(default_factory=list)
     q: list[tuple[float, ...]] = field(default_factory=list)
 
+    def add(self, when: float, sample: Any) -> None:
+        self.times.append(when)
+        self.controller.append(sample.timestamp)
+        self.q.append(tuple(sample.actual_q))
+
     def window(self, start: float, end: float) -> tuple[Any, Any]:
+        """Samples received in [start, end], on the controller's clock (exact 2 ms steps,
+        free of the host's delivery jitter)."""
         import numpy as np
 
         t = np.asarray(self.times)
         i, j = np.searchsorted(t, start), np.searchsorted(t, end, side="right")
-        return t[i:j] - start, np.asarray(self.q[i:j]).reshape(-1, 6)
+        return np.asarray(self.controller[i:j]), np.asarray(self.q[i:j]).reshape(-1, 6)
 
     def at(self, when: float) -> tuple[float, ...] | None:
         import bisect
@@ -405,7 +411,7 @@ class Comparison:
     recorded_duration: float | None
     duration: float | None
     joint_deviation: float | None = None
-    """rad: largest joint difference of the two state traces over the command."""
+    """rad: largest joint difference of the two paths (moves) or of the joints at the start."""
     result_deviation: float | None = None
     problems: list[str] = field(default_factory=list)
 
@@ -472,37 +478,26 @@ def _numeric_deviation(a: Any, b: Any) -> float | None:
     return None if a == b else math.inf
 
 
-def _onset(t: Any, q: Any, eps: float = 1e-4) -> float:
-    """Time of the first sample at which any joint has moved ``eps`` from where it started."""
+def _path_deviation(rec: Any, new: Any, block: int = 64) -> float | None:
+    """Largest joint distance (max over joints) between two joint paths, either way round.
+
+    A symmetric Hausdorff distance between the sample sets: where the robot went, free of
+    when it got there (streaming jitter on a busy host shifts the timing, not the path).
+    """
     import numpy as np
 
-    moved = np.nonzero(np.max(np.abs(q - q[0]), axis=1) > eps)[0]
-    return float(t[moved[0]]) if len(moved) else 0.0
-
-
-def _trajectory_deviation(rec: tuple[Any, Any], new: tuple[Any, Any]) -> float | None:
-    """Largest joint difference of two traces, aligned on their onset of motion and then
-    shifted in time (± ``MAX_SHIFT``) to fit best."""
-    import numpy as np
-
-    (t_rec, q_rec), (t_new, q_new) = rec, new
-    if len(t_rec) < 2 or len(t_new) < 2:
+    a, b = np.asarray(rec, dtype=float), np.asarray(new, dtype=float)
+    if len(a) == 0 or len(b) == 0:
         return None
-    # align on the onset of motion: planning time before it varies from run to run
-    t_rec = t_rec - _onset(t_rec, q_rec)
-    t_new = t_new - _onset(t_new, q_new)
-    best = math.inf
-    for shift in np.arange(-MAX_SHIFT, MAX_SHIFT + 1e-9, 0.002):
-        t = t_rec + shift
-        keep = (t >= t_new[0]) & (t <= t_new[-1])
-        if keep.sum() < 2:
-            continue
-        dev = max(
-            float(np.max(np.abs(np.interp(t[keep], t_new, q_new[:, j]) - q_rec[keep, j])))
-            for j in range(6)
-        )
-        best = min(best, dev)
-    return None if best == math.inf else best
+
+    def directed(x: Any, y: Any) -> float:
+        worst = 0.0
+        for i in range(0, len(x), block):
+            d = np.max(np.abs(x[i : i + block, None, :] - y[None, :, :]), axis=2)
+            worst = max(worst, float(np.max(np.min(d, axis=1))))
+        return worst
+
+    return max(directed(a, b), directed(b, a))
 
 
 async def reexecute(
@@ -517,10 +512,10 @@ async def reexecute(
 
     The simulator starts at the recorded first joint positions; each command goes out
     at its recorded offset from the first one (never before the command it followed
-    has finished). Outcomes, numeric results and, for moves, the time-aligned joint
-    traces are compared with the recording; ``config`` (a CellConfig, default the
-    standard configuration) is the setup under test — a different TCP shows up as a
-    deviation of pose results and pose moves.
+    has finished). Outcomes, numeric results and, for moves, the joint paths (where the
+    robot went, not when: a busy host shifts the timing) are compared with the recording.
+    ``config`` (a CellConfig, default the standard configuration) is the setup under
+    test: a different TCP shows up as a deviation of pose results and pose moves.
     """
     import asyncio
     import time
@@ -531,8 +526,7 @@ async def reexecute(
     reader = LogReader(path)
     recorded = Trace()
     for msg, sample in reader.decoded([topics.ROBOT_STATE]):
-        recorded.times.append(msg.time)
-        recorded.q.append(tuple(sample.actual_q))
+        recorded.add(msg.time, sample)
     summary = summarize(path)
     commands = top_level_commands(summary.commands)
     if not commands:
@@ -543,8 +537,7 @@ async def reexecute(
 
     def on_event(event: Event) -> None:
         if isinstance(event, StateEvent):
-            new.times.append(time.time())
-            new.q.append(tuple(event.sample.actual_q))
+            new.add(time.time(), event.sample)
 
     options: dict[str, Any] = {"time_scale": time_scale}
     if first_q is not None and len(first_q) == 6:
@@ -604,8 +597,9 @@ async def reexecute(
         if outcome != rec_outcome:
             comp.problems.append(f"outcome {outcome}, recorded {rec_outcome}")
         if c.name in MOVE_COMMANDS and c.ended is not None:
-            comp.joint_deviation = _trajectory_deviation(
-                recorded.window(c.logged, c.logged + (c.ended - c.started)), new.window(t0, t1)
+            comp.joint_deviation = _path_deviation(
+                recorded.window(c.logged, c.logged + (c.ended - c.started))[1],
+                new.window(t0, t1)[1],
             )
         else:
             a, b = recorded.at(c.logged), new.at(t0)

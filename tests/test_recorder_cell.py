@@ -19,7 +19,7 @@ from fxcell.events import CommandEvent, Event, StateEvent, TransitionEvent
 from fxcell.protocol import CONTROL_PERIOD
 from fxcell.recorder import topics
 from fxcell.recorder.protobuf import decode_robot_state
-from fxcell.replay import reexecute
+from fxcell.replay import ReexecuteReport, reexecute
 from fxcell.testing import simulator
 
 TIME_SCALE = 0.05
@@ -120,8 +120,17 @@ def test_a_scripted_cell_session_is_recorded_completely(session: Session) -> Non
             message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
 
 
+async def _reexecute(path: Path, config: CellConfig) -> ReexecuteReport:
+    """Re-execute; once more if the robot link dropped (a starved CPU, not a deviation)."""
+    for _ in range(2):
+        report = await reexecute(path, config=config, time_scale=TIME_SCALE)
+        if not any("ConnectionLostError" in c.outcome for c in report.comparisons):
+            break
+    return report
+
+
 async def test_reexecuting_a_session_reproduces_it(session: Session) -> None:
-    report = await reexecute(session.path, config=CellConfig(), time_scale=TIME_SCALE)
+    report = await _reexecute(session.path, CellConfig())
     assert report.unexpected == [], report.format()
     moves = [c for c in report.comparisons if c.name == "move_joint"]
     assert len(moves) == 1
@@ -131,6 +140,6 @@ async def test_reexecuting_a_session_reproduces_it(session: Session) -> None:
 
 async def test_reexecuting_with_another_tcp_reports_the_deviation(session: Session) -> None:
     other = CellConfig.from_dict({"tool": {"tcp": [0.0, 0.0, 0.2, 0.0, 0.0, 0.0]}})
-    report = await reexecute(session.path, config=other, time_scale=TIME_SCALE)
+    report = await _reexecute(session.path, other)
     flagged = {problem.split(":")[0] for problem in report.unexpected}
-    assert flagged == {"get_current_pose"}  # joint moves do not depend on the TCP
+    assert flagged == {"get_current_pose"}, report.format()  # joint moves ignore the TCP

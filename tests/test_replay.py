@@ -170,20 +170,20 @@ def test_serve_streams_the_file_over_the_foxglove_websocket_protocol(
     assert not runner.is_alive()
 
 
-def test_reexecute_compares_traces_with_the_start_shift_removed() -> None:
+def test_reexecute_compares_where_the_robot_went_not_when() -> None:
     import numpy as np
 
-    from fxcell.replay import _numeric_deviation, _trajectory_deviation
+    from fxcell.replay import _numeric_deviation, _path_deviation
 
     t = np.arange(0, 1.0, 0.002)
     q = np.column_stack([np.sin(2 * t + j) for j in range(6)])
-    later = t + 0.03  # the re-executed move started 30 ms later: same motion
-    shifted = np.column_stack([np.sin(2 * (later - 0.03) + j) for j in range(6)])
-    assert _trajectory_deviation((t, q), (later, shifted)) == pytest.approx(0, abs=1e-6)
-    offset = q + np.array([0, 0, 0.05, 0, 0, 0])  # another path: no time shift explains it
-    deviation = _trajectory_deviation((t, q), (t, offset))
-    assert deviation is not None
-    assert 0.03 < deviation <= 0.05
+    slower = np.column_stack([np.sin(2 * t[::2] * 0.5 + j) for j in range(6)])  # half speed
+    late = np.vstack([np.repeat(q[:1], 40, axis=0), q])  # started 80 ms later
+    assert _path_deviation(q, late) == pytest.approx(0, abs=1e-12)
+    assert _path_deviation(q[: len(q) // 2], slower) == pytest.approx(0, abs=2e-3)
+    offset = q + np.array([0, 0, 0.05, 0, 0, 0])  # another path
+    assert _path_deviation(q, offset) == pytest.approx(0.05, abs=2e-3)
+    assert _path_deviation(q, q[: len(q) // 2]) > 0.5  # stopped half way
     assert _numeric_deviation([0.1, [0.2, 0.3]], [0.1, [0.2, 0.35]]) == pytest.approx(0.05)
     assert _numeric_deviation("a", "a") is None
     assert _numeric_deviation("a", "b") == float("inf")
