@@ -130,6 +130,7 @@ class Kinematics:
         Ri = Rt.T
         self._tcp_inv = (*Ri.ravel().tolist(), *(-(Ri @ pt)).tolist())
         self._tcp = (*Rt.ravel().tolist(), *pt.tolist())
+        self._tcp_matrix = self.tcp.matrix
 
     @classmethod
     def ur3e(
@@ -203,14 +204,50 @@ class Kinematics:
         return Pose._raw(np.array(f[9:]), np.array(f[:9]).reshape(3, 3))
 
     def joint_frames(self, q: ArrayLike) -> list[FloatArray]:
-        """4×4 frames: base, after each of the 6 joints (the last is the flange), then the TCP."""
-        frames = [np.eye(4)]
-        T = frames[0]
-        for theta, d, a, alpha in zip(_joints(q), self.dh.d, self.dh.a, self.dh.alpha, strict=True):
-            T = T @ dh_transform(theta, d, a, alpha)
-            frames.append(T)
-        frames.append(T @ self.tcp.matrix)
-        return frames
+        """4×4 frames: base, after each of the 6 joints (the last is the flange), then the TCP.
+
+        The DH frames 0..6 of UR's convention, written out for the UR geometry like
+        :meth:`_flange` (views into one (8, 4, 4) array).
+        """
+        q1, q2, q3, q4, q5, q6 = _joints(q)
+        d1, d4, d5, d6, a2, a3 = self._geom
+        c1, s1 = math.cos(q1), math.sin(q1)
+        c2, s2 = math.cos(q2), math.sin(q2)
+        c23, s23 = math.cos(q2 + q3), math.sin(q2 + q3)
+        c234, s234 = math.cos(q2 + q3 + q4), math.sin(q2 + q3 + q4)
+        c5, s5 = math.cos(q5), math.sin(q5)
+        c6, s6 = math.cos(q6), math.sin(q6)
+        # x1 = (c1, s1, 0), y1 = (0, 0, 1), z1 = (s1, -c1, 0): joints 2-4 turn in the x1-y1 plane
+        z1 = (s1, -c1, 0.0)
+        o1 = (0.0, 0.0, d1)
+        x2, y2 = (c2 * c1, c2 * s1, s2), (-s2 * c1, -s2 * s1, c2)
+        o2 = (a2 * x2[0], a2 * x2[1], d1 + a2 * x2[2])
+        x3, y3 = (c23 * c1, c23 * s1, s23), (-s23 * c1, -s23 * s1, c23)
+        o3 = (o2[0] + a3 * x3[0], o2[1] + a3 * x3[1], o2[2] + a3 * x3[2])
+        x4, z4 = (c234 * c1, c234 * s1, s234), (s234 * c1, s234 * s1, -c234)
+        o4 = (o3[0] + d4 * z1[0], o3[1] + d4 * z1[1], o3[2])
+        x5 = (c5 * x4[0] + s5 * z1[0], c5 * x4[1] + s5 * z1[1], c5 * x4[2])
+        y5 = (-z4[0], -z4[1], -z4[2])
+        z5 = (-s5 * x4[0] + c5 * z1[0], -s5 * x4[1] + c5 * z1[1], -s5 * x4[2])
+        o5 = (o4[0] + d5 * z4[0], o4[1] + d5 * z4[1], o4[2] + d5 * z4[2])
+        x6 = tuple(c6 * a + s6 * b for a, b in zip(x5, y5, strict=True))
+        y6 = tuple(-s6 * a + c6 * b for a, b in zip(x5, y5, strict=True))
+        o6 = (o5[0] + d6 * z5[0], o5[1] + d6 * z5[1], o5[2] + d6 * z5[2])
+        flat: list[float] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+        for x, y, z, o in (
+            ((c1, s1, 0.0), (0.0, 0.0, 1.0), z1, o1),
+            (x2, y2, z1, o2),
+            (x3, y3, z1, o3),
+            (x4, z1, z4, o4),
+            (x5, y5, z5, o5),
+            (x6, y6, z5, o6),
+        ):
+            flat += (x[0], y[0], z[0], o[0], x[1], y[1], z[1], o[1], x[2], y[2], z[2], o[2])
+        out = np.empty((8, 4, 4))
+        out[:7, :3, :] = np.array(flat).reshape(7, 3, 4)
+        out[:7, 3, :] = (0.0, 0.0, 0.0, 1.0)
+        out[7] = out[6] @ self._tcp_matrix
+        return list(out)
 
     def jacobian(self, q: ArrayLike) -> FloatArray:
         """Geometric Jacobian (6×6) at the TCP in the base frame: rows vx, vy, vz, wx, wy, wz."""

@@ -64,6 +64,12 @@ def test_forward_is_the_product_of_dh_transforms_and_the_tcp(q: np.ndarray) -> N
     assert np.allclose(SEED.forward_flange(q).matrix, T, atol=1e-15)
     frames = SEED.joint_frames(q)
     assert len(frames) == 8
+    T = np.eye(4)
+    for k, (theta, d, a, alpha) in enumerate(
+        zip(q, UR3E_DH.d, UR3E_DH.a, UR3E_DH.alpha, strict=True)
+    ):
+        assert np.allclose(frames[k], T, atol=1e-15)
+        T = T @ dh_transform(theta, d, a, alpha)
     assert np.allclose(frames[6], T, atol=1e-15)
     assert np.allclose(frames[7], T @ tcp.matrix, atol=1e-15)
 
