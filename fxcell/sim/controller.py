@@ -200,19 +200,30 @@ class Controller:
                     del self._pending[name]
             callback()
 
-    def tick(self) -> None:
-        """Advance one control cycle: timers, watchdog, script, motion, safety."""
-        self.ticks += 1
-        self.time = self.ticks * CONTROL_PERIOD
-        self._run_timers()
-        if self.watchdog is not None and self.runtime_state == RuntimeState.PLAYING:
-            self._check_watchdog()
-        if self.script is not None and self.runtime_state == RuntimeState.PLAYING:
-            self.script.step()
-        moving = self.robot_mode == RobotMode.RUNNING
-        violation = self.arm.step(CONTROL_PERIOD, enabled=moving)
-        if violation is not None:
-            self.protective_stop(violation)
+    @property
+    def idle(self) -> bool:
+        """Nothing changes from cycle to cycle but the clock (and pending timers)."""
+        return self.script is None and self.watchdog is None and not self.arm.active
+
+    def tick(self, steps: int = 1) -> None:
+        """Advance ``steps`` control cycles: timers, watchdog, script, motion, safety."""
+        if self.idle:  # only the clock and the timers move: one step for all
+            self.ticks += steps
+            self.time = self.ticks * CONTROL_PERIOD
+            self._run_timers()
+            return
+        for _ in range(steps):
+            self.ticks += 1
+            self.time = self.ticks * CONTROL_PERIOD
+            self._run_timers()
+            if self.watchdog is not None and self.runtime_state == RuntimeState.PLAYING:
+                self._check_watchdog()
+            if self.script is not None and self.runtime_state == RuntimeState.PLAYING:
+                self.script.step()
+            moving = self.robot_mode == RobotMode.RUNNING
+            violation = self.arm.step(CONTROL_PERIOD, enabled=moving)
+            if violation is not None:
+                self.protective_stop(violation)
 
     # ------------------------------------------------------------------ status words
 

@@ -450,6 +450,11 @@ class Arm:
         self._cycle = 0
 
     @property
+    def active(self) -> bool:
+        """A motion generator runs or the joints still move."""
+        return self.generator is not None or self.qd is not ZERO6
+
+    @property
     def moving(self) -> bool:
         return self.qd is not ZERO6 and bool(self.qd.any())
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import struct
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -293,7 +294,7 @@ class OutputRecipe:
         self.names = names
         self.pack = compile_output_recipe(names, recipe_id)
         self.step = frequency / 500.0
-        self.phase = 1.0  # send on the first cycle after start
+        self.phase = 1.0 - self.step  # the first cycle after start sends
 
 
 class RTDEHub:
@@ -305,12 +306,22 @@ class RTDEHub:
         self.connections: set[RTDEConnection] = set()
         self.owners: dict[str, RTDEConnection] = {}
         self.packets_sent = 0
+        self.on_activity: Callable[[], None] = lambda: None
+
+    @property
+    def streaming(self) -> bool:
+        return any(conn.started for conn in self.connections)
 
     def protocol(self) -> RTDEConnection:
         return RTDEConnection(self)
 
-    def stream(self) -> None:
-        """Called once per control cycle: send every due output packet."""
+    def stream(self, steps: int = 1) -> None:
+        """Send every due output packet; ``steps`` control cycles passed since the last call.
+
+        A recipe at frequency f is due each time the controller clock crosses a multiple
+        of 1/f; after a late wake-up only the newest sample goes out (as the client keeps
+        only the newest anyway).
+        """
         if self.controller.time < self.controller.rtde_stalled_until:
             return
         s = self.state
@@ -319,9 +330,9 @@ class RTDEHub:
             if not conn.started or conn.transport is None:
                 continue
             for recipe in conn.outputs:
-                recipe.phase += recipe.step
+                recipe.phase += recipe.step * steps
                 if recipe.phase >= 0.999999:
-                    recipe.phase -= 1.0
+                    recipe.phase -= math.floor(recipe.phase + 1e-6)
                     conn.transport.write(recipe.pack(s, r))
                     self.packets_sent += 1
             if conn.transport.get_write_buffer_size() > MAX_WRITE_BUFFER:
@@ -402,6 +413,7 @@ class RTDEConnection(asyncio.Protocol):
                 log.warning("RTDE %s: short data packet for recipe %d", self.peer, payload[0])
                 return
             recipe.apply(self.hub.controller, payload)
+            self.hub.on_activity()
         elif kind == 86:  # 'V' protocol version
             version = struct.unpack_from(">H", payload)[0] if len(payload) >= 2 else 0
             self._send(86, bytes([1 if version in (1, 2) else 0]))
@@ -415,8 +427,9 @@ class RTDEConnection(asyncio.Protocol):
             self._setup_inputs(payload)
         elif kind == 83:  # 'S' start
             self.started = True
+            self.hub.on_activity()
             for output in self.outputs:
-                output.phase = 1.0
+                output.phase = 1.0 - output.step
             self._send(83, b"\x01")
         elif kind == 80:  # 'P' pause
             self.started = False

@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 
 CONTROL_PORT = 29990  # simulator control: "inject FAULT [ARGS]", "state", "set_joints q1..q6"
 PORTS = (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, SECONDARY_PORT, CONTROL_PORT)
+IDLE_PERIOD = 0.02  # s: cycle period while no client streams and nothing moves
 URCAP_TIMEOUT = 5.0
 URCAP_END_MARKER = "# NODE_CONTROL_LOOP_ENDS"
 
@@ -176,12 +177,14 @@ class SimServer:
         self._stopping: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._deadline = 0.0
-        self._handle: asyncio.TimerHandle | None = None
+        self._handle: asyncio.Handle | None = None
         self._urcap_task: asyncio.Task[None] | None = None
         self._fk_version = -1
         self._qd_published: object = None
         self._prev_tcp: tuple[np.ndarray, np.ndarray] | None = None
         self.late_cycles = 0
+        self._idle = False
+        self.hub.on_activity = self.wake
         self.publish_state()
 
     # ------------------------------------------------------------------ state
@@ -229,6 +232,11 @@ class SimServer:
     # ------------------------------------------------------------------ cycle
 
     def _cycle(self) -> None:
+        """One wake-up: stream, then advance by every 2 ms grid point passed since the last.
+
+        ``_deadline`` is the wall-clock time of the next unprocessed grid point, so the
+        controller clock follows the wall clock whatever the wake-up times.
+        """
         loop = self._loop
         assert loop is not None
         now = loop.time()
@@ -240,13 +248,24 @@ class SimServer:
             self.late_cycles += steps
             self._deadline = now + CONTROL_PERIOD
             steps = 1
-        elif steps > 1:
+        elif steps > 1 and not self._idle:
             self.late_cycles += steps - 1
-        self.hub.stream()
-        for _ in range(max(steps, 1)):
-            self.controller.tick()
-        self.publish_state()
-        self._handle = loop.call_at(self._deadline, self._cycle)
+        self.hub.stream(steps)
+        if steps:
+            self.controller.tick(steps)
+            self.publish_state()
+        # Nobody streaming and nothing moving: wake at 50 Hz (the controller clock catches
+        # up in one step). Streaming or motion: every cycle.
+        self._idle = self.controller.idle and not self.hub.streaming
+        wake_at = self._deadline + (IDLE_PERIOD - CONTROL_PERIOD if self._idle else 0.0)
+        self._handle = loop.call_at(wake_at, self._cycle)
+
+    def wake(self) -> None:
+        """Leave the idle rate now (a client started streaming or sent a command)."""
+        if self._idle and self._handle is not None and self._loop is not None:
+            self._idle = False
+            self._handle.cancel()
+            self._handle = self._loop.call_soon(self._cycle)
 
     # ------------------------------------------------------------------ control port
 
