@@ -16,7 +16,6 @@ shared joint). Scene pairs get a safety margin (``scene_margin``).
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -29,7 +28,8 @@ from numpy.typing import ArrayLike, NDArray
 from fxcell.config import CellConfig, SceneConfig
 from fxcell.errors import CollisionError
 from fxcell.geometry import rpy_to_matrix
-from fxcell.kinematics import UR3E_DH, Kinematics, dh_transform
+from fxcell.kinematics import UR3E_DH, Kinematics
+from fxcell.robot_model import RobotModel
 
 Array = NDArray[np.float64]
 
@@ -187,8 +187,13 @@ class CollisionChecker:
     @classmethod
     def for_config(cls, config: CellConfig, **options: float | bool) -> CollisionChecker:
         """The checker for a cell: the UR3e model, the gripper and the configured scene."""
-        model, flange = _arm_model(config)
-        return cls(model, config.scene, flange_in_joint6=flange, **options)  # type: ignore[arg-type]
+        robot = RobotModel.ur3e(limits=config.limits)
+        return cls(
+            robot.model,
+            config.scene,
+            flange_in_joint6=robot.flange_in_joint6,
+            **options,  # type: ignore[arg-type]
+        )
 
     # ------------------------------------------------------------ queries
 
@@ -251,24 +256,6 @@ class CollisionChecker:
         travelled = np.concatenate(([0.0], np.cumsum(steps)))
         idx = np.searchsorted(travelled, np.arange(0.0, travelled[-1], self.resolution))
         return sorted({*idx.tolist(), len(s) - 1})
-
-
-def _arm_model(config: CellConfig) -> tuple[pin.Model, pin.SE3 | None]:
-    """The UR3e's Pinocchio model and flange placement from :mod:`fxcell.robot_model`, or
-    (where that module is missing) a bare chain of the six revolute joints from UR's DH
-    parameters (the flange placement is then derived from :mod:`fxcell.kinematics`)."""
-    try:
-        robot_model = importlib.import_module("fxcell.robot_model")
-        robot = robot_model.RobotModel.ur3e(limits=config.limits)
-        return robot.model, robot.flange_in_joint6
-    except (ImportError, AttributeError, TypeError):
-        model = pin.Model()
-        parent, placement = 0, pin.SE3.Identity()
-        for i in range(6):
-            parent = model.addJoint(parent, pin.JointModelRZ(), placement, f"joint{i + 1}")
-            T = dh_transform(0.0, UR3E_DH.d[i], UR3E_DH.a[i], UR3E_DH.alpha[i])
-            placement = pin.SE3(T[:3, :3], T[:3, 3])
-        return model, None
 
 
 def _bisection_order(n: int) -> Sequence[int]:
