@@ -275,19 +275,29 @@ class Kinematics:
         shoulder = abs(math.cos(qq[0]) * x5 + math.sin(qq[0]) * y5)
         return shoulder, abs(math.sin(qq[2])), abs(math.sin(qq[4]))
 
-    def check_singularity(
+    def singularity(
         self, q: ArrayLike, *, distance: float = 1e-3, sine: float = 1e-3
-    ) -> None:
-        """Raise :class:`SingularityError` if ``q`` is within the given margins of one."""
-        qq = np.array(_joints(q))
-        shoulder, elbow, wrist = self.singularity_margins(qq)
+    ) -> str | None:
+        """``"shoulder"``, ``"elbow"`` or ``"wrist"`` if ``q`` is within the margins of that
+        singularity (``distance`` in metres for the shoulder, ``sine`` for |sin θ3| and
+        |sin θ5|), else None."""
+        shoulder, elbow, wrist = self.singularity_margins(q)
         for name, value, tol in (
             ("shoulder", shoulder, distance),
             ("elbow", elbow, sine),
             ("wrist", wrist, sine),
         ):
             if value < tol:
-                raise SingularityError(f"{name} singularity at q={np.round(qq, 6).tolist()}")
+                return name
+        return None
+
+    def check_singularity(
+        self, q: ArrayLike, *, distance: float = 1e-3, sine: float = 1e-3
+    ) -> None:
+        """Raise :class:`SingularityError` if ``q`` is within the given margins of one."""
+        kind = self.singularity(q, distance=distance, sine=sine)
+        if kind is not None:
+            raise SingularityError(f"{kind} singularity at q={np.round(_joints(q), 6).tolist()}")
 
     # ------------------------------------------------------------ inverse
 
@@ -645,49 +655,58 @@ class Kinematics:
         seed: ArrayLike | None = None,
         *,
         valid: JointValidity | None = None,
+        singularity_margin: float | None = None,
         refine: bool = False,
     ) -> FloatArray:
         """Joint positions reaching ``pose`` (TCP, base frame), nearest ``seed`` within limits.
 
         Nearest = smallest Euclidean distance in joint space, over the closed-form branches
         and their 2π shifts. ``valid`` (e.g. a collision check) rejects candidates; the
-        nearest accepted one is returned. ``refine`` adds Newton steps (the closed form is
-        already exact to rounding error). ``pose`` may be anything :meth:`Pose.parse`
-        accepts. Raises :class:`UnreachableError` when no solution is left.
+        nearest accepted one is returned. ``singularity_margin`` rejects candidates that
+        close to a singularity (see :meth:`singularity`; the same value is used as metres
+        and as sine). ``refine`` adds Newton steps (the closed form is already exact to
+        rounding error). ``pose`` may be anything :meth:`Pose.parse` accepts.
+
+        Raises :class:`UnreachableError` when no solution is within reach and the limits or
+        accepted by ``valid``, :class:`SingularityError` when the only solutions left are
+        singular.
         """
         target = pose if isinstance(pose, Pose) else Pose.parse(pose)
         s = [0.0] * 6 if seed is None else _joints(seed)
-        if valid is None and not refine:
+        if valid is None and singularity_margin is None and not refine:
             fast = self._fast_nearest(target, s)
             if fast is not None:
                 return np.array(fast)
         branches = self._branches(target, s)
         if not branches:
             raise UnreachableError(f"pose out of reach of the arm: {target!r}")
-        best: list[float] | None = None
-        if valid is None:
-            best_d = math.inf
-            for sol in branches:
-                cand = self._nearest(sol, s)
-                if cand is not None and cand[0] < best_d:
-                    best_d, best = cand
-        else:
-            ranked = sorted(c for c in (self._nearest(b, s) for b in branches) if c)
-            for _, sol in ranked:
-                if valid(np.array(sol)):
-                    best = sol
-                    break
-            if best is None and ranked:
-                raise UnreachableError(
-                    f"{len(ranked)} inverse-kinematics solutions within the joint limits, "
-                    f"none accepted by the validity check, for {target!r}"
-                )
-        if best is None:
+        ranked = sorted(c for c in (self._nearest(b, s) for b in branches) if c)
+        if not ranked:
             raise UnreachableError(
                 f"no inverse-kinematics solution within the joint limits: {target!r}"
             )
-        q = np.array(best)
-        return self.refine(q, target) if refine else q
+        singular: str | None = None
+        rejected = 0
+        for _, sol in ranked:
+            q = np.array(sol)
+            if singularity_margin is not None:
+                kind = self.singularity(q, distance=singularity_margin, sine=singularity_margin)
+                if kind is not None:
+                    singular = singular or kind
+                    continue
+            if valid is not None and not valid(q):
+                rejected += 1
+                continue
+            return self.refine(q, target) if refine else q
+        if rejected == 0 and singular is not None:
+            raise SingularityError(
+                f"every inverse-kinematics solution for {target!r} is within "
+                f"{singularity_margin} of a singularity (the nearest: {singular})"
+            )
+        raise UnreachableError(
+            f"{len(ranked)} inverse-kinematics solutions within the joint limits, "
+            f"none accepted by the validity check, for {target!r}"
+        )
 
     def inverse_all(
         self, pose: Pose | Sequence[float], seed: ArrayLike | None = None

@@ -206,6 +206,28 @@ def test_wrist_singular_pose_is_solved_whatever_the_seed_wrist() -> None:
         assert FLANGE.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
 
 
+def test_singularity_margin_skips_singular_solutions_or_raises() -> None:
+    # straight up: θ1 has a single solution (shoulder), the elbow is stretched
+    pose = FLANGE.forward(HOME)
+    assert all(FLANGE.singularity(s) is not None for s in FLANGE.inverse_all(pose))
+    assert FLANGE.singularity(FLANGE.inverse(pose, seed=HOME)) is not None
+    with pytest.raises(SingularityError, match="singularity"):
+        FLANGE.inverse(pose, seed=HOME, singularity_margin=1e-3)
+    # wrist singular in the seed's shoulder branch only: the other shoulder is taken
+    q = np.array([0.4, -1.3, 1.2, -1.0, 0.0, 0.7])
+    pose = FLANGE.forward(q)
+    assert FLANGE.singularity(q) == "wrist"
+    sol = FLANGE.inverse(pose, seed=q, singularity_margin=1e-3)
+    assert FLANGE.singularity(sol) is None
+    assert FLANGE.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
+    # a singular candidate is skipped before the validity check sees it
+    seen: list[np.ndarray] = []
+    FLANGE.inverse(
+        pose, seed=q, singularity_margin=1e-3, valid=lambda c: bool(seen.append(c)) or True
+    )
+    assert all(FLANGE.singularity(c) is None for c in seen)
+
+
 def test_elbow_stretched_and_shoulder_singular_poses_are_solved() -> None:
     stretched = np.array([0.2, -0.9, 0.0, -1.0, 0.8, 0.3])
     pose = FLANGE.forward(stretched)
