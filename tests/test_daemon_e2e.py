@@ -4,6 +4,7 @@ client: life cycle, moves as operations, refusals, and a clean SIGTERM mid-move.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import signal
@@ -290,12 +291,21 @@ async def test_stream_rate_is_selectable(daemon: DaemonProcess) -> None:
 def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
     tmp_path: Path,
 ) -> None:
+    import socket
+
     from mcap.reader import make_reader
 
     logs = tmp_path / "logs"
-    with DaemonProcess.start(
-        write_config(tmp_path), token=TOKEN, log_dir=logs, extra_args=SIM_ARGS
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)  # plays systemd's part
+    notify.bind(str(tmp_path / "notify"))
+    notify.settimeout(10)
+    systemd = {"NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "1000000"}
+    with notify, DaemonProcess.start(
+        write_config(tmp_path), token=TOKEN, log_dir=logs, extra_args=SIM_ARGS, env=systemd
     ) as daemon, httpx.Client(base_url=daemon.url, timeout=30) as http:  # fmt: skip
+        notices = [notify.recv(4096).decode() for _ in range(2)]
+        assert any(n.startswith("READY=1") for n in notices), notices
+        assert "WATCHDOG=1" in notices
         daemon.wait_connected()
         assert http.post("/api/cell/init", headers=headers()).status_code == 200
         q = http.get("/api/state").json()["robot"]["q"]
@@ -312,6 +322,12 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
         t0 = time.monotonic()
         code = daemon.stop(signal.SIGTERM, timeout=10)
         elapsed = time.monotonic() - t0
+        notices = []
+        notify.settimeout(0)
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                notices.append(notify.recv(4096).decode())
+        assert "STOPPING=1" in notices
     assert code == 0, "\n".join(daemon.output[-30:])
     assert elapsed < 3.0
     files = sorted(logs.glob("*.mcap"))
@@ -414,3 +430,26 @@ def test_operator_cli_talks_to_the_daemon(daemon: DaemonProcess) -> None:
     out = fxcell("power-on")  # refused in the current state: a clear error, exit 1
     assert out.returncode == 1
     assert "InvalidStateError" in out.stderr or "not allowed in state" in out.stderr
+
+
+def test_daemon_serves_while_the_robot_is_unreachable(tmp_path: Path) -> None:
+    config = tmp_path / "cell.yaml"
+    config.write_text(
+        f"robot:\n  host: 127.0.0.254\n  connect_timeout: 0.5\n"
+        f"daemon:\n  token_file: {tmp_path / 'token'}\n"
+    )
+    with DaemonProcess.start(config, token=TOKEN) as daemon:
+        deadline = time.monotonic() + 30
+        while True:
+            snapshot = httpx.get(f"{daemon.url}/api/state", timeout=10).json()
+            if snapshot["cell_error"]:
+                break
+            assert time.monotonic() < deadline, snapshot
+            time.sleep(0.05)
+        assert snapshot["state"] == "disconnected"
+        r = httpx.post(f"{daemon.url}/api/cell/power_on", headers=headers(), timeout=10)
+        assert r.status_code == 503
+        assert "not connected" in r.json()["error"]["message"]
+        code = daemon.stop(signal.SIGTERM, timeout=10)
+    assert code == 0
+    assert any("reopening in" in line for line in daemon.output)
