@@ -110,6 +110,9 @@ def test_movel_fk_and_movej_ik_reach_their_targets(ready: Robot) -> None:
     assert ready.c.moveJ(START, 2.0, 4.0)
     assert ready.c.moveJ_IK(pose, 2.0, 4.0)
     assert np.abs(np.asarray(ready.r.getActualQ()) - q).max() < 1e-9
+    lower = [pose[0], pose[1], pose[2] - 0.05, *pose[3:]]
+    assert ready.c.moveL(lower, 0.2, 1.0)  # synchronous
+    assert np.abs(np.asarray(ready.r.getActualTCPPose()) - lower).max() < 1e-9
 
 
 def test_async_movej_reports_progress_then_finishes(ready: Robot) -> None:

@@ -88,6 +88,21 @@ def test_a_link_entering_the_table_is_a_protective_stop(clients: Clients) -> Non
     assert r.getActualQ()[1] < 0.6
 
 
+def test_injected_protective_stop_is_seen_by_every_client(clients: Clients) -> None:
+    sim, c, r = clients.sim, clients.c, clients.r
+    assert c.moveJ([0.6, *START[1:]], 0.5, 1.0, True)
+    sim.inject("protective_stop")
+    wait_until(r.isProtectiveStopped, what="protective stop")
+    assert r.getSafetyStatusBits() == 1 << 2 | 1 << 10
+    assert sim.dashboard("safetystatus") == "Safetystatus: PROTECTIVE_STOP"
+    assert sim.dashboard("robotmode") == "Robotmode: RUNNING"
+    wait_until(lambda: r.getActualQd() == [0.0] * 6, what="rest")
+    assert 0.0 < r.getActualQ()[0] < 0.6
+    assert not c.isProgramRunning()
+    assert not c.moveJ(START, 1.0, 1.0)
+    assert sim.dashboard("unlock protective stop").startswith("Cannot unlock protective stop")
+
+
 def test_speedj_far_beyond_the_joint_limit_is_a_protective_stop(clients: Clients) -> None:
     clients.c.speedJ([0, 0, 0, 0, 0, 20.0], 1.0, 0.002)
     wait_until(clients.r.isProtectiveStopped, what="protective stop")
