@@ -358,6 +358,11 @@ class LinkClient:
             self._on_status(status, reason)
 
     @property
+    def last_sample_time(self) -> float:
+        """``time.monotonic()`` when the newest state sample arrived."""
+        return self._last_sample
+
+    @property
     def up(self) -> bool:
         return self.status is LinkStatus.UP
 
@@ -441,14 +446,22 @@ class LinkClient:
             self._writer = None
 
     async def _watchdog(self) -> None:
+        """Mark the link down when the stream has been silent for STALE_AFTER.
+
+        Sleeps until the moment the newest sample would go stale (not a fixed poll),
+        so a silent stream is reported 100 ms after its last sample, give or take the
+        loop's lag.
+        """
         while True:
-            await asyncio.sleep(0.02)
             if self.status is not LinkStatus.UP:
+                await asyncio.sleep(0.01)
                 continue
             limit = HOLD_STALE_AFTER if self._hold else STALE_AFTER
             silent = time.monotonic() - self._last_sample
-            if silent > limit:
-                self._set_status(LinkStatus.DOWN, f"no robot state for {silent * 1000:.0f} ms")
+            if silent < limit:
+                await asyncio.sleep(min(limit - silent, 0.05))
+                continue
+            self._set_status(LinkStatus.DOWN, f"no robot state for {silent * 1000:.0f} ms")
 
     async def _kill(self) -> None:
         process, self._process = self._process, None
