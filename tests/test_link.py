@@ -116,7 +116,7 @@ async def test_stalled_rtde_marks_the_link_down_then_up(sim: Any) -> None:
         await asyncio.to_thread(sim.inject, "stall_rtde", "0.5")
         await _until(lambda: bool(down_at), 1.0, "link down")
         silent = down_at[0] - link.last_sample_time
-        assert 0.1 <= silent < 0.13  # reported 100 ms after the last sample (+ loop lag)
+        assert 0.1 <= silent < 0.15  # reported 100 ms after the last sample (+ loop lag)
         await link.wait_up(10)
 
 
