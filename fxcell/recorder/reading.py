@@ -29,7 +29,6 @@ from fxcell.recorder import topics
 from fxcell.recorder.protobuf import decode_robot_state
 from fxcell.recorder.recovery import (
     RawMessage,
-    _Walk,
     chunk_records,
     is_finished,
     iter_records,
@@ -108,8 +107,7 @@ class LogReader:
     def _scan(self) -> None:
         from mcap.records import Attachment, Metadata
 
-        self._walk = _Walk()
-        for rec in iter_records(self.path, self._walk):
+        for rec in iter_records(self.path):
             if isinstance(rec, RawMessage):
                 ch = self.channels.get(rec.channel_id)
                 if ch is not None:
