@@ -206,9 +206,13 @@ class Kinematics:
     def joint_frames(self, q: ArrayLike) -> list[FloatArray]:
         """4×4 frames: base, after each of the 6 joints (the last is the flange), then the TCP.
 
-        The DH frames 0..6 of UR's convention, written out for the UR geometry like
-        :meth:`_flange` (views into one (8, 4, 4) array).
+        The DH frames 0..6 of UR's convention (views into one (8, 4, 4) array).
         """
+        return list(self._frames(q))
+
+    def _frames(self, q: ArrayLike) -> FloatArray:
+        """The :meth:`joint_frames` as one (8, 4, 4) array, written out for the UR geometry
+        like :meth:`_flange`."""
         q1, q2, q3, q4, q5, q6 = _joints(q)
         d1, d4, d5, d6, a2, a3 = self._geom
         c1, s1 = math.cos(q1), math.sin(q1)
@@ -247,17 +251,18 @@ class Kinematics:
         out[:7, :3, :] = np.array(flat).reshape(7, 3, 4)
         out[:7, 3, :] = (0.0, 0.0, 0.0, 1.0)
         out[7] = out[6] @ self._tcp_matrix
-        return list(out)
+        return out
 
     def jacobian(self, q: ArrayLike) -> FloatArray:
         """Geometric Jacobian (6×6) at the TCP in the base frame: rows vx, vy, vz, wx, wy, wz."""
-        frames = self.joint_frames(q)
-        p_tcp = frames[-1][:3, 3]
+        F = self._frames(q)
+        z = F[:6, :3, 2]  # joint k turns about z of frame k-1
+        d = F[7, :3, 3] - F[:6, :3, 3]  # from each joint axis to the TCP
         J = np.empty((6, 6))
-        for i in range(6):
-            z = frames[i][:3, 2]
-            J[:3, i] = np.cross(z, p_tcp - frames[i][:3, 3])
-            J[3:, i] = z
+        J[0] = z[:, 1] * d[:, 2] - z[:, 2] * d[:, 1]
+        J[1] = z[:, 2] * d[:, 0] - z[:, 0] * d[:, 2]
+        J[2] = z[:, 0] * d[:, 1] - z[:, 1] * d[:, 0]
+        J[3:] = z.T
         return J
 
     # ------------------------------------------------------------ singularities

@@ -265,3 +265,14 @@ def test_parse_gives_a_pose_or_an_invalid_target_error(obj: object) -> None:
     assert len(obj) in (6, 7)
     assert np.all(np.isfinite(pose.matrix))
     _assert_rotation(pose.rotation)
+
+
+def test_pose_survives_pickling_and_copying() -> None:
+    import copy
+    import pickle
+
+    pose = Pose.from_ur([0.1, -0.2, 0.3, 0.4, -0.5, 0.6])
+    for other in (pickle.loads(pickle.dumps(pose)), copy.deepcopy(pose)):
+        assert other == pose
+        assert hash(other) == hash(pose)
+        assert not other.position.flags.writeable
