@@ -22,6 +22,7 @@ from typing import Any
 
 from fxcell.errors import InvalidArgumentError, RecorderError
 from fxcell.recorder import topics
+from fxcell.recorder.protobuf import decode_robot_state
 from fxcell.recorder.reading import LogMessage, LogReader
 
 PROTECTIVE_STOP = "PROTECTIVE_STOP"
@@ -254,9 +255,10 @@ def plot(path: str | Path, out: str | Path, *, max_points: int = 20_000) -> Path
     stride = max(1, math.ceil(n / max_points))
     t0 = (reader.start_time or 0) / 1e9
     times, q, qd, tcp = [], [], [], []
-    for i, (msg, s) in enumerate(reader.decoded([topics.ROBOT_STATE])):
+    for i, msg in enumerate(reader.messages([topics.ROBOT_STATE])):
         if i % stride:
-            continue
+            continue  # decode only the samples that are drawn
+        s = decode_robot_state(msg.data)
         times.append(msg.time - t0)
         q.append(s.actual_q)
         qd.append(s.actual_qd)
