@@ -9,7 +9,6 @@ points, keeping the IK branch continuous and checking collisions along the line.
 
 from __future__ import annotations
 
-import itertools
 import math
 import threading
 import time
@@ -145,24 +144,28 @@ class JointPlanner:
         if self.checker.motion_free(a, b):
             return JointPath(np.array([a, b]), "direct", time.perf_counter() - t0)
         with self._lock:
-            for window in (self.window, None, None):  # the full limits if the box fails
+            # First the joint box around start and goal, briefly; then the full limits.
+            attempts = ((self.window, 0.25), (None, 1.0), (None, 1.0))
+            for window, share in attempts:
+                left = self.timeout - (time.perf_counter() - t0)
+                if left <= 0:
+                    break
                 try:
-                    pts, t1 = self._search(a, b, t0, window)
+                    pts, t1 = self._search(a, b, max(share * left, 0.01), window)
                 except PlanningError:
-                    if time.perf_counter() - t0 >= self.timeout:
-                        raise
                     continue
-                pts = self._shortcut(pts)
-                fine = self.checker.resolution
-                if all(self.checker.motion_free(p, q, fine) for p, q in itertools.pairwise(pts)):
-                    return JointPath(pts, self.planner_name, t1 - t0, time.perf_counter() - t1)
+                short = self._shortcut(pts)
+                if short is not None:
+                    return JointPath(short, self.planner_name, t1 - t0, time.perf_counter() - t1)
         raise PlanningError(
             f"{self.planner_name} found no collision-free path in {self.timeout:g} s"
         )
 
-    def _search(self, a: Array, b: Array, t0: float, window: float | None) -> tuple[Array, float]:
+    def _search(
+        self, a: Array, b: Array, budget: float, window: float | None
+    ) -> tuple[Array, float]:
         ss, keep = self._setup(a, b, window)
-        solved = ss.solve(max(self.timeout - (time.perf_counter() - t0), 0.01))
+        solved = ss.solve(budget)
         if not (solved and ss.haveExactSolutionPath()):
             raise PlanningError("no path")
         t1 = time.perf_counter()
@@ -176,16 +179,19 @@ class JointPlanner:
         pts[0], pts[-1] = a, b
         return pts, t1
 
-    def _shortcut(self, pts: Array) -> Array:
-        """Greedy: from each kept waypoint jump to the farthest directly reachable one."""
+    def _shortcut(self, pts: Array) -> Array | None:
+        """Greedy: from each kept waypoint jump to the farthest one the straight line
+        reaches free of collision at the fine resolution (blocked lines fail fast: their
+        middle is checked first). None if even a segment of the searched path fails."""
+        free = self.checker.motion_free
         out = [pts[0]]
         i = 0
         while i < len(pts) - 1:
             j = len(pts) - 1
-            while j > i + 1 and not self.checker.motion_free(
-                pts[i], pts[j], 3 * self.checker.resolution
-            ):
+            while j > i + 1 and not free(pts[i], pts[j]):
                 j -= 1
+            if j == i + 1 and not free(pts[i], pts[j]):
+                return None  # the search's coarse check missed a thin contact
             out.append(pts[j])
             i = j
         return np.array(out)
