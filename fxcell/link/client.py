@@ -109,9 +109,9 @@ class TrajectoryHandle:
         if self.done:
             return False
         if at_index is None:
-            self._link._send(wire.TRAJ_REPLACE, self.id, array)
+            self._link._send(wire.TRAJ_REPLACE, self.id, wire.pack_samples(array))
         else:
-            self._link._send(wire.TRAJ_REPLACE, self.id, array, int(at_index))
+            self._link._send(wire.TRAJ_REPLACE, self.id, wire.pack_samples(array), int(at_index))
         getter = asyncio.ensure_future(self._replaced.get())
         try:
             waitables: set[asyncio.Future[Any]] = {getter, self._done}
@@ -611,7 +611,7 @@ class LinkClient:
         )
         self._trajectories[traj_id] = handle
         try:
-            self._send(wire.TRAJ_START, traj_id, array, lookahead_time, gain)
+            self._send(wire.TRAJ_START, traj_id, wire.pack_samples(array), lookahead_time, gain)
         except BaseException:
             self._trajectories.pop(traj_id, None)
             raise

@@ -29,9 +29,6 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-
 from fxcell.link import wire
 from fxcell.link.rtde_stream import RTDEStream
 from fxcell.protocol import (
@@ -183,15 +180,15 @@ class Link:
             _, request_id, method, kwargs = message
             self._calls.put((request_id, method, kwargs))
         elif kind == wire.TRAJ_START:
-            _, traj_id, samples, lookahead, gain = message
-            self._start_trajectory(traj_id, samples, lookahead, gain)
+            _, traj_id, packed, lookahead, gain = message
+            self._start_trajectory(traj_id, wire.unpack_samples(packed), lookahead, gain)
         elif kind == wire.TRAJ_REPLACE:
             traj_id, samples = message[1], message[2]
             at_index = message[3] if len(message) > 3 else None
             with self._traj_lock:
                 traj = self._traj
             if traj is not None and traj.id == traj_id:
-                traj.replace(samples, at_index)
+                traj.replace(wire.unpack_samples(samples), at_index)
             else:
                 self.send(wire.TRAJ, traj_id, "replaced", {"ok": False})
         elif kind == wire.TRAJ_STOP:
@@ -431,7 +428,7 @@ class Link:
     # -- trajectories
 
     def _start_trajectory(
-        self, traj_id: int, samples: NDArray[np.float64], lookahead: float, gain: float
+        self, traj_id: int, samples: wire.Samples, lookahead: float, gain: float
     ) -> None:
         with self._traj_lock:
             old = self._traj
@@ -459,24 +456,24 @@ class _Trajectory:
     SETTLE_MAX = 0.3  # s, beyond twice the lookahead time, to settle on the last sample
 
     def __init__(
-        self, link: Link, traj_id: int, samples: NDArray[np.float64], lookahead: float, gain: float
+        self, link: Link, traj_id: int, samples: wire.Samples, lookahead: float, gain: float
     ) -> None:
         self.link = link
         self.id = traj_id
-        self.samples = np.asarray(samples, dtype=float)
+        self.samples = samples
         self.lookahead = lookahead
         self.gain = gain
         self._lock = threading.Lock()
-        self._replacement: tuple[NDArray[np.float64], int | None] | None = None
+        self._replacement: tuple[wire.Samples, int | None] | None = None
         self._stop_reason: str | None = None
         self.thread = threading.Thread(target=self._run, name=f"trajectory-{traj_id}", daemon=True)
 
-    def replace(self, samples: NDArray[np.float64], at_index: int | None = None) -> None:
+    def replace(self, samples: wire.Samples, at_index: int | None = None) -> None:
         """Replace the samples not yet sent; with ``at_index``, ``samples[0]`` takes the
         place of the current trajectory's sample ``at_index`` (the ones before it are
         still sent), so a braking profile starts exactly where it was computed from."""
         with self._lock:
-            self._replacement = (np.asarray(samples, dtype=float), at_index)
+            self._replacement = (samples, at_index)
 
     def stop(self, reason: str) -> None:
         with self._lock:
@@ -507,7 +504,7 @@ class _Trajectory:
                             if at is None:
                                 samples, i = new, 0
                             elif not late:
-                                samples, i = np.concatenate([samples[i:at], new]), 0
+                                samples, i = samples[i:at] + new, 0
                             else:  # already past it: join the new samples where we are
                                 samples, i = new, min(i - at, len(new) - 1)
                             settle_until = None
@@ -530,9 +527,7 @@ class _Trajectory:
                     if next_tick is None:
                         next_tick = time.perf_counter()
                     target = samples[min(i, len(samples) - 1)]
-                    ok = c.servoJ(
-                        target.tolist(), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain
-                    )
+                    ok = c.servoJ(list(target), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain)
                     if not ok:
                         state = link.latest
                         why = None
@@ -574,10 +569,10 @@ class _Trajectory:
             if link._traj is self:
                 link._traj = None
 
-    def _progress(self, index: int, total: int, commanded: NDArray[np.float64]) -> None:
+    def _progress(self, index: int, total: int, commanded: tuple[float, ...]) -> None:
         state = self.link.latest
         actual = state.actual_q if state is not None else None
-        error = float(np.max(np.abs(commanded - np.asarray(actual)))) if actual else float("nan")
+        error = wire.max_abs_difference(commanded, actual) if actual else float("nan")
         self.link.send(
             wire.TRAJ,
             self.id,
@@ -590,10 +585,10 @@ SETTLED_POSITION = 1e-4  # rad
 SETTLED_VELOCITY = 1e-3  # rad/s
 
 
-def _settled(state: RobotState, target: NDArray[np.float64]) -> bool:
-    error = np.max(np.abs(np.asarray(state.actual_q) - target))
-    speed = np.max(np.abs(np.asarray(state.actual_qd)))
-    return bool(error < SETTLED_POSITION and speed < SETTLED_VELOCITY)
+def _settled(state: RobotState, target: tuple[float, ...]) -> bool:
+    error = wire.max_abs_difference(state.actual_q, target)
+    speed = max(abs(v) for v in state.actual_qd)
+    return error < SETTLED_POSITION and speed < SETTLED_VELOCITY
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,14 +2,17 @@
 
 Each frame is a 4-byte big-endian length followed by a pickled tuple whose first item
 names the message. Both ends are fxcell code of the same user, joined by a private
-socketpair, so pickle is safe here and the fastest codec for numpy arrays. State
-samples travel as plain tuples (no enums) to keep the 500 Hz stream compact.
+socketpair, so pickle is safe here. State samples travel as plain tuples (no enums) to
+keep the 500 Hz stream compact; trajectories as raw float64 bytes, so that the link
+process needs no numpy (it starts faster, which shortens a reconnect).
 """
 
 from __future__ import annotations
 
+import array
 import pickle
 import struct
+from collections.abc import Sequence
 from typing import Any, TypeVar
 
 from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
@@ -47,6 +50,28 @@ def decode(body: bytes) -> tuple[Any, ...]:
     if not isinstance(message, tuple) or not message:
         raise ValueError(f"malformed link message: {message!r:.80}")
     return message
+
+
+Samples = list[tuple[float, ...]]
+"""A trajectory in the link process: one 6-tuple of joint positions per 2 ms."""
+
+
+def pack_samples(samples: Any) -> tuple[int, bytes]:
+    """An (N, 6) C-contiguous float64 array as ``(N, bytes)`` for the wire."""
+    return len(samples), samples.tobytes()
+
+
+def unpack_samples(packed: tuple[int, bytes]) -> Samples:
+    n, data = packed
+    flat = array.array("d")
+    flat.frombytes(data)
+    if len(flat) != 6 * n:
+        raise ValueError(f"trajectory of {n} samples carries {len(flat)} numbers")
+    return [tuple(flat[6 * k : 6 * k + 6]) for k in range(n)]
+
+
+def max_abs_difference(a: Sequence[float], b: Sequence[float]) -> float:
+    return max(abs(x - y) for x, y in zip(a, b, strict=True))
 
 
 def state_to_tuple(s: RobotState) -> tuple[Any, ...]:
