@@ -503,6 +503,12 @@ class MoveExecution:
             try:
                 state = await self._watch(handle, states)
                 end = await handle.wait()
+            except TimeoutError:
+                with contextlib.suppress(Exception):
+                    await handle.stop()
+                raise TrackingError(
+                    f"the move did not end within {self.plan.duration:.2f} s planned + margins"
+                ) from None
             except asyncio.CancelledError:
                 # Our task was cancelled (stop(), a safety event, the caller): brake to
                 # rest before letting the cancellation through.
