@@ -196,6 +196,8 @@ class Recorder:
         self._last_modes: tuple[int, ...] | None = None
         self._last_tf_ns = 0
         self._queue_warned = False
+        self._unknown_types: set[type] = set()
+        self._dead = False  # the writer thread failed: everything submitted is dropped
 
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
@@ -228,7 +230,7 @@ class Recorder:
         """Queue one event for writing: never blocks (drops and counts when full)."""
         if self._closed:
             return
-        if len(self._queue) >= self._max_queue:
+        if self._dead or len(self._queue) >= self._max_queue:
             self._dropped_full += 1
             return
         self._queue.append((self._clock(), event))
@@ -304,6 +306,10 @@ class Recorder:
                     break
                 self._stop.wait(self._poll)
         except Exception as exc:  # a bug here must be loud, never silent
+            self._dead = True
+            self._dropped_write += self._pending + len(self._queue)
+            self._pending = 0
+            self._queue.clear()
             log.exception("recorder writer thread failed")
             self._error(f"recorder writer failed: {exc!r}")
         finally:
@@ -323,8 +329,14 @@ class Recorder:
             if self._file is None:
                 self._dropped_write += 1
                 continue
+            handler = handlers.get(type(event))
+            if handler is None:
+                if type(event) not in self._unknown_types:
+                    self._unknown_types.add(type(event))
+                    log.warning("recorder: %s events are not recorded", type(event).__name__)
+                continue
             try:
-                handlers[type(event)](self, t, event)
+                handler(self, t, event)
             except OSError as exc:
                 self._fail(exc)
             except Exception:
