@@ -300,6 +300,7 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
     notify.bind(str(tmp_path / "notify"))
     notify.settimeout(10)
     systemd = {"NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "1000000"}
+    systemd["FXCELL_DAEMON_VERBOSE"] = "1"  # the shutdown steps' timings, if this fails
     with notify, DaemonProcess.start(
         write_config(tmp_path), token=TOKEN, log_dir=logs, extra_args=SIM_ARGS, env=systemd
     ) as daemon, httpx.Client(base_url=daemon.url, timeout=30) as http:  # fmt: skip
@@ -311,7 +312,8 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
         q = http.get("/api/state").json()["robot"]["q"]
         r = http.post(
             "/api/cell/move_joint",
-            json={"target": [q[0] + 1.5, *q[1:]], "velocity_factor": 0.3},
+            # slow enough to brake well within the 3 s (joint accelerations 0.7 rad/s²)
+            json={"target": [q[0] + 1.5, *q[1:]], "velocity_factor": 0.2},
             headers=headers(),
         )
         assert r.status_code == 202

@@ -64,7 +64,7 @@ class DaemonProcess:
     ) -> DaemonProcess:
         """Start a daemon on a free port; returns once it serves (or raises with its output)."""
         port = free_port()
-        verbose = ["-v"] if os.environ.get("FXCELL_DAEMON_VERBOSE") else []
+        verbose = ["-v"] if {**os.environ, **(env or {})}.get("FXCELL_DAEMON_VERBOSE") else []
         args = [sys.executable, "-m", "fxcell", *verbose, "daemon", "--config", str(config)]
         args += ["--port", str(port)]
         args += ["--log-dir", str(log_dir)] if log_dir else ["--no-record"]
