@@ -597,28 +597,29 @@ class Kinematics:
             x4y = r10 * u + r11 * v + r12 * w
             x4z = r20 * u + r21 * v + r22 * w
             x4p = c1 * x4x + sn1 * x4y
-            for flip in (False, True):
-                # the other wrist: θ5 → -θ5, θ6 → θ6 + π, which turns z4 and x4 over
-                if flip:
-                    t5, t6 = -t5, t6 + math.pi
-                    t234 = atan2(-x4z, -x4p)
-                    ox, oy, oz = p5x + d5 * z4x, p5y + d5 * z4y, p5z + d5 * z4z
-                else:
-                    t234 = atan2(x4z, x4p)
-                    ox, oy, oz = p5x - d5 * z4x, p5y - d5 * z4y, p5z - d5 * z4z
-                v5 = t5 + tau * (((s4 - t5) * inv + 0.5) // 1.0)
+            # the two wrists: (θ5, θ6) and (-θ5, θ6 + π), which turns z4 and x4 over;
+            # the one nearer the seed first
+            wrists = []
+            for sign, t5w, t6w in ((1.0, t5, t6), (-1.0, -t5, t6 + math.pi)):
+                v5 = t5w + tau * (((s4 - t5w) * inv + 0.5) // 1.0)
                 if not lo4 <= v5 <= hi4:
-                    v5 = _near(t5, s4, lo4, hi4)
+                    v5 = _near(t5w, s4, lo4, hi4)
                     if v5 != v5:
                         continue
-                v6 = t6 + tau * (((s5 - t6) * inv + 0.5) // 1.0)
+                v6 = t6w + tau * (((s5 - t6w) * inv + 0.5) // 1.0)
                 if not lo5 <= v6 <= hi5:
-                    v6 = _near(t6, s5, lo5, hi5)
+                    v6 = _near(t6w, s5, lo5, hi5)
                     if v6 != v6:
                         continue
-                e6 = e1 + (v5 - s4) * (v5 - s4) + (v6 - s5) * (v6 - s5)
+                wrists.append((e1 + (v5 - s4) * (v5 - s4) + (v6 - s5) * (v6 - s5), sign, v5, v6))
+            if len(wrists) == 2 and wrists[1][0] < wrists[0][0]:
+                wrists.reverse()
+            for e6, sign, v5, v6 in wrists:
                 if e6 >= best:
                     continue
+                t234 = atan2(sign * x4z, sign * x4p)
+                sd5 = sign * d5
+                ox, oy, oz = p5x - sd5 * z4x, p5y - sd5 * z4y, p5z - sd5 * z4z
                 X = c1 * ox + sn1 * oy
                 Y = oz - d1
                 c3 = (X * X + Y * Y - l3) * k3
@@ -637,6 +638,9 @@ class Kinematics:
                         v2 = _near(t2, s1_, lo1, hi1)
                         if v2 != v2:
                             continue
+                    e = e6 + (v2 - s1_) * (v2 - s1_)
+                    if e >= best:
+                        continue
                     v3 = t3e + tau * (((s2 - t3e) * inv + 0.5) // 1.0)
                     if not lo2 <= v3 <= hi2:
                         v3 = _near(t3e, s2, lo2, hi2)
@@ -648,7 +652,7 @@ class Kinematics:
                         v4 = _near(t4, s3, lo3, hi3)
                         if v4 != v4:
                             continue
-                    e = e6 + (v2 - s1_) * (v2 - s1_) + (v3 - s2) * (v3 - s2) + (v4 - s3) * (v4 - s3)
+                    e += (v3 - s2) * (v3 - s2) + (v4 - s3) * (v4 - s3)
                     if e < best:
                         best = e
                         best_q = [v1, v2, v3, v4, v5, v6]
