@@ -123,7 +123,11 @@ class RemoteOperation:
 
 
 class RemoteCell:
-    """The Cell's API against a daemon at ``url`` (``Authorization: Bearer token``)."""
+    """The Cell's API against a daemon at ``url`` (``Authorization: Bearer token``).
+
+    ``token`` defaults to ``$FXCELL_TOKEN``; without one, queries work and commands
+    raise :class:`~fxcell.errors.NotAuthorizedError`.
+    """
 
     def __init__(
         self,
@@ -134,7 +138,7 @@ class RemoteCell:
         timeout: float = 30.0,
     ) -> None:
         self.url = url.rstrip("/")
-        self.token = token
+        self.token = token if token is not None else os.environ.get("FXCELL_TOKEN")
         self.name = name or default_client_name()
         self._http = httpx.AsyncClient(
             base_url=self.url,

@@ -121,6 +121,16 @@ class Daemon:
             url = f"http://{self.config.daemon.host}:{sock.getsockname()[1]}/"
             log.warning("fxcell daemon serving %s (robot: %s)", url, self.service.robot_description)
             print(f"fxcell daemon: serving {url}", flush=True)
+            where = (
+                "$FXCELL_TOKEN"
+                if os.environ.get("FXCELL_TOKEN")
+                else str(self.config.daemon.token_file)
+            )
+            print(
+                f"fxcell daemon: bearer token in {where}; "
+                "'fxcell token --page-url' prints the page address that logs in",
+                flush=True,
+            )
             self.notifier.ready(f"serving {url}")
             await self.stopping.wait()
         finally:
