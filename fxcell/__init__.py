@@ -5,10 +5,10 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from fxcell._version import __version__
 from fxcell.errors import FxcellError
 
 if TYPE_CHECKING:
+    from fxcell._version import __version__
     from fxcell.cell import Cell, ProgramStatus
     from fxcell.config import CellConfig
     from fxcell.motion import MoveResult
@@ -16,8 +16,9 @@ if TYPE_CHECKING:
     from fxcell.statemachine import CellState
 
 # Loaded on first use, so that ``import fxcell`` (and the robot-link process, which
-# imports fxcell.link) stays fast.
+# imports fxcell.link) stays fast; even the version (importlib.metadata is slow).
 _LAZY = {
+    "__version__": "fxcell._version",
     "Cell": "fxcell.cell",
     "ProgramStatus": "fxcell.cell",
     "CellConfig": "fxcell.config",
