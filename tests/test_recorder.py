@@ -410,3 +410,18 @@ def test_fxcell_warnings_are_recorded_as_foxglove_logs(tmp_path: Path) -> None:
     assert entry["line"] > 0
     capture = [h for h in logging.getLogger("fxcell").handlers if type(h).__name__ == "_LogCapture"]
     assert capture == []  # removed on close
+
+
+def test_metadata_learned_later_reaches_the_current_and_next_files(tmp_path: Path) -> None:
+    from fxcell.recorder.reading import LogReader
+
+    rec = Recorder(tmp_path, metadata={"serial": "unknown"}, chunk_duration=0.05, rotate_size=1)
+    rec.update_metadata({"serial": "20235500001", "controller_version": "5.15.0"})
+    play(SyntheticSession(0.3), rec.submit, realtime=True)
+    rec.close()
+    first, *later = rec.stats.files
+    assert later  # rotated (every chunk is over 1 byte)
+    for path in (first, later[-1]):
+        meta = LogReader(path).metadata[topics.METADATA_NAME]
+        assert meta["serial"] == "20235500001"
+        assert meta["controller_version"] == "5.15.0"

@@ -82,6 +82,11 @@ class RecorderStats:
     """Messages encoded per topic (including the open chunk)."""
 
 
+@dataclass(frozen=True, slots=True)
+class _MetadataUpdate:
+    values: dict[str, str]
+
+
 @dataclass(slots=True)
 class _OpenFile:
     path: Path
@@ -169,7 +174,7 @@ class Recorder:
         self._schemas = topic_schemas()
 
         # shared with the submitting thread: the deque, and counters each side owns
-        self._queue: collections.deque[tuple[int, Event]] = collections.deque()
+        self._queue: collections.deque[tuple[int, Event | _MetadataUpdate]] = collections.deque()
         self._dropped_full = 0  # written by submit() only
         self._closed = False
         self._unsubscribe: Callable[[], None] | None = None
@@ -234,6 +239,19 @@ class Recorder:
             self._dropped_full += 1
             return
         self._queue.append((self._clock(), event))
+
+    def update_metadata(self, values: Mapping[str, Any]) -> None:
+        """Add to the file's metadata (e.g. controller version and serial once connected).
+
+        The current file gets another ``fxcell`` metadata record with everything known so
+        far (readers take the last one); later files start with it.
+        """
+        update = {
+            str(k): v if isinstance(v, str) else dumps(to_jsonable(v)).decode()
+            for k, v in values.items()
+        }
+        if not self._closed:
+            self._queue.append((self._clock(), _MetadataUpdate(update)))
 
     def close(self, timeout: float = 30.0) -> None:
         """Write what is queued, finish the current file and stop the writer thread."""
@@ -428,12 +446,19 @@ class Recorder:
         }
         self._add(topics.LOG, t, dumps(msg), ns)
 
+    def _on_metadata(self, t: int, update: _MetadataUpdate) -> None:
+        self._metadata.update(update.values)
+        f = self._file
+        assert f is not None
+        f.writer.add_metadata(topics.METADATA_NAME, dict(self._metadata))
+
     _handlers: Final[dict[type, Callable[[Recorder, int, Any], None]]] = {
         StateEvent: _on_state,
         CommandEvent: _on_command,
         TransitionEvent: _on_transition,
         MotionEvent: _on_motion,
         LogEvent: _on_log,
+        _MetadataUpdate: _on_metadata,
     }
 
     # ----- files
@@ -481,7 +506,7 @@ class Recorder:
                         ns, ns, topics.URDF_ATTACHMENT, topics.URDF_MEDIA_TYPE, urdf.encode()
                     )
                     self._add(topics.ROBOT_DESCRIPTION, ns, dumps({"data": urdf}), ns)
-            self._flush()
+            self._flush(rotate=False)  # a new file holds at least one chunk of events
         except BaseException:
             self._file = None
             stream.close()
@@ -493,7 +518,7 @@ class Recorder:
         """The file a log is written to (tests substitute a failing disk here)."""
         return open(path, "xb")  # lives as long as the file is recorded
 
-    def _flush(self) -> None:
+    def _flush(self, rotate: bool = True) -> None:
         """Close the open chunk and push it to the disk (the crash-loss boundary)."""
         f = self._file
         if f is None:
@@ -512,7 +537,7 @@ class Recorder:
         self._written += self._pending
         self._pending = 0
         self._chunk_started = self._chunk_first_ns = None
-        if (
+        if rotate and (
             self._bytes_current >= self.rotate_size
             or time.monotonic() - f.opened >= self.rotate_duration
         ):
