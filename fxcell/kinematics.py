@@ -24,7 +24,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from fxcell.errors import InvalidTargetError, SingularityError, UnreachableError
+from fxcell.errors import (
+    InvalidArgumentError,
+    InvalidTargetError,
+    SingularityError,
+    UnreachableError,
+)
 from fxcell.geometry import Pose, matrix_to_rotvec
 
 if TYPE_CHECKING:
@@ -108,22 +113,19 @@ class Kinematics:
             or dh.d[1:3] != (0.0, 0.0)
             or dh.alpha != UR3E_DH.alpha
         ):
-            raise ValueError("the closed-form inverse needs the UR geometry (see UR3E_DH)")
+            raise InvalidArgumentError("the closed-form inverse needs the UR geometry (UR3E_DH)")
         self.dh = dh
         self.tcp: Pose = _as_tcp(tcp)
         if limits is None:
             limits = _default_limits()
         lo = [float(v) for v in limits[0]]
         hi = [float(v) for v in limits[1]]
-        if len(lo) != 6 or len(hi) != 6 or any(a >= b for a, b in zip(lo, hi, strict=True)):
-            raise ValueError(f"joint limits must be 6 increasing pairs, got {limits!r}")
+        if len(lo) != 6 or len(hi) != 6 or not all(a < b for a, b in zip(lo, hi, strict=True)):
+            raise InvalidArgumentError(f"joint limits must be 6 increasing pairs, got {limits!r}")
         self.lower: tuple[float, ...] = tuple(lo)
         self.upper: tuple[float, ...] = tuple(hi)
         self._lo_hi = tuple(zip(lo, hi, strict=True))
         self._geom = (dh.d[0], dh.d[3], dh.d[4], dh.d[5], dh.a[1], dh.a[2])
-        self._dh_rows = [
-            (dh.d[i], dh.a[i], math.cos(dh.alpha[i]), math.sin(dh.alpha[i])) for i in range(6)
-        ]
         Rt, pt = self.tcp.rotation, self.tcp.position
         self._tcp_is_identity = bool(np.array_equal(Rt, np.eye(3)) and not pt.any())
         # flange = target · tcp⁻¹, kept as plain floats for the hot path

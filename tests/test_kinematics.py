@@ -147,6 +147,15 @@ def test_joint_limits_restrict_the_solutions() -> None:
         Kinematics.ur3e(limits=([-0.1] * 6, [0.1] * 6)).inverse(pose)
 
 
+@pytest.mark.parametrize(
+    "limits",
+    [([0.0] * 6, [0.0] * 6), ([math.nan] * 6, [1.0] * 6), ([-1.0] * 5, [1.0] * 5)],
+)
+def test_bad_limits_are_refused(limits: tuple[list[float], list[float]]) -> None:
+    with pytest.raises(ValueError, match="joint limits"):
+        Kinematics.ur3e(limits=limits)
+
+
 def test_limits_come_from_the_config_by_default() -> None:
     lim = JointLimits()
     assert FLANGE.lower == lim.position_min
