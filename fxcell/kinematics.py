@@ -8,9 +8,14 @@ equals RTDE's ``actual_TCP_pose`` for the same TCP.
 
 The inverse is the closed-form solution for the UR geometry (three parallel middle axes):
 up to 8 branches (shoulder left/right × wrist flip × elbow up/down), each shifted by 2π per
-joint to the equivalent nearest the seed within the joint limits. At a wrist singularity
-(θ5 = 0 or π) θ4 and θ6 form a continuum; the solver keeps the seed's θ6 and returns a valid
-solution. No Pinocchio here: the simulator imports this module and must start fast
+joint to the equivalent nearest the seed within the joint limits; the nearest (Euclidean
+in joint space) wins. At a wrist singularity (θ5 = 0 or π) axes 2, 3, 4 and 6 are parallel
+and the solutions form a continuum: the member nearest the seed is returned. Near two
+singularities at once, rounding can throw a branch just out of reach; such branches are
+polished by Newton steps (to ≤ 1e-10 m/rad; generic poses are exact to ~1e-15).
+``inverse`` has a lean hot path for the common case and falls back on the general one.
+
+No Pinocchio here: the simulator imports this module and must start fast
 (:mod:`fxcell.robot_model` holds the Pinocchio model and is checked against this one).
 """
 
