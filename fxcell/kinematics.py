@@ -764,12 +764,14 @@ class Kinematics:
 def _near(v: float, s: float, lo: float, hi: float) -> float:
     """The 2π-equivalent of angle ``v`` nearest ``s`` within [lo, hi], or NaN if none."""
     v += TWO_PI * round((s - v) * _INV_TWO_PI)
-    if v > hi:  # a solution exactly at the limit may come out a rounding error beyond
-        v = hi if v - hi < _LIMIT_EPS else v - TWO_PI
+    # outside the limits (the seed is near or beyond one): the equivalent just inside, if any;
+    # a solution exactly at the limit may come out a rounding error beyond it
+    if v > hi:
+        v = hi if v - hi < _LIMIT_EPS else v - TWO_PI * math.ceil((v - hi) * _INV_TWO_PI)
         if v < lo:
             return math.nan
     elif v < lo:
-        v = lo if lo - v < _LIMIT_EPS else v + TWO_PI
+        v = lo if lo - v < _LIMIT_EPS else v + TWO_PI * math.ceil((lo - v) * _INV_TWO_PI)
         if v > hi:
             return math.nan
     return v

@@ -134,6 +134,16 @@ def test_solutions_are_shifted_by_two_pi_toward_the_seed() -> None:
     )
 
 
+def test_a_seed_far_outside_the_limits_still_gets_the_solution_inside() -> None:
+    q = np.array([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])
+    pose = FLANGE.forward(q)
+    for far in (q + 6 * math.pi, q - 10 * math.pi):
+        sol = FLANGE.inverse(pose, seed=far)
+        assert np.all(np.abs(sol) <= 2 * math.pi)
+        assert FLANGE.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
+        assert len(FLANGE.inverse_all(pose, seed=far)) == 8
+
+
 def test_joint_limits_restrict_the_solutions() -> None:
     q = np.array([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])
     pose = FLANGE.forward(q)
