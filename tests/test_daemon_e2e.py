@@ -373,7 +373,8 @@ async def test_remote_cell_has_the_cells_await_style_api(daemon: DaemonProcess) 
         assert refused.value.state == "running.external_control_ready"
         assert "idle" in refused.value.allowed
         assert (await cell.control())["client"] == "remote tester"  # type: ignore[index]
-    assert (await RemoteCell(daemon.url).control()) is None  # released on exit
+    async with RemoteCell(daemon.url) as watcher:
+        assert await watcher.control() is None  # released on exit
 
 
 async def test_cancelling_a_remote_move_stops_the_robot(daemon: DaemonProcess) -> None:
