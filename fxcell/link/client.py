@@ -420,7 +420,7 @@ class LinkClient:
         protocol = _LinkProtocol(self._handle)
         transport, _ = await loop.create_connection(lambda: protocol, sock=parent)
         self._writer = transport
-        self._hold = True  # until the first sample: connecting may block the process
+        self._hold = False  # the watchdog starts with the first sample (status UP)
         self._last_sample = time.monotonic()
         watchdog = asyncio.create_task(self._watchdog(), name="link watchdog")
         try:
@@ -501,7 +501,6 @@ class LinkClient:
             now = time.monotonic()
             state = wire.state_from_tuple(message[1], now)
             self._last_sample = now
-            self._hold = False
             self.latest = state
             if self.status is not LinkStatus.UP:
                 self.last_failure = ""

@@ -324,6 +324,7 @@ class Link:
                 self._probe(c, timeout)
                 self.send(wire.CONTROL, True, "URCap program restarted")
                 return True
+            c = None  # _drop_control must hold the last reference (see there)
             self._drop_control("reconnecting control interface")
         self._stop_leftover_program()
         try:
@@ -393,10 +394,9 @@ class Link:
 
     def call_stop_control(self, mode: str) -> bool:
         self._stop_trajectory("external control stopped")
-        c = self.control
-        if c is not None:
+        if self.control is not None:
             with self.held(), contextlib.suppress(Exception):
-                c.stopScript()
+                self.control.stopScript()
         if mode == "urcap":
             self.call_dashboard("stop")
         self._drop_control("external control stopped")
@@ -405,8 +405,12 @@ class Link:
     def _drop_control(self, reason: str) -> None:
         c, self.control = self.control, None
         if c is not None:
-            with self.held(), contextlib.suppress(Exception):
-                c.disconnect()
+            # disconnect() and the destructor both block holding the GIL (~0.5 s): the
+            # last reference must go inside the hold.
+            with self.held():
+                with contextlib.suppress(Exception):
+                    c.disconnect()
+                del c
         self.send(wire.CONTROL, False, reason)
 
     @contextlib.contextmanager
