@@ -33,6 +33,7 @@ from fxcell.protocol import CONTROL_PERIOD
 from fxcell.testing import SimulatorHandle, simulator
 
 PROBE_PERIOD = 0.001
+ROUNDS = 5
 
 
 class LagProbe:
@@ -88,6 +89,26 @@ async def timed(
     return report(name, probe.lags)
 
 
+async def rounds(
+    probe: LagProbe,
+    name: str,
+    action: Callable[[], Awaitable[Any]],
+    n: int,
+    between: Callable[[], Awaitable[Any]] | None = None,
+) -> dict[str, float]:
+    """Lag while ``action`` runs, pooled over ``n`` rounds (``between`` runs unmeasured)."""
+    lags: list[float] = []
+    for _ in range(n):
+        if between is not None:
+            await between()
+        async with probe.measuring():
+            await asyncio.sleep(0.02)
+            await action()
+            await asyncio.sleep(0.02)
+        lags += probe.lags
+    return report(f"{name} (x{n})", lags)
+
+
 async def fxcell_run(sim: SimulatorHandle, stream_seconds: float) -> dict[str, dict[str, float]]:
     probe = LagProbe()
     rows: dict[str, dict[str, float]] = {}
@@ -95,8 +116,21 @@ async def fxcell_run(sim: SimulatorHandle, stream_seconds: float) -> dict[str, d
     print("machine noise floor (the probe alone, nothing else running in the loop):")
     rows["idle"] = await timed(probe, "idle", lambda: asyncio.sleep(2.0))
     print("fxcell (robot-link process):")
+    extra: list[LinkClient] = []
+
+    async def connect() -> None:
+        client = LinkClient(sim.host, connect_timeout=20)
+        extra.append(client)
+        await client.start()
+
+    async def drop_extra() -> None:
+        while extra:
+            await extra.pop().close()
+
     try:
-        rows["connect"] = await timed(probe, "connect", link.start)
+        rows["connect"] = await rounds(probe, "connect", connect, ROUNDS, drop_extra)
+        await drop_extra()
+        await link.start()
 
         timestamps: list[float] = []
 
@@ -132,21 +166,30 @@ async def fxcell_run(sim: SimulatorHandle, stream_seconds: float) -> dict[str, d
         async def control() -> None:
             await link.start_control("script", "external_control.urp", 10.0)
 
-        rows["control"] = await timed(probe, "start_control", control)
+        async def release() -> None:
+            if link.control_ready:
+                await link.stop_control("script")
+
+        rows["control"] = await rounds(probe, "start_control", control, ROUNDS, release)
+
+        detections: list[float] = []
+        recoveries: list[float] = []
 
         async def reconnect() -> None:
             link.kill_process()
             t0 = time.monotonic()
             while link.up:  # noqa: ASYNC110
-                await asyncio.sleep(0.001)
-            detected = time.monotonic() - t0
+                await asyncio.sleep(0.0005)
+            detections.append(time.monotonic() - t0)
             await link.wait_up(30)
-            print(
-                f"  link death detected after {detected * 1000:.1f} ms; "
-                f"up again after {(time.monotonic() - t0) * 1000:.0f} ms"
-            )
+            recoveries.append(time.monotonic() - t0)
 
-        rows["reconnect"] = await timed(probe, "kill + reconnect", reconnect)
+        rows["reconnect"] = await rounds(probe, "kill + reconnect", reconnect, ROUNDS)
+        print(
+            f"  link death detected after {statistics.median(detections) * 1000:.1f} ms "
+            f"(max {max(detections) * 1000:.1f}); up again after "
+            f"{statistics.median(recoveries) * 1000:.0f} ms (median)"
+        )
     finally:
         await link.close()
     return rows
@@ -164,15 +207,24 @@ async def peer_run(sim: SimulatorHandle) -> dict[str, dict[str, float]]:
     async def connect() -> None:
         holder["r"] = await asyncio.to_thread(rtde_receive.RTDEReceiveInterface, sim.host)
 
-    rows["connect"] = await timed(probe, "connect", connect)
+    async def disconnect_receive() -> None:
+        if "r" in holder:
+            await asyncio.to_thread(holder.pop("r").disconnect)
+
+    rows["connect"] = await rounds(probe, "connect", connect, ROUNDS, disconnect_receive)
+    await disconnect_receive()
 
     async def control() -> None:
         holder["c"] = await asyncio.to_thread(rtde_control.RTDEControlInterface, sim.host)
 
-    rows["control"] = await timed(probe, "start_control", control)
-    await asyncio.to_thread(holder["c"].stopScript)
-    await asyncio.to_thread(holder["c"].disconnect)
-    await asyncio.to_thread(holder["r"].disconnect)
+    async def release() -> None:
+        if "c" in holder:
+            c = holder.pop("c")
+            await asyncio.to_thread(c.stopScript)
+            await asyncio.to_thread(c.disconnect)
+
+    rows["control"] = await rounds(probe, "start_control", control, ROUNDS, release)
+    await release()
     return rows
 
 
