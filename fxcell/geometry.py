@@ -95,7 +95,7 @@ def rotvec_to_matrix(v: ArrayLike) -> FloatArray:
 
 
 def _rotvec_quaternion(rx: float, ry: float, rz: float) -> tuple[float, float, float, float]:
-    theta = math.sqrt(rx * rx + ry * ry + rz * rz)
+    theta = math.hypot(rx, ry, rz)
     half = 0.5 * theta
     # sin(θ/2)/θ, by its Taylor series where the division would lose digits (or divide by 0)
     k = math.sin(half) / theta if theta > 1e-4 else 0.5 - theta * theta / 48.0
@@ -114,7 +114,7 @@ def matrix_to_rotvec(R: ArrayLike) -> tuple[float, float, float]:
 def _quaternion_rotvec(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:
     if w < 0.0:
         x, y, z, w = -x, -y, -z, -w
-    n = math.sqrt(x * x + y * y + z * z)
+    n = math.hypot(x, y, z)
     # angle / n = 2·atan2(n, w) / n, by its Taylor series when n is tiny (then w ≈ 1)
     k = 2.0 * math.atan2(n, w) / n if n > 1e-6 else 2.0 / w * (1.0 - n * n / (3.0 * w * w))
     return x * k, y * k, z * k
@@ -155,7 +155,7 @@ def matrix_to_rpy(R: ArrayLike) -> tuple[float, float, float]:
 def rotation_angle(R: ArrayLike) -> float:
     """Angle (rad, in [0, π]) of the rotation R."""
     x, y, z, w = matrix_to_quaternion(R)
-    return 2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w))
+    return 2.0 * math.atan2(math.hypot(x, y, z), abs(w))
 
 
 def _is_real(v: Any) -> bool:
