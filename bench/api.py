@@ -6,11 +6,12 @@ then measures with a keep-alive HTTP client:
 - ``GET /api/state`` (snapshot from the newest 500 Hz sample): the state query;
 - ``GET /api/cell/get_robot_mode`` (a Cell query through the API);
 - ``POST /api/control`` (an authorised command: token check, control lease);
-- ``POST /api/cell/power_on?wait=true`` in IDLE... not repeatable, so ``stop`` instead:
-  an authorised robot command run as an operation (no move running).
+- ``POST /api/cell/stop``: an authorised robot command run as an operation (no move
+  running, so it returns at once).
 
 Peer, same run: a bare FastAPI app with one constant-JSON route on the same uvicorn,
-measured with the same client — the floor of any HTTP API in Python on this machine.
+measured with the same kind of client, interleaved request by request with the daemon's
+so that both see the same machine load — the floor of an HTTP API in Python here.
 
 Then two WebSocket watchers at once, at 500 Hz (every sample) and at 100 Hz, for 5 s
 each: delivered rate and the largest gap between state messages.
@@ -46,14 +47,17 @@ def pct(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
 
 
-def measure(client: httpx.Client, method: str, path: str, **kw: object) -> list[float]:
-    for _ in range(100):  # warm-up
-        client.request(method, path, **kw).raise_for_status()  # type: ignore[arg-type]
-    times = []
+def measure(targets: list[tuple[httpx.Client, str, str]]) -> list[list[float]]:
+    """Round trips of each (client, method, path), interleaved so that every target sees
+    the same machine load (the peer included)."""
+    for client, method, path in targets * 50:  # warm-up
+        client.request(method, path).raise_for_status()
+    times: list[list[float]] = [[] for _ in targets]
     for _ in range(N):
-        t0 = time.perf_counter()
-        client.request(method, path, **kw).raise_for_status()  # type: ignore[arg-type]
-        times.append(time.perf_counter() - t0)
+        for i, (client, method, path) in enumerate(targets):
+            t0 = time.perf_counter()
+            client.request(method, path).raise_for_status()
+            times[i].append(time.perf_counter() - t0)
     return times
 
 
@@ -128,23 +132,29 @@ def main() -> None:
         with DaemonProcess.start(config, token=TOKEN) as daemon:
             daemon.wait_connected()
             headers = {"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": "bench"}
-            with httpx.Client(base_url=daemon.url, headers=headers, timeout=10) as client:
-                print("powering on ...", flush=True)
-                client.post("/api/cell/power_on").raise_for_status()
-                print("measuring ...", flush=True)
-                peer_proc, peer_url = start_peer()
-                try:
-                    with httpx.Client(base_url=peer_url, timeout=10) as peer_client:
-                        peer = measure(peer_client, "GET", "/ping")
-                finally:
-                    peer_proc.terminate()
-                    peer_proc.wait(5)
-                state = measure(client, "GET", "/api/state")
-                mode = measure(client, "GET", "/api/cell/get_robot_mode")
-                control = measure(client, "POST", "/api/control")
-                stop = measure(client, "POST", "/api/cell/stop")
+            peer_proc, peer_url = start_peer()
+            try:
+                with (
+                    httpx.Client(base_url=daemon.url, headers=headers, timeout=10) as client,
+                    httpx.Client(base_url=peer_url, timeout=10) as peer_client,
+                ):
+                    client.post("/api/cell/power_on").raise_for_status()
+                    print("measuring ...", flush=True)
+                    peer, state, mode, control, stop = measure(
+                        [
+                            (peer_client, "GET", "/ping"),
+                            (client, "GET", "/api/state"),
+                            (client, "GET", "/api/cell/get_robot_mode"),
+                            (client, "POST", "/api/control"),
+                            (client, "POST", "/api/cell/stop"),
+                        ]
+                    )
+            finally:
+                peer_proc.terminate()
+                peer_proc.wait(5)
             print(
-                f"HTTP round trips on loopback ({N} each, keep-alive, cpu count {os.cpu_count()})"
+                f"HTTP round trips on loopback ({N} each, interleaved, keep-alive; "
+                f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f})"
             )
             row("peer: bare FastAPI GET /ping", peer)
             row("GET /api/state (state query)", state, peer)

@@ -169,8 +169,9 @@ def create_app(service: CellService) -> FastAPI:
     # ------------------------------------------------------------- state and info
 
     @api.get("/state", summary="Snapshot of the cell (no robot round trip)")
-    async def get_state() -> dict[str, Any]:
-        return service.snapshot()
+    async def get_state() -> Response:
+        # Serialised directly: this is the hot path of pollers (see bench/api.py).
+        return Response(json.dumps(service.snapshot()), media_type="application/json")
 
     @api.get("/info", summary="Daemon version, robot and configuration")
     async def get_info() -> dict[str, Any]:

@@ -56,6 +56,7 @@ class CellService:
         self.cell_error: str | None = None
         self.started = time.time()
         self.statechart = statechart or load_statechart()
+        self._allowed_in: dict[str, list[str]] = {}
         self.hub = StreamHub(self.machine_state)
         self.operations = OperationRegistry(on_change=self._operation_changed)
         self.control = ControlLock(
@@ -133,7 +134,11 @@ class CellService:
     def allowed_commands(self, state: str | None = None) -> list[str]:
         """Commands the statechart admits in ``state`` (default: the current one)."""
         state = state or self._state
-        return [c for c in self.statechart.commands if state in self._allowed_states(c)]
+        cached = self._allowed_in.get(state)
+        if cached is None:
+            cached = [c for c in self.statechart.commands if state in self._allowed_states(c)]
+            self._allowed_in[state] = cached
+        return cached
 
     def _allowed_states(self, command: str) -> list[str]:
         return [s.value for s in self.statechart.allowed(_GUARD_NAME.get(command, command))]
@@ -159,7 +164,7 @@ class CellService:
             "connected": self.cell is not None,
             "cell_error": self.cell_error,
             "robot": robot,
-            "allowed": self.allowed_commands(),
+            "allowed": list(self.allowed_commands()),
             "control": self.control.describe(),
             "operations": [op.describe() for op in self.operations.running()],
             "watchers": self.hub.watchers,
