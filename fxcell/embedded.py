@@ -103,6 +103,18 @@ def state(host: str, timeout: float = 5.0) -> dict[str, Any]:
     return result
 
 
+def stats(host: str, *, reset: bool = False, timeout: float = 5.0) -> dict[str, Any]:
+    """The simulator's own timing: period between RTDE send cycles, late cycles."""
+    answer = _request(host, "stats reset" if reset else "stats", timeout)
+    if reset:
+        return {}
+    try:
+        result: dict[str, Any] = json.loads(answer)
+    except ValueError:
+        raise SimulatorError(f"simulator at {host} sent a bad stats reply: {answer!r}") from None
+    return result
+
+
 def set_joints(host: str, q: Sequence[float], timeout: float = 5.0) -> None:
     """Place the (resting) simulated arm at joint positions ``q`` without moving."""
     answer = _request(host, "set_joints " + " ".join(repr(float(v)) for v in q), timeout)

@@ -54,6 +54,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="port the ExternalControl URCap requests its program from",
     )
     p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="run the control cycle with SCHED_FIFO priority (if permitted; else reniced)",
+    )
+    p.add_argument(
         "--exit-with-parent",
         action="store_true",
         help="exit when the process that started the simulator ends",
@@ -108,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         config=config,
         joints=args.joints,
         urcap_port=args.urcap_port,
+        realtime=args.realtime,
     )
 
 

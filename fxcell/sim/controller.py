@@ -159,6 +159,7 @@ class Controller:
         self.log_messages: list[str] = []
         self.watchdog: tuple[str, float] | None = None  # (input variable, min frequency)
         self.input_updated: dict[str, float] = {}  # input variable -> last update time
+        self.input_generation = 0  # bumped by every RTDE input packet
         self.rtde_stalled_until = 0.0
         self.shutdown_requested = False
         self.client_host = "127.0.0.1"  # where the ExternalControl URCap asks for its program

@@ -49,6 +49,7 @@ JOINT_POSITION_LIMIT = 2 * math.pi
 VIOLATION_FACTOR = 1.5
 SAFETY_DECELERATION = 20.0  # rad/s², protective and emergency stops
 PROGRAM_STOP_DECELERATION = 8.0  # rad/s², program stop / pause
+LINK_REACH = 0.8  # m: farther than any point of the arm (and tool) from any joint axis
 ZERO6 = np.zeros(6)
 ZERO6.flags.writeable = False
 SERVO_MIN_INTERVAL = 0.008  # s: the shortest span a servoj step is judged over
@@ -407,18 +408,20 @@ class TableGuard:
         self.high[2] += margin
         self.samples = samples
 
-    def check(self, frames: Sequence[FloatArray]) -> str | None:
+    def check(self, frames: Sequence[FloatArray]) -> tuple[str | None, float]:
+        """(link in the table or None, a lower bound of the clearance to the table box)."""
         # frames: base, after joint 1..6, tcp; the base column (base to shoulder) is skipped.
         origins = np.array([f[:3, 3] for f in frames[1:]])
-        if origins[:, 2].min() > self.high[2]:
-            return None  # every link point is above the table top
+        lowest = float(origins[:, 2].min())
+        if lowest > self.high[2]:
+            return None, lowest - self.high[2]  # every link point is above the table top
         a, b = origins[:-1], origins[1:]
         t = np.linspace(0.0, 1.0, self.samples + 1)[:, None, None]
         points = a + (b - a) * t  # (samples + 1, links, 3)
         inside = np.all((points >= self.low) & (points <= self.high), axis=2).any(axis=0)
         if not inside.any():
-            return None
-        return LINK_NAMES[int(np.argmax(inside))]
+            return None, 0.0
+        return LINK_NAMES[int(np.argmax(inside))], 0.0
 
 
 LINK_NAMES = ("upper arm", "forearm", "wrist 1", "wrist 2", "wrist 3", "tool")
@@ -446,8 +449,7 @@ class Arm:
         self.suspended: Motion | None = None
         self.table = table
         self.version = 0  # bumped whenever q changes: lets the state cache FK
-        self._guard_every = 4  # table check at 125 Hz: < 8 mm of travel between checks
-        self._cycle = 0
+        self._guard_budget = 0.0  # m a link point may still travel before the next table check
 
     @property
     def active(self) -> bool:
@@ -557,12 +559,17 @@ class Arm:
                 self.generator = None
             gen.token.finish()
         if self.table is not None and self.moving:
-            self._cycle += 1
-            if self._cycle % self._guard_every == 0:
-                hit = self.table.check(self.kinematics.joint_frames(self.q))
+            # No point of the arm moves faster than REACH·Σ|q̇|: check the table only once
+            # the arm may have covered its last clearance (and at least every 4 cycles
+            # near the table, i.e. < 8 mm of travel between checks).
+            travel = LINK_REACH * float(np.abs(self.qd).sum()) * dt
+            self._guard_budget -= travel
+            if self._guard_budget <= 0.0:
+                hit, clearance = self.table.check(self.kinematics.joint_frames(self.q))
                 if hit is not None:
                     self._abort_current("collision")
                     return f"{hit} entered the table"
+                self._guard_budget = max(clearance, 3.5 * travel)
         return None
 
     def set_tcp(self, tcp: Sequence[float]) -> None:

@@ -98,6 +98,8 @@ class ControlScript:
         self.async_wr_count = 0
         self.async_op_id = 0
         self.target_waypoint: Pose | None = None
+        self._generation = -1  # input generation last processed by a real-time command
+        self._last_realtime = -1
         log.info("RTDE Control Script Loaded (register offsets int %d, float %d)", self.oi, self.of)
         self._async_progress(-1)
         self._signal(1)
@@ -162,7 +164,13 @@ class ControlScript:
         cmd = self._int(0)
         try:
             if cmd in REALTIME:
-                self._process(cmd)
+                # The script re-reads the registers every cycle; only a new packet can
+                # change what that does, so unchanged inputs are not processed again.
+                generation = self.c.input_generation
+                if generation != self._generation or cmd != self._last_realtime:
+                    self._generation = generation
+                    self._last_realtime = cmd
+                    self._process(cmd)
                 if not self.terminated:
                     self._signal(1)
             elif cmd == 0:

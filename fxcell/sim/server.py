@@ -13,9 +13,11 @@ see :data:`CONTROL_PORT`).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
+import os
 import selectors
 import signal
 import sys
@@ -26,7 +28,6 @@ from typing import Any
 import numpy as np
 
 from fxcell.config import CellConfig
-from fxcell.geometry import matrix_to_rotvec
 from fxcell.protocol import (
     CONTROL_PERIOD,
     DASHBOARD_PORT,
@@ -183,6 +184,8 @@ class SimServer:
         self._qd_published: object = None
         self._prev_tcp: tuple[np.ndarray, np.ndarray] | None = None
         self.late_cycles = 0
+        self._sends = np.zeros(16384)  # wall times of cycles that sent RTDE packets
+        self._send_count = 0
         self._idle = False
         self.hub.on_activity = self.wake
         self.publish_state()
@@ -205,9 +208,16 @@ class SimServer:
             p, R = pose.position, pose.rotation
             if self._prev_tcp is not None and arm.moving:
                 p0, R0 = self._prev_tcp
-                v = (p - p0) / CONTROL_PERIOD
-                w = np.asarray(matrix_to_rotvec(R @ R0.T)) / CONTROL_PERIOD
-                s.tcp_speed = (*v.tolist(), *w.tolist())
+                v = (p - p0) * (1.0 / CONTROL_PERIOD)
+                # rotation in one cycle is tiny: its vector is the skew part of R·R0ᵀ
+                D = R @ R0.T
+                k = 0.5 / CONTROL_PERIOD
+                s.tcp_speed = (
+                    *v.tolist(),
+                    (D[2, 1] - D[1, 2]) * k,
+                    (D[0, 2] - D[2, 0]) * k,
+                    (D[1, 0] - D[0, 1]) * k,
+                )
             else:
                 s.tcp_speed = s.zero6
             self._prev_tcp = (p, R)
@@ -250,7 +260,12 @@ class SimServer:
             steps = 1
         elif steps > 1 and not self._idle:
             self.late_cycles += steps - 1
+        self.hub.poll()
+        sent = self.hub.packets_sent
         self.hub.stream(steps)
+        if self.hub.packets_sent != sent:
+            self._sends[self._send_count % len(self._sends)] = now
+            self._send_count += 1
         if steps:
             self.controller.tick(steps)
             self.publish_state()
@@ -296,6 +311,23 @@ class SimServer:
                     "last_stop_reason": c.last_stop_reason,
                     "late_cycles": self.late_cycles,
                     "log": c.log_messages[-20:],
+                }
+            )
+        if cmd == "stats":
+            if args[:1] == ["reset"]:
+                self._send_count = 0
+                self.late_cycles = 0
+                return "ok: stats reset"
+            n = min(self._send_count, len(self._sends))
+            times = np.roll(self._sends, -(self._send_count % len(self._sends)))[-n:]
+            periods = np.diff(times) * 1e3 if n > 2 else np.zeros(1)
+            return json.dumps(
+                {
+                    "send_cycles": int(self._send_count),
+                    "period_ms_median": float(np.median(periods)),
+                    "period_ms_p99": float(np.percentile(periods, 99)),
+                    "period_ms_max": float(periods.max()),
+                    "late_cycles": self.late_cycles,
                 }
             )
         if cmd == "set_joints":
@@ -357,16 +389,17 @@ class SimServer:
             await asyncio.sleep(boot_delay)
         factories: list[tuple[int, Any]] = [
             (DASHBOARD_PORT, lambda: DashboardConnection(self.dashboard, self.controller.shutdown)),
-            (RTDE_PORT, self.hub.protocol),
             (SCRIPT_PORT, lambda: ScriptConnection(self.controller)),
             (SECONDARY_PORT, lambda: ScriptConnection(self.controller)),
             (CONTROL_PORT, lambda: ControlConnection(self)),
         ]
         try:
+            self.hub.listen(loop, self.host, RTDE_PORT)
             for port, factory in factories:
                 server = await loop.create_server(factory, self.host, port, reuse_address=True)
                 self._servers.append(server)
         except OSError:
+            self.hub.close()
             for srv in self._servers:
                 srv.close()
             raise
@@ -387,11 +420,25 @@ class SimServer:
                 self._handle.cancel()
             if self._urcap_task is not None:
                 self._urcap_task.cancel()
-            self.hub.drop_all()
+            self.hub.close()
             for srv in self._servers:
                 srv.close()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.remove_signal_handler(sig)
+
+
+def _raise_priority(realtime: bool = False, nice: int = -5) -> None:
+    """Best effort: a controller keeps time before other work (needs the privilege).
+
+    ``realtime`` asks for SCHED_FIFO at a low priority (the kernel still throttles
+    real-time tasks at 95 % of a core); else the process is reniced.
+    """
+    if realtime:
+        with contextlib.suppress(OSError, AttributeError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+            return
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
 
 
 def new_event_loop() -> asyncio.AbstractEventLoop:
@@ -406,10 +453,12 @@ def run(
     config: CellConfig | None = None,
     joints: Sequence[float] | None = None,
     urcap_port: int = URCAP_SCRIPT_PORT,
+    realtime: bool = False,
 ) -> int:
     """Run the simulator until SIGINT/SIGTERM or a dashboard ``shutdown``; exit code."""
     from fxcell.sim.controller import DELAYS
 
+    _raise_priority(realtime)
     sim = SimServer(
         host, time_scale=time_scale, config=config, joints=joints, urcap_port=urcap_port
     )
