@@ -326,3 +326,17 @@ def test_forward_agrees_with_an_independent_ur_implementation(q: np.ndarray) -> 
     tcp = Pose.from_ur(SEED_TCP).matrix
     theirs = ur_analytic_ik.ur3e.forward_kinematics_with_tcp(*q, tcp)
     assert np.allclose(theirs, SEED.forward(q).matrix, atol=1e-12)
+
+
+def test_tcp_given_as_pose_or_list_and_swapped_with_with_tcp() -> None:
+    tcp = Pose.from_ur(SEED_TCP)
+    by_pose = Kinematics.ur3e(tcp)
+    q = [0.3, -1.2, 1.1, -0.7, 1.0, 0.4]
+    assert by_pose.forward(q).isclose(SEED.forward(q), position_tol=1e-15, angle_tol=1e-15)
+    swapped = SEED.with_tcp(None)
+    assert swapped.forward(q).isclose(FLANGE.forward(q), position_tol=1e-15, angle_tol=1e-15)
+    assert swapped.lower == SEED.lower
+    # the TCP offset is applied in the flange frame: 0.14789 m along the flange's z axis
+    flange = FLANGE.forward(q)
+    z_only = Kinematics.ur3e([0, 0, 0.14789, 0, 0, 0]).forward(q)
+    assert np.allclose(z_only.position, flange.position + 0.14789 * flange.rotation[:, 2])
