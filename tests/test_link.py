@@ -120,6 +120,15 @@ async def test_stalled_rtde_marks_the_link_down_then_up(sim: Any) -> None:
         await link.wait_up(10)
 
 
+async def test_a_link_mute_for_seconds_is_restarted(link: LinkClient, sim: Any) -> None:
+    restarts, pid = link.restarts, link.pid
+    await asyncio.to_thread(sim.inject, "stall_rtde", "3.5")
+    await _until(lambda: not link.up, 1.0, "link down")
+    await _until(lambda: link.pid != pid, 6.0, "a new link process")
+    await link.wait_up(10)
+    assert link.restarts == restarts + 1
+
+
 async def test_bad_trajectory_is_refused_before_sending(link: LinkClient) -> None:
     with pytest.raises(InvalidArgumentError):
         await link.execute_trajectory(np.zeros((10, 5)))

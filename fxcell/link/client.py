@@ -43,6 +43,8 @@ STALE_AFTER = 0.1
 """Seconds without a state sample after which the link counts as down."""
 HOLD_STALE_AFTER = 8.0
 """The same while the link process runs a blocking ur_rtde constructor."""
+RESTART_AFTER = 3.0
+"""Seconds of silence after which a live but mute link process is killed and restarted."""
 
 
 class LinkStatus(enum.StrEnum):
@@ -453,11 +455,19 @@ class LinkClient:
         loop's lag.
         """
         while True:
+            silent = time.monotonic() - self._last_sample
             if self.status is not LinkStatus.UP:
-                await asyncio.sleep(0.01)
+                if self.status is LinkStatus.DOWN and silent > RESTART_AFTER and not self._hold:
+                    # alive but mute for longer than ur_rtde's own session timeout: the
+                    # process is stuck; kill it and let the supervisor start a fresh one
+                    log.warning(
+                        "robot link to %s mute for %.1f s: restarting it", self.host, silent
+                    )
+                    self.kill_process()
+                    self._last_sample = time.monotonic()
+                await asyncio.sleep(0.05)
                 continue
             limit = HOLD_STALE_AFTER if self._hold else STALE_AFTER
-            silent = time.monotonic() - self._last_sample
             if silent < limit:
                 await asyncio.sleep(min(limit - silent, 0.05))
                 continue
