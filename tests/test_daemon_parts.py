@@ -318,3 +318,39 @@ async def test_page_and_its_assets_are_served_without_external_resources(
         assert "https://" not in r.text
     assert "https://" not in page.text
     assert "http://" not in page.text
+
+
+# ----------------------------------------------------------------- start-up checks
+
+
+def _config(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "cell.yaml"
+    path.write_text(text + f"\ndaemon:\n  token_file: {tmp_path / 'token'}\n")
+    return path
+
+
+def test_daemon_refuses_a_non_loopback_address_without_the_option(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from fxcell.cli import main
+
+    monkeypatch.setenv(TOKEN_ENV, TOKEN)
+    config = _config(tmp_path, "robot:\n  host: null")
+    assert main(["daemon", "--config", str(config), "--host", "0.0.0.0", "--no-record"]) == 1
+    err = capsys.readouterr().err
+    assert "--allow-remote" in err
+    assert "Traceback" not in err
+
+
+def test_daemon_names_the_bad_key_of_its_config(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from fxcell.cli import main
+
+    config = tmp_path / "cell.yaml"
+    config.write_text("daemon:\n  prot: 8040\n")
+    assert main(["daemon", "--config", str(config)]) == 1
+    assert "daemon.prot" in capsys.readouterr().err
+    assert main(["daemon", "--config", str(config.parent / "missing.yaml")]) == 1
+    assert main(["daemon", "--port", "70000", "--no-record"]) == 1
+    assert "daemon.port" in capsys.readouterr().err
