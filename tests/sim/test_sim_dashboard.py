@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import signal
 import socket
+import subprocess
+import sys
 import time
 
 import pytest
 from dashboard_client import DashboardClient
 
 from fxcell.cli import main
-from fxcell.embedded import EmbeddedSimulator, address_is_free
+from fxcell.embedded import EmbeddedSimulator, address_is_free, free_loopback_host
 from fxcell.errors import InvalidArgumentError, SimulatorError
 from fxcell.testing import SimulatorHandle, simulator
 
@@ -200,3 +203,27 @@ def test_a_taken_address_is_reported_not_hung() -> None:
         with pytest.raises(SimulatorError, match="exit code 2"):
             second.start()
         assert first.dashboard("robotmode") == "Robotmode: POWER_OFF"
+
+
+def test_fxcell_sim_serves_until_sigint() -> None:
+    host = free_loopback_host()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fxcell", "sim", "--host", host, "--time-scale", "0.05"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert "listening" in line
+        assert host in line
+        d = RawDashboard(host)
+        assert d.banner.startswith("Connected: Universal Robots")
+        d.close()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(10) == 0
+    finally:
+        proc.kill()
+        proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
