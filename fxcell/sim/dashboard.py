@@ -119,7 +119,10 @@ class Dashboard:
         return "Brake releasing"
 
     def _stop(self) -> str:
-        return "Stopped" if self.c.stop("stopped by the dashboard") else "Failed to execute: stop"
+        # "Stopped" also when nothing runs: ur_rtde's reuploadScript() sends stopScript and
+        # then "stop", and raises unless the reply is exactly "Stopped".
+        self.c.stop("stopped by the dashboard")
+        return "Stopped"
 
     def _pause(self) -> str:
         return "Pausing program" if self.c.pause() else "Failed to execute: pause"

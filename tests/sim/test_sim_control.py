@@ -253,3 +253,10 @@ def test_stop_script_ends_the_program(ready: Robot) -> None:
     ready.c.stopScript()
     assert not ready.c.isProgramRunning()
     assert ready.sim.dashboard("running") == "Program running: false"
+
+
+def test_reupload_while_running_restarts_the_script(ready: Robot) -> None:
+    assert ready.c.isProgramRunning()
+    assert ready.c.reuploadScript()  # stopScript, dashboard "stop", upload again
+    wait_until(ready.c.isProgramRunning, what="the new script")
+    assert ready.c.moveJ([0.1, *START[1:]], 1.0, 2.0)

@@ -91,7 +91,7 @@ def test_every_reply_form_is_the_polyscope_5_string(sim: SimulatorHandle) -> Non
             "get robot model": "UR3",
             "is in remote control": "true",
             "play": "Failed to execute: play",
-            "stop": "Failed to execute: stop",
+            "stop": "Stopped",
             "pause": "Failed to execute: pause",
             "load missing.urp": "File not found: /programs/missing.urp",
             "load notes.txt": "Error while loading program: /programs/notes.txt",

@@ -103,6 +103,12 @@ def test_injected_protective_stop_is_seen_by_every_client(clients: Clients) -> N
     assert sim.dashboard("unlock protective stop").startswith("Cannot unlock protective stop")
 
 
+def test_the_program_can_trigger_a_protective_stop(clients: Clients) -> None:
+    assert not clients.c.triggerProtectiveStop()  # the command never completes
+    wait_until(clients.r.isProtectiveStopped, what="protective stop")
+    assert "called by the program" in clients.sim.state()["last_stop_reason"]
+
+
 def test_speedj_far_beyond_the_joint_limit_is_a_protective_stop(clients: Clients) -> None:
     clients.c.speedJ([0, 0, 0, 0, 0, 20.0], 1.0, 0.002)
     wait_until(clients.r.isProtectiveStopped, what="protective stop")
