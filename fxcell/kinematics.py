@@ -727,12 +727,18 @@ class Kinematics:
     def inverse_all(
         self, pose: Pose | Sequence[float], seed: ArrayLike | None = None
     ) -> list[FloatArray]:
-        """One solution per closed-form branch that fits the limits (up to 8), each the
-        2π-equivalent nearest ``seed`` (default: zeros), sorted by distance to it."""
+        """One solution per closed-form branch that fits the limits (up to 8; branches that
+        coincide at a singularity once), each the 2π-equivalent nearest ``seed`` (default:
+        zeros), sorted by distance to it."""
         target = pose if isinstance(pose, Pose) else Pose.parse(pose)
         s = [0.0] * 6 if seed is None else _joints(seed)
         ranked = sorted(c for c in (self._nearest(b, s) for b in self._branches(target, s)) if c)
-        return [np.array(sol) for _, sol in ranked]
+        out: list[FloatArray] = []
+        for _, sol in ranked:  # branches coincide at singularities: keep one of each
+            q = np.array(sol)
+            if not any(np.max(np.abs(q - kept)) < 1e-9 for kept in out):
+                out.append(q)
+        return out
 
     def refine(self, q: ArrayLike, pose: Pose, *, iterations: int = 8) -> FloatArray:
         """Gauss-Newton steps on the TCP pose error from ``q``, damped Levenberg-Marquardt

@@ -259,6 +259,7 @@ def test_elbow_stretched_and_shoulder_singular_poses_are_solved() -> None:
         FLANGE.check_singularity(stretched)
     # shoulder: wrist centre in the plane of axes 1 and 2 (straight up at home)
     assert FLANGE.singularity_margins(HOME)[0] < 1e-15
+    assert len(FLANGE.inverse_all(FLANGE.forward(HOME), seed=HOME)) == 1  # branches coincide
     sol = FLANGE.inverse(FLANGE.forward(HOME), seed=HOME)
     assert np.allclose(sol, HOME, atol=1e-7)
     with pytest.raises(SingularityError, match="shoulder"):
