@@ -23,6 +23,7 @@ import getpass
 import json
 import os
 import socket
+import urllib.parse
 from collections.abc import AsyncIterator, Sequence
 from typing import Any
 
@@ -221,6 +222,25 @@ class RemoteCell:
         """The state machine's current state (``cell.state`` of the Cell)."""
         return str(await self._query("state"))
 
+    async def wait_for_state(self, *states: str, timeout: float | None = None) -> str:  # noqa: ASYNC109
+        """Wait until the cell is in one of ``states``; returns it (as ``Cell.wait_for_state``)."""
+        wanted = {str(s) for s in states}
+        try:
+            async with asyncio.timeout(timeout):
+                async for message in self.stream(topics=("transition",)):
+                    state = (
+                        message["snapshot"]["state"]
+                        if message["type"] == "hello"
+                        else message.get("dest")
+                    )
+                    if state in wanted:
+                        return str(state)
+        except TimeoutError:
+            raise errors.RobotTimeoutError(
+                f"the cell did not reach {sorted(wanted)} within {timeout} s"
+            ) from None
+        raise errors.ConnectionLostError("the daemon closed the stream")
+
     async def info(self) -> dict[str, Any]:
         return await self._request("GET", "/api/info")  # type: ignore[no-any-return]
 
@@ -254,9 +274,10 @@ class RemoteCell:
         import websockets
 
         ws_url = self.url.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
-        query = f"rate={rate}&client={self.name}"
+        params = {"rate": str(rate), "client": self.name}
         if topics:
-            query += "&topics=" + ",".join(topics)
+            params["topics"] = ",".join(topics)
+        query = urllib.parse.urlencode(params)
         async with websockets.connect(f"{ws_url}/api/stream?{query}", max_size=None) as ws:
             async for text in ws:
                 yield json.loads(text)
@@ -377,7 +398,7 @@ class RemoteCell:
             args["velocity_factor"] = vf
         if af is not None:
             args["acceleration_factor"] = af
-        return await self._command(name, **args)
+        return _move_result(await self._command(name, **args))
 
     async def stop(self) -> None:
         """Stop any motion (needs the token, not control)."""
@@ -397,6 +418,19 @@ class RemoteCell:
 
     async def get_max_acceleration(self) -> Any:
         return await self._query("get_max_acceleration")
+
+
+def _move_result(record: Any) -> Any:
+    """A move's result as :class:`fxcell.motion.MoveResult` (the record if it does not fit)."""
+    if not isinstance(record, dict):
+        return record
+    from fxcell.motion import MoveResult
+
+    fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in record.items()}
+    try:
+        return MoveResult(**fields)
+    except TypeError:
+        return record
 
 
 def _plain(value: Any) -> Any:

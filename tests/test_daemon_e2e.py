@@ -365,17 +365,22 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
 async def test_remote_cell_has_the_cells_await_style_api(daemon: DaemonProcess) -> None:
     from fxcell.client import RemoteCell
     from fxcell.errors import InvalidStateError
+    from fxcell.motion import MoveResult
     from fxcell.protocol import RobotMode, SafetyMode
 
     async with RemoteCell(daemon.url, TOKEN, name="remote tester") as cell:
         await cell.init()
         assert await cell.get_state() == "running.external_control_ready"
+        ready = await cell.wait_for_state("idle", "running.external_control_ready", timeout=5)
+        assert ready == "running.external_control_ready"
         assert await cell.get_robot_mode() is RobotMode.RUNNING
         assert await cell.get_safety_status() is SafetyMode.NORMAL
         assert await cell.is_in_remote_control() is True
         q = await cell.get_current_joint_values()
         result = await cell.move_joint([q[0] + 0.05, *q[1:]], velocity_factor=0.5)
-        assert result is not None
+        assert isinstance(result, MoveResult)
+        assert result.joint_error < 1e-4
+        assert not result.stopped
         reached = await cell.get_current_joint_values()
         assert reached[0] == pytest.approx(q[0] + 0.05, abs=1e-4)
         with pytest.raises(InvalidStateError) as refused:
