@@ -462,16 +462,27 @@ class MoveExecution:
         self._finished = asyncio.Event()
         self._settled = False
         self._settled_at: float | None = None
+        self._brake_task: asyncio.Task[None] | None = None
 
     @property
     def handle(self) -> TrajectoryHandle | None:
         return self._handle
 
     def request_stop(self) -> None:
-        """Ask the running move to brake to rest (returns at once)."""
+        """Ask the running move to brake to rest (returns at once; the braking profile is
+        computed and sent right away, not at the next state sample)."""
         if self.brake_requested_at is None:
             self.brake_requested_at = time.monotonic()
         self._stop.set()
+        handle = self._handle
+        if handle is not None and not handle.done and self._brake_task is None:
+            self._brake_task = asyncio.get_running_loop().create_task(self._brake(handle))
+
+    async def _braking(self, handle: TrajectoryHandle) -> None:
+        """Brake now, or wait for the braking already under way."""
+        if self._brake_task is None:
+            self._brake_task = asyncio.get_running_loop().create_task(self._brake(handle))
+        await asyncio.shield(self._brake_task)
 
     async def stop(self) -> None:
         """Brake to rest and wait until the move has ended."""
@@ -482,6 +493,9 @@ class MoveExecution:
         try:
             return await self._run()
         finally:
+            if self._brake_task is not None and not self._brake_task.done():
+                with contextlib.suppress(BaseException):
+                    await self._brake_task
             self._finished.set()
 
     async def _run(self) -> MoveResult:
@@ -515,7 +529,7 @@ class MoveExecution:
                 self.request_stop()
                 with contextlib.suppress(Exception):
                     if not handle.done:
-                        await self._brake(handle)
+                        await self._braking(handle)
                     async with asyncio.timeout(self.brake_duration + 1.0):
                         await handle.wait()
                     await self._wait_rest(states)
@@ -532,8 +546,8 @@ class MoveExecution:
         count = 0
         async with asyncio.timeout(patience):
             while True:
-                if self._stop.is_set() and not self._braked and not handle.done:
-                    await self._brake(handle)
+                if self._stop.is_set() and not handle.done:
+                    await self._braking(handle)
                 if state is not None:
                     # plain floats: this runs for every 500 Hz sample
                     moving = max(map(abs, state.actual_qd))

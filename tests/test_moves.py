@@ -198,7 +198,7 @@ async def test_stop_during_a_quarter_turn_of_the_base_brakes_to_rest(
         # its speed then (plus what the acceleration at that moment can add).
         speed = abs(at_stop.actual_qd[0])
         bound = braking(at_stop.actual_q, [speed, 0, 0, 0, 0, 0], [0.7, 0, 0, 0, 0, 0], LIMITS)
-        assert q0 - at_stop.actual_q[0] <= bound.positions[-1][0] - at_stop.actual_q[0] + 0.02
+        assert q0 - at_stop.actual_q[0] <= bound.positions[-1][0] - at_stop.actual_q[0] + 0.05
         assert info.value.result.stopped  # type: ignore[attr-defined]
         assert 0.1 < q0 < math.pi / 2 - 0.1  # stopped on the way, not at either end
         await cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY, timeout=2.0)
