@@ -215,6 +215,14 @@ def test_move_path_visits_each_waypoint_in_turn(ready: Robot) -> None:
         time.sleep(0.005)
     assert {0, 1, 2} <= seen
     assert np.abs(np.asarray(r.getActualQ()) - path[-1][:6]).max() < 1e-9
+    p = r.getActualTCPPose()
+    poses = [
+        [p[0] + 0.03, *p[1:], 0.25, 1.2, 0.0],
+        [p[0] + 0.03, p[1] + 0.03, *p[2:], 0.25, 1.2, 0.0],
+    ]
+    assert c.moveL(poses)  # a movel path, synchronous
+    # ur_rtde writes path waypoints into the script with 6 significant digits
+    assert np.abs(np.asarray(r.getActualTCPPose()) - poses[-1][:6]).max() < 1e-5
 
 
 def test_payload_and_steady_state_are_reported(ready: Robot) -> None:
