@@ -29,6 +29,7 @@ from fxcell.errors import (
     MoveInProgressError,
     MoveStoppedError,
     NotInRemoteControlError,
+    ProgramStoppedError,
     ProtectiveStopError,
     ProtectiveStopUnlockTooSoonError,
     RobotCommandError,
@@ -64,7 +65,7 @@ _FAILURE_STATES: dict[CellState, type[FxcellError]] = {
 }
 _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
     **_FAILURE_STATES,
-    CellState.PROGRAM_STOPPED: MoveStoppedError,
+    CellState.PROGRAM_STOPPED: ProgramStoppedError,
     CellState.IDLE: MoveStoppedError,
     CellState.POWER_OFF: MoveStoppedError,
     CellState.SHUTTING_DOWN: MoveStoppedError,

@@ -170,3 +170,10 @@ class ControlHeldError(RemoteError):
 
 class SimulatorError(FxcellError):
     """The embedded controller simulator did not start, stopped, or refused a request."""
+
+
+# ----------------------------------------------------------------- cell
+
+
+class ProgramStoppedError(MoveStoppedError):
+    """The control program stopped during a move (teach-pendant stop, or it ended)."""

@@ -19,6 +19,7 @@ from fxcell.errors import (
     MoveInProgressError,
     MoveStoppedError,
     NotInRemoteControlError,
+    ProgramStoppedError,
     ProtectiveStopError,
     ProtectiveStopUnlockTooSoonError,
 )
@@ -436,6 +437,18 @@ async def test_protective_stop_cancels_the_running_move_with_its_error(
     with pytest.raises(ProtectiveStopError):
         await task
     assert cell.state is CellState.PROTECTIVE_STOP
+
+
+async def test_pendant_program_stop_cancels_the_running_move_with_its_error(
+    cell: Cell, shared_sim: SimulatorHandle
+) -> None:
+    await cell.init()
+    task = asyncio.create_task(cell.run_move("move_joint", {}, _slow_move(cell)))
+    await cell.wait_for_state(CellState.MOVING, timeout=1)
+    await _inject(shared_sim, "stop_program")
+    with pytest.raises(ProgramStoppedError):
+        await task
+    assert cell.state is CellState.PROGRAM_STOPPED
 
 
 async def test_lost_link_cancels_the_running_move(cell: Cell) -> None:
