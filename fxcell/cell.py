@@ -153,6 +153,9 @@ class Cell:
                 simulator = EmbeddedSimulator(**self._simulator_options)
                 self._host = str(await asyncio.to_thread(simulator.start))
                 self._simulator = simulator
+            # Load the motion planner before the link streams: its imports hold the GIL
+            # long enough to starve the loop (and trip the link watchdog) mid-move.
+            await asyncio.to_thread(self._moves().warm_up)
             self._machine_task = asyncio.create_task(self.machine.run(), name="cell machine")
             robot = self.config.robot
             self.link = LinkClient(

@@ -732,6 +732,12 @@ class MotionController:
             self._planner = MotionPlanner(self.config, planner=self._planner_name)
         return self._planner
 
+    def warm_up(self) -> None:
+        """Build the planner now (imports Pinocchio, coal, OMPL: ~0.3 s, much of it in
+        C extension initialisation that holds the GIL). Call it off the event loop before
+        the robot link streams, so the first move does not stall the loop."""
+        _ = self.planner
+
     def set_velocity_factor(self, value: object) -> None:
         self.velocity_factor = validate_factor("velocity_factor", value)
 
