@@ -298,6 +298,15 @@ async def test_stream_rate_is_selectable_and_can_change(daemon: DaemonProcess) -
             await ws.recv()
 
 
+async def test_stream_refuses_pages_of_other_sites(daemon: DaemonProcess) -> None:
+    url = daemon.url.replace("http://", "ws://") + "/api/stream?topics=control"
+    with pytest.raises(websockets.InvalidStatus):
+        async with websockets.connect(url, origin="http://evil.example") as ws:  # type: ignore[arg-type]
+            await ws.recv()
+    async with websockets.connect(url, origin=daemon.url) as ws:  # type: ignore[arg-type]
+        assert json.loads(await ws.recv())["type"] == "hello"
+
+
 def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
     tmp_path: Path,
 ) -> None:

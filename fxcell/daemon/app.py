@@ -20,6 +20,7 @@ Layout of the API (the OpenAPI document is at ``/api/openapi.json``, browsable a
 import asyncio
 import contextlib
 import json
+import urllib.parse
 from collections.abc import Awaitable, Callable
 from importlib import resources
 from typing import Annotated, Any
@@ -336,6 +337,11 @@ def create_app(service: CellService) -> FastAPI:
     @api.websocket("/stream")
     async def stream(websocket: WebSocket) -> None:
         params = websocket.query_params
+        origin = websocket.headers.get("origin")
+        if origin and urllib.parse.urlsplit(origin).netloc != websocket.headers.get("host"):
+            # Browsers send Origin: another site's page must not watch the robot.
+            await websocket.close(code=1008, reason="cross-origin stream refused")
+            return
         try:
             rate = parse_rate(params.get("rate"))
             topics = parse_topics(params.get("topics"))
