@@ -158,10 +158,10 @@ class Controller:
         self.last_stop_reason = ""
         self.log_messages: list[str] = []
         self.watchdog: tuple[str, float] | None = None  # (input variable, min frequency)
+        self.watchdog_armed_at = 0.0
         self.input_updated: dict[str, float] = {}  # input variable -> last update time
         self.input_generation = 0  # bumped by every RTDE input packet
         self.rtde_stalled_until = 0.0
-        self.shutdown_requested = False
         self.client_host = "127.0.0.1"  # where the ExternalControl URCap asks for its program
         # Hooks the server installs.
         self.on_drop_rtde: Callable[[], None] = lambda: None
@@ -178,6 +178,8 @@ class Controller:
 
     def after(self, seconds: float, callback: Callable[[], None], name: str | None = None) -> None:
         """Run ``callback`` after ``seconds`` of controller time (a named one replaces its last)."""
+        if name is not None:
+            self.cancel(name)
         self._timer_seq += 1
         self._timers.append((self.time + seconds, self._timer_seq, callback))
         if name is not None:
@@ -309,7 +311,6 @@ class Controller:
         return None
 
     def shutdown(self) -> None:
-        self.shutdown_requested = True
         self.power_off()
         self.on_shutdown()
 
@@ -424,10 +425,10 @@ class Controller:
             self.stop("RTDE watchdog timeout")
 
     def set_watchdog(self, variable: str, frequency: float) -> None:
+        """``rtde_set_watchdog(variable, frequency, "stop")``: stop the program when the
+        input ``variable`` gets no update for ``1/frequency`` s (while the program runs)."""
         self.watchdog = (variable, max(frequency, 1e-6))
         self.watchdog_armed_at = self.time
-
-    watchdog_armed_at = 0.0
 
     # ------------------------------------------------------------------ safety and faults
 
