@@ -1,8 +1,9 @@
 """Inverse kinematics of the UR3e on random reachable poses, against two peers.
 
 Poses: random joint vectors uniform within the joint limits (±2π) → forward kinematics →
-inverse kinematics from a random seed (uniform within the limits), in the same interleaved
-loop for every solver so machine noise hits them alike:
+inverse kinematics from a random seed (uniform within the limits). The solvers take turns
+by blocks of 250 poses in one loop, so machine noise hits them alike (``--interleave``:
+turns at every pose, which leaves every call with cold caches):
 
 - ``fxcell``: ``Kinematics.inverse(pose, seed)`` (closed form, nearest solution to the seed);
 - ``ur_analytic_ik``: ``inverse_kinematics_closest`` (C++ via nanobind). It uses UR's base
@@ -16,12 +17,12 @@ loop for every solver so machine noise hits them alike:
 Solved = position error < 1e-6 m, rotation error < 1e-6 rad (checked with fxcell's forward
 kinematics) and every joint within ±2π. Each call is timed alone (perf_counter_ns, GC off);
 the pose is built beforehand in each solver's own input type (fxcell ``Pose``, 4×4 array).
-A second figure, the mean per call of the best of five whole passes, is less sensitive to
-other processes on a busy machine than the per-call median.
+A second figure, the mean per call over the least disturbed of 20 passes of 1000 poses, is
+less sensitive to other processes on a busy machine than the per-call median.
 
 Targets (issue 5): 100 % solved; fxcell median ≤ 1.5 × ur_analytic_ik's.
 
-    ./dev bench ik [--poses N] [--tcp flange|seed|both] [--clik-poses N]
+    ./dev bench ik [--poses N] [--tcp flange|seed|both] [--clik-poses N] [--interleave]
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from fxcell.kinematics import Kinematics
 from fxcell.robot_model import RobotModel
 
 TOL = 1e-6
+BLOCK = 250
 Solver = Callable[[int], "np.ndarray | None"]
 
 
@@ -93,7 +95,9 @@ def _summary(name: str, times_ns: list[int], solved: int, attempted: int) -> dic
     return {"median": med, "p99": p99, "rate": rate}
 
 
-def run(tcp_name: str, n: int, n_clik: int, seed: int) -> dict[str, dict[str, float]]:
+def run(
+    tcp_name: str, n: int, n_clik: int, seed: int, interleave: bool = False
+) -> dict[str, dict[str, float]]:
     tcp = None if tcp_name == "flange" else SEED_TCP
     rng = np.random.default_rng(seed)
     limits = JointLimits()
@@ -145,37 +149,45 @@ def run(tcp_name: str, n: int, n_clik: int, seed: int) -> dict[str, dict[str, fl
         ("pinocchio CLIK", clik_solve, min(n_clik, n)),
     ]
     times: dict[str, list[int]] = {name: [] for name, _, _ in solvers}
-    solved = dict.fromkeys(times, 0)
+    results_q: dict[str, list[np.ndarray | None]] = {name: [] for name in times}
     for _name, fn, count in solvers:  # warm-up
         for i in range(min(count, 50)):
             fn(i)
+    # Every call is timed on its own. By default the solvers take turns by blocks of poses
+    # (as an application calls IK many times in a row, e.g. along a path); --interleave
+    # switches solver at every pose instead, so each call starts with cold caches.
+    step = 1 if interleave else BLOCK
     gc.collect()
     gc.disable()
     try:
-        for i in range(n):
+        for start in range(0, n, step):
             for name, fn, count in solvers:
-                if i >= count:
-                    continue
-                t0 = time.perf_counter_ns()
-                q = fn(i)
-                times[name].append(time.perf_counter_ns() - t0)
-                if q is not None and _is_solution(kin, q, poses[i]):
-                    solved[name] += 1
+                for i in range(start, min(start + step, count)):
+                    t0 = time.perf_counter_ns()
+                    q = fn(i)
+                    times[name].append(time.perf_counter_ns() - t0)
+                    results_q[name].append(q)
     finally:
         gc.enable()
+    solved = {}
+    for name, found in results_q.items():
+        solved[name] = sum(
+            1 for i, q in enumerate(found) if q is not None and _is_solution(kin, q, poses[i])
+        )
 
-    # second view, less sensitive to other processes: the best of 5 whole passes, per call
-    batch = {}
-    for name, fn, _ in solvers[:2]:
-        best = math.inf
-        for _ in range(5):
+    # second view: mean per call over passes of 1000 poses, the best of 20 passes taken
+    # alternately by the two closed forms (the least disturbed pass of each)
+    m = min(n, 1000)
+    batch = dict.fromkeys(("fxcell", "ur_analytic_ik"), math.inf)
+    for _ in range(20):
+        for name, fn, _count in solvers[:2]:
             t0 = time.perf_counter_ns()
-            for i in range(n):
+            for i in range(m):
                 fn(i)
-            best = min(best, (time.perf_counter_ns() - t0) / n / 1000.0)
-        batch[name] = best
+            batch[name] = min(batch[name], (time.perf_counter_ns() - t0) / m / 1000.0)
 
-    print(f"\nTCP = {tcp_name}: {n} random reachable poses, random seeds within ±2π")
+    mode = "solvers interleaved per pose" if interleave else f"solvers in turns of {BLOCK} poses"
+    print(f"\nTCP = {tcp_name}: {n} random reachable poses, random seeds within ±2π ({mode})")
     results = {name: _summary(name, times[name], solved[name], count) for name, _, count in solvers}
     ratio = results["fxcell"]["median"] / results["ur_analytic_ik"]["median"]
     print(
@@ -183,7 +195,7 @@ def run(tcp_name: str, n: int, n_clik: int, seed: int) -> dict[str, dict[str, fl
         f"fxcell / CLIK = {results['fxcell']['median'] / results['pinocchio CLIK']['median']:.3f}"
     )
     print(
-        f"  best-of-5 pass mean per call: fxcell {batch['fxcell']:.2f} µs, ur_analytic_ik "
+        f"  best-pass mean per call: fxcell {batch['fxcell']:.2f} µs, ur_analytic_ik "
         f"{batch['ur_analytic_ik']:.2f} µs, ratio {batch['fxcell'] / batch['ur_analytic_ik']:.2f}"
     )
     return results
@@ -203,11 +215,14 @@ def main() -> None:
     parser.add_argument("--clik-poses", type=int, default=2_000, help="CLIK is ~20× slower")
     parser.add_argument("--tcp", choices=("flange", "seed", "both"), default="both")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--interleave", action="store_true", help="switch solver at every pose (cold caches)"
+    )
     args = parser.parse_args()
     names = ("flange", "seed") if args.tcp == "both" else (args.tcp,)
     ok = True
     for name in names:
-        res = run(name, args.poses, args.clik_poses, args.seed)
+        res = run(name, args.poses, args.clik_poses, args.seed, args.interleave)
         ratio = res["fxcell"]["median"] / res["ur_analytic_ik"]["median"]
         ok = ok and res["fxcell"]["rate"] == 100.0 and ratio <= 1.5
     print("\ntargets met" if ok else "\ntargets NOT met")
