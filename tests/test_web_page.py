@@ -246,7 +246,7 @@ async def test_operator_powers_on_moves_and_stops_from_the_page(
     )
     await browser.click("#form-joint button[type=submit]")
     await browser.wait_for(state_is("running.moving"))
-    await browser.wait_for("Math.abs(Number(document.querySelector('#v0').textContent)) > 0.05")
+    await browser.wait_for(f"Number(document.querySelector('#q0').textContent) > {q0 + 0.05}")
     await browser.click("#stop")
     await browser.wait_for(state_is("running.external_control_ready"))
     await browser.wait_for(
@@ -254,7 +254,7 @@ async def test_operator_powers_on_moves_and_stops_from_the_page(
     )
     await browser.wait_for("Math.abs(Number(document.querySelector('#v0').textContent)) < 1e-3")
     reached = await browser.js("Number(document.querySelector('#q0').textContent)")
-    assert q0 + 0.01 < reached < q0 + 1.5 - 0.01  # it moved, and stopped short of the target
+    assert q0 + 0.05 < reached < q0 + 1.5 - 0.01  # it moved, and stopped short of the target
 
     # the state-machine diagram highlights the current state
     current = await browser.js(
