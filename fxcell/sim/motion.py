@@ -53,8 +53,8 @@ LINK_REACH = 0.8  # m: farther than any point of the arm (and tool) from any joi
 ZERO6 = np.zeros(6)
 ZERO6.flags.writeable = False
 SERVO_MIN_INTERVAL = 0.008  # s: the shortest span a servoj step is judged over
-SETTLE_POSITION = 1e-10  # rad: servo tracking snaps onto the setpoint below this ...
-SETTLE_VELOCITY = 1e-8  # rad/s: ... and this
+SETTLE_POSITION = 1e-8  # rad: servo tracking snaps onto the setpoint below this ...
+SETTLE_VELOCITY = 1e-6  # rad/s: ... and this
 
 
 class MotionError(Exception):
