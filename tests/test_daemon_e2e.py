@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import json
 import math
+import os
 import signal
 import time
 from collections.abc import AsyncIterator, Iterator
@@ -307,6 +308,41 @@ async def test_stream_refuses_pages_of_other_sites(daemon: DaemonProcess) -> Non
             await ws.recv()
     async with websockets.connect(url, origin=daemon.url) as ws:  # type: ignore[arg-type]
         assert json.loads(await ws.recv())["type"] == "hello"
+
+
+def _descendants(pid: int) -> list[tuple[int, str]]:
+    """(pid, command line) of every process below ``pid`` (Linux /proc)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                children.setdefault(ppid, []).append(int(entry.name))
+    out, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            with contextlib.suppress(OSError):
+                cmd = (Path("/proc") / str(child) / "cmdline").read_bytes().replace(b"\0", b" ")
+                out.append((child, cmd.decode()))
+                todo.append(child)
+    return out
+
+
+async def test_daemon_survives_a_crashed_robot_link(
+    daemon: DaemonProcess, http: httpx.AsyncClient
+) -> None:
+    links = [p for p, cmd in _descendants(daemon.proc.pid) if "fxcell.link.process" in cmd]
+    assert len(links) == 1, _descendants(daemon.proc.pid)
+    async with Watcher(daemon.url) as watcher:
+        os.kill(links[0], signal.SIGKILL)
+        await watcher.wait_for(lambda m: m["type"] == "transition" and m["dest"] == "disconnected")
+        await watcher.wait_for(
+            lambda m: m["type"] == "transition" and m["source"] == "disconnected", within=30
+        )
+    snapshot = await state(http)
+    assert snapshot["connected"] is True
+    assert snapshot["state"] != "disconnected"
+    await ensure_ready(http)  # and it takes commands again
 
 
 def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
