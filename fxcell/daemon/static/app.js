@@ -238,6 +238,8 @@ $("#stop").addEventListener("click", async () => {
   await command("stop", undefined);
 });
 $("#take-control").addEventListener("click", async () => {
+  const holder = page.control && page.control.client;
+  if (holder && holder !== page.client && !confirm(`Take control over from ${holder}?`)) return;
   try { showControl(await api("POST", "/api/control", { force: true })); }
   catch (e) { log(`take control: ${e.message}`, "error"); }
 });
