@@ -129,6 +129,16 @@ async def test_a_link_mute_for_seconds_is_restarted(link: LinkClient, sim: Any) 
     assert link.restarts == restarts + 1
 
 
+async def test_control_ready_follows_the_control_program(link: LinkClient, sim: Any) -> None:
+    await _ready_for_control(link)
+    await asyncio.to_thread(sim.inject, "stop_program")
+    await _until(lambda: not link.control_ready, 1.0, "control reported lost")
+    await link.start_control("script", "external_control.urp", 10.0)  # re-uploads the script
+    assert link.control_ready
+    assert link.latest is not None
+    assert link.latest.runtime_state == RuntimeState.PLAYING
+
+
 async def test_bad_trajectory_is_refused_before_sending(link: LinkClient) -> None:
     with pytest.raises(InvalidArgumentError):
         await link.execute_trajectory(np.zeros((10, 5)))

@@ -85,6 +85,7 @@ class Link:
         self.receive: Any = None
         self.stream: RTDEStream | None = None
         self.control: Any = None
+        self._control_live = False
         self.latest: RobotState | None = None
         self._traj_lock = threading.Lock()
         self._traj: _Trajectory | None = None
@@ -208,6 +209,15 @@ class Link:
     def _publish(self, state: RobotState) -> None:
         self.latest = state
         self.send(wire.STATE, wire.state_to_tuple(state))
+        if self._control_live and state.runtime_state != RuntimeState.PLAYING:
+            # the control program ended (pendant stop, safety stop, power off): the
+            # interface stays for a re-upload, but it accepts no commands now
+            self._control_live = False
+            self.send(wire.CONTROL, False, "control program stopped")
+
+    def _control_ready(self, reason: str) -> None:
+        self._control_live = True
+        self.send(wire.CONTROL, True, reason)
 
     def _pump_stream(self) -> None:
         """Forward every RTDE packet (the kernel buffers them: a late wake-up loses none)."""
@@ -309,7 +319,7 @@ class Link:
         c = self.control
         if c is not None:
             if c.isConnected() and c.isProgramRunning():
-                self.send(wire.CONTROL, True, "already running")
+                self._control_ready("already running")
                 return True
             if mode == "script" and c.isConnected():
                 with self.held():
@@ -317,12 +327,12 @@ class Link:
                 if not self._wait_playing(timeout):
                     raise CallError("timeout", "control script did not start")
                 self._probe(c, timeout)
-                self.send(wire.CONTROL, True, "script re-uploaded")
+                self._control_ready("script re-uploaded")
                 return True
             if mode == "urcap" and c.isConnected():
                 self._play_urcap(program, timeout)
                 self._probe(c, timeout)
-                self.send(wire.CONTROL, True, "URCap program restarted")
+                self._control_ready("URCap program restarted")
                 return True
             c = None  # _drop_control must hold the last reference (see there)
             self._drop_control("reconnecting control interface")
@@ -348,7 +358,7 @@ class Link:
         elif not self._wait_playing(timeout):
             raise CallError("timeout", "control script did not start")
         self._probe(c, timeout)
-        self.send(wire.CONTROL, True, f"external control ({mode})")
+        self._control_ready(f"external control ({mode})")
         return True
 
     def _probe(self, c: Any, timeout: float) -> None:
@@ -403,6 +413,7 @@ class Link:
         return True
 
     def _drop_control(self, reason: str) -> None:
+        self._control_live = False
         c, self.control = self.control, None
         if c is not None:
             # disconnect() and the destructor both block holding the GIL (~0.5 s): the
