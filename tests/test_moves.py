@@ -43,8 +43,10 @@ WORK = np.array([0.4, -1.4, 1.6, -1.8, -1.57, 0.0])  # gripper down over the tab
 POSITION_TOL = 1e-5  # m
 ANGLE_TOL = 1e-4  # rad
 
-# The seed's test pose (x, y, z, qx, qy, qz, qw), raised 1 cm above its 2.1 cm, and two more.
-SEED_POSE = [-0.22747, -0.27857, 0.03103, -0.707827, -0.706385, -0.000130, 0.000584]
+# The seed's test pose (thesis § 5.3.5: x, y, z, qx, qy, qz, qw; gripper 2 cm above the
+# table) and two more in the other notations.
+SEED_POSE = [-0.22747267772, -0.2785657474, 0.0210341579,
+             -0.707827193654, -0.706385380384, -0.000130225001698, 0.000584248530499]  # fmt: skip
 POSES: list[object] = [
     SEED_POSE,
     [-0.25, -0.20, 0.12, math.pi, 0.0, 0.3],  # x, y, z, roll, pitch, yaw
