@@ -807,14 +807,22 @@ class Cell:
             self._moves().set_acceleration_factor(value)
 
     async def get_velocity_factor(self) -> float:
-        return self._moves().velocity_factor
+        """The default velocity factor of moves."""
+        async with self._command("get_velocity_factor") as out:
+            out["result"] = factor = self._moves().velocity_factor
+            return factor
 
     async def get_acceleration_factor(self) -> float:
-        return self._moves().acceleration_factor
+        """The default acceleration factor of moves."""
+        async with self._command("get_acceleration_factor") as out:
+            out["result"] = factor = self._moves().acceleration_factor
+            return factor
 
     async def get_max_acceleration(self) -> tuple[float, ...]:
         """The joints' configured maximum accelerations (rad/s², before the factor)."""
-        return self._moves().max_acceleration
+        async with self._command("get_max_acceleration") as out:
+            out["result"] = limits = self._moves().max_acceleration
+            return limits
 
 
 def _running_states() -> set[CellState]:
