@@ -44,6 +44,7 @@ TYPE_CODES = {
 }
 VECTOR_TYPES = frozenset({"VECTOR3D", "VECTOR6D", "VECTOR6INT32", "VECTOR6UINT32"})
 MAX_WRITE_BUFFER = 4 * 1024 * 1024  # a client this far behind is dropped
+QUIET_CYCLES = 250  # a started client silent this long is read by the event loop instead
 
 V6 = "VECTOR6D"
 # name -> (RTDE type, Python expression over the StreamState ``s`` and registers ``r``)
@@ -353,8 +354,8 @@ class RTDEHub:
     def poll(self) -> None:
         """Read what the streaming clients sent since the last cycle."""
         for conn in list(self.connections):
-            if conn.started:
-                conn.read()
+            if conn.started and not conn.watched:
+                conn.poll()
 
     def stream(self, steps: int = 1) -> None:
         """Send every due output packet; ``steps`` control cycles passed since the last call.
@@ -406,24 +407,48 @@ class RTDEConnection:
         self.outputs: list[OutputRecipe] = []
         self.inputs: dict[int, InputRecipe] = {}
         self.started = False
+        self.quiet = 0  # cycles without input while started
+        self.watched = False  # started but read by the event loop (a silent client)
 
-    def read(self) -> None:
+    def poll(self) -> None:
+        """The cycle's read. A client silent for a while (a receive-only client) is handed
+        back to the event loop, so it costs no system call per cycle until it sends again."""
+        if self.read():
+            self.quiet = 0
+            return
+        self.quiet += 1
+        if self.quiet > QUIET_CYCLES and self.sock is not None and self.hub.loop is not None:
+            self.watched = True
+            self.hub.loop.add_reader(self.sock, self._wake_read)
+
+    def _wake_read(self) -> None:
+        self.read()
+        if self.started and self.watched and self.sock is not None and self.hub.loop is not None:
+            self.hub.loop.remove_reader(self.sock)  # back to one read per cycle
+            self.watched = False
+            self.quiet = 0
+
+    def read(self) -> bool:
+        """Read and handle what the socket holds; whether anything came."""
+        got = False
         sock = self.sock
         while sock is not None:
             try:
                 data = sock.recv(65536)
             except (BlockingIOError, InterruptedError):
-                return
+                return got
             except OSError:
                 self.close()
-                return
+                return True
             if not data:
                 self.close()
-                return
+                return True
+            got = True
             self.data_received(data)
             sock = self.sock
             if len(data) < 65536:
-                return
+                break
+        return got
 
     def write(self, data: bytes) -> None:
         sock = self.sock
@@ -529,14 +554,17 @@ class RTDEConnection:
             if not self.started and self.sock is not None and self.hub.loop is not None:
                 self.hub.loop.remove_reader(self.sock)  # read once per cycle from now on
             self.started = True
+            self.watched = False
+            self.quiet = 0
             self.hub.on_activity()
             for output in self.outputs:
                 output.phase = 1.0 - output.step
             self._send(83, b"\x01")
         elif kind == 80:  # 'P' pause
             if self.started and self.sock is not None and self.hub.loop is not None:
-                self.hub.loop.add_reader(self.sock, self.read)
+                self.hub.loop.add_reader(self.sock, self.read)  # replaces a silent-client reader
             self.started = False
+            self.watched = False
             self._send(80, b"\x01")
         else:
             log.debug("RTDE %s: ignoring packet type %d", self.peer, kind)
