@@ -33,6 +33,7 @@ from fxcell.errors import (
     InvalidTargetError,
     MoveError,
     MoveStoppedError,
+    PlanningError,
     ProtectiveStopError,
     RobotFaultError,
     SafeguardStopError,
@@ -237,11 +238,21 @@ class MotionPlanner:
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
         q1 = self.check_joints(target)
         q0 = _vector(start, 6, "start joints")
-        path = self.joint_planner.plan(q0, q1)
-        if len(path.waypoints) == 2:
-            traj = rest_to_rest(q0, q1, limits)  # exactly on the checked straight line
-        else:
-            traj = through_waypoints(path.waypoints, limits, validate=self.checker.first_collision)
+        for attempt in range(3):
+            path = self.joint_planner.plan(q0, q1)
+            if len(path.waypoints) == 2:
+                traj = rest_to_rest(q0, q1, limits)  # exactly on the checked straight line
+                break
+            try:
+                traj = through_waypoints(
+                    path.waypoints, limits, validate=self.checker.first_collision
+                )
+                break
+            except PlanningError:
+                # Even at rest a segment failed the sample check: it grazes an obstacle
+                # between the points its line check looked at. Plan another path.
+                if attempt == 2:
+                    raise
         return MovePlan(
             kind,
             q0,
