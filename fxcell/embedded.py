@@ -152,6 +152,7 @@ class EmbeddedSimulator:
         self.extra_args = list(extra_args)
         self.process: subprocess.Popen[bytes] | None = None
         self._lines: queue.Queue[bytes] = queue.Queue()
+        self._drainer: threading.Thread | None = None
 
     def command(self, host: str) -> list[str]:
         cmd = [
@@ -191,7 +192,10 @@ class EmbeddedSimulator:
         )
         self.process = proc
         self._lines = queue.Queue()
-        threading.Thread(target=self._drain, args=(proc, self._lines), daemon=True).start()
+        self._drainer = threading.Thread(
+            target=self._drain, args=(proc, self._lines), daemon=True, name="simulator-stdout"
+        )
+        self._drainer.start()
         deadline = time.monotonic() + self.startup_timeout
         while True:
             try:
@@ -203,6 +207,8 @@ class EmbeddedSimulator:
             if line == b"" or proc.poll() is not None:
                 code = proc.wait()
                 self.process = None
+                self._drainer.join(2.0)
+                self._drainer = None
                 if proc.stdout is not None:
                     proc.stdout.close()
                 return False, f"exit code {code} on {host}"
@@ -213,8 +219,9 @@ class EmbeddedSimulator:
     @staticmethod
     def _drain(proc: subprocess.Popen[bytes], lines: queue.Queue[bytes]) -> None:
         assert proc.stdout is not None
-        for line in proc.stdout:
-            lines.put(line)
+        with contextlib.suppress(ValueError, OSError):  # closed by stop() meanwhile
+            for line in proc.stdout:
+                lines.put(line)
         lines.put(b"")
 
     def stop(self, timeout: float = 10.0) -> None:
@@ -229,6 +236,9 @@ class EmbeddedSimulator:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+        if self._drainer is not None:
+            self._drainer.join(2.0)  # it sees the end of the output, then ends
+            self._drainer = None
         if proc.stdout is not None:
             with contextlib.suppress(OSError):
                 proc.stdout.close()
