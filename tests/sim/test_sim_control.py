@@ -139,6 +139,18 @@ def test_stopj_decelerates_a_running_move(ready: Robot) -> None:
     assert 0.4 <= elapsed < 0.9  # 1 rad/s at 2 rad/s²
 
 
+def test_stopl_stops_an_async_movel(ready: Robot) -> None:
+    p = ready.r.getActualTCPPose()
+    target = [p[0] + 0.15, *p[1:]]
+    assert ready.c.moveL(target, 0.1, 0.5, True)
+    wait_until(lambda: ready.r.getActualTCPPose()[0] > p[0] + 0.02, what="motion")
+    ready.c.stopL(1.0)
+    assert ready.r.getActualQd() == [0.0] * 6
+    stopped = ready.r.getActualTCPPose()[0]
+    assert p[0] + 0.02 < stopped < target[0]
+    assert not ready.c.getAsyncOperationProgressEx().isAsyncOperationRunning()
+
+
 def test_servoj_tracks_with_lookahead_lag_and_settles_exactly(ready: Robot) -> None:
     c, r = ready.c, ready.r
     q0 = np.asarray(r.getActualQ())
