@@ -354,3 +354,15 @@ def test_daemon_names_the_bad_key_of_its_config(
     assert main(["daemon", "--config", str(config.parent / "missing.yaml")]) == 1
     assert main(["daemon", "--port", "70000", "--no-record"]) == 1
     assert "daemon.port" in capsys.readouterr().err
+
+
+def test_notifier_never_blocks_on_a_reader_that_fell_behind(tmp_path: Path) -> None:
+    path = str(tmp_path / "notify")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind(path)  # never read: its queue fills up
+        notifier = Notifier({"NOTIFY_SOCKET": path})
+        t0 = time.monotonic()
+        sent = [notifier.watchdog() for _ in range(2000)]
+        assert time.monotonic() - t0 < 5
+        assert sent[0]
+        assert not sent[-1]  # dropped, not blocked

@@ -42,7 +42,12 @@ class Notifier:
             return False
         try:
             with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as sock:
+                # Never block the event loop: a reader that fell behind loses a notice.
+                sock.setblocking(False)
                 sock.sendto("\n".join(lines).encode(), self._address)
+        except BlockingIOError:
+            log.warning("sd_notify: %r is not reading; dropped %r", self._address, lines)
+            return False
         except OSError as exc:
             log.warning("sd_notify to %r failed: %s", self._address, exc)
             return False

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import faulthandler
 import ipaddress
 import logging
 import os
@@ -235,9 +236,8 @@ class Daemon:
 
 
 def _hard_exit() -> None:
-    log.critical(
-        "the daemon did not stop within %.1f s of the signal: exiting hard", HARD_EXIT_AFTER
-    )
+    log.critical("the daemon did not stop within %.1f s of the signal: exit 1", HARD_EXIT_AFTER)
+    faulthandler.dump_traceback(all_threads=True)  # where it hung, for the log
     logging.shutdown()
     os._exit(1)
 
