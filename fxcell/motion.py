@@ -395,7 +395,7 @@ class ExecutionOptions:
     compensate_lag: bool = True
     """Lead the setpoints by servoJ's lag (≈ lookahead·(300/gain)^¼, URCL issue #86),
     so the executed motion equals the planned one; the last sample is unchanged."""
-    brake_lead: int = 1
+    brake_lead: int = 0
     """Samples between the link's estimated index and the sample the braking replaces.
     Erring late costs nothing: the link then joins the braking profile a few samples in,
     where it differs from the original by ~½·Δa·t² (µrad); erring early delays the stop."""
@@ -621,7 +621,7 @@ class MoveExecution:
             return
         self._braked = True
         traj = self.plan.trajectory
-        at = math.ceil(self._current_index(handle)) + self.options.brake_lead
+        at = math.floor(self._current_index(handle)) + self.options.brake_lead
         if at >= len(traj) - 1:
             return  # it ends within the lead anyway
         p, v, a = traj.state(at)
