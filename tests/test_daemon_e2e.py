@@ -495,9 +495,16 @@ def test_operator_cli_talks_to_the_daemon(daemon: DaemonProcess) -> None:
     assert out.returncode == 0, out.stderr
     assert "state:" in out.stdout
     assert "robot mode:" in out.stdout
+    out = fxcell("init")
+    assert out.returncode == 0, out.stderr
+    assert "running.external_control_ready" in out.stdout
     out = fxcell("power-on")  # refused in the current state: a clear error, exit 1
     assert out.returncode == 1
-    assert "InvalidStateError" in out.stderr or "not allowed in state" in out.stderr
+    assert "not allowed in state 'running.external_control_ready'" in out.stderr
+    q = httpx.get(f"{daemon.url}/api/state").json()["robot"]["q"]
+    out = fxcell("move-joint", *(str(v) for v in [q[0] + 0.02, *q[1:]]))
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["joint_error"] < 1e-4
 
 
 def test_daemon_serves_while_the_robot_is_unreachable(tmp_path: Path) -> None:

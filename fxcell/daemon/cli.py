@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import os
 import sys
@@ -148,6 +149,8 @@ def _client(command: ClientCommand) -> Callable[[argparse.Namespace], int]:
                 return await command(cell, args)
 
         result = asyncio.run(main())
+        if dataclasses.is_dataclass(result) and not isinstance(result, type):
+            result = dataclasses.asdict(result)
         if result is not None:
             if args.json or not isinstance(result, str):
                 print(json.dumps(result, indent=2, default=str))
