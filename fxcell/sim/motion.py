@@ -255,6 +255,7 @@ class ServoTrack(Motion):
     def __init__(self, arm: Arm) -> None:
         super().__init__()
         self.setpoint = arm.q.copy()
+        self._setpoint = self.setpoint.tolist()
         self.omega = 20.0
         self.last_command = -1.0
 
@@ -276,7 +277,7 @@ class ServoTrack(Motion):
         # Setpoints from a non-real-time client arrive bunched: judge a step over at least
         # a few cycles, so only a jump far beyond the joint speed is a violation.
         allowed = max(interval, servo_time, SERVO_MIN_INTERVAL) * VIOLATION_FACTOR
-        previous = self.setpoint.tolist()
+        previous = self._setpoint
         for joint, (new, old, limit) in enumerate(zip(sp, previous, arm.speed_limits, strict=True)):
             if abs(new - old) > limit * allowed:
                 speed = abs(new - old) / (allowed / VIOLATION_FACTOR)
@@ -286,22 +287,34 @@ class ServoTrack(Motion):
             if abs(new) > JOINT_POSITION_LIMIT + 1e-9:
                 raise SafetyLimitError(f"servoj: joint {joint} position {new:.3f} out of ±2π")
         self.setpoint = np.array(sp)
+        self._setpoint = sp
         self.last_command = now
         lookahead = min(max(lookahead, 0.03), 0.2)
         gain = min(max(gain, 100.0), 2000.0)
         self.omega = 2.0 / lookahead * (gain / 300.0) ** 0.25
 
     def step(self, arm: Arm, dt: float) -> bool:
-        err = self.setpoint - arm.q
-        if np.abs(err).max() < SETTLE_POSITION and np.abs(arm.qd).max() < SETTLE_VELOCITY:
-            if arm.qd is not ZERO6 or err.any():
+        # plain floats: for 6 joints this is cheaper than numpy's per-call overhead
+        q = arm.q.tolist()
+        qd = arm.qd.tolist()
+        kp = self.omega * self.omega * dt
+        kd = 2.0 * self.omega * dt
+        settled = True
+        new_q, new_qd, new_qdd = [], [], []
+        for s, x, v, limit in zip(self._setpoint, q, qd, arm.speed_limits, strict=True):
+            e = s - x
+            if settled and (abs(e) >= SETTLE_POSITION or abs(v) >= SETTLE_VELOCITY):
+                settled = False
+            nv = v + kp * e - kd * v
+            nv = limit if nv > limit else -limit if nv < -limit else nv
+            new_q.append(x + nv * dt)
+            new_qd.append(nv)
+            new_qdd.append((nv - v) / dt)
+        if settled:
+            if arm.qd is not ZERO6 or q != self._setpoint:
                 arm.set_state(self.setpoint, None, None)  # converged: exactly on the setpoint
             return False
-        w = self.omega
-        qd = arm.qd + (w * w * err - 2.0 * w * arm.qd) * dt
-        np.minimum(qd, arm.speed_limit, out=qd)
-        np.maximum(qd, -arm.speed_limit, out=qd)
-        arm.set_state(arm.q + qd * dt, qd, (qd - arm.qd) / dt)
+        arm.set_state(np.array(new_q), np.array(new_qd), np.array(new_qdd))
         return False
 
     def restart(self, arm: Arm) -> Motion:

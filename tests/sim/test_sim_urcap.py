@@ -10,7 +10,7 @@ from rtde_receive import RTDEReceiveInterface
 
 from fxcell.testing import simulator, urcap_port
 
-from .test_sim_control import START, wait_until
+from .test_sim_control import START, fresh, wait_until
 
 
 def test_urcap_program_requests_the_script_and_runs_it() -> None:
@@ -31,7 +31,7 @@ def test_urcap_program_requests_the_script_and_runs_it() -> None:
             t0 = time.monotonic()
             assert c.moveJ(target, 1.0, 2.0)
             assert time.monotonic() - t0 < 3.0
-            assert r.getActualQ() == target
+            assert fresh(r).getActualQ() == target
             c.stopScript()
             wait_until(lambda: d.programState() == "STOPPED external_control.urp")
         finally:
