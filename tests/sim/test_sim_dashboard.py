@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import signal
 import socket
 import subprocess
@@ -227,3 +228,10 @@ def test_fxcell_sim_serves_until_sigint() -> None:
         proc.wait()
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+async def test_simulator_context_manager_also_works_with_async_with() -> None:
+    async with simulator() as sim:
+        assert sim.running
+        assert await asyncio.to_thread(sim.dashboard, "robotmode") == "Robotmode: POWER_OFF"
+    assert not sim.running
