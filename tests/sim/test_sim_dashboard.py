@@ -108,6 +108,15 @@ def test_every_reply_form_is_the_polyscope_5_string(sim: SimulatorHandle) -> Non
                 "Cannot unlock protective stop, safetymode is not PROTECTIVE_STOP"
             ),
             "get operational mode": "NONE",
+            "set operational mode manual": "Operational mode 'manual' is set",
+            "clear operational mode": (
+                "No longer controlling the operational mode. Current operational mode: 'manual'."
+            ),
+            "load installation default.installation": (
+                "Loading installation: default.installation"
+            ),
+            "version": "Version: 5.11.1.108318",
+            "addToLog": "No log message to add",
             "power on": "Powering on",
             "brake release": "Brake releasing",
             "power off": "Powering off",
