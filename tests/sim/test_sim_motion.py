@@ -134,3 +134,12 @@ def test_move_path_and_control_script_are_recognised() -> None:
 
 def test_joint_limits_are_the_ur3e_maxima() -> None:
     assert JOINT_SPEED_LIMIT.tolist() == [math.pi] * 3 + [2 * math.pi] * 3
+
+
+def test_the_launcher_agrees_with_the_simulator_on_faults_and_ports() -> None:
+    from fxcell import embedded
+    from fxcell.sim import controller, server
+
+    assert embedded.FAULTS == controller.FAULTS
+    assert embedded.CONTROL_PORT == server.CONTROL_PORT
+    assert set(embedded.PORTS) == set(server.PORTS)
