@@ -714,8 +714,25 @@ class Cell:
         return controller
 
     async def _move(
-        self, name: str, args: dict[str, Any], method: str, *plan_args: Any, **plan_kwargs: Any
+        self,
+        name: str,
+        args: dict[str, Any],
+        method: str,
+        *plan_args: Any,
+        queue: bool = False,
+        **plan_kwargs: Any,
     ) -> MoveResult:
+        if queue:
+            # Queued moves start in call order, each once the running move has ended
+            # (however it ended).
+            lock: asyncio.Lock | None = getattr(self, "_move_queue", None)
+            if lock is None:
+                lock = self._move_queue = asyncio.Lock()
+            async with lock:
+                while self._move_task is not None and not self._move_task.done():
+                    await asyncio.wait({self._move_task})
+                return await self._move(name, {**args, "queue": True}, method, *plan_args,
+                                        **plan_kwargs)  # fmt: skip
         moves = self._moves()
         vf, af = args.get("velocity_factor"), args.get("acceleration_factor")
         idle = self._move_task is None or self._move_task.done()
@@ -738,22 +755,30 @@ class Cell:
         target: Sequence[float],
         velocity_factor: float | None = None,
         acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
     ) -> MoveResult:
         """Move to joint positions (rad) on a jerk-limited, collision-free trajectory.
 
         Factors in (0, 1] scale the joint velocity / acceleration limits for this move
-        (default: the cell's factors, see :meth:`set_velocity_factor`).
+        (default: the cell's factors, see :meth:`set_velocity_factor`). While another
+        move runs, a move raises :class:`MoveInProgressError`, or with ``queue=True``
+        waits for it to end and then starts (every move method takes ``queue``).
         """
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_joint", args, "plan_joint", target)
+        return await self._move("move_joint", args, "plan_joint", target, queue=queue)
 
     async def go_home(
-        self, velocity_factor: float | None = None, acceleration_factor: float | None = None
+        self,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
     ) -> MoveResult:
         """Move to the configured home joints ([0, -π/2, 0, -π/2, 0, 0] by default)."""
         args = {"velocity_factor": velocity_factor, "acceleration_factor": acceleration_factor}
-        return await self._move("go_home", args, "plan_joint", self.config.home)
+        return await self._move("go_home", args, "plan_joint", self.config.home, queue=queue)
 
     async def move_pose(
         self,
@@ -762,6 +787,7 @@ class Cell:
         acceleration_factor: float | None = None,
         *,
         linear: bool = False,
+        queue: bool = False,
     ) -> MoveResult:
         """Move the TCP to a pose: a Pose, [x, y, z, qx, qy, qz, qw] or [x, y, z, r, p, y].
 
@@ -770,18 +796,20 @@ class Cell:
         """
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor, "linear": linear}  # fmt: skip
-        return await self._move("move_pose", args, "plan_pose", target, linear=linear)
+        return await self._move("move_pose", args, "plan_pose", target, linear=linear, queue=queue)
 
     async def move_distance(
         self,
         distance: Sequence[float],
         velocity_factor: float | None = None,
         acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
     ) -> MoveResult:
         """Move the TCP by [dx, dy, dz] (m, base axes) on a straight line, orientation kept."""
         args = {"distance": distance, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_distance", args, "plan_distance", distance)
+        return await self._move("move_distance", args, "plan_distance", distance, queue=queue)
 
     async def move_relative(
         self,
@@ -789,12 +817,16 @@ class Cell:
         target_pose: Pose | Sequence[float],
         velocity_factor: float | None = None,
         acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
     ) -> MoveResult:
         """Move to ``start_pose``, then to ``target_pose`` (both checked before moving)."""
         args = {"start_pose": start_pose, "target_pose": target_pose,
                 "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_relative", args, "plan_relative", start_pose, target_pose)
+        return await self._move(
+            "move_relative", args, "plan_relative", start_pose, target_pose, queue=queue
+        )
 
     async def set_velocity_factor(self, value: float) -> None:
         """Default velocity factor of moves, in (0, 1]; InvalidFactorError otherwise."""

@@ -330,6 +330,25 @@ async def test_a_second_move_while_one_runs_is_refused(sim: _Simulators) -> None
         assert result.joint_error < 1e-5
 
 
+async def test_a_queued_move_starts_when_the_running_one_ends(sim: _Simulators) -> None:
+    first = HOME + np.array([0.4, 0, 0, 0, 0, 0])
+    second = HOME + np.array([0.4, 0.2, 0, 0, 0, 0])
+    async with ready_cell(sim, HOME) as cell:
+        paths: list[MotionEvent] = []
+        cell.bus.subscribe(
+            lambda e: paths.append(e) if isinstance(e, MotionEvent) and e.kind == "path" else None
+        )
+        running = asyncio.create_task(cell.move_joint(list(first)))
+        await wait_until_moving(cell, 0, 0.1)
+        queued = await cell.move_joint(list(second), queue=True)
+        done = await running
+        np.testing.assert_allclose(done.reached_joints, first, atol=1e-5)
+        np.testing.assert_allclose(queued.reached_joints, second, atol=1e-5)
+        # the queued move was planned from where the first one ended
+        assert len(paths) == 2
+        np.testing.assert_allclose(paths[1].data["start_joints"], first, atol=1e-5)
+
+
 BAD_TARGETS: list[tuple[str, dict[str, object], type[Exception]]] = [
     ("move_joint", {"target": [0.4, -1.4, 1.6, math.nan, -1.57, 0.0]}, InvalidTargetError),
     ("move_joint", {"target": [0.4, -1.4, 1.6, -1.8, -1.57, 7.0]}, InvalidTargetError),
