@@ -713,6 +713,12 @@ class Cell:
             controller = self._motion = MotionController(self.config, publish=self.bus.publish)
         return controller
 
+    @property
+    def motion(self) -> MotionController:
+        """The move logic: default factors, the OMPL planner (``use_planner``), the
+        running execution."""
+        return self._moves()
+
     async def _move(
         self,
         name: str,

@@ -43,7 +43,7 @@ from fxcell.errors import (
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
 from fxcell.kinematics import Kinematics
-from fxcell.planning import DEFAULT_PLANNER, JointPlanner, cartesian_line
+from fxcell.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
 from fxcell.protocol import RobotState
 from fxcell.trajectory import (
     DT,
@@ -743,6 +743,15 @@ class MotionController:
             self._planner = MotionPlanner(self.config, planner=self._planner_name)
         return self._planner
 
+    def use_planner(self, name: str) -> None:
+        """Plan blocked joint moves with another OMPL geometric planner (see
+        :data:`fxcell.planning.PLANNERS`; default RRTConnect)."""
+        if name not in PLANNERS:
+            raise InvalidArgumentError(
+                f"unknown planner {name!r}; choose one of {', '.join(PLANNERS)}"
+            )
+        self._planner_name = name  # taken up by the next plan (under the plan lock)
+
     def warm_up(self) -> None:
         """Build the planner now (imports Pinocchio, coal, OMPL: ~0.3 s, much of it in
         C extension initialisation that holds the GIL). Call it off the event loop before
@@ -782,6 +791,15 @@ class MotionController:
 
         def locked() -> MovePlan | list[MovePlan]:
             with self._plan_lock:
+                joint = self.planner.joint_planner
+                if joint.planner_name != self._planner_name:
+                    self.planner.joint_planner = JointPlanner(
+                        self.planner.checker,
+                        self.config.limits.position_min,
+                        self.config.limits.position_max,
+                        planner=self._planner_name,
+                        timeout=joint.timeout,
+                    )
                 result: MovePlan | list[MovePlan] = getattr(self.planner, method)(*args, **kwargs)
                 return result
 

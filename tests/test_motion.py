@@ -17,7 +17,7 @@ from fxcell.errors import (
     UnreachableError,
 )
 from fxcell.geometry import Pose
-from fxcell.motion import MotionPlanner, lead_setpoints
+from fxcell.motion import MotionController, MotionPlanner, MovePlan, lead_setpoints
 from fxcell.trajectory import DT, Limits, rest_to_rest
 
 CONFIG = CellConfig.load()
@@ -160,3 +160,15 @@ def test_lead_setpoints_undo_a_critically_damped_lag() -> None:
         worst = max(worst, float(np.max(np.abs(q - traj.positions[k + 1]))))
     assert worst < 1e-6
     np.testing.assert_array_equal(sp[-1], traj.positions[-1])
+
+
+async def test_the_planner_for_blocked_moves_can_be_chosen() -> None:
+    controller = MotionController(CONFIG)
+    controller.use_planner("BKPIECE1")
+    left = [-1.042, -1.271, 1.482, -1.781, -1.571, 2.099]
+    right = [-2.792, -1.255, 1.46, -1.776, -1.571, 0.35]  # the machine is in between
+    plan = await controller.plan("plan_joint", left, right, 1.0, 1.0)
+    assert isinstance(plan, MovePlan)
+    assert plan.planner == "BKPIECE1"
+    with pytest.raises(InvalidArgumentError):
+        controller.use_planner("NoSuchPlanner")
