@@ -99,15 +99,23 @@ class RemoteOperation:
         Cancelling the waiting task (e.g. by ``asyncio.timeout``) cancels the operation:
         a move brakes to a stop.
         """
-        try:
-            while not self.done:
-                self.record = await self._cell._request(
+        while not self.done:
+            # The wait request is shielded: interrupting httpx mid-response leaves its
+            # connection unclosed. On cancellation the operation is cancelled in the
+            # daemon, which ends the pending wait request promptly and cleanly.
+            request = asyncio.ensure_future(
+                self._cell._request(
                     "POST", f"/api/operations/{self.id}/wait", params={"timeout": 20.0}
                 )
-        except asyncio.CancelledError:
-            with contextlib.suppress(errors.FxcellError, httpx.HTTPError):
-                await asyncio.shield(self.cancel())
-            raise
+            )
+            try:
+                self.record = await asyncio.shield(request)
+            except asyncio.CancelledError:
+                with contextlib.suppress(errors.FxcellError, httpx.HTTPError):
+                    await self.cancel()
+                with contextlib.suppress(Exception, asyncio.CancelledError):
+                    await asyncio.wait_for(request, 5.0)
+                raise
         return self.result()
 
     def result(self) -> Any:
