@@ -405,6 +405,9 @@ class ExecutionOptions:
     """A move has arrived when every joint is within this of its target (rad)..."""
     settle_velocity: float = 1e-3
     """...and slower than this (rad/s)."""
+    arrive_tolerance: float = 1e-4
+    """If the hold ends first (a real arm's encoders may never read 1e-6 rad), the move
+    still counts as arrived within this (rad, about 50 µm at the TCP); else TrackingError."""
     rest_velocity: float = 1e-3
     """After a stop, the robot is at rest below this joint speed (rad/s)."""
 
@@ -581,6 +584,12 @@ class MoveExecution:
                             await handle.stop()
                         return state
                     elif handle.done:
+                        if (
+                            max(abs(a - b) for a, b in zip(state.actual_q, target, strict=True))
+                            <= opts.arrive_tolerance
+                        ):
+                            self._settled_at = state.received_at
+                            self._settled = True
                         return state
                 try:
                     async with asyncio.timeout(0.25):

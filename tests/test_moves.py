@@ -330,6 +330,16 @@ async def test_a_second_move_while_one_runs_is_refused(sim: _Simulators) -> None
         assert result.joint_error < 1e-5
 
 
+async def test_a_move_whose_encoders_never_read_exactly_on_target_still_arrives(
+    sim: _Simulators,
+) -> None:
+    async with ready_cell(sim) as cell:
+        cell.motion.options.settle_position = -1.0  # never close enough: the hold runs out
+        result = await cell.move_joint(list(WORK + np.array([0.1, 0, 0, 0, 0, 0])))
+        assert not result.stopped
+        assert result.joint_error <= cell.motion.options.arrive_tolerance
+
+
 async def test_a_queued_move_starts_when_the_running_one_ends(sim: _Simulators) -> None:
     first = HOME + np.array([0.4, 0, 0, 0, 0, 0])
     second = HOME + np.array([0.4, 0.2, 0, 0, 0, 0])
