@@ -7,7 +7,7 @@ than 1e-4 rad/s; distance = base travel in that time.
 
 Peer, same run: the physical bound — the jerk-limited time-optimal braking from the
 robot's state at the ``stop()`` call (the planned state where the plan passes the robot's
-position then) under the configured limits (Ruckig), and its distance.
+position then) under the configured braking limits (Ruckig), and its distance.
 (The seed slept v/a after MoveIt's stop.)
 
 Target: time to rest <= bound + 10 ms.
@@ -32,7 +32,8 @@ from fxcell.testing import simulator
 from fxcell.trajectory import Limits, braking, braking_duration, rest_to_rest
 
 CONFIG = CellConfig.load()
-LIMITS = Limits.from_config(CONFIG.limits)
+MOVE_LIMITS = Limits.from_config(CONFIG.limits)  # what the move is planned with
+BRAKING = Limits.for_braking(CONFIG.limits)  # what stop() brakes with
 REST = 1e-4  # rad/s: a jerk-limited stop crosses 1e-3 rad/s some 14 ms before its end
 
 
@@ -70,11 +71,11 @@ async def trial(cell: Cell, target: list[float], after: float) -> dict[str, floa
     # The robot follows the planned trajectory (servoJ lag compensated): its state at the
     # stop() call is the planned state where the plan passes its position (a busy machine
     # may stretch the timing, never the path).
-    planned = rest_to_rest(states[0].actual_q, target, LIMITS)
+    planned = rest_to_rest(states[0].actual_q, target, MOVE_LIMITS)
     index = int(np.searchsorted(planned.positions[:, 0], at_stop.actual_q[0]))
     p, qd, qdd = planned.state(index)
-    bound = braking_duration(qd, qdd, LIMITS)
-    profile = braking(p, qd, qdd, LIMITS)
+    bound = braking_duration(qd, qdd, BRAKING)
+    profile = braking(p, qd, qdd, BRAKING)
     return {
         "speed": float(abs(qd[0])),
         "time": rest.received_at - called,

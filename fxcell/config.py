@@ -62,8 +62,13 @@ class JointLimits(_Model):
     acceleration: Vector6 = (0.7, 0.7, 0.7, 1.4, 1.4, 1.4)
     """The seed's joint_limits.yaml accelerations (rad/s²)."""
     jerk: Vector6 = (10.0,) * 6
+    braking_acceleration: Vector6 = (4.0, 4.0, 4.0, 8.0, 8.0, 8.0)
+    """Deceleration a stop may use (rad/s²), whatever the move's factors. Higher than the
+    planning accelerations so that a stop from full speed takes about a second (a UR3e's
+    category-2 stop takes a few tenths), which also keeps the daemon's 3 s shutdown."""
+    braking_jerk: Vector6 = (40.0,) * 6
 
-    @field_validator("velocity", "acceleration", "jerk")
+    @field_validator("velocity", "acceleration", "jerk", "braking_acceleration", "braking_jerk")
     @classmethod
     def _positive(cls, v: Vector6) -> Vector6:
         if not all(math.isfinite(x) and x > 0 for x in v):

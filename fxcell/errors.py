@@ -131,7 +131,15 @@ class MoveError(FxcellError):
 
 
 class MoveStoppedError(MoveError):
-    """The move was stopped (``stop()``, cancellation, or a safety event) before the target."""
+    """The move was stopped (``stop()``, cancellation, or a safety event) before the target.
+
+    ``result`` holds the move's :class:`~fxcell.motion.MoveResult` (where it came to rest)
+    when the move braked under fxcell's control.
+    """
+
+    def __init__(self, message: str, result: object | None = None) -> None:
+        self.result = result
+        super().__init__(message)
 
 
 class MoveInProgressError(MoveError):

@@ -175,8 +175,8 @@ class MotionPlanner:
         return Limits.from_config(self.limits, velocity_factor, acceleration_factor)
 
     def braking_limits(self) -> Limits:
-        """Limits for stopping: the full configured limits, whatever the move's factors."""
-        return Limits.from_config(self.limits)
+        """Limits for stopping: the configured braking limits, whatever the move's factors."""
+        return Limits.for_braking(self.limits)
 
     def tcp_pose(self, joints: ArrayLike) -> Pose:
         return self.kinematics.forward(np.asarray(joints, float))
@@ -665,12 +665,11 @@ class MoveExecution:
         reached = np.asarray(state.actual_q, float)
         result = self._result(reached, self._settled_at, end)
         if self._braked or (end.status == "stopped" and not self._settled):
-            exc = MoveStoppedError(
-                f"the move was stopped at {[round(x, 4) for x in reached]} "
-                f"({result.executed_duration:.3f} s after it started)"
+            raise MoveStoppedError(
+                f"the move was stopped at {reached.round(4).tolist()} "
+                f"({result.executed_duration:.3f} s after it started)",
+                result,
             )
-            exc.result = result  # type: ignore[attr-defined]
-            raise exc
         if not self._settled:
             raise TrackingError(
                 f"the robot did not settle at the target (joint error {result.joint_error:.2e} "

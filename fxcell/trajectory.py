@@ -79,6 +79,17 @@ class Limits:
             position_max=np.asarray(limits.position_max, float),
         )
 
+    @classmethod
+    def for_braking(cls, limits: JointLimits) -> Limits:
+        """The limits a stop brakes with: the configured braking deceleration and jerk."""
+        return cls(
+            velocity=np.asarray(limits.velocity, float),
+            acceleration=np.asarray(limits.braking_acceleration, float),
+            jerk=np.asarray(limits.braking_jerk, float),
+            position_min=np.asarray(limits.position_min, float),
+            position_max=np.asarray(limits.position_max, float),
+        )
+
     def with_velocity(self, velocity: ArrayLike) -> Limits:
         return Limits(
             np.asarray(velocity, float),

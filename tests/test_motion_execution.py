@@ -53,7 +53,7 @@ def test_a_braking_profile_from_a_sample_starts_there() -> None:
     traj = rest_to_rest(HOME, HOME + np.array([0.8, 0, 0, 0, 0, 0]), LIMITS)
     at = len(traj) // 2
     p, v, a = traj.state(at)
-    stop = braking(p, v, a, Limits.from_config(CONFIG.limits))
+    stop = braking(p, v, a, Limits.for_braking(CONFIG.limits))
     spliced = np.concatenate([traj.positions[:at], stop.positions])
     steps = np.abs(np.diff(spliced[:, 0]))
     # no step larger than the planned speed allows in one 2 ms sample

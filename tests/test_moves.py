@@ -39,6 +39,7 @@ CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)
 KIN = Kinematics.ur3e(tcp=CONFIG.tool.tcp, limits=CONFIG.limits)
 LIMITS = Limits.from_config(CONFIG.limits)
+BRAKING = Limits.for_braking(CONFIG.limits)
 WORK = np.array([0.4, -1.4, 1.6, -1.8, -1.57, 0.0])  # gripper down over the table
 POSITION_TOL = 1e-5  # m
 ANGLE_TOL = 1e-4  # rad
@@ -199,7 +200,7 @@ async def test_stop_during_a_quarter_turn_of_the_base_brakes_to_rest(
         # It braked on the jerk-limited profile: no farther than the braking distance from
         # its speed then (plus what the acceleration at that moment can add).
         speed = abs(at_stop.actual_qd[0])
-        bound = braking(at_stop.actual_q, [speed, 0, 0, 0, 0, 0], [0.7, 0, 0, 0, 0, 0], LIMITS)
+        bound = braking(at_stop.actual_q, [speed, 0, 0, 0, 0, 0], [0.7, 0, 0, 0, 0, 0], BRAKING)
         assert q0 - at_stop.actual_q[0] <= bound.positions[-1][0] - at_stop.actual_q[0] + 0.05
         assert info.value.result.stopped  # type: ignore[attr-defined]
         assert 0.1 < q0 < math.pi / 2 - 0.1  # stopped on the way, not at either end
