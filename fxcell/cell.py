@@ -115,6 +115,8 @@ class Cell:
         self.link: LinkClient | None = None
         self._simulator: Any = None
         self._recorder: Any = None
+        self.controller_info: dict[str, str] = {}
+        """Controller version, serial number and robot model, read when the link is up."""
         self._machine_task: asyncio.Task[None] | None = None
         self._observed: CellState = CellState.DISCONNECTED
         self._shutting_down = False
@@ -169,6 +171,9 @@ class Cell:
             )
             await self.link.start(wait=True)
             await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
+            self.controller_info = await self._read_controller_info()
+            if self._recorder is not None:
+                self._recorder.update_metadata(self.controller_info)
         except BaseException:
             await self.close()
             raise
@@ -245,6 +250,21 @@ class Cell:
                 f"{sorted(s.value for s in wanted)}"
             ) from None
         return self.state
+
+    async def _read_controller_info(self) -> dict[str, str]:
+        """Controller version, serial number and model, as the dashboard reports them."""
+        info: dict[str, str] = {}
+        queries = (
+            ("controller_version", "PolyscopeVersion"),
+            ("serial", "get serial number"),
+            ("robot_model", "get robot model"),
+        )
+        for key, command in queries:
+            try:
+                info[key] = await self._link().dashboard(command)
+            except FxcellError as exc:  # informational only: never fail open() for it
+                log.warning("could not read %s from the controller: %s", key, exc)
+        return info
 
     # ------------------------------------------------------------- observation
 

@@ -13,6 +13,7 @@ import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
+import fxcell
 from fxcell import Cell, CellState
 from fxcell.config import CellConfig
 from fxcell.events import CommandEvent, Event, StateEvent, TransitionEvent
@@ -104,6 +105,15 @@ def test_a_scripted_cell_session_is_recorded_completely(session: Session) -> Non
         f"{len(states) / expected:.2%} of 500 Hz, {session.late_cycles} cycles the simulator "
         "ran late"
     )
+
+    # metadata: fxcell version, config snapshot, and the controller's version and serial
+    with open(session.path, "rb") as f:
+        records = [dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "fxcell"]
+    meta = records[-1]  # readers take the last record: everything known by then
+    assert meta["fxcell_version"] == fxcell.__version__
+    assert json.loads(meta["config"])["tool"]["tcp"] == list(CellConfig.load().tool.tcp)
+    assert meta["controller_version"].startswith("URSoftware 5.")
+    assert meta["serial"].isdigit()
 
     # schemas Foxglove understands
     assert schemas[topics.TF].name == "foxglove.FrameTransforms"
