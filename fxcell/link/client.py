@@ -415,12 +415,15 @@ class LinkClient:
                 pass_fds=(child.fileno(),),
                 stdin=subprocess.DEVNULL,
             )
+            self.pid = self._process.pid
+            loop = asyncio.get_running_loop()
+            protocol = _LinkProtocol(self._handle)
+            transport, _ = await loop.create_connection(lambda: protocol, sock=parent)
+        except BaseException:
+            parent.close()  # cancelled or failed before the transport took it over
+            raise
         finally:
             child.close()
-        self.pid = self._process.pid
-        loop = asyncio.get_running_loop()
-        protocol = _LinkProtocol(self._handle)
-        transport, _ = await loop.create_connection(lambda: protocol, sock=parent)
         self._writer = transport
         self._hold = False  # the watchdog starts with the first sample (status UP)
         self._last_sample = time.monotonic()
