@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from fxcell.embedded import FAULTS  # one list of faults, shared with the launcher
 from fxcell.protocol import (
     CONTROL_PERIOD,
     RobotMode,
@@ -58,20 +59,6 @@ JOINT_MODE = {
     RobotMode.IDLE: 255,
     RobotMode.RUNNING: 254,
 }
-
-FAULTS = (
-    "protective_stop",
-    "emergency_stop",
-    "emergency_stop_release",
-    "safeguard_stop",
-    "safeguard_stop_release",
-    "local_control",
-    "remote_control",
-    "drop_rtde",
-    "stall_rtde",
-    "stop_program",
-    "power_loss",
-)
 
 
 _POWERED = frozenset({RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING})

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from fxcell.config import CellConfig
+from fxcell.embedded import CONTROL_PORT
 from fxcell.protocol import (
     CONTROL_PERIOD,
     DASHBOARD_PORT,
@@ -44,7 +45,7 @@ from fxcell.sim.rtde import RTDEHub
 
 log = logging.getLogger(__name__)
 
-CONTROL_PORT = 29990  # simulator control: "inject FAULT [ARGS]", "state", "set_joints q1..q6"
+# CONTROL_PORT (29990), shared with the launcher: "inject FAULT [ARGS]", "state", "set_joints q..."
 PORTS = (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, SECONDARY_PORT, CONTROL_PORT)
 IDLE_PERIOD = 0.02  # s: cycle period while no client streams and nothing moves
 URCAP_TIMEOUT = 5.0
