@@ -76,6 +76,24 @@ UR3E_DH = DH(
 )
 """UR's published UR3e parameters (the seed thesis's table has d5/d6 wrong)."""
 
+# UR's joint and link names (as in UR's URDFs), base to wrist 3. Link k moves with joint k.
+JOINT_NAMES = (
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+)
+LINK_NAMES = (
+    "shoulder_link",
+    "upper_arm_link",
+    "forearm_link",
+    "wrist_1_link",
+    "wrist_2_link",
+    "wrist_3_link",
+)
+
 
 def dh_transform(theta: float, d: float, a: float, alpha: float) -> FloatArray:
     """``Rz(θ)·Tz(d)·Tx(a)·Rx(α)`` as a 4×4 matrix."""

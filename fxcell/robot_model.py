@@ -29,29 +29,13 @@ import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 
 from fxcell.geometry import Pose
-from fxcell.kinematics import DH, UR3E_DH, _as_tcp, _joints
+from fxcell.kinematics import DH, JOINT_NAMES, LINK_NAMES, UR3E_DH, _as_tcp, _joints
 
 if TYPE_CHECKING:
     from fxcell.config import JointLimits
 
 FloatArray = NDArray[np.float64]
 
-JOINT_NAMES = (
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-)
-LINK_NAMES = (
-    "shoulder_link",
-    "upper_arm_link",
-    "forearm_link",
-    "wrist_1_link",
-    "wrist_2_link",
-    "wrist_3_link",
-)
 BASE_FRAME = "base"
 FLANGE_FRAME = "tool0"
 TCP_FRAME = "tcp"

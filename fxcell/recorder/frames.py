@@ -18,26 +18,12 @@ from collections.abc import Sequence
 from typing import Any, Final
 from xml.sax.saxutils import quoteattr
 
-from fxcell.kinematics import DH, UR3E_DH
+from fxcell.kinematics import DH, JOINT_NAMES, LINK_NAMES, UR3E_DH
 
 BASE: Final = "base"
 """Root frame: the controller's base frame, as on the teach pendant (not ROS base_link)."""
-LINKS: Final = (
-    "shoulder_link",
-    "upper_arm_link",
-    "forearm_link",
-    "wrist_1_link",
-    "wrist_2_link",
-    "wrist_3_link",
-)
-JOINTS: Final = (
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-)
+LINKS: Final = LINK_NAMES
+JOINTS: Final = JOINT_NAMES
 FLANGE: Final = "flange"
 TCP: Final = "tcp"
 
