@@ -51,10 +51,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # A subcommand may set ``default_log_level`` (the daemon logs INFO); each -v lowers it.
+    base: int = getattr(args, "default_log_level", logging.WARNING)
     logging.basicConfig(
-        level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
+        level=max(logging.DEBUG, base - 10 * args.verbose),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if args.verbose < 2:  # pytransitions narrates every callback at INFO: only with -vv
+        logging.getLogger("transitions").setLevel(logging.WARNING)
     func: Handler | None = getattr(args, "func", None)
     if func is None:
         parser.print_help()

@@ -74,3 +74,15 @@ def test_console_script_runs_as_a_module() -> None:
         timeout=30,
     )
     assert out.stdout.strip() == f"fxcell {fxcell.__version__}"
+
+
+def test_the_daemon_logs_at_info_by_default_and_other_commands_at_warning() -> None:
+    import logging
+
+    from fxcell.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["daemon"]).default_log_level == logging.INFO
+    assert getattr(parser.parse_args(["info"]), "default_log_level", logging.WARNING) == (
+        logging.WARNING
+    )

@@ -11,6 +11,7 @@ import argparse
 import asyncio
 import dataclasses
 import json
+import logging
 import os
 import sys
 from collections.abc import Awaitable, Callable
@@ -54,7 +55,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--no-record", action="store_true", help="do not record MCAP logs")
     p.add_argument("--log-dir", help="MCAP directory (default: recorder.directory, logs/)")
-    p.set_defaults(func=_run_daemon)
+    p.set_defaults(func=_run_daemon, default_log_level=logging.INFO)
 
     def client_parser(name: str, help_text: str) -> argparse.ArgumentParser:
         c: argparse.ArgumentParser = sub.add_parser(name, help=help_text, description=help_text)

@@ -120,7 +120,7 @@ class Daemon:
                     raise FxcellError("the HTTP server stopped while starting")
                 await asyncio.sleep(0.01)
             url = f"http://{self.config.daemon.host}:{sock.getsockname()[1]}/"
-            log.warning("fxcell daemon serving %s (robot: %s)", url, self.service.robot_description)
+            log.info("fxcell daemon serving %s (robot: %s)", url, self.service.robot_description)
             print(f"fxcell daemon: serving {url}", flush=True)
             where = (
                 "$FXCELL_TOKEN"
@@ -168,7 +168,7 @@ class Daemon:
         return sock
 
     def _on_signal(self, sig: int) -> None:
-        log.warning("received %s: stopping", signal.Signals(sig).name)
+        log.info("received %s: stopping", signal.Signals(sig).name)
         if not self.stopping.is_set():
             # Last resort if some part will not finish: never overstay the 3 s promise.
             timer = threading.Timer(HARD_EXIT_AFTER, _hard_exit)
