@@ -163,6 +163,7 @@ class Cell:
             self.link = LinkClient(
                 self._host,
                 frequency=robot.frequency,
+                receiver=robot.receiver,
                 connect_timeout=robot.connect_timeout,
                 backoff_max=robot.reconnect_backoff_max,
                 on_state=self._on_sample,

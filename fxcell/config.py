@@ -39,6 +39,10 @@ class RobotConfig(_Model):
     external_control: Literal["script", "urcap"] = "script"
     """``script``: ur_rtde uploads its control script; ``urcap``: play ``urcap_program``."""
     urcap_program: str = "external_control.urp"
+    receiver: Literal["stream", "ur_rtde"] = "stream"
+    """Source of the 500 Hz state stream: ``stream`` reads every RTDE packet with fxcell's
+    reader; ``ur_rtde`` polls ``RTDEReceiveInterface``, which keeps only the newest packet
+    (a late poll loses samples)."""
     frequency: float = Field(500.0, gt=0, le=500)
     command_timeout: float = Field(10.0, gt=0)
     """Seconds a general command waits for the robot to confirm its effect."""

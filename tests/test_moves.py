@@ -152,6 +152,18 @@ async def test_move_joint_reaches_three_joint_targets(sim: _Simulators) -> None:
             await assert_at_rest(cell)
 
 
+async def test_a_cell_on_ur_rtdes_receive_interface_reaches_its_target(sim: _Simulators) -> None:
+    robot = CONFIG.robot.model_copy(update={"receiver": "ur_rtde"})
+    config = CONFIG.model_copy(update={"robot": robot})
+    handle = sim.get(WORK)
+    async with Cell(handle.host, config=config) as cell:
+        await cell.init()
+        target = WORK + np.array([0.2, -0.1, 0.1, 0.0, 0.0, 0.0])
+        result = await cell.move_joint(list(target), velocity_factor=0.3)
+        assert result.joint_error < 1e-5
+        assert result.position_error < 1e-5
+
+
 async def test_go_home_reaches_the_home_joints(sim: _Simulators) -> None:
     async with ready_cell(sim, HOME + np.array([0.3, 0.2, -0.3, 0.2, 0.3, -0.4])) as cell:
         result = await cell.go_home()
