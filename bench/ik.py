@@ -41,8 +41,8 @@ import ur_analytic_ik
 from fxcell.config import SEED_TCP, JointLimits
 from fxcell.errors import UnreachableError
 from fxcell.geometry import Pose
-from fxcell.kinematics import Kinematics
-from fxcell.robot_model import RobotModel
+from fxcell.motion.kinematics import Kinematics
+from fxcell.motion.robot_model import RobotModel
 
 TOL = 1e-6
 BLOCK = 250

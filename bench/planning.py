@@ -24,9 +24,9 @@ import numpy as np
 from fxcell.config import CellConfig
 from fxcell.errors import FxcellError
 from fxcell.geometry import Pose
-from fxcell.motion import MotionPlanner
-from fxcell.planning import JointPlanner
-from fxcell.trajectory import Limits, through_waypoints
+from fxcell.motion.moves import MotionPlanner
+from fxcell.motion.planning import JointPlanner
+from fxcell.motion.trajectory import Limits, through_waypoints
 
 CONFIG = CellConfig.load()
 

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from fxcell.embedded import stats
+from fxcell.link.embedded import stats
 from fxcell.testing import simulator
 
 DEFAULT_RECIPE = (

@@ -27,9 +27,9 @@ from fxcell.cell import Cell
 from fxcell.config import CellConfig
 from fxcell.errors import MoveStoppedError
 from fxcell.events import StateEvent
+from fxcell.motion.trajectory import Limits, braking, braking_duration, rest_to_rest
 from fxcell.protocol import RobotState
 from fxcell.testing import simulator
-from fxcell.trajectory import Limits, braking, braking_duration, rest_to_rest
 
 CONFIG = CellConfig.load()
 MOVE_LIMITS = Limits.from_config(CONFIG.limits)  # what the move is planned with

@@ -26,8 +26,8 @@ import numpy as np
 from fxcell.cell import Cell
 from fxcell.config import CellConfig
 from fxcell.events import StateEvent
+from fxcell.motion.trajectory import Limits, minimum_duration
 from fxcell.testing import simulator
-from fxcell.trajectory import Limits, minimum_duration
 
 SEED = {1.5: 3.634, 0.5: 6.339, 0.1: 31.489}
 BASE = CellConfig.load()

@@ -10,10 +10,10 @@ from fxcell.errors import FxcellError
 if TYPE_CHECKING:
     from fxcell._version import __version__
     from fxcell.cell import Cell, ProgramStatus
+    from fxcell.cell.statemachine import CellState
     from fxcell.config import CellConfig
-    from fxcell.motion import MoveResult
+    from fxcell.motion.moves import MoveResult
     from fxcell.protocol import ProgramState, RobotMode, RobotState, SafetyMode
-    from fxcell.statemachine import CellState
 
 # Loaded on first use, so that ``import fxcell`` (and the robot-link process, which
 # imports fxcell.link) stays fast; even the version (importlib.metadata is slow).
@@ -22,8 +22,8 @@ _LAZY = {
     "Cell": "fxcell.cell",
     "ProgramStatus": "fxcell.cell",
     "CellConfig": "fxcell.config",
-    "CellState": "fxcell.statemachine",
-    "MoveResult": "fxcell.motion",
+    "CellState": "fxcell.cell.statemachine",
+    "MoveResult": "fxcell.motion.moves",
     "ProgramState": "fxcell.protocol",
     "RobotMode": "fxcell.protocol",
     "RobotState": "fxcell.protocol",

@@ -20,7 +20,7 @@ from fxcell.errors import FxcellError
 # Modules that contribute subcommands, in the order ``--help`` lists them.
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "fxcell.info",
-    "fxcell.statemachine",
+    "fxcell.cell.statemachine",
     "fxcell.daemon.cli",
     "fxcell.sim.cli",
     "fxcell.replay",

@@ -323,7 +323,7 @@ class RemoteCell:
         return bool(await self._query("is_in_remote_control"))
 
     async def get_program_state(self) -> Any:
-        """A :class:`fxcell.cell.ProgramStatus` (program state and loaded program)."""
+        """A :class:`fxcell.cell.cell.ProgramStatus` (program state and loaded program)."""
         from fxcell.cell import ProgramStatus
         from fxcell.protocol import ProgramState
 
@@ -429,10 +429,10 @@ class RemoteCell:
 
 
 def _move_result(record: Any) -> Any:
-    """A move's result as :class:`fxcell.motion.MoveResult` (the record if it does not fit)."""
+    """A move's result as :class:`fxcell.motion.moves.MoveResult` (else the record as is)."""
     if not isinstance(record, dict):
         return record
-    from fxcell.motion import MoveResult
+    from fxcell.motion.moves import MoveResult
 
     fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in record.items()}
     try:

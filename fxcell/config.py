@@ -16,8 +16,9 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from fxcell.errors import ConfigError
+from fxcell.resources import resource_dir
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+CONFIG_DIR = resource_dir("config")
 
 Vector6 = tuple[float, float, float, float, float, float]
 Vector3 = tuple[float, float, float]
@@ -112,7 +113,7 @@ class DaemonConfig(_Model):
 
 
 class CellConfig(_Model):
-    """Everything a :class:`~fxcell.cell.Cell` and the daemon need."""
+    """Everything a :class:`~fxcell.cell.cell.Cell` and the daemon need."""
 
     robot: RobotConfig = RobotConfig()
     tool: ToolConfig = ToolConfig()

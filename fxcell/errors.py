@@ -133,7 +133,7 @@ class MoveError(FxcellError):
 class MoveStoppedError(MoveError):
     """The move was stopped (``stop()``, cancellation, or a safety event) before the target.
 
-    ``result`` holds the move's :class:`~fxcell.motion.MoveResult` (where it came to rest)
+    ``result`` holds the move's :class:`~fxcell.motion.moves.MoveResult` (where it came to rest)
     when the move braked under fxcell's control.
     """
 

@@ -1,6 +1,6 @@
 """The cell's event bus: every command, transition, state sample and motion record.
 
-The :class:`~fxcell.cell.Cell` publishes here; the MCAP recorder, the daemon's
+The :class:`~fxcell.cell.cell.Cell` publishes here; the MCAP recorder, the daemon's
 WebSocket stream and user subscribers consume. Publishing never blocks: synchronous
 subscribers must be quick (hand the event to a queue), and async streams are
 bounded queues that drop their oldest entry when a consumer falls behind, counting

@@ -558,7 +558,7 @@ async def reexecute(
         results[c.command_id] = (outcome[0], outcome[1], t0, time.time())
 
     async with cell:
-        from fxcell.statemachine import CellState
+        from fxcell.cell.statemachine import CellState
 
         await cell.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
         start_new = time.time()

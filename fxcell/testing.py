@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 import pytest_asyncio
 
-from fxcell.embedded import EmbeddedSimulator
+from fxcell.link.embedded import EmbeddedSimulator
 
 TEST_TIME_SCALE = 0.05  # controller delays in tests: power on 0.1 s, brake release 75 ms
 

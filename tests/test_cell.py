@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from fxcell import Cell, CellState, RobotMode, SafetyMode
+from fxcell.cell.statemachine import load_statechart
 from fxcell.errors import (
     ConnectionLostError,
     InvalidStateError,
@@ -25,7 +26,6 @@ from fxcell.errors import (
 )
 from fxcell.events import CommandEvent, StateEvent, TransitionEvent
 from fxcell.protocol import CONTROL_PERIOD, ProgramState
-from fxcell.statemachine import load_statechart
 from fxcell.testing import SimulatorHandle, simulator
 
 TIME_SCALE = 0.05

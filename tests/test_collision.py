@@ -9,11 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fxcell.collision import HAND_E, CollisionChecker
 from fxcell.config import CellConfig, SceneConfig, SceneObject
 from fxcell.errors import CollisionError, InvalidTargetError
 from fxcell.geometry import Pose
-from fxcell.kinematics import Kinematics
+from fxcell.motion.collision import HAND_E, CollisionChecker
+from fxcell.motion.kinematics import Kinematics
 
 CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)

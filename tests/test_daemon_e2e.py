@@ -415,7 +415,7 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
 async def test_remote_cell_has_the_cells_await_style_api(daemon: DaemonProcess) -> None:
     from fxcell.client import RemoteCell
     from fxcell.errors import InvalidStateError
-    from fxcell.motion import MoveResult
+    from fxcell.motion.moves import MoveResult
     from fxcell.protocol import RobotMode, SafetyMode
 
     async with RemoteCell(daemon.url, TOKEN, name="remote tester") as cell:

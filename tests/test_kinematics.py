@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from fxcell.config import SEED_TCP, JointLimits
 from fxcell.errors import InvalidTargetError, SingularityError, UnreachableError
 from fxcell.geometry import Pose
-from fxcell.kinematics import UR3E_DH, Kinematics, dh_transform
+from fxcell.motion.kinematics import UR3E_DH, Kinematics, dh_transform
 
 FLANGE = Kinematics.ur3e()
 SEED = Kinematics.ur3e(SEED_TCP)
@@ -311,7 +311,7 @@ def test_inverse_accepts_seed_style_lists() -> None:
 
 
 def test_importing_kinematics_does_not_import_pinocchio() -> None:
-    code = "import sys, fxcell.kinematics; print('pinocchio' in sys.modules)"
+    code = "import sys, fxcell.motion.kinematics; print('pinocchio' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 

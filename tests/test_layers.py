@@ -3,7 +3,7 @@
 user API → cell → motion → robot link → protocol/base. The simulator (``fxcell.sim``)
 and test support (``fxcell.testing``) sit outside: they may import the runtime's
 pure parts, but no runtime module imports them (the daemon starts the simulator as a
-separate process by module name through ``fxcell.embedded``).
+separate process by module name through ``fxcell.link.embedded``).
 """
 
 from __future__ import annotations
@@ -25,16 +25,19 @@ LAYERS: dict[str, int] = {
     "fxcell.config": 0,
     "fxcell.geometry": 0,
     "fxcell.events": 0,
+    "fxcell.resources": 0,
     "fxcell.link": 1,
-    "fxcell.embedded": 1,
-    "fxcell.kinematics": 2,
-    "fxcell.robot_model": 2,
-    "fxcell.collision": 2,
-    "fxcell.planning": 2,
-    "fxcell.trajectory": 2,
+    "fxcell.link.embedded": 1,
     "fxcell.motion": 2,
-    "fxcell.statemachine": 3,
+    "fxcell.motion.kinematics": 2,
+    "fxcell.motion.robot_model": 2,
+    "fxcell.motion.collision": 2,
+    "fxcell.motion.planning": 2,
+    "fxcell.motion.trajectory": 2,
+    "fxcell.motion.moves": 2,
     "fxcell.cell": 3,
+    "fxcell.cell.statemachine": 3,
+    "fxcell.cell.cell": 3,
     "fxcell.recorder": 3,
     "fxcell.compat": 4,
     "fxcell.client": 4,

@@ -17,8 +17,8 @@ from fxcell.errors import (
     UnreachableError,
 )
 from fxcell.geometry import Pose
-from fxcell.motion import MotionController, MotionPlanner, MovePlan, lead_setpoints
-from fxcell.trajectory import DT, Limits, rest_to_rest
+from fxcell.motion.moves import MotionController, MotionPlanner, MovePlan, lead_setpoints
+from fxcell.motion.trajectory import DT, Limits, rest_to_rest
 
 CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)

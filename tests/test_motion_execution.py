@@ -14,8 +14,8 @@ import numpy as np
 
 from fxcell.cell import Cell
 from fxcell.config import CellConfig
+from fxcell.motion.trajectory import DT, Limits, braking, rest_to_rest
 from fxcell.testing import simulator
-from fxcell.trajectory import DT, Limits, braking, rest_to_rest
 
 CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)

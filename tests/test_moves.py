@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from fxcell.cell import Cell
+from fxcell.cell.statemachine import CellState
 from fxcell.config import CellConfig
 from fxcell.errors import (
     CollisionError,
@@ -30,10 +31,9 @@ from fxcell.errors import (
 )
 from fxcell.events import MotionEvent
 from fxcell.geometry import Pose
-from fxcell.kinematics import Kinematics
-from fxcell.statemachine import CellState
+from fxcell.motion.kinematics import Kinematics
+from fxcell.motion.trajectory import Limits, braking
 from fxcell.testing import SimulatorHandle, simulator
-from fxcell.trajectory import Limits, braking
 
 CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from fxcell.collision import CollisionChecker
 from fxcell.config import CellConfig
 from fxcell.errors import CollisionError, SingularityError, UnreachableError
 from fxcell.geometry import Pose
-from fxcell.kinematics import Kinematics
-from fxcell.planning import JointPlanner, cartesian_line, interpolate_pose
-from fxcell.trajectory import Limits, through_waypoints
+from fxcell.motion.collision import CollisionChecker
+from fxcell.motion.kinematics import Kinematics
+from fxcell.motion.planning import JointPlanner, cartesian_line, interpolate_pose
+from fxcell.motion.trajectory import Limits, through_waypoints
 
 CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)

@@ -22,7 +22,7 @@ from mcap.reader import make_reader
 
 from fxcell.errors import InvalidArgumentError, RecorderError
 from fxcell.events import CommandEvent, EventBus, LogEvent, Origin, StateEvent, TransitionEvent
-from fxcell.kinematics import Kinematics
+from fxcell.motion.kinematics import Kinematics
 from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.recorder import Recorder, is_finished, recover, topics
 from fxcell.recorder.frames import JOINTS, LinkFrames
@@ -400,11 +400,11 @@ def test_fxcell_warnings_are_recorded_as_foxglove_logs(tmp_path: Path) -> None:
     import logging
 
     with Recorder(tmp_path) as rec:
-        logging.getLogger("fxcell.cell").warning("gripper %s did not open", "hand-e")
+        logging.getLogger("fxcell.cell.cell").warning("gripper %s did not open", "hand-e")
         logging.getLogger("elsewhere").warning("not ours")
     (entry,) = [json.loads(d) for t, _, d in read_all(rec.stats.files[0]) if t == topics.LOG]
     assert entry["message"] == "gripper hand-e did not open"
-    assert entry["name"] == "fxcell.cell"
+    assert entry["name"] == "fxcell.cell.cell"
     assert entry["level"] == 3
     assert entry["file"].endswith("test_recorder.py")
     assert entry["line"] > 0

@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fxcell.config import SEED_TCP, JointLimits
-from fxcell.kinematics import Kinematics
-from fxcell.robot_model import (
+from fxcell.motion.kinematics import Kinematics
+from fxcell.motion.robot_model import (
     FLANGE_FRAME,
     JOINT_NAMES,
     LINK_NAMES,

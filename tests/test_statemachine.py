@@ -8,11 +8,7 @@ from dataclasses import replace
 
 import pytest
 
-from fxcell.cli import main as cli_main
-from fxcell.errors import InvalidStateError
-from fxcell.events import TransitionEvent
-from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
-from fxcell.statemachine import (
+from fxcell.cell.statemachine import (
     DOC,
     DOC_BEGIN,
     DOC_END,
@@ -25,6 +21,10 @@ from fxcell.statemachine import (
     to_mermaid,
     with_diagram,
 )
+from fxcell.cli import main as cli_main
+from fxcell.errors import InvalidStateError
+from fxcell.events import TransitionEvent
+from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
 
 
 def test_statechart_diagram_is_current() -> None:

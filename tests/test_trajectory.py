@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from fxcell.config import CellConfig
 from fxcell.errors import FxcellError, InvalidFactorError, PlanningError
-from fxcell.trajectory import (
+from fxcell.motion.trajectory import (
     DT,
     Limits,
     Trajectory,

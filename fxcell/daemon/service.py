@@ -13,6 +13,7 @@ from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
 
 from fxcell._version import __version__
+from fxcell.cell.statemachine import CellState, Statechart, load_statechart
 from fxcell.config import CellConfig
 from fxcell.daemon.auth import check_bearer
 from fxcell.daemon.control import ControlLock, Holder
@@ -22,7 +23,6 @@ from fxcell.daemon.stream import StreamHub
 from fxcell.errors import ConnectionLostError
 from fxcell.events import Event, EventBus, StateEvent, TransitionEvent
 from fxcell.protocol import RobotState
-from fxcell.statemachine import CellState, Statechart, load_statechart
 
 # Commands whose names differ between the API and the statechart's guard table.
 _GUARD_NAME = {

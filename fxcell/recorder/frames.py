@@ -1,7 +1,7 @@
 """Link frames of the UR3e for Foxglove's 3D panel: a primitive-geometry URDF and its /tf.
 
 UR publishes no meshes fxcell could ship, so the URDF is generated from the DH
-parameters of :mod:`fxcell.kinematics` with cylinders for the joint housings and the
+parameters of :mod:`fxcell.motion.kinematics` with cylinders for the joint housings and the
 links. Each URDF link frame sits at its joint: link *i* is DH frame *i−1* turned by
 ``q_i`` about its z axis, so joint *i* has the fixed origin ``Tz(d)·Tx(a)·Rx(α)`` of the
 previous DH row and a z axis — a plain URDF any tool animates. The transform of joint
@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from typing import Any, Final
 from xml.sax.saxutils import quoteattr
 
-from fxcell.kinematics import DH, JOINT_NAMES, LINK_NAMES, UR3E_DH
+from fxcell.motion.kinematics import DH, JOINT_NAMES, LINK_NAMES, UR3E_DH
 
 BASE: Final = "base"
 """Root frame: the controller's base frame, as on the teach pendant (not ROS base_link)."""

@@ -67,7 +67,7 @@ class SyntheticSession:
         t0: float | None = None,
         tcp: tuple[float, ...] | None = None,
     ) -> None:
-        from fxcell.kinematics import Kinematics
+        from fxcell.motion.kinematics import Kinematics
 
         self.duration = duration
         self.rate = rate
@@ -167,7 +167,7 @@ class SyntheticSession:
                 )
             )
             planned.append(
-                Planned(stop_at, LogEvent(t0 + stop_at, 40, "fxcell.cell", "protective stop"))
+                Planned(stop_at, LogEvent(t0 + stop_at, 40, "fxcell.cell.cell", "protective stop"))
             )
             planned += self._command(stop_at + 0.5, "unlock_protective_stop", {}, 0.01)
             planned.append(

@@ -14,7 +14,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from fxcell.embedded import FAULTS
+from fxcell.link.embedded import FAULTS
 
 
 def _joints(text: str) -> list[float]:
@@ -78,7 +78,7 @@ def register(sub: Any) -> None:
 
 
 def run_inject(args: argparse.Namespace) -> int:
-    from fxcell.embedded import inject
+    from fxcell.link.embedded import inject
 
     print(inject(args.host, args.fault, *args.args))
     return 0

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from fxcell.embedded import FAULTS  # one list of faults, shared with the launcher
+from fxcell.link.embedded import FAULTS  # one list of faults, shared with the launcher
 from fxcell.protocol import (
     CONTROL_PERIOD,
     RobotMode,

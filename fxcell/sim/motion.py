@@ -35,7 +35,7 @@ from fxcell.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
-    from fxcell.kinematics import Kinematics
+    from fxcell.motion.kinematics import Kinematics
 
     FloatArray = NDArray[np.float64]
 else:

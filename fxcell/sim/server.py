@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from fxcell.config import CellConfig
-from fxcell.embedded import CONTROL_PORT
+from fxcell.link.embedded import CONTROL_PORT
 from fxcell.protocol import (
     CONTROL_PERIOD,
     DASHBOARD_PORT,
@@ -154,7 +154,7 @@ class SimServer:
         joints: Sequence[float] | None = None,
         urcap_port: int = URCAP_SCRIPT_PORT,
     ) -> None:
-        from fxcell.kinematics import Kinematics
+        from fxcell.motion.kinematics import Kinematics
 
         self.host = host
         self.config = config or CellConfig.load()

@@ -13,8 +13,8 @@ import pytest
 from dashboard_client import DashboardClient
 
 from fxcell.cli import main
-from fxcell.embedded import EmbeddedSimulator, address_is_free, free_loopback_host
 from fxcell.errors import InvalidArgumentError, SimulatorError
+from fxcell.link.embedded import EmbeddedSimulator, address_is_free, free_loopback_host
 from fxcell.testing import SimulatorHandle, simulator
 
 

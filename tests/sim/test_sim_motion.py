@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fxcell.kinematics import Kinematics
+from fxcell.motion.kinematics import Kinematics
 from fxcell.sim.motion import (
     JOINT_SPEED_LIMIT,
     Arm,

@@ -21,10 +21,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from fxcell.errors import CollisionError, PlanningError, SingularityError, UnreachableError
 from fxcell.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
-from fxcell.kinematics import Kinematics
+from fxcell.motion.kinematics import Kinematics
 
 if TYPE_CHECKING:
-    from fxcell.collision import CollisionChecker
+    from fxcell.motion.collision import CollisionChecker
 
 Array = NDArray[np.float64]
 

@@ -26,10 +26,11 @@ from transitions.extensions.asyncio import HierarchicalAsyncMachine, NestedAsync
 from fxcell.errors import ConfigError, InvalidStateError
 from fxcell.events import TransitionEvent, now
 from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
+from fxcell.resources import resource_dir
 
 log = logging.getLogger(__name__)
 
-STATECHART_DIR = Path(__file__).resolve().parent.parent / "statecharts"
+STATECHART_DIR = resource_dir("statecharts")
 STATECHART = STATECHART_DIR / "robot.yaml"
 CONNECTED = "connected"
 SEPARATOR = "."

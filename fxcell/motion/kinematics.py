@@ -16,7 +16,7 @@ polished by Newton steps (to ≤ 1e-10 m/rad; generic poses are exact to ~1e-15)
 ``inverse`` has a lean hot path for the common case and falls back on the general one.
 
 No Pinocchio here: the simulator imports this module and must start fast
-(:mod:`fxcell.robot_model` holds the Pinocchio model and is checked against this one).
+(:mod:`fxcell.motion.robot_model` holds the Pinocchio model and is checked against this one).
 """
 
 from __future__ import annotations

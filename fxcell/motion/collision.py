@@ -1,6 +1,6 @@
 """Collision checking of the UR3e, its Robotiq Hand-E gripper and the cell with coal.
 
-A Pinocchio ``GeometryModel`` on top of the robot model (:mod:`fxcell.robot_model`):
+A Pinocchio ``GeometryModel`` on top of the robot model (:mod:`fxcell.motion.robot_model`):
 every link is a few capsules sized to the real UR3e (no meshes are available; a capsule
 along a joint axis stands for the joint's housing), the gripper is a box for its body and
 one for its fingers, and the scene's boxes (table, fusion machine, from
@@ -28,8 +28,8 @@ from numpy.typing import ArrayLike, NDArray
 from fxcell.config import CellConfig, SceneConfig
 from fxcell.errors import CollisionError
 from fxcell.geometry import rpy_to_matrix
-from fxcell.kinematics import UR3E_DH, Kinematics
-from fxcell.robot_model import RobotModel
+from fxcell.motion.kinematics import UR3E_DH, Kinematics
+from fxcell.motion.robot_model import RobotModel
 
 Array = NDArray[np.float64]
 

@@ -42,10 +42,9 @@ from fxcell.errors import (
 )
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
-from fxcell.kinematics import Kinematics
-from fxcell.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
-from fxcell.protocol import RobotState
-from fxcell.trajectory import (
+from fxcell.motion.kinematics import Kinematics
+from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
+from fxcell.motion.trajectory import (
     DT,
     Limits,
     Trajectory,
@@ -55,10 +54,11 @@ from fxcell.trajectory import (
     through_waypoints,
     validate_factor,
 )
+from fxcell.protocol import RobotState
 
 if TYPE_CHECKING:
-    from fxcell.collision import CollisionChecker
     from fxcell.link import LinkClient, StateSubscription, TrajectoryHandle, TrajectoryResult
+    from fxcell.motion.collision import CollisionChecker
 
 Array = NDArray[np.float64]
 MoveKind = Literal["joint", "pose", "linear", "distance"]
@@ -150,7 +150,7 @@ class MotionPlanner:
         self.limits = config.limits
         self.kinematics = Kinematics.ur3e(tcp=config.tool.tcp, limits=config.limits)
         if checker is None:
-            from fxcell.collision import CollisionChecker  # Pinocchio + coal: load on use
+            from fxcell.motion.collision import CollisionChecker  # Pinocchio + coal: load on use
 
             checker = CollisionChecker.for_config(config)
         self.checker = checker
@@ -753,7 +753,7 @@ class MotionController:
 
     def use_planner(self, name: str) -> None:
         """Plan blocked joint moves with another OMPL geometric planner (see
-        :data:`fxcell.planning.PLANNERS`; default RRTConnect)."""
+        :data:`fxcell.motion.planning.PLANNERS`; default RRTConnect)."""
         if name not in PLANNERS:
             raise InvalidArgumentError(
                 f"unknown planner {name!r}; choose one of {', '.join(PLANNERS)}"

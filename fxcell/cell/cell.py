@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
+from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
 from fxcell.config import CellConfig
-from fxcell.embedded import EmbeddedSimulator
 from fxcell.errors import (
     ConnectionLostError,
     EmergencyStopError,
@@ -40,11 +40,11 @@ from fxcell.errors import (
 from fxcell.events import CommandEvent, EventBus, EventStream, Origin, StateEvent, TransitionEvent
 from fxcell.geometry import Pose
 from fxcell.link import LinkClient, LinkStatus, StateSubscription
+from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
-from fxcell.statemachine import CellState, RobotStateMachine, observed_state
 
 if TYPE_CHECKING:
-    from fxcell.motion import MotionController, MoveResult
+    from fxcell.motion.moves import MotionController, MoveResult
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,7 @@ class ProgramStatus:
 class Cell:
     """One UR3e cell.
 
-    ``host=None`` starts the embedded controller simulator (``fxcell.embedded``).
+    ``host=None`` starts the embedded controller simulator (``fxcell.link.embedded``).
     Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
     ``record`` names a directory for an MCAP flight record of the session (default:
     the configuration's ``recorder.directory`` when ``recorder.enabled``).
@@ -605,7 +605,7 @@ class Cell:
 
     def _tcp_pose(self) -> Pose:
         if self._kinematics is None:
-            from fxcell.kinematics import Kinematics
+            from fxcell.motion.kinematics import Kinematics
 
             self._kinematics = Kinematics.ur3e(self.config.tool.tcp)
         pose: Pose = self._kinematics.forward(self._sample().actual_q)
@@ -723,13 +723,13 @@ class Cell:
             return running
 
     # ------------------------------------------------------------- move methods
-    # The logic lives in fxcell.motion (MotionController): validate, IK, collision
+    # The logic lives in fxcell.motion.moves (MotionController): validate, IK, collision
     # check, plan, time, stream, brake. Here: guards, the move task, events.
 
     def _moves(self) -> MotionController:
         controller: MotionController | None = getattr(self, "_motion", None)
         if controller is None:
-            from fxcell.motion import MotionController
+            from fxcell.motion.moves import MotionController
 
             controller = self._motion = MotionController(self.config, publish=self.bus.publish)
         return controller

@@ -3,9 +3,9 @@
 Frames are UR's, not ROS's: the model's world is the controller's base frame (ROS
 ``base_link`` is turned 180° about z from it) and each joint turns about the z axis of the
 previous DH frame, so ``q`` are UR's joint angles and the ``tool0`` frame is the flange
-exactly as :mod:`fxcell.kinematics` computes it (checked to 1e-12 by the tests).
+exactly as :mod:`fxcell.motion.kinematics` computes it (checked to 1e-12 by the tests).
 
-Layout for users of the model (e.g. :mod:`fxcell.collision`, which adds a GeometryModel):
+Layout for users of the model (e.g. :mod:`fxcell.motion.collision`, which adds a GeometryModel):
 
 - joints 1..6 (``JOINT_NAMES``), revolute about their local z; joint ``k``'s frame is DH
   frame ``k-1`` turned by ``q[k-1]``;
@@ -29,7 +29,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 
 from fxcell.geometry import Pose
-from fxcell.kinematics import DH, JOINT_NAMES, LINK_NAMES, UR3E_DH, _as_tcp, _joints
+from fxcell.motion.kinematics import DH, JOINT_NAMES, LINK_NAMES, UR3E_DH, _as_tcp, _joints
 
 if TYPE_CHECKING:
     from fxcell.config import JointLimits

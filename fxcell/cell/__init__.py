@@ -1,0 +1,8 @@
+"""The cell layer: :class:`Cell` (commands, guards, move tasks) and the robot-mode state machine."""
+
+from __future__ import annotations
+
+from fxcell.cell.cell import Cell, ProgramStatus
+from fxcell.cell.statemachine import CellState
+
+__all__ = ["Cell", "CellState", "ProgramStatus"]
