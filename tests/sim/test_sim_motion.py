@@ -137,7 +137,7 @@ def test_joint_limits_are_the_ur3e_maxima() -> None:
 
 
 def test_the_launcher_agrees_with_the_simulator_on_faults_and_ports() -> None:
-    from fxcell import embedded
+    from fxcell.link import embedded
     from fxcell.sim import controller, server
 
     assert embedded.FAULTS == controller.FAULTS
