@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import fcntl
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from typing import Any
@@ -26,7 +24,7 @@ from fxcell.errors import (
 )
 from fxcell.events import CommandEvent, StateEvent, TransitionEvent
 from fxcell.protocol import CONTROL_PERIOD, ProgramState
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, simulator, urcap_port
 
 TIME_SCALE = 0.05
 OBSERVE_WITHIN = 0.05  # s from the simulator's change to cell.state
@@ -348,20 +346,9 @@ async def test_killed_link_process_goes_disconnected_then_reconnects(cell: Cell)
 # ----------------------------------------------------------------- external control modes
 
 
-@contextlib.contextmanager
-def _urcap_port_lock() -> Iterator[None]:
-    """One URCap test at a time on this machine: the PC side binds the fixed port 50002."""
-    with open("/tmp/fxcell-urcap-50002.lock", "w") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
-
-
 async def test_external_control_through_the_urcap_program(shared_sim: SimulatorHandle) -> None:
     await asyncio.to_thread(_reset, shared_sim)
-    with _urcap_port_lock():
+    with urcap_port():  # the PC side binds the machine-wide port 50002
         async with Cell(host=shared_sim.host, external_control="urcap") as cell:
             await cell.wait_for_state(CellState.POWER_OFF)
             await cell.init()
