@@ -102,6 +102,10 @@ class RecorderConfig(_Model):
     """Seconds per MCAP chunk: bounds what a crash can lose."""
     rotate_size: int = Field(512 * 1024 * 1024, gt=0)
     rotate_duration: float = Field(3600.0, gt=0)
+    max_total_size: int | None = Field(20 * 1024**3, gt=0)
+    """Bytes all logs in ``directory`` may take; the oldest go first (``null``: no limit)."""
+    max_age: float | None = Field(30 * 86400.0, gt=0)
+    """Seconds after which a log is removed (``null``: kept for ever)."""
 
 
 class DaemonConfig(_Model):

@@ -899,7 +899,7 @@ def _jsonable(value: Any) -> Any:
 
 
 def _start_recorder(directory: Path, cell: Cell) -> Any:
-    from fxcell.recorder import Recorder
+    from fxcell.recorder import Recorder, Retention
 
     rec = cell.config.recorder
     recorder = Recorder(
@@ -913,6 +913,7 @@ def _start_recorder(directory: Path, cell: Cell) -> Any:
             "config": cell.config.model_dump(mode="json"),
         },
         tcp=cell.config.tool.tcp,
+        retention=Retention(rec.max_total_size, rec.max_age),
     )
     recorder.attach(cell.bus)
     return recorder

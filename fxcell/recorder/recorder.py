@@ -41,6 +41,7 @@ from fxcell.recorder import topics
 from fxcell.recorder.frames import LinkFrames
 from fxcell.recorder.protobuf import encode_robot_state
 from fxcell.recorder.recovery import recover_unfinished
+from fxcell.recorder.retention import Retention, enforce
 from fxcell.recorder.schemas import (
     dumps,
     foxglove_log_level,
@@ -51,7 +52,6 @@ from fxcell.recorder.schemas import (
 
 log = logging.getLogger(__name__)
 
-FILE_SUFFIX: Final = ".mcap"
 MAX_CHUNK_BYTES: Final = 8 * 1024 * 1024
 """Upper bound of a chunk in memory; chunks normally close on time, not on size."""
 RETRY_INTERVAL: Final = 5.0
@@ -113,6 +113,8 @@ class Recorder:
     ``clock`` stamps each event's log time (ns since the epoch) as it is submitted.
     ``capture_logs``: records of the ``fxcell`` loggers at this level or above (as far as
     the loggers emit them) go to ``/log`` too; ``None`` turns that off.
+    ``retention`` bounds the directory's total size and age: each time a file is opened,
+    the oldest finished logs are removed (never the running file, nor a locked one).
     """
 
     def __init__(
@@ -134,6 +136,7 @@ class Recorder:
         retry_interval: float = RETRY_INTERVAL,
         clock: Callable[[], int] = time.time_ns,
         capture_logs: int | None = logging.INFO,
+        retention: Retention | None = None,
     ) -> None:
         if not chunk_duration > 0:
             raise InvalidArgumentError(f"chunk_duration must be > 0 s, got {chunk_duration!r}")
@@ -163,6 +166,7 @@ class Recorder:
         }
         self._metadata.setdefault("fxcell_version", __version__)
         self._prefix = prefix
+        self._retention = retention
         self._fsync = fsync
         self._max_queue = max_queue
         self._on_error = on_error
@@ -466,10 +470,10 @@ class Recorder:
     def _new_path(self) -> Path:
         now = datetime.now(UTC)
         stem = f"{self._prefix}_{now:%Y%m%dT%H%M%S}.{now.microsecond // 1000:03d}Z"
-        path = self.directory / f"{stem}{FILE_SUFFIX}"
+        path = self.directory / f"{stem}{topics.FILE_SUFFIX}"
         n = 1
         while path.exists():
-            path = self.directory / f"{stem}-{n}{FILE_SUFFIX}"
+            path = self.directory / f"{stem}-{n}{topics.FILE_SUFFIX}"
             n += 1
         return path
 
@@ -513,6 +517,8 @@ class Recorder:
             path.unlink(missing_ok=True)
             raise
         log.info("recording to %s", path)
+        if self._retention is not None:
+            enforce(self.directory, self._retention, keep=(path,), prefix=self._prefix)
 
     def _open_stream(self, path: Path) -> IO[bytes]:
         """The file a log is written to (tests substitute a failing disk here)."""

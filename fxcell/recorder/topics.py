@@ -9,6 +9,9 @@ from __future__ import annotations
 from typing import Final
 
 # ----------------------------------------------------------------- topics
+FILE_SUFFIX: Final = ".mcap"
+"""Every fxcell log file ends in this."""
+
 COMMANDS: Final = "/fxcell/commands"
 """Every API call, once when it starts and once when it ends (JSON)."""
 TRANSITIONS: Final = "/fxcell/transitions"
