@@ -264,7 +264,9 @@ def plot(path: str | Path, out: str | Path, *, max_points: int = 20_000) -> Path
         qd.append(s.actual_qd)
         tcp.append(s.actual_tcp_pose[:3])
     summary = summarize(path)
-    fig, axes = plt.subplots(3, 1, figsize=(12, 9), sharex=True)
+    fig, (events, *axes) = plt.subplots(
+        4, 1, figsize=(13, 9.5), sharex=True, gridspec_kw={"height_ratios": [1.1, 2, 2, 2]}
+    )
     t = np.asarray(times)
     for ax, data, label in (
         (axes[0], q, "joint position (rad)"),
@@ -274,37 +276,71 @@ def plot(path: str | Path, out: str | Path, *, max_points: int = 20_000) -> Path
         for j in range(arr.shape[1]):
             ax.plot(t, arr[:, j], lw=0.8, label=f"q{j + 1}")
         ax.set_ylabel(label)
-        ax.legend(loc="upper right", ncol=6, fontsize=7)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=7, frameon=False)
     arr = np.asarray(tcp)
     for j, name in enumerate("xyz"):
         axes[2].plot(t, arr[:, j], lw=0.8, label=name)
     axes[2].set_ylabel("TCP position (m)")
     axes[2].set_xlabel(f"time (s) from {_utc(t0)}")
-    axes[2].legend(loc="upper right", ncol=3, fontsize=7)
+    axes[2].legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=7, frameon=False)
+
+    # Commands and transitions get lanes of their own above the plots; labels closer than
+    # a minimum spacing are merged ("init +3") so that they never overlap.
+    span = max(float(t[-1]) if len(t) else 0.0, 1e-9)
+    min_gap = span / 45
+    lanes: list[tuple[float, str, list[tuple[float, str]]]] = [
+        (
+            1.0,
+            "tab:green",
+            [
+                (c.logged - t0, c.name + (" ✗" if c.outcome == "error" else ""))
+                for c in summary.commands
+            ],
+        ),
+        (0.0, "tab:purple", [(tr["logged"] - t0, str(tr["dest"])) for tr in summary.transitions]),
+    ]
+    for y, colour, marks in lanes:
+        for x, _ in marks:
+            for ax in axes:
+                ax.axvline(x, color=colour, lw=0.5, ls="--" if y else ":", alpha=0.6)
+        up = y > 0  # command labels rise above their lane, transition labels hang below
+        for x, text in _declutter(sorted(marks), min_gap):
+            events.annotate(
+                text, (x, y), xytext=(0, 3 if up else -3), textcoords="offset points",
+                rotation=30 if up else -30, rotation_mode="anchor", fontsize=6.5,
+                color=colour, ha="left", va="bottom" if up else "top",
+            )  # fmt: skip
+        events.plot([x for x, _ in marks], [y] * len(marks), "|", color=colour, ms=8)
     for c in summary.commands:
-        colour = "tab:red" if c.outcome == "error" else "tab:green"
-        for ax in axes:
-            ax.axvline(c.logged - t0, color=colour, lw=0.6, ls="--")
-        axes[0].annotate(
-            c.name, (c.logged - t0, 1), xycoords=("data", "axes fraction"),
-            rotation=90, fontsize=6, va="top", color=colour,
-        )  # fmt: skip
-    for tr in summary.transitions:
-        for ax in axes:
-            ax.axvline(tr["logged"] - t0, color="tab:purple", lw=0.6, ls=":")
-        axes[2].annotate(
-            tr["dest"], (tr["logged"] - t0, 0), xycoords=("data", "axes fraction"),
-            rotation=90, fontsize=6, va="bottom", color="tab:purple",
-        )  # fmt: skip
+        if c.outcome == "error":
+            events.plot([c.logged - t0], [1.0], "x", color="tab:red", ms=6)
     for ps in summary.protective_stops:
-        for ax in axes:
+        for ax in (events, *axes):
             ax.axvline(ps - t0, color="black", lw=1.2)
-    fig.suptitle(f"{Path(path).name}: commands (dashed), transitions (dotted), protective stops")
+    events.set_ylim(-2.2, 3.2)
+    events.set_yticks([0.0, 1.0], ["transitions", "commands"], fontsize=7)
+    events.tick_params(axis="y", length=0)
+    for side in ("top", "right"):
+        events.spines[side].set_visible(False)
+    fig.suptitle(f"{Path(path).name}: commands, transitions, protective stops (black)")
     fig.tight_layout()
+    fig.subplots_adjust(right=0.92)
     out = Path(out)
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
+
+
+def _declutter(marks: list[tuple[float, str]], min_gap: float) -> list[tuple[float, str]]:
+    """Labels for time-sorted marks: marks within ``min_gap`` of a group's first merge into it."""
+    groups: list[tuple[float, str, int]] = []
+    for x, text in marks:
+        if groups and x - groups[-1][0] < min_gap:
+            first_x, first_text, n = groups[-1]
+            groups[-1] = (first_x, first_text, n + 1)
+        else:
+            groups.append((x, text, 0))
+    return [(x, f"{text} +{n}" if n else text) for x, text, n in groups]
 
 
 # ----------------------------------------------------------------- CLI

@@ -10,6 +10,8 @@ import threading
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from fxcell.cli import main
 from fxcell.errors import InvalidArgumentError
@@ -17,7 +19,7 @@ from fxcell.recorder import Recorder, is_finished, topics
 from fxcell.recorder.protobuf import decode_robot_state
 from fxcell.recorder.reading import LogReader
 from fxcell.recorder.synthetic import SyntheticSession
-from fxcell.replay import format_summary, summarize, timeline
+from fxcell.replay import _declutter, format_summary, summarize, timeline
 
 
 @pytest.fixture(scope="module")
@@ -210,3 +212,18 @@ def test_reexecute_reissues_only_the_commands_a_user_issued() -> None:
         "stop",
         "power_off",
     ]
+
+
+@given(
+    times=st.lists(st.floats(0, 100, allow_nan=False), max_size=40),
+    gap=st.floats(0.01, 10),
+)
+def test_plot_labels_are_merged_so_that_no_two_stand_closer_than_the_gap(
+    times: list[float], gap: float
+) -> None:
+    marks = sorted((t, f"c{i}") for i, t in enumerate(times))
+    labels = _declutter(marks, gap)
+    xs = [x for x, _ in labels]
+    assert all(b - a >= gap for a, b in itertools.pairwise(xs))
+    merged = sum(int(text.split("+")[1]) if "+" in text else 0 for _, text in labels)
+    assert len(labels) + merged == len(marks)  # every mark is labelled or counted
