@@ -57,14 +57,23 @@ class PlanningError(FxcellError):
 
 
 class InvalidStateError(FxcellError):
-    """A command is not allowed in the cell's current state; nothing was sent."""
+    """A command is not allowed in the cell's current state; nothing was sent.
 
-    def __init__(self, command: str, state: str, allowed: Iterable[str]) -> None:
+    ``next_step`` says what the operator does to get on from ``state``.
+    """
+
+    def __init__(
+        self, command: str, state: str, allowed: Iterable[str], next_step: str = ""
+    ) -> None:
         self.command = command
         self.state = state
         self.allowed = tuple(allowed)
+        self.next_step = next_step
         needs = ", ".join(self.allowed) or "no state"
-        super().__init__(f"{command}() is not allowed in state {state!r}; it needs {needs}")
+        hint = f": {next_step}" if next_step else ""
+        super().__init__(
+            f"{command}() is refused: the robot is {state}{hint} ({command} needs {needs})"
+        )
 
 
 class NotInRemoteControlError(FxcellError):

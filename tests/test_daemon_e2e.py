@@ -500,7 +500,7 @@ def test_operator_cli_talks_to_the_daemon(daemon: DaemonProcess) -> None:
     assert "running.external_control_ready" in out.stdout
     out = fxcell("power-on")  # refused in the current state: a clear error, exit 1
     assert out.returncode == 1
-    assert "not allowed in state 'running.external_control_ready'" in out.stderr
+    assert "power_on() is refused: the robot is running.external_control_ready" in out.stderr
     q = httpx.get(f"{daemon.url}/api/state").json()["robot"]["q"]
     out = fxcell("move-joint", *(str(v) for v in [q[0] + 0.02, *q[1:]]))
     assert out.returncode == 0, out.stderr

@@ -180,3 +180,21 @@ async def test_check_names_state_and_allowed_states(
     assert info.value.state == "disconnected"
     assert "power_off" in info.value.allowed
     assert "needs" in str(info.value)
+
+
+def test_every_state_says_what_to_do_next() -> None:
+    chart = load_statechart()
+    missing = [s.value for s in CellState if not chart.next_step(s)]
+    assert not missing, f"states without a `next` in statecharts/robot.yaml: {missing}"
+
+
+async def test_a_refused_move_in_idle_tells_the_operator_to_run_init(
+    machine: tuple[RobotStateMachine, list[TransitionEvent]],
+) -> None:
+    m, _ = machine
+    m.sync(CellState.IDLE)
+    await _settle(m, CellState.IDLE)
+    with pytest.raises(InvalidStateError) as info:
+        m.check("move", "move_joint")
+    assert info.value.next_step.startswith("run init")
+    assert str(info.value).startswith("move_joint() is refused: the robot is idle: run init (")

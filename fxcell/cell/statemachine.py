@@ -101,6 +101,21 @@ class Statechart:
         walk(self.states, "")
         return out
 
+    def next_step(self, state: CellState) -> str:
+        """What the operator does to get on from ``state`` (the state's ``next`` text)."""
+        target = machine_name(state)
+
+        def find(states: list[dict[str, Any]], prefix: str) -> str:
+            for item in states:
+                name = prefix + item["name"]
+                if name == target:
+                    return str(item.get("next", ""))
+                if item.get("children") and target.startswith(name + SEPARATOR):
+                    return find(item["children"], name + SEPARATOR)
+            return ""
+
+        return find(self.states, "")
+
     def allowed(self, command: str) -> tuple[CellState, ...]:
         """The public states in which ``command`` may be sent."""
         try:
@@ -284,7 +299,7 @@ class _Machine(HierarchicalAsyncMachine):
 def _without_descriptions(states: list[dict[str, Any]]) -> list[dict[str, Any]]:
     out = []
     for state in states:
-        state = {k: v for k, v in state.items() if k != "description"}
+        state = {k: v for k, v in state.items() if k not in ("description", "next")}
         if "children" in state:
             state["children"] = _without_descriptions(state["children"])
         out.append(state)
@@ -342,6 +357,7 @@ class RobotStateMachine:
             for t in self.chart.transitions
         ]
         self._allowed = {cmd: frozenset(self.chart.allowed(cmd)) for cmd in self.chart.commands}
+        self._next_steps = {s: self.chart.next_step(s) for s in CellState}
 
     @property
     def state(self) -> CellState:
@@ -360,7 +376,12 @@ class RobotStateMachine:
         allowed = self._allowed[command]
         if state not in allowed:
             order = [s for s in CellState if s in allowed]
-            raise InvalidStateError(name or command, state.value, [s.value for s in order])
+            raise InvalidStateError(
+                name or command,
+                state.value,
+                [s.value for s in order],
+                next_step=self._next_steps.get(state, ""),
+            )
         return state
 
     # -- input

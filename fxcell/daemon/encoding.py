@@ -28,7 +28,7 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.RobotCommandError, 502),
     (errors.FxcellError, 500),
 )
-_DETAIL_ATTRS = ("command", "state", "allowed", "remaining", "failures")
+_DETAIL_ATTRS = ("command", "state", "allowed", "next_step", "remaining", "failures")
 
 
 def http_status(exc: BaseException) -> int:
