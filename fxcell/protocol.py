@@ -18,6 +18,10 @@ URCAP_SCRIPT_PORT = 50002  # PC side: the ExternalControl URCap requests the scr
 
 CONTROL_PERIOD = 0.002  # e-series controller cycle, 500 Hz
 
+AT_REST_SPEED = 0.01
+"""rad/s: an arm whose every joint is slower than this is at rest (well above the encoder
+noise of a standing arm); the cell takes new moves only then."""
+
 
 class RobotMode(enum.IntEnum):
     """``robot_mode`` as RTDE reports it (the dashboard uses the names)."""

@@ -63,6 +63,8 @@ _FAILURE_STATES: dict[CellState, type[FxcellError]] = {
     CellState.EMERGENCY_STOP: EmergencyStopError,
     CellState.FAULT: RobotFaultError,
 }
+REMOTE_POLL = 0.25
+"""Seconds between two queries of the pendant's Local/Remote switch."""
 _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
     **_FAILURE_STATES,
     CellState.PROGRAM_STOPPED: ProgramStoppedError,
@@ -127,6 +129,10 @@ class Cell:
         self._stopping = False
         self._kinematics: Any = None
         self._restore: asyncio.Task[None] | None = None
+        self._remote_watch: asyncio.Task[None] | None = None
+        self.local_control = False
+        """The teach pendant is in Local control (polled every 0.25 s): moves are refused
+        and a running move brakes."""
         self._opened = False
 
     @classmethod
@@ -175,6 +181,7 @@ class Cell:
             self.controller_info = await self._read_controller_info()
             if self._recorder is not None:
                 self._recorder.update_metadata(self.controller_info)
+            self._remote_watch = asyncio.create_task(self._watch_remote(), name="remote watch")
         except BaseException:
             await self.close()
             raise
@@ -182,6 +189,11 @@ class Cell:
     async def close(self) -> None:
         """Cancel any move, stop the link (and the embedded simulator), finish the record."""
         await self._cancel_move(MoveStoppedError("the cell is closing"))
+        if self._remote_watch is not None:
+            self._remote_watch.cancel()
+            with contextlib.suppress(BaseException):
+                await self._remote_watch
+            self._remote_watch = None
         if self._restore is not None:
             self._restore.cancel()
             with contextlib.suppress(BaseException):
@@ -377,6 +389,27 @@ class Cell:
         if sample is None:
             raise ConnectionLostError("no robot state: the link is down")
         return sample
+
+    async def _watch_remote(self) -> None:
+        """Follow the pendant's Local/Remote switch: Local brakes a running move."""
+        while True:
+            await asyncio.sleep(REMOTE_POLL)
+            link = self.link
+            if link is None or not link.up:
+                continue
+            try:
+                reply = await link.dashboard("is in remote control", within=2.0)
+            except FxcellError:
+                continue
+            local = reply.strip().lower() == "false"
+            if local and not self.local_control:
+                log.warning("the teach pendant switched to Local control")
+                self._abort_move(
+                    NotInRemoteControlError(
+                        "move aborted: the teach pendant switched to Local control"
+                    )
+                )
+            self.local_control = local
 
     async def _require_remote(self) -> None:
         reply = await self._link().dashboard("is in remote control")
@@ -657,6 +690,11 @@ class Cell:
             if self._move_task is not None and not self._move_task.done():
                 raise MoveInProgressError(f"{name}(): another move is running")
             self.machine.check("move", name)
+            if self.local_control:
+                raise NotInRemoteControlError(
+                    f"{name}() refused: the teach pendant is in Local control; "
+                    "switch it to Remote Control"
+                )
             self._move_error = None
             self._stopping = False
             task: asyncio.Task[T] = asyncio.create_task(body(), name=f"move {name}")

@@ -25,7 +25,7 @@ from transitions.extensions.asyncio import HierarchicalAsyncMachine, NestedAsync
 
 from fxcell.errors import ConfigError, InvalidStateError
 from fxcell.events import TransitionEvent, now
-from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
+from fxcell.protocol import AT_REST_SPEED, RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.resources import resource_dir
 
 log = logging.getLogger(__name__)
@@ -263,7 +263,9 @@ def observed_state(
     """The state one RTDE sample implies (``None``: no live sample, the link is down).
 
     ``control_ready``: the link holds a control interface whose script is PLAYING;
-    ``moving``/``stopping``: the Cell runs / brakes a move task.
+    ``moving``/``stopping``: the Cell runs / brakes a move task. An arm still in motion
+    with no move task (braking after an aborted move) is ``stopping``: external control
+    is ready only once the arm is at rest.
     """
     if sample is None:
         return CellState.DISCONNECTED
@@ -282,6 +284,8 @@ def observed_state(
         return CellState.STOPPING
     if moving:
         return CellState.MOVING
+    if max(map(abs, sample.actual_qd)) > AT_REST_SPEED:
+        return CellState.STOPPING
     return CellState.EXTERNAL_CONTROL_READY
 
 

@@ -3,14 +3,22 @@
 :class:`LinkClient` starts ``fxcell.link.process`` with one end of a socketpair,
 reads its framed messages (500 Hz state samples, replies, trajectory reports) and
 restarts it with exponential backoff whenever it exits or cannot connect. The link
-counts as *up* while state samples arrive: 100 ms without one (outside a declared
-blocking constructor) or the process exiting marks it down at once.
+counts as *up* while state samples arrive; it goes down when the process exits (at once),
+when the process's own pulses say it has had no state sample for 100 ms (the controller
+is gone), or when the process has sent nothing at all for 300 ms (it hangs). Judging the
+state stream by the link process's clock keeps a busy event loop, which reads the
+samples late, from ever taking a healthy link for a dead one.
+
+While a trajectory runs, the client beats every 10 ms; the link process brakes the
+trajectory to rest by itself when the beats stop (see :mod:`fxcell.link.process`). A
+link that goes down with a trajectory running is told to brake at once.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import enum
 import itertools
 import logging
@@ -35,12 +43,20 @@ from fxcell.errors import (
     RobotTimeoutError,
 )
 from fxcell.link import wire
+from fxcell.link.process import Guard
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
 log = logging.getLogger(__name__)
 
 STALE_AFTER = 0.1
-"""Seconds without a state sample after which the link counts as down."""
+"""Seconds without a state sample (by the link process's clock) after which the link
+counts as down."""
+MUTE_AFTER = 0.3
+"""Seconds without any message from the link process after which the link counts as down."""
+BEAT_PERIOD = 0.01
+"""Seconds between two beats to the link process while a trajectory runs."""
+GAP_REPORT = 0.02
+"""A pause of the state stream longer than this (controller time, s) is logged as a gap."""
 HOLD_STALE_AFTER = 8.0
 """The same while the link process runs a blocking ur_rtde constructor."""
 RESTART_AFTER = 3.0
@@ -126,10 +142,11 @@ class TrajectoryHandle:
             return getter.result()
         return False
 
-    async def stop(self) -> TrajectoryResult:
-        """Stop streaming now (servoStop decelerates) and wait for the end report."""
+    async def stop(self, reason: str = "stop requested") -> TrajectoryResult:
+        """Brake to rest along the path now (the link process does it by itself, even
+        with the state stream down) and wait for the end report."""
         if not self.done:
-            self._link._send(wire.TRAJ_STOP, self.id)
+            self._link._send_safety(wire.TRAJ_STOP, self.id, reason)
         return await self.wait()
 
     async def wait(self) -> TrajectoryResult:
@@ -292,6 +309,11 @@ class LinkClient:
         self._ids = itertools.count(1)
         self._hold = False
         self._last_sample = 0.0
+        self._last_message = 0.0  # time.monotonic() of the newest message of any kind
+        self._link_state_age = 0.0  # the link process's own age of its newest sample
+        self._last_timestamp: float | None = None  # controller time of the newest sample
+        self.gaps = 0
+        """State-stream gaps seen (each logged as a warning, so recorded in the MCAP /log)."""
         self._status_changed = asyncio.Event()
         self._closing = False
 
@@ -414,6 +436,9 @@ class LinkClient:
                 ],
                 pass_fds=(child.fileno(),),
                 stdin=subprocess.DEVNULL,
+                # its own process group: a Ctrl-C in the terminal reaches only the owner,
+                # which brakes the arm and then stops the link itself
+                process_group=0,
             )
             self.pid = self._process.pid
             loop = asyncio.get_running_loop()
@@ -426,8 +451,11 @@ class LinkClient:
             child.close()
         self._writer = transport
         self._hold = False  # the watchdog starts with the first sample (status UP)
-        self._last_sample = time.monotonic()
+        self._last_sample = self._last_message = time.monotonic()
+        self._link_state_age = 0.0
+        self._last_timestamp = None
         watchdog = asyncio.create_task(self._watchdog(), name="link watchdog")
+        beat = asyncio.create_task(self._beat(), name="link beat")
         try:
             try:
                 async with asyncio.timeout(self.connect_timeout):
@@ -444,21 +472,25 @@ class LinkClient:
             elif not self.last_failure:
                 self.last_failure = "link process exited"
         finally:
-            watchdog.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await watchdog
+            for task in (watchdog, beat):
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
             transport.close()
             self._writer = None
 
     async def _watchdog(self) -> None:
-        """Mark the link down when the stream has been silent for STALE_AFTER.
+        """Mark the link down when the controller or the link process has gone silent.
 
-        Sleeps until the moment the newest sample would go stale (not a fixed poll),
-        so a silent stream is reported 100 ms after its last sample, give or take the
-        loop's lag.
+        The state stream is judged by the link process's pulses (its own clock): a pulse
+        saying its newest sample is STALE_AFTER old means the controller stopped sending.
+        Silence of the process itself for MUTE_AFTER means it hangs. A loop that runs late
+        reads everything that arrived meanwhile before this task runs again, so it never
+        mistakes its own lateness for a dead link.
         """
         while True:
-            silent = time.monotonic() - self._last_sample
+            now = time.monotonic()
+            silent = now - self._last_sample
             if self.status is not LinkStatus.UP:
                 if self.status is LinkStatus.DOWN and silent > RESTART_AFTER and not self._hold:
                     # alive but mute for longer than ur_rtde's own session timeout: the
@@ -470,11 +502,32 @@ class LinkClient:
                     self._last_sample = time.monotonic()
                 await asyncio.sleep(0.05)
                 continue
-            limit = HOLD_STALE_AFTER if self._hold else STALE_AFTER
-            if silent < limit:
-                await asyncio.sleep(min(limit - silent, 0.05))
+            if self._hold:
+                if silent >= HOLD_STALE_AFTER:
+                    self._down(f"no robot state for {silent:.1f} s")
+                await asyncio.sleep(0.05)
                 continue
-            self._set_status(LinkStatus.DOWN, f"no robot state for {silent * 1000:.0f} ms")
+            mute = now - self._last_message
+            if self._link_state_age >= STALE_AFTER:
+                self._down(f"no robot state for {self._link_state_age * 1000:.0f} ms")
+            elif mute >= MUTE_AFTER:
+                self._down(f"the link process has been silent for {mute * 1000:.0f} ms")
+            else:
+                await asyncio.sleep(0.02)
+
+    def _down(self, reason: str) -> None:
+        """The link is down: brake every running trajectory, then say so."""
+        for traj_id, handle in list(self._trajectories.items()):
+            if not handle.done:
+                self._send_safety(wire.TRAJ_STOP, traj_id, "link_down")
+        self._set_status(LinkStatus.DOWN, reason)
+
+    async def _beat(self) -> None:
+        """Tell the link process every BEAT_PERIOD that this side lives (while moving)."""
+        while True:
+            await asyncio.sleep(BEAT_PERIOD)
+            if self._trajectories:
+                self._send_safety(wire.BEAT)
 
     async def _kill(self) -> None:
         process, self._process = self._process, None
@@ -510,10 +563,21 @@ class LinkClient:
 
     def _handle(self, message: tuple[Any, ...]) -> None:
         kind = message[0]
+        now = time.monotonic()
+        self._last_message = now
         if kind == wire.STATE:
-            now = time.monotonic()
             state = wire.state_from_tuple(message[1], now)
             self._last_sample = now
+            self._link_state_age = 0.0
+            previous, self._last_timestamp = self._last_timestamp, state.timestamp
+            if previous is not None and state.timestamp - previous > GAP_REPORT:
+                self.gaps += 1
+                log.warning(
+                    "robot state stream gap of %.0f ms (controller time %.3f to %.3f s)",
+                    (state.timestamp - previous) * 1000,
+                    previous,
+                    state.timestamp,
+                )
             self.latest = state
             if self.status is not LinkStatus.UP:
                 self.last_failure = ""
@@ -538,9 +602,14 @@ class LinkClient:
             self.control_ready = bool(ready)
             if self._on_control is not None:
                 self._on_control(self.control_ready, str(reason))
+        elif kind == wire.PULSE:
+            _, link_now, last_state_at = message
+            if last_state_at > 0:
+                self._link_state_age = max(link_now - last_state_at, 0.0)
         elif kind == wire.HOLD:
             self._hold = bool(message[1])
             self._last_sample = time.monotonic()
+            self._link_state_age = 0.0
         elif kind == wire.FATAL:
             _, text, failures = message
             self.last_failure = str(RobotLinkError(text, failures))
@@ -580,6 +649,13 @@ class LinkClient:
         self._writer.write(wire.encode(message))
         self.messages_sent += 1
 
+    def _send_safety(self, *message: Any) -> bool:
+        """Send a stop or a beat whenever the process is there, up or down (never raises)."""
+        if self._writer is None or self._writer.is_closing():
+            return False
+        self._writer.write(wire.encode(message))
+        return True
+
     async def call(self, method: str, within: float = 5.0, **kwargs: Any) -> Any:
         """Run ``method`` in the link process; typed fxcell errors on failure."""
         request_id = next(self._ids)
@@ -609,9 +685,17 @@ class LinkClient:
         await self.call("stop_control", within, mode=mode)
 
     async def execute_trajectory(
-        self, samples: ArrayLike, *, lookahead_time: float = 0.1, gain: float = 300.0
+        self,
+        samples: ArrayLike,
+        *,
+        lookahead_time: float = 0.1,
+        gain: float = 300.0,
+        guard: Guard | None = None,
     ) -> TrajectoryHandle:
-        """Stream (N, 6) joint positions spaced 2 ms apart with servoJ at 500 Hz."""
+        """Stream (N, 6) joint positions spaced 2 ms apart with servoJ at 500 Hz.
+
+        ``guard``: the braking limits and timeouts with which the link process stops the
+        trajectory by itself (defaults: 4/8 rad/s², 40 rad/s³, 50 ms)."""
         array = _check_samples(samples)
         if not 0.03 <= lookahead_time <= 0.2:
             raise InvalidArgumentError("lookahead_time must be within [0.03, 0.2] s")
@@ -623,7 +707,14 @@ class LinkClient:
         )
         self._trajectories[traj_id] = handle
         try:
-            self._send(wire.TRAJ_START, traj_id, wire.pack_samples(array), lookahead_time, gain)
+            self._send(
+                wire.TRAJ_START,
+                traj_id,
+                wire.pack_samples(array),
+                lookahead_time,
+                gain,
+                dataclasses.asdict(guard or Guard()),
+            )
         except BaseException:
             self._trajectories.pop(traj_id, None)
             raise

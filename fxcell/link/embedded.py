@@ -188,7 +188,13 @@ class EmbeddedSimulator:
     def _launch(self, host: str) -> tuple[bool, str]:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         proc = subprocess.Popen(
-            self.command(host), stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env
+            self.command(host),
+            stdout=subprocess.PIPE,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            # its own process group: a Ctrl-C in the terminal reaches only the owner, which
+            # brakes the arm and then stops the simulator itself
+            process_group=0,
         )
         self.process = proc
         self._lines = queue.Queue()

@@ -9,8 +9,18 @@ process (with backoff).
 Threads: the main thread reads requests; a worker runs calls one at a time (dashboard
 round trips, starting the control script); the pump forwards every 500 Hz RTDE sample
 (read by :class:`~fxcell.link.rtde_stream.RTDEStream`, or polled from ur_rtde's
-``RTDEReceiveInterface`` with ``--receiver ur_rtde``); a trajectory thread streams
-``servoJ`` every 2 ms. It keeps time with ``time.sleep`` on absolute deadlines rather than
+``RTDEReceiveInterface`` with ``--receiver ur_rtde``); a pulse thread tells the client
+every 10 ms that the process lives and when it last heard from the controller; a
+trajectory thread streams ``servoJ`` every 2 ms.
+
+The process is the last line of defence for a moving arm: a trajectory brakes to rest by
+itself, within one control cycle, when the client asks it to stop (``TRAJ_STOP``), when the
+client has been silent for the trajectory's ``cell_timeout``, and when the state stream
+has been silent for its ``stall_timeout``. It brakes along the planned path (the path's
+time is slowed to zero on a smooth profile under the braking limits) and then leaves servo
+mode, without needing anything from the client or the state stream.
+
+The trajectory thread keeps time with ``time.sleep`` on absolute deadlines rather than
 ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which
 starved the state pump for up to 20 ms per period.
 """
@@ -20,13 +30,15 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import queue
 import socket
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from fxcell.link import wire
@@ -89,6 +101,8 @@ class Link:
         self.latest: RobotState | None = None
         self._traj_lock = threading.Lock()
         self._traj: _Trajectory | None = None
+        self.last_state_at = 0.0  # time.monotonic() of the newest state sample
+        self.last_heard = time.monotonic()  # ... and of the newest message from the client
 
     # -- sending
 
@@ -135,6 +149,7 @@ class Link:
             threading.Thread(target=self._pump, name="pump", daemon=True),
             threading.Thread(target=self._worker, name="worker", daemon=True),
             threading.Thread(target=self._reader, name="reader", daemon=True),
+            threading.Thread(target=self._pulse, name="pulse", daemon=True),
         ]
         for t in threads:
             t.start()
@@ -146,6 +161,11 @@ class Link:
         if not self._stop.is_set():
             self.send(wire.FATAL, "robot link lost", {"rtde_receive": reason})
             self._stop.set()
+
+    def _pulse(self) -> None:
+        """Every 10 ms: this process lives, and when its newest state sample came."""
+        while not self._stop.wait(PULSE_PERIOD):
+            self.send(wire.PULSE, time.monotonic(), self.last_state_at)
 
     # -- reader
 
@@ -159,6 +179,7 @@ class Link:
                 body = self._recv_exact(size)
                 if body is None:
                     break
+                self.last_heard = time.monotonic()
                 self._dispatch(wire.decode(body))
         finally:
             self._stop.set()  # the client went away: exit
@@ -180,9 +201,12 @@ class Link:
         if kind == wire.CALL:
             _, request_id, method, kwargs = message
             self._calls.put((request_id, method, kwargs))
+        elif kind == wire.BEAT:
+            pass  # last_heard is enough
         elif kind == wire.TRAJ_START:
-            _, traj_id, packed, lookahead, gain = message
-            self._start_trajectory(traj_id, wire.unpack_samples(packed), lookahead, gain)
+            _, traj_id, packed, lookahead, gain = message[:5]
+            guard = Guard(**message[5]) if len(message) > 5 else Guard()
+            self._start_trajectory(traj_id, wire.unpack_samples(packed), lookahead, gain, guard)
         elif kind == wire.TRAJ_REPLACE:
             traj_id, samples = message[1], message[2]
             at_index = message[3] if len(message) > 3 else None
@@ -196,7 +220,7 @@ class Link:
             with self._traj_lock:
                 traj = self._traj
             if traj is not None and traj.id == message[1]:
-                traj.stop("stop requested")
+                traj.stop(str(message[2]) if len(message) > 2 else "stop requested")
 
     # -- state pump
 
@@ -208,6 +232,7 @@ class Link:
 
     def _publish(self, state: RobotState) -> None:
         self.latest = state
+        self.last_state_at = time.monotonic()
         self.send(wire.STATE, wire.state_to_tuple(state))
         if self._control_live and state.runtime_state != RuntimeState.PLAYING:
             # the control program ended (pendant stop, safety stop, power off): the
@@ -443,14 +468,19 @@ class Link:
     # -- trajectories
 
     def _start_trajectory(
-        self, traj_id: int, samples: wire.Samples, lookahead: float, gain: float
+        self,
+        traj_id: int,
+        samples: wire.Samples,
+        lookahead: float,
+        gain: float,
+        guard: Guard | None = None,
     ) -> None:
         with self._traj_lock:
             old = self._traj
         if old is not None:
             old.stop("superseded")
-            old.thread.join(1.0)
-        traj = _Trajectory(self, traj_id, samples, lookahead, gain)
+            old.thread.join(5.0)
+        traj = _Trajectory(self, traj_id, samples, lookahead, gain, guard or Guard())
         with self._traj_lock:
             self._traj = traj
         traj.thread.start()
@@ -461,23 +491,88 @@ class Link:
         if traj is not None:
             traj.stop(reason)
             if traj.thread is not threading.current_thread():
-                traj.thread.join(1.0)
+                traj.thread.join(3.0)  # the longest stop under the braking limits
+
+
+PULSE_PERIOD = 0.01  # s between two PULSE messages to the client
+
+
+@dataclass(frozen=True)
+class Guard:
+    """When and how a trajectory brakes by itself (sent with each trajectory)."""
+
+    brake_acceleration: tuple[float, ...] = (4.0, 4.0, 4.0, 8.0, 8.0, 8.0)
+    """Per-joint deceleration limit of a self-initiated stop (rad/s²)."""
+    brake_jerk: float = 40.0
+    """Jerk limit of a self-initiated stop (rad/s³)."""
+    cell_timeout: float | None = 0.05
+    """Brake when the client has sent nothing for this long (s; None: never)."""
+    stall_timeout: float = 0.05
+    """Brake when no state sample has arrived for this long (s)."""
+
+
+def brake_duration(velocity: Sequence[float], guard: Guard) -> float:
+    """How long the path-preserving stop from ``velocity`` (rad/s per joint) takes.
+
+    The path's time rate falls as ``(1 + cos(π t / T)) / 2``: a joint at speed v then
+    decelerates at most at ``π v / (2 T)`` with jerk at most ``π² v / (2 T²)``; ``T`` is
+    the shortest time that keeps every joint within the braking limits.
+    """
+    duration = 2 * CONTROL_PERIOD
+    for v, a in zip(velocity, guard.brake_acceleration, strict=False):
+        speed = abs(v)
+        if speed > 0:
+            duration = max(
+                duration,
+                math.pi * speed / (2 * a),
+                math.pi * math.sqrt(speed / (2 * guard.brake_jerk)),
+            )
+    return duration
+
+
+def _at(samples: wire.Samples, u: float) -> tuple[float, ...]:
+    """The path at fractional sample index ``u`` (linear between samples)."""
+    last = len(samples) - 1
+    if u >= last:
+        return samples[last]
+    k = int(u)
+    f = u - k
+    if f == 0.0:
+        return samples[k]
+    a, b = samples[k], samples[k + 1]
+    return tuple(x + (y - x) * f for x, y in zip(a, b, strict=True))
+
+
+def _velocity(samples: wire.Samples, u: float) -> tuple[float, ...]:
+    """The planned joint velocity at ``u`` (rad/s), from neighbouring samples."""
+    last = len(samples) - 1
+    if last < 1:
+        return (0.0,) * 6
+    k = min(int(u), last - 1)
+    return tuple((y - x) / CONTROL_PERIOD for x, y in zip(samples[k], samples[k + 1], strict=True))
 
 
 class _Trajectory:
-    """Streams one (N, 6) joint trajectory with servoJ at 500 Hz."""
+    """Streams one (N, 6) joint trajectory with servoJ at 500 Hz; brakes by itself."""
 
     PROGRESS_EVERY = 10  # samples (20 ms)
     SETTLE_MAX = 0.3  # s, beyond twice the lookahead time, to settle on the last sample
 
     def __init__(
-        self, link: Link, traj_id: int, samples: wire.Samples, lookahead: float, gain: float
+        self,
+        link: Link,
+        traj_id: int,
+        samples: wire.Samples,
+        lookahead: float,
+        gain: float,
+        guard: Guard,
     ) -> None:
         self.link = link
         self.id = traj_id
         self.samples = samples
         self.lookahead = lookahead
         self.gain = gain
+        self.guard = guard
         self._lock = threading.Lock()
         self._replacement: tuple[wire.Samples, int | None] | None = None
         self._stop_reason: str | None = None
@@ -491,16 +586,30 @@ class _Trajectory:
             self._replacement = (samples, at_index)
 
     def stop(self, reason: str) -> None:
+        """Brake to rest along the path (from the next control cycle on)."""
         with self._lock:
             if self._stop_reason is None:
                 self._stop_reason = reason
+
+    def _abort_reason(self, now: float) -> str | None:
+        """Why the trajectory must brake now by itself (``None``: it may go on)."""
+        with self._lock:
+            if self._stop_reason is not None:
+                return self._stop_reason
+        guard, link = self.guard, self.link
+        if guard.cell_timeout is not None and now - link.last_heard > guard.cell_timeout:
+            return "cell_silent"
+        if now - link.last_state_at > guard.stall_timeout:
+            return "state_stalled"
+        return None
 
     def _run(self) -> None:
         link = self.link
         started = time.monotonic()
         c = link.control
         samples = self.samples
-        i = 0
+        u = 0.0  # position along the path, in samples (fractional while braking)
+        braking: tuple[str, float, float] | None = None  # reason, started, duration
         settle_until: float | None = None
         next_tick: float | None = None
         status, reason = "completed", ""
@@ -509,28 +618,44 @@ class _Trajectory:
         else:
             try:
                 while True:
+                    now = time.monotonic()
+                    if braking is None:
+                        why = self._abort_reason(now)
+                        if why is not None:
+                            duration = brake_duration(_velocity(samples, u), self.guard)
+                            braking = (why, now, duration)
+                            link.send(wire.LOG, logging.WARNING, f"braking to rest: {why}")
                     with self._lock:
-                        if self._stop_reason is not None:
-                            status, reason = "stopped", self._stop_reason
-                            break
-                        if self._replacement is not None:
-                            (new, at), self._replacement = self._replacement, None
+                        replacement, self._replacement = self._replacement, None
+                    if replacement is not None:
+                        if braking is not None:  # already braking by itself: keep that
+                            link.send(wire.TRAJ, self.id, "replaced", {"ok": False})
+                        else:
+                            new, at = replacement
+                            i = int(u)
                             late = at is not None and at < i
                             if at is None:
-                                samples, i = new, 0
+                                samples, u = new, 0.0
                             elif not late:
-                                samples, i = samples[i:at] + new, 0
+                                samples, u = samples[i:at] + new, 0.0
                             else:  # already past it: join the new samples where we are
-                                samples, i = new, min(i - at, len(new) - 1)
+                                samples, u = new, float(min(i - at, len(new) - 1))
                             settle_until = None
                             link.send(wire.TRAJ, self.id, "replaced", {"ok": True, "late": late})
                     state = link.latest
-                    if i >= len(samples):
+                    rate = 1.0
+                    if braking is not None:
+                        elapsed = now - braking[1]
+                        if elapsed >= braking[2]:
+                            status, reason = "stopped", braking[0]
+                            break
+                        rate = 0.5 * (1.0 + math.cos(math.pi * elapsed / braking[2]))
+                    elif u >= len(samples):
                         # hold the last sample until the robot settles on it (servoJ lags
                         # by about the lookahead time), then leave servo mode
                         if settle_until is None:
-                            settle_until = time.monotonic() + self.SETTLE_MAX + 2 * self.lookahead
-                        if time.monotonic() > settle_until or (
+                            settle_until = now + self.SETTLE_MAX + 2 * self.lookahead
+                        if now > settle_until or (
                             state is not None and _settled(state, samples[-1])
                         ):
                             break
@@ -541,7 +666,7 @@ class _Trajectory:
                             break
                     if next_tick is None:
                         next_tick = time.perf_counter()
-                    target = samples[min(i, len(samples) - 1)]
+                    target = _at(samples, u)
                     ok = c.servoJ(list(target), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain)
                     if not ok:
                         state = link.latest
@@ -550,10 +675,11 @@ class _Trajectory:
                             why = stop_reason(state.safety_mode, state.runtime_state)
                         status, reason = "failed", why or "servoj_refused"
                         break
-                    if i < len(samples):
-                        if i % self.PROGRESS_EVERY == 0:
+                    if u < len(samples):
+                        i = int(u)
+                        if braking is None and i % self.PROGRESS_EVERY == 0 and i == u:
                             self._progress(i, len(samples), samples[i])
-                        i += 1
+                        u = min(u + rate, float(len(samples)))
                     next_tick += CONTROL_PERIOD
                     delay = next_tick - time.perf_counter()
                     if delay > 0:
@@ -574,7 +700,7 @@ class _Trajectory:
             {
                 "status": status,
                 "reason": reason,
-                "index": i,
+                "index": int(u),
                 "total": len(samples),
                 "actual_q": state.actual_q if state is not None else None,
                 "duration": time.monotonic() - started,

@@ -24,9 +24,10 @@ MAX_FRAME = 64 * 1024 * 1024
 
 # client -> link process
 CALL = "call"  # (CALL, request_id, method, kwargs)
-TRAJ_START = "traj_start"  # (TRAJ_START, traj_id, samples, lookahead_time, gain)
+TRAJ_START = "traj_start"  # (TRAJ_START, traj_id, samples, lookahead_time, gain, guard)
 TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, traj_id, samples[, at_index])
-TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, traj_id)
+TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, traj_id[, reason]): the link brakes to rest itself
+BEAT = "beat"  # (BEAT,): the client is alive (sent every 10 ms while a trajectory runs)
 
 # link process -> client
 HELLO = "hello"  # (HELLO, {"pid": ...})
@@ -38,6 +39,7 @@ CONTROL = "control"  # (CONTROL, ready: bool, reason)
 HOLD = "hold"  # (HOLD, bool): a blocking ur_rtde constructor runs; the stream pauses
 TRAJ = "traj"  # (TRAJ, traj_id, kind, data) kind: progress | replaced | end
 LOG = "log"  # (LOG, level, message)
+PULSE = "pulse"  # (PULSE, link_monotonic, last_state_monotonic): every 10 ms
 
 
 def encode(message: tuple[Any, ...]) -> bytes:

@@ -42,6 +42,7 @@ from fxcell.errors import (
 )
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
+from fxcell.link.process import Guard
 from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
 from fxcell.motion.trajectory import (
@@ -477,6 +478,7 @@ class MoveExecution:
         self._settled = False
         self._settled_at: float | None = None
         self._brake_task: asyncio.Task[None] | None = None
+        self._spliced = False  # the braking profile replaced the remaining samples
 
     @property
     def handle(self) -> TrajectoryHandle | None:
@@ -526,6 +528,7 @@ class MoveExecution:
                 np.concatenate([samples, hold]),
                 lookahead_time=opts.lookahead_time,
                 gain=opts.gain,
+                guard=self._guard(),
             )
             self._handle = handle
             try:
@@ -538,14 +541,22 @@ class MoveExecution:
                     f"the move did not end within {self.plan.duration:.2f} s planned + margins"
                 ) from None
             except asyncio.CancelledError:
-                # Our task was cancelled (stop(), a safety event, the caller): brake to
-                # rest before letting the cancellation through.
+                # Our task was cancelled (stop(), a safety event, a lost link, the
+                # caller): brake to rest before letting the cancellation through. When
+                # the braking profile cannot be spliced in (the link is down), the link
+                # process brakes along the path by itself; either way the cancellation
+                # goes through only once the trajectory has ended.
                 self.request_stop()
                 with contextlib.suppress(Exception):
                     if not handle.done:
                         await self._braking(handle)
-                    async with asyncio.timeout(self.brake_duration + 1.0):
+                if not handle.done and not self._spliced:
+                    with contextlib.suppress(Exception):
+                        await handle.stop("move aborted")
+                with contextlib.suppress(Exception):
+                    async with asyncio.timeout(self.brake_duration + 3.0):
                         await handle.wait()
+                with contextlib.suppress(Exception):
                     await self._wait_rest(states)
                 raise
             return self._finish(end, state)
@@ -649,7 +660,18 @@ class MoveExecution:
             )
             samples = lead_setpoints(joined, self.options.lag)[len(history) :]
         samples[-1] = stop.positions[-1]
-        await handle.replace_remaining(samples, at_index=at)
+        self._spliced = await handle.replace_remaining(samples, at_index=at)
+
+    def _guard(self) -> Guard:
+        """How the link process brakes this move by itself (see fxcell.link.process)."""
+        limits = self.planner.limits
+        robot = self.planner.config.robot
+        return Guard(
+            brake_acceleration=tuple(limits.braking_acceleration),
+            brake_jerk=min(limits.braking_jerk),
+            cell_timeout=robot.heartbeat_timeout,
+            stall_timeout=robot.stall_timeout,
+        )
 
     async def _wait_rest(self, states: StateSubscription) -> None:
         """Wait (bounded) until the robot's joints are at rest."""
