@@ -78,6 +78,11 @@ class JointLimits(_Model):
     planning accelerations so that a stop from full speed takes about a second (a UR3e's
     category-2 stop takes a few tenths), which also keeps the daemon's 3 s shutdown."""
     braking_jerk: Vector6 = (40.0,) * 6
+    min_factor: float = Field(0.01, gt=0, le=1)
+    """The smallest velocity or acceleration factor a move may use: slower moves are
+    refused before planning (a 1e-6 factor would plan hours of samples)."""
+    max_move_duration: float = Field(120.0, gt=0, le=3600)
+    """A move planned to take longer than this (s) is refused before it is sampled."""
 
     @field_validator("velocity", "acceleration", "jerk", "braking_acceleration", "braking_jerk")
     @classmethod
@@ -120,6 +125,11 @@ class DaemonConfig(_Model):
     allow_remote: bool = False
     """Binding to a non-loopback address needs this set (and a token)."""
     token_file: Path = Path("~/.config/fxcell/token")
+    max_body_size: int = Field(1024 * 1024, ge=1024)
+    """Largest request body accepted (bytes); larger ones are refused before they are read."""
+    allowed_hosts: tuple[str, ...] = ()
+    """Host names (besides localhost, the bind address and any IP address) under which
+    the daemon may be reached; other names are refused (DNS-rebinding protection)."""
 
 
 class CellConfig(_Model):

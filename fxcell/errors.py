@@ -33,6 +33,10 @@ class InvalidFactorError(InvalidArgumentError):
     """A velocity or acceleration factor is not a finite number in (0, 1]."""
 
 
+class MoveTooLongError(InvalidArgumentError):
+    """The move would take longer than ``limits.max_move_duration``; nothing was sent."""
+
+
 class InvalidTargetError(InvalidArgumentError):
     """A joint or pose target is malformed, non-finite or outside the joint limits."""
 

@@ -185,7 +185,9 @@ async def test_move_runs_as_an_operation_and_cancel_stops_it(
         )
         assert start_q[0] + 0.05 < rest["q"][0] < target[0] - 0.01
         r = await http.post(f"/api/operations/{op['id']}/wait", params={"timeout": 1})
-        assert r.json()["status"] == "cancelled"
+        assert r.status_code == 409  # a move that did not reach its goal is never a 200
+        assert r.json()["operation"]["status"] == "cancelled"
+        assert r.json()["error"]["type"] == "MoveStoppedError"
     assert (await state(http))["state"] == "running.external_control_ready"
     dests = [m["dest"] for m in watcher.of("transition")]
     assert "running.moving" in dests

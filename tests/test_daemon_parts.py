@@ -206,10 +206,11 @@ def test_rate_and_topics_are_validated() -> None:
 
 @pytest.fixture
 async def http(tmp_path: Path) -> AsyncIterator[httpx.AsyncClient]:
-    """The API with no cell attached: refusals must come before the robot is needed."""
-    service = CellService(CellConfig(), TOKEN)
+    """The API with no cell attached: refusals must come before the robot is needed
+    (commands wait 0.3 s for a cell before they say it is not connected)."""
+    service = CellService(CellConfig.from_dict({"robot": {"command_timeout": 0.3}}), TOKEN)
     transport = httpx.ASGITransport(app=create_app(service))
-    async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+    async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as client:
         yield client
 
 
@@ -366,3 +367,93 @@ def test_notifier_never_blocks_on_a_reader_that_fell_behind(tmp_path: Path) -> N
         assert time.monotonic() - t0 < 5
         assert sent[0]
         assert not sent[-1]  # dropped, not blocked
+
+
+# ----------------------------------------------------------------- request hygiene
+
+
+async def test_a_body_with_a_wrong_token_is_refused_before_it_is_read(
+    http: httpx.AsyncClient,
+) -> None:
+    r = await http.post(
+        "/api/cell/move_joint",
+        content=b"x" * 2_000_000,
+        headers={"Authorization": "Bearer wrong", "Content-Type": "application/json"},
+    )
+    assert r.status_code == 401
+    assert r.json()["error"]["type"] == "NotAuthorizedError"
+
+
+async def test_a_body_over_the_limit_is_refused_with_413(http: httpx.AsyncClient) -> None:
+    r = await http.post(
+        "/api/cell/move_joint",
+        content=b" " * (1024 * 1024 + 1),
+        headers={**auth(), "Content-Type": "application/json"},
+    )
+    assert r.status_code == 413
+    assert "exceeds" in r.json()["error"]["message"]
+
+
+async def test_a_body_of_undeclared_length_is_cut_off_at_the_limit(
+    http: httpx.AsyncClient,
+) -> None:
+    async def chunks() -> AsyncIterator[bytes]:
+        for _ in range(40):
+            yield b" " * 65536  # 2.5 MiB in all, no Content-Length
+
+    r = await http.post(
+        "/api/cell/move_joint",
+        content=chunks(),
+        headers={**auth(), "Content-Type": "application/json"},
+    )
+    assert r.status_code == 413
+
+
+@pytest.mark.parametrize(
+    "host", ["127.0.0.1:8040", "localhost:8040", "[::1]:8040", "10.1.2.3", "cell.localhost"]
+)
+async def test_requests_to_addresses_and_localhost_are_served(
+    http: httpx.AsyncClient, host: str
+) -> None:
+    r = await http.get("/api/info", headers={"Host": host})
+    assert r.status_code == 200
+
+
+async def test_a_request_under_a_foreign_host_name_is_refused(http: httpx.AsyncClient) -> None:
+    # what a DNS-rebinding page would send
+    r = await http.get("/api/state", headers={"Host": "attacker.example:8040"})
+    assert r.status_code == 421
+    assert "allowed_hosts" in r.json()["error"]["message"]
+
+
+async def test_configured_host_names_are_served() -> None:
+    config = CellConfig.from_dict({"daemon": {"allowed_hosts": ["cell-pc.lab"]}})
+    transport = httpx.ASGITransport(app=create_app(CellService(config, TOKEN)))
+    async with httpx.AsyncClient(transport=transport, base_url="http://cell-pc.lab") as client:
+        assert (await client.get("/api/info")).status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("path", "body"),
+    [
+        ("/api/cell/move_joint", {"target": [True, 0, 0, 0, 0, 0]}),
+        ("/api/cell/move_joint", {"target": ["0.1", 0, 0, 0, 0, 0]}),
+        ("/api/cell/move_joint", {"target": [0, 0, 0, 0, 0, 0], "velocity_factor": "0.5"}),
+        ("/api/cell/move_pose", {"target": [0.1, 0.2, 0.3, 0, 0, 0], "linear": "yes"}),
+        ("/api/cell/move_pose", {"target": [0.1, 0.2, 0.3, 0, 0, 0], "linear": 1}),
+        ("/api/cell/set_velocity_factor", {"value": True}),
+        ("/api/cell/unlock_protective_stop", {"wait": "true"}),
+    ],
+)
+async def test_booleans_and_strings_are_not_numbers_nor_flags(
+    http: httpx.AsyncClient, path: str, body: dict[str, object]
+) -> None:
+    r = await http.post(path, json=body, headers=auth())
+    assert r.status_code == 422, r.text
+
+
+async def test_an_unknown_operation_is_404(http: httpx.AsyncClient) -> None:
+    assert (await http.get("/api/operations/op-999")).status_code == 404
+    r = await http.post("/api/operations/op-999/wait")
+    assert r.status_code == 404
+    assert r.json()["error"]["type"] == "RemoteError"

@@ -128,3 +128,27 @@ def test_the_link_brake_duration_respects_the_braking_limits() -> None:
     assert np.pi**2 * 1.0 / (2 * t**2) <= 40.0 + 1e-9
     assert t < 0.5
     assert brake_duration([0.0] * 6, guard) == pytest.approx(0.004)
+
+
+def test_a_tiny_speed_factor_is_refused_before_planning() -> None:
+    from fxcell.errors import InvalidFactorError
+    from fxcell.motion.moves import MotionController
+
+    moves = MotionController(CONFIG)
+    with pytest.raises(InvalidFactorError, match=r"\[0.01, 1\]"):
+        moves.factors(1e-5, None)
+    with pytest.raises(InvalidFactorError):
+        moves.factors(None, 5e-324)
+    assert moves.factors(0.01, 0.01) == (0.01, 0.01)
+
+
+def test_a_move_longer_than_the_limit_is_refused_before_it_is_sampled() -> None:
+    from fxcell.errors import MoveTooLongError
+    from fxcell.motion.trajectory import Limits, rest_to_rest
+
+    slow = Limits.from_config(CONFIG.limits, 0.01, 0.01)
+    assert slow.max_duration == CONFIG.limits.max_move_duration == 120.0
+    start = np.array(WORK)
+    with pytest.raises(MoveTooLongError, match="longer than the 120 s allowed"):
+        rest_to_rest(start, start + np.array([4.0, 0, 0, 0, 0, 0]), slow)
+    assert rest_to_rest(start, start + np.array([0.5, 0, 0, 0, 0, 0]), slow).duration < 120.0

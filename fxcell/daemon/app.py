@@ -34,6 +34,7 @@ from pydantic import BaseModel
 from fxcell._version import __version__
 from fxcell.daemon import models
 from fxcell.daemon.encoding import error_info, jsonable
+from fxcell.daemon.guard import RequestGuard
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import parse_rate, parse_topics
 from fxcell.errors import FxcellError, NotAuthorizedError, RemoteError
@@ -109,6 +110,13 @@ def create_app(service: CellService) -> FastAPI:
         redoc_url=None,
     )
     app.state.service = service
+    daemon = service.config.daemon
+    app.add_middleware(
+        RequestGuard,
+        authorized=service.authorized,
+        max_body=daemon.max_body_size,
+        allowed_hosts=(daemon.host, *daemon.allowed_hosts),
+    )
 
     @app.exception_handler(FxcellError)
     async def _fxcell_error(request: Request, exc: FxcellError) -> JSONResponse:
@@ -156,12 +164,20 @@ def create_app(service: CellService) -> FastAPI:
         needs_control: bool = True,
     ) -> JSONResponse:
         client = authorize(request)
+        if needs_control:
+            service.control.acquire(client)  # refuse a second client before waiting
+        await service.wait_cell()
         op = service.start_operation(name, args, client, call, needs_control=needs_control)
         if not wait:
             return JSONResponse(op.describe(), status_code=202)
         # The operation is its own task: a client that hangs up does not cancel it.
         await asyncio.shield(op.done.wait())
-        if op.error is not None and op.status == "failed":
+        return _finished(op)
+
+    def _finished(op: Any) -> JSONResponse:
+        """An ended operation: its record, or its error with the error's status (a move
+        that did not reach its goal is never a 200)."""
+        if op.error is not None:
             return JSONResponse(
                 {"error": op.error, "operation": op.describe()}, status_code=op.error["status"]
             )
@@ -296,10 +312,12 @@ def create_app(service: CellService) -> FastAPI:
     )
     async def wait_operation(
         op_id: str, within: float = Query(30.0, gt=0, le=3600, alias="timeout")
-    ) -> dict[str, Any]:
+    ) -> Response:
         op = find(op_id)
         await asyncio.shield(service.operations.wait(op, within))
-        return op.describe()  # type: ignore[no-any-return]
+        if op.done.is_set():
+            return _finished(op)
+        return JSONResponse(op.describe())
 
     @api.post(
         "/operations/{op_id}/cancel",

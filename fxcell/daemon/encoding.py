@@ -21,6 +21,7 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.NotInRemoteControlError, 409),
     (errors.MoveInProgressError, 409),
     (errors.MoveStoppedError, 409),
+    (errors.MoveError, 409),  # did not reach its goal (e.g. TrackingError)
     (errors.SafetyStopError, 409),
     (errors.PlanningError, 422),
     (errors.RobotTimeoutError, 504),
@@ -32,6 +33,8 @@ _DETAIL_ATTRS = ("command", "state", "allowed", "next_step", "remaining", "failu
 
 
 def http_status(exc: BaseException) -> int:
+    if isinstance(exc, errors.RemoteError) and exc.status >= 400:
+        return exc.status
     for cls, status in _STATUS:
         if isinstance(exc, cls):
             return status

@@ -28,7 +28,9 @@ Vector3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 
 
 class Body(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # strict: a number is a JSON number (never a bool or a numeric string), a flag a JSON
+    # boolean; unknown keys are refused
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 class Factors(Body):

@@ -8,6 +8,8 @@ state snapshot and the stream survive a Cell restart.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import time
 from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
@@ -54,6 +56,7 @@ class CellService:
         self._state: str = CellState.DISCONNECTED.value
         self.robot_description = config.robot.host or "embedded simulator"
         self.cell_error: str | None = None
+        self._attached = asyncio.Event()
         self.started = time.time()
         self.statechart = statechart or load_statechart()
         self._allowed_in: dict[str, list[str]] = {}
@@ -73,6 +76,7 @@ class CellService:
         self.bus = cell.bus
         self._unsubscribe = cell.bus.subscribe(self._on_event)
         self._state = str(cell.state)
+        self._attached.set()
 
     def detach(self, reason: str | None = None) -> None:
         if self._unsubscribe is not None:
@@ -81,9 +85,19 @@ class CellService:
         self.cell = None
         self.bus = None
         self.latest = None
+        self._attached.clear()
         self._state = CellState.DISCONNECTED.value
         if reason:
             self.cell_error = reason
+
+    async def wait_cell(self) -> Any:
+        """The cell, waiting up to ``robot.command_timeout`` while the daemon is still
+        connecting it (so a command sent right after start does not fail)."""
+        if self.cell is None:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(self.config.robot.command_timeout):
+                    await self._attached.wait()
+        return self.require_cell()
 
     def require_cell(self) -> Any:
         if self.cell is None:
@@ -121,11 +135,11 @@ class CellService:
         return self.operations.start(name, args, client, call(), move=name in _GUARD_NAME)
 
     async def call(self, name: str, **kwargs: Any) -> Any:
-        cell = self.require_cell()
+        cell = await self.wait_cell()
         return await getattr(cell, name)(**kwargs)
 
     async def query(self, name: str) -> Any:
-        cell = self.require_cell()
+        cell = await self.wait_cell()
         return await getattr(cell, name)()
 
     async def cancel_operation(self, op: Operation) -> None:

@@ -622,9 +622,11 @@ class _Trajectory:
                     if braking is None:
                         why = self._abort_reason(now)
                         if why is not None:
-                            duration = brake_duration(_velocity(samples, u), self.guard)
+                            velocity = _velocity(samples, u) if u < len(samples) else (0.0,) * 6
+                            duration = brake_duration(velocity, self.guard)
                             braking = (why, now, duration)
-                            link.send(wire.LOG, logging.WARNING, f"braking to rest: {why}")
+                            if max(map(abs, velocity)) > 0:  # not a stop at the target
+                                link.send(wire.LOG, logging.WARNING, f"braking to rest: {why}")
                     with self._lock:
                         replacement, self._replacement = self._replacement, None
                     if replacement is not None:

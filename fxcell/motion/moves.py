@@ -758,6 +758,7 @@ class MotionController:
     ) -> None:
         self.config = config
         self.options = options or ExecutionOptions()
+        self._min_factor = config.limits.min_factor
         self._publish = publish
         self._planner_name = planner
         self._planner: MotionPlanner | None = None
@@ -789,10 +790,10 @@ class MotionController:
         _ = self.planner
 
     def set_velocity_factor(self, value: object) -> None:
-        self.velocity_factor = validate_factor("velocity_factor", value)
+        self.velocity_factor = validate_factor("velocity_factor", value, self._min_factor)
 
     def set_acceleration_factor(self, value: object) -> None:
-        self.acceleration_factor = validate_factor("acceleration_factor", value)
+        self.acceleration_factor = validate_factor("acceleration_factor", value, self._min_factor)
 
     @property
     def max_acceleration(self) -> tuple[float, ...]:
@@ -803,12 +804,12 @@ class MotionController:
         vf = (
             self.velocity_factor
             if velocity is None
-            else validate_factor("velocity_factor", velocity)
+            else validate_factor("velocity_factor", velocity, self._min_factor)
         )
         af = (
             self.acceleration_factor
             if acceleration is None
-            else validate_factor("acceleration_factor", acceleration)
+            else validate_factor("acceleration_factor", acceleration, self._min_factor)
         )
         return vf, af
 

@@ -32,7 +32,7 @@ import ruckig
 from numpy.typing import ArrayLike, NDArray
 
 from fxcell.config import JointLimits
-from fxcell.errors import InvalidFactorError, PlanningError
+from fxcell.errors import InvalidFactorError, MoveTooLongError, PlanningError
 
 DT = 0.002
 """Sample period: the UR e-series control cycle (500 Hz)."""
@@ -43,13 +43,15 @@ Validator = Callable[[Array], int | None]
 """Checks sampled joint positions (N, 6); returns the index of the first bad sample or None."""
 
 
-def validate_factor(name: str, value: object) -> float:
-    """Return ``value`` as a float if it is a finite number in (0, 1]; else InvalidFactorError."""
+def validate_factor(name: str, value: object, minimum: float = 0.0) -> float:
+    """``value`` as a float if it is a finite number in (0, 1] and at least ``minimum``;
+    else InvalidFactorError."""
+    span = f"[{minimum:g}, 1]" if minimum > 0 else "(0, 1]"
     if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
-        raise InvalidFactorError(f"{name} must be a number in (0, 1], got {type(value).__name__}")
+        raise InvalidFactorError(f"{name} must be a number in {span}, got {type(value).__name__}")
     f = float(value)
-    if not (math.isfinite(f) and 0.0 < f <= 1.0):
-        raise InvalidFactorError(f"{name} must be in (0, 1], got {value!r}")
+    if not (math.isfinite(f) and 0.0 < f <= 1.0 and f >= minimum):
+        raise InvalidFactorError(f"{name} must be in {span}, got {value!r}")
     return f
 
 
@@ -62,6 +64,8 @@ class Limits:
     jerk: Array
     position_min: Array
     position_max: Array
+    max_duration: float = math.inf
+    """A trajectory longer than this (s) is refused before it is sampled (bounds memory)."""
 
     @classmethod
     def from_config(
@@ -77,6 +81,7 @@ class Limits:
             jerk=np.asarray(limits.jerk, float) * af,
             position_min=np.asarray(limits.position_min, float),
             position_max=np.asarray(limits.position_max, float),
+            max_duration=limits.max_move_duration,
         )
 
     @classmethod
@@ -97,6 +102,7 @@ class Limits:
             self.jerk,
             self.position_min,
             self.position_max,
+            self.max_duration,
         )
 
 
@@ -237,19 +243,24 @@ class Piece(Protocol):
     def evaluate(self, times: Array) -> tuple[Array, Array, Array]: ...
 
 
-def _grid(total: float) -> Array:
+def _grid(total: float, max_duration: float = math.inf) -> Array:
     """Sample times every DT from 0, the last one at ``total`` exactly."""
+    if not total <= max_duration:
+        raise MoveTooLongError(
+            f"the move would take {total:.1f} s, longer than the {max_duration:g} s allowed "
+            "(limits.max_move_duration): raise the speed factors or split the move"
+        )
     n = max(round(math.ceil(total / DT - 1e-9)), 1) + 1
     t = np.arange(n, dtype=float) * DT
     t[-1] = total
     return t
 
 
-def _sample(pieces: Sequence[Piece]) -> Trajectory:
+def _sample(pieces: Sequence[Piece], max_duration: float = math.inf) -> Trajectory:
     """Sample consecutive pieces on one global 2 ms grid."""
     ends = np.cumsum([p.duration for p in pieces])
     total = float(ends[-1])
-    t = _grid(total)
+    t = _grid(total, max_duration)
     n = len(t)
     pos, vel, acc = np.empty((n, DOF)), np.empty((n, DOF)), np.empty((n, DOF))
     which = np.minimum(np.searchsorted(ends, t, side="left"), len(pieces) - 1)
@@ -280,13 +291,15 @@ def _scalar(v: float, a: float, j: float) -> ruckig.Trajectory:
 # ----------------------------------------------------------------- public builders
 
 
-def _profile(v: float, a: float, j: float) -> tuple[Array, Array, Array, Array]:
+def _profile(
+    v: float, a: float, j: float, max_duration: float = math.inf
+) -> tuple[Array, Array, Array, Array]:
     """Sample the time-optimal rest-to-rest profile of a scalar s from 0 to 1.
 
     Returns times, s, ds/dt and d²s/dt² on the 2 ms grid (last sample at the end time).
     """
     traj = _scalar(v, a, j)
-    t = _grid(float(traj.duration))
+    t = _grid(float(traj.duration), max_duration)
     s, sd, sdd = (x[:, 0] for x in _evaluate(traj, t))
     s[-1], sd[-1], sdd[-1] = 1.0, 0.0, 0.0
     return t, np.clip(s, 0.0, 1.0), sd, sdd
@@ -326,7 +339,7 @@ def rest_to_rest(start: ArrayLike, target: ArrayLike, limits: Limits) -> Traject
     if not np.any(np.abs(delta) > 1e-15):
         z = np.zeros((1, DOF))
         return Trajectory(q1[None, :].copy(), z, z.copy(), 0.0)
-    t, s, sd, sdd = _profile(*_line_limits(delta, limits))
+    t, s, sd, sdd = _profile(*_line_limits(delta, limits), limits.max_duration)
     pos = q0 + s[:, None] * delta
     pos[-1] = q1
     return Trajectory(pos, sd[:, None] * delta, sdd[:, None] * delta, float(t[-1]))
@@ -402,7 +415,7 @@ def through_waypoints(
                 vel[k] = vel[k + 1] = 0.0
                 break
         else:
-            traj = _sample(pieces)
+            traj = _sample(pieces, limits.max_duration)
             traj.positions[-1] = wp[-1]
             traj.velocities[-1] = 0.0
             traj.accelerations[-1] = 0.0
@@ -457,7 +470,7 @@ def along_path(
         v_s = min(v_s, v_cap)
         a_s = safety * float(np.min((limits.acceleration - d2 * v_s**2) / d1))
         j_s = safety * float(np.min(limits.jerk / d1))
-        t, s, _, _ = _profile(v_s, a_s, j_s)
+        t, s, _, _ = _profile(v_s, a_s, j_s, limits.max_duration)
         total = float(t[-1])
         n = len(t)
         pos = np.array([path(float(sk)) for sk in s])
