@@ -34,6 +34,7 @@ from fxcell.protocol import RobotMode, SafetyMode
 
 DEFAULT_URL = "http://127.0.0.1:8040"
 CLIENT_HEADER = "X-Fxcell-Client"
+LEASE_HEADER = "X-Fxcell-Lease"  # = fxcell.daemon.control.LEASE_HEADER (no daemon import here)
 
 
 def default_client_name(program: str = "RemoteCell") -> str:
@@ -149,6 +150,8 @@ class RemoteCell:
         self.url = url.rstrip("/")
         self.token = token if token is not None else os.environ.get("FXCELL_TOKEN")
         self.name = name or default_client_name()
+        self.lease: str | None = None
+        """The control lease this client holds (taken with its first command)."""
         self._http = httpx.AsyncClient(
             base_url=self.url,
             timeout=httpx.Timeout(timeout, connect=5.0),
@@ -186,6 +189,8 @@ class RemoteCell:
                     "no token: pass RemoteCell(url, token) or set FXCELL_TOKEN", status=401
                 )
             headers["Authorization"] = f"Bearer {self.token}"
+            if self.lease:
+                headers[LEASE_HEADER] = self.lease
         try:
             response = await self._http.request(
                 method, path, json=json_body, params=params, headers=headers
@@ -194,6 +199,9 @@ class RemoteCell:
             raise errors.ConnectionLostError(
                 f"cannot reach the daemon at {self.url}: {exc}"
             ) from exc
+        lease = response.headers.get(LEASE_HEADER)
+        if lease:
+            self.lease = lease
         try:
             body = response.json()
         except ValueError:
@@ -267,12 +275,18 @@ class RemoteCell:
         return await self._request("GET", "/api/control")  # type: ignore[no-any-return]
 
     async def take_control(self, *, force: bool = False) -> dict[str, Any]:
-        return await self._request(  # type: ignore[no-any-return]
+        """Take control of the cell (``force``: over from its holder); the lease is kept."""
+        holder: dict[str, Any] = await self._request(
             "POST", "/api/control", json_body={"force": force}, auth=True
         )
+        self.lease = holder.pop("lease", None) or self.lease
+        return holder
 
     async def release_control(self) -> bool:
+        if not self.lease:
+            return False
         body = await self._request("DELETE", "/api/control", auth=True)
+        self.lease = None
         return bool(body["released"])
 
     async def stream(
@@ -283,12 +297,18 @@ class RemoteCell:
 
         ws_url = self.url.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
         params = {"rate": str(rate), "client": self.name}
+        if self.lease:
+            params["lease"] = self.lease
         if topics:
             params["topics"] = ",".join(topics)
         query = urllib.parse.urlencode(params)
         async with websockets.connect(f"{ws_url}/api/stream?{query}", max_size=None) as ws:
             async for text in ws:
-                yield json.loads(text)
+                message = json.loads(text)
+                if message.get("type") == "ping":  # the daemon checks we are alive
+                    await ws.send('{"type": "pong"}')
+                    continue
+                yield message
 
     # ------------------------------------------------------------- general functions
 

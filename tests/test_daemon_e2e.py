@@ -51,7 +51,21 @@ def headers(client: str = "tester", token: str | None = TOKEN) -> dict[str, str]
 
 @pytest.fixture
 async def http(daemon: DaemonProcess) -> AsyncIterator[httpx.AsyncClient]:
-    async with httpx.AsyncClient(base_url=daemon.url, timeout=30) as client:
+    """An HTTP client that, as "tester", keeps the control lease the daemon hands it
+    and shows it with its commands (as RemoteCell and the page do)."""
+    lease: dict[str, str] = {}
+
+    async def show_lease(request: httpx.Request) -> None:
+        if request.headers.get("X-Fxcell-Client") == "tester" and "lease" in lease:
+            request.headers.setdefault("X-Fxcell-Lease", lease["lease"])
+
+    async def keep_lease(response: httpx.Response) -> None:
+        value = response.headers.get("X-Fxcell-Lease")
+        if value and response.request.headers.get("X-Fxcell-Client") == "tester":
+            lease["lease"] = value
+
+    hooks = {"request": [show_lease], "response": [keep_lease]}
+    async with httpx.AsyncClient(base_url=daemon.url, timeout=30, event_hooks=hooks) as client:
         yield client
         # leave the cell free for the next test
         await client.delete("/api/control", headers=headers())
@@ -363,17 +377,22 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
     with notify, DaemonProcess.start(
         write_config(tmp_path), token=TOKEN, log_dir=logs, extra_args=SIM_ARGS, env=systemd
     ) as daemon, httpx.Client(base_url=daemon.url, timeout=30) as http:  # fmt: skip
-        notices = [notify.recv(4096).decode() for _ in range(2)]
-        assert any(n.startswith("READY=1") for n in notices), notices
+        notices: list[str] = []
+        while not any(n.startswith("READY=1") for n in notices):  # READY once connected
+            notices.append(notify.recv(4096).decode())
+            assert len(notices) < 50, notices
+        assert "cell connected" in next(n for n in notices if n.startswith("READY=1"))
         assert "WATCHDOG=1" in notices
-        daemon.wait_connected()
-        assert http.post("/api/cell/init", headers=headers()).status_code == 200
+        assert daemon.wait_connected()["state"] != "disconnected"
+        r = http.post("/api/cell/init", headers=headers())
+        assert r.status_code == 200
+        lease = {"X-Fxcell-Lease": r.headers["X-Fxcell-Lease"]}
         q = http.get("/api/state").json()["robot"]["q"]
         r = http.post(
             "/api/cell/move_joint",
             # full speed: stops brake with the braking limits, well within the 3 s
             json={"target": [q[0] + 1.5, *q[1:]], "velocity_factor": 1.0},
-            headers=headers(),
+            headers={**headers(), **lease},
         )
         assert r.status_code == 202
         deadline = time.monotonic() + 20
@@ -530,3 +549,11 @@ def test_daemon_serves_while_the_robot_is_unreachable(tmp_path: Path) -> None:
         code = daemon.stop(signal.SIGTERM, timeout=10)
     assert code == 0
     assert any("reopening in" in line for line in daemon.output)
+
+
+def test_a_command_sent_as_soon_as_the_daemon_serves_waits_for_the_cell(tmp_path: Path) -> None:
+    with DaemonProcess.start(write_config(tmp_path), token=TOKEN, extra_args=SIM_ARGS) as daemon:
+        # no wait_connected(): the cell is typically still connecting at this point
+        r = httpx.post(f"{daemon.url}/api/cell/init", headers=headers(), timeout=30)
+        assert r.status_code == 200, r.text
+        assert daemon.stop(signal.SIGTERM, timeout=10) == 0

@@ -101,26 +101,39 @@ def test_non_loopback_address_needs_the_explicit_option() -> None:
 
 def test_second_client_is_refused_with_the_holder_named() -> None:
     lock = ControlLock(lease=30)
-    lock.acquire("alice@lab")
-    assert lock.acquire("alice@lab").client == "alice@lab"  # renew
+    alice = lock.acquire("alice@lab").lease
+    assert lock.acquire("alice@lab", alice).lease == alice  # renewed with her lease
     with pytest.raises(ControlHeldError, match="controlled by 'alice@lab'"):
         lock.acquire("bob@pc")
-    assert not lock.release("bob@pc")
-    assert lock.release("alice@lab")
+    assert not lock.release(None)
+    assert not lock.release("not-her-lease")
+    assert lock.release(alice)
     assert lock.acquire("bob@pc").client == "bob@pc"
+
+
+def test_a_client_giving_the_holders_name_is_not_the_holder() -> None:
+    lock = ControlLock(lease=30)
+    lock.acquire("alice@lab")
+    with pytest.raises(ControlHeldError):
+        lock.acquire("alice@lab")  # the name is a label, the lease is the key
+    assert lock.describe() is not None
+    assert "lease" not in lock.describe()  # type: ignore[operator]
 
 
 def test_force_takes_control_over() -> None:
     changes: list[str | None] = []
     lock = ControlLock(on_change=lambda h: changes.append(h.client if h else None))
-    lock.acquire("alice")
-    assert lock.acquire("bob", force=True).client == "bob"
+    first = lock.acquire("alice").lease
+    taken = lock.acquire("bob", force=True)
+    assert taken.client == "bob"
+    assert taken.lease != first
     assert changes == ["alice", "bob"]
+    assert not lock.is_holder(first)
 
 
 def test_lease_runs_out_unless_the_holder_keeps_it_alive() -> None:
     alive = {"alice": True}
-    lock = ControlLock(lease=0.0, keeps_alive=lambda c: alive.get(c, False))
+    lock = ControlLock(lease=0.0, keeps_alive=lambda h: alive.get(h.client, False))
     lock.acquire("alice")
     with pytest.raises(ControlHeldError):
         lock.acquire("bob")  # alice watches: her lease holds
@@ -130,6 +143,18 @@ def test_lease_runs_out_unless_the_holder_keeps_it_alive() -> None:
         pass
     assert lock.holder is None
     assert lock.acquire("bob").client == "bob"
+
+
+def test_only_a_watcher_that_answers_pings_keeps_a_lease_alive() -> None:
+    from fxcell.daemon.stream import PONG_TIMEOUT, StreamHub
+
+    hub = StreamHub(lambda: None)
+    watcher = hub.add(frozenset({"state"}), 10.0, "alice", "lease-1")
+    hub.add(frozenset({"state"}), 10.0, "alice", None)  # names itself alice, no lease
+    assert hub.watches("lease-1")
+    assert not hub.watches("lease-2")
+    watcher.last_pong -= PONG_TIMEOUT + 1  # frozen: stopped answering pings
+    assert not hub.watches("lease-1")
 
 
 # ----------------------------------------------------------------- sd_notify
@@ -269,11 +294,21 @@ async def test_a_second_client_is_refused_control(http: httpx.AsyncClient) -> No
     r = await http.post("/api/control", headers=auth("alice@lab"))
     assert r.status_code == 200
     assert r.json()["client"] == "alice@lab"
+    lease = r.json()["lease"]
     r = await http.post("/api/cell/power_on", headers=auth("bob@pc"))
     assert r.status_code == 409
     assert "controlled by 'alice@lab'" in r.json()["error"]["message"]
+    r = await http.post("/api/cell/power_on", headers=auth("alice@lab"))  # her name, no lease
+    assert r.status_code == 409
+    assert (await http.get("/api/control")).json() == {
+        "client": "alice@lab",
+        "since": pytest.approx(time.time(), abs=60),
+    }
     r = await http.post("/api/control", json={"force": True}, headers=auth("bob@pc"))
     assert r.json()["client"] == "bob@pc"
+    assert r.json()["lease"] != lease
+    r = await http.request("DELETE", "/api/control", headers={**auth(), "X-Fxcell-Lease": lease})
+    assert r.json() == {"released": False}  # alice's old lease no longer holds
 
 
 async def test_commands_without_a_cell_say_it_is_not_connected(http: httpx.AsyncClient) -> None:

@@ -20,6 +20,7 @@ Layout of the API (the OpenAPI document is at ``/api/openapi.json``, browsable a
 import asyncio
 import contextlib
 import json
+import time
 import urllib.parse
 from collections.abc import Awaitable, Callable
 from importlib import resources
@@ -33,10 +34,11 @@ from pydantic import BaseModel
 
 from fxcell._version import __version__
 from fxcell.daemon import models
+from fxcell.daemon.control import LEASE_HEADER
 from fxcell.daemon.encoding import error_info, jsonable
 from fxcell.daemon.guard import RequestGuard
 from fxcell.daemon.service import CellService
-from fxcell.daemon.stream import parse_rate, parse_topics
+from fxcell.daemon.stream import PING_PERIOD, parse_rate, parse_topics
 from fxcell.errors import FxcellError, NotAuthorizedError, RemoteError
 
 CLIENT_HEADER = "X-Fxcell-Client"
@@ -164,24 +166,28 @@ def create_app(service: CellService) -> FastAPI:
         needs_control: bool = True,
     ) -> JSONResponse:
         client = authorize(request)
-        if needs_control:
-            service.control.acquire(client)  # refuse a second client before waiting
+        lease = None
+        if needs_control:  # refuse a second client before anything else
+            lease = service.control.acquire(client, request.headers.get(LEASE_HEADER)).lease
         await service.wait_cell()
-        op = service.start_operation(name, args, client, call, needs_control=needs_control)
+        op = service.start_operation(name, args, client, call, lease=lease)
+        headers = {LEASE_HEADER: lease} if lease else None
         if not wait:
-            return JSONResponse(op.describe(), status_code=202)
+            return JSONResponse(op.describe(), status_code=202, headers=headers)
         # The operation is its own task: a client that hangs up does not cancel it.
         await asyncio.shield(op.done.wait())
-        return _finished(op)
+        return _finished(op, headers)
 
-    def _finished(op: Any) -> JSONResponse:
+    def _finished(op: Any, headers: dict[str, str] | None = None) -> JSONResponse:
         """An ended operation: its record, or its error with the error's status (a move
         that did not reach its goal is never a 200)."""
         if op.error is not None:
             return JSONResponse(
-                {"error": op.error, "operation": op.describe()}, status_code=op.error["status"]
+                {"error": op.error, "operation": op.describe()},
+                status_code=op.error["status"],
+                headers=headers,
             )
-        return JSONResponse(op.describe())
+        return JSONResponse(op.describe(), headers=headers)
 
     # ------------------------------------------------------------- state and info
 
@@ -342,13 +348,15 @@ def create_app(service: CellService) -> FastAPI:
         request: Request, body: models.ControlRequest | None = None
     ) -> dict[str, Any] | None:
         client = authorize(request)
-        service.control.acquire(client, force=body.force if body else False)
-        return service.control.describe()
+        holder = service.control.acquire(
+            client, request.headers.get(LEASE_HEADER), force=body.force if body else False
+        )
+        return {"client": holder.client, "since": holder.since, "lease": holder.lease}
 
     @api.delete("/control", summary="Release control", responses=op_responses)
     async def release_control(request: Request) -> dict[str, Any]:
-        client = authorize(request)
-        return {"released": service.control.release(client)}
+        authorize(request)
+        return {"released": service.control.release(request.headers.get(LEASE_HEADER))}
 
     # ------------------------------------------------------------- stream
 
@@ -367,14 +375,23 @@ def create_app(service: CellService) -> FastAPI:
             await websocket.close(code=1008, reason=str(exc)[:120])
             return
         await websocket.accept()
-        watcher = service.hub.add(topics, rate, params.get("client"))
+        watcher = service.hub.add(topics, rate, params.get("client"), params.get("lease"))
         await websocket.send_text(json.dumps({"type": "hello", "snapshot": service.snapshot()}))
 
         async def receive() -> None:
             while True:
                 text = await websocket.receive_text()
                 with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
-                    watcher.set_rate(parse_rate(json.loads(text)["rate"]))
+                    message = json.loads(text)
+                    if message.get("type") == "pong":
+                        watcher.last_pong = time.monotonic()
+                    elif "rate" in message:
+                        watcher.set_rate(parse_rate(message["rate"]))
+
+        async def ping() -> None:
+            while True:  # a frozen client stops answering: it keeps no lease alive
+                await asyncio.sleep(PING_PERIOD)
+                watcher.offer_control(json.dumps({"type": "ping", "t": time.time()}))
 
         async def send() -> None:
             while True:
@@ -384,7 +401,7 @@ def create_app(service: CellService) -> FastAPI:
                     await websocket.close(code=1011, reason="watcher too slow: backlog overflow")
                     return
 
-        tasks = [asyncio.create_task(receive()), asyncio.create_task(send())]
+        tasks = [asyncio.create_task(f()) for f in (receive, send, ping)]
         try:
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:

@@ -63,6 +63,11 @@ def register(sub: Any) -> None:
         c.add_argument("--token", help="bearer token (default: $FXCELL_TOKEN or the token file)")
         c.add_argument("--config", help="cell configuration file (for the default URL and token)")
         c.add_argument("--json", action="store_true", help="print JSON")
+        c.add_argument(
+            "--force",
+            action="store_true",
+            help="take control over from the client holding it (it is told on its page)",
+        )
         return c
 
     client_parser("status", "show the state of the cell served by a running daemon").set_defaults(
@@ -147,6 +152,8 @@ def _client(command: ClientCommand) -> Callable[[argparse.Namespace], int]:
         async def main() -> Any:
             name = default_client_name("fxcell CLI").rsplit(", pid", 1)[0] + ")"
             async with RemoteCell(url, token, name=name) as cell:
+                if getattr(args, "force", False):
+                    await cell.take_control(force=True)
                 return await command(cell, args)
 
         result = asyncio.run(main())

@@ -41,6 +41,7 @@ class Operation:
     done: asyncio.Event = field(default_factory=asyncio.Event)
     cancel_requested: bool = False
     move: bool = False
+    lease: str | None = None  # the control lease it runs under (never described)
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -77,6 +78,7 @@ class OperationRegistry:
         coro: Awaitable[Any],
         *,
         move: bool = False,
+        lease: str | None = None,
     ) -> Operation:
         op_id = f"op-{next(self._ids)}"
 
@@ -84,7 +86,7 @@ class OperationRegistry:
             return await coro
 
         task = asyncio.create_task(run(), name=f"fxcell daemon {op_id} {name}")
-        op = Operation(op_id, name, dict(args), client, time.time(), task, move=move)
+        op = Operation(op_id, name, dict(args), client, time.time(), task, move=move, lease=lease)
         self._ops[op_id] = op
         task.add_done_callback(lambda t: self._finished(op, t))
         self._on_change(op)
@@ -130,11 +132,11 @@ class OperationRegistry:
         ops = list(self._ops.values())
         return [op for op in ops if op.status == "running"] if running_only else ops
 
-    def running(self, client: str | None = None) -> list[Operation]:
+    def running(self, lease: str | None = None) -> list[Operation]:
         return [
             op
             for op in self._ops.values()
-            if op.status == "running" and (client is None or op.client == client)
+            if op.status == "running" and (lease is None or op.lease == lease)
         ]
 
     async def wait(self, op: Operation, within: float | None) -> bool:

@@ -91,6 +91,9 @@ class Daemon:
         self.app = create_app(self.service)
         self.notifier = Notifier()
         self.stopping = asyncio.Event()
+        self._url: str | None = None
+        self._ready_how: str | None = None
+        self._ready_sent = False
         self._cell: Any = None
 
     async def run(self) -> int:
@@ -132,7 +135,9 @@ class Daemon:
                 "'fxcell token --page-url' prints the page address that logs in",
                 flush=True,
             )
-            self.notifier.ready(f"serving {url}")
+            self._url = url
+            if self._ready_how is not None:
+                self._announce_ready(self._ready_how)
             await self.stopping.wait()
         finally:
             deadline = time.monotonic() + SHUTDOWN_BUDGET
@@ -204,6 +209,7 @@ class Daemon:
                 self._cell = cell
                 await cell.open()
                 self.service.attach(cell)
+                self._announce_ready(f"cell connected: {self.service.robot_description}")
                 self.notifier.status(f"cell open: {self.service.robot_description}")
                 # The Cell reconnects its robot link itself; it is reopened only if
                 # opening it fails (robot unreachable at start, simulator failed).
@@ -212,6 +218,7 @@ class Daemon:
             except Exception as exc:  # whatever failed, keep serving and retry
                 log.error("cell: %s; reopening in %.1f s", exc, backoff)
                 self.service.detach(str(exc))
+                self._announce_ready(f"cell down: {exc}")
                 self.notifier.status(f"cell down: {exc}")
                 await self._discard_cell()
                 if time.monotonic() - started > 30:
@@ -219,6 +226,19 @@ class Daemon:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self.stopping.wait(), backoff)
                 backoff = min(backoff * 2, self.config.robot.reconnect_backoff_max)
+
+    def _announce_ready(self, how: str) -> None:
+        """READY to systemd once the first attempt to open the cell has ended (so that
+        commands sent after READY find the cell connected, or fail at once saying why)."""
+        if self._ready_sent:
+            return
+        self._ready_how = how
+        if self._url is None:
+            return  # the HTTP server is not up yet: run() announces it then
+        self._ready_sent = True
+        log.info("fxcell daemon ready: %s", how)
+        print(f"fxcell daemon: ready ({how})", flush=True)
+        self.notifier.ready(f"serving {self._url}; {how}")
 
     async def _discard_cell(self) -> None:
         cell, self._cell = self._cell, None

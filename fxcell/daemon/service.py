@@ -92,8 +92,9 @@ class CellService:
 
     async def wait_cell(self) -> Any:
         """The cell, waiting up to ``robot.command_timeout`` while the daemon is still
-        connecting it (so a command sent right after start does not fail)."""
-        if self.cell is None:
+        connecting it for the first time (so a command sent right after start does not
+        fail); once connecting has failed, at once."""
+        if self.cell is None and self.cell_error is None:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(self.config.robot.command_timeout):
                     await self._attached.wait()
@@ -127,12 +128,13 @@ class CellService:
         client: str,
         call: Callable[[], Awaitable[Any]],
         *,
-        needs_control: bool = True,
+        lease: str | None = None,
     ) -> Operation:
-        if needs_control:
-            self.control.acquire(client)
+        """Run ``call`` as an operation (control, if needed, was taken by the caller)."""
         self.require_cell()
-        return self.operations.start(name, args, client, call(), move=name in _GUARD_NAME)
+        return self.operations.start(
+            name, args, client, call(), move=name in _GUARD_NAME, lease=lease
+        )
 
     async def call(self, name: str, **kwargs: Any) -> Any:
         cell = await self.wait_cell()
@@ -213,8 +215,8 @@ class CellService:
 
     # ------------------------------------------------------------- notifications
 
-    def _keeps_alive(self, client: str) -> bool:
-        return self.hub.watches(client) or bool(self.operations.running(client))
+    def _keeps_alive(self, holder: Holder) -> bool:
+        return self.hub.watches(holder.lease) or bool(self.operations.running(holder.lease))
 
     def _operation_changed(self, op: Operation) -> None:
         self.hub.broadcast({"type": "operation", **op.describe()})

@@ -64,12 +64,23 @@ def event_message(event: Event) -> dict[str, Any] | None:
     return None
 
 
+PING_PERIOD = 5.0
+"""Seconds between two pings the daemon sends every watcher (it answers with a pong)."""
+PONG_TIMEOUT = 12.0
+"""A watcher that has not answered a ping for this long keeps no control lease alive."""
+
+
 class Watcher:
     """One WebSocket client: its topics, its state rate and what waits to be sent."""
 
-    def __init__(self, topics: frozenset[str], rate: float, client: str | None) -> None:
+    def __init__(
+        self, topics: frozenset[str], rate: float, client: str | None, lease: str | None = None
+    ) -> None:
         self.topics = topics
         self.client = client
+        self.lease = lease
+        self.last_pong = time.monotonic()
+        """When the client last answered a ping (a frozen client stops answering)."""
         self.period = 1.0 / rate
         self._next_due = 0.0
         self._state: str | None = None
@@ -87,6 +98,11 @@ class Watcher:
             return
         self._next_due = max(self._next_due + self.period, now + self.period * 0.5)
         self._state = encode()
+        self._wakeup.set()
+
+    def offer_control(self, text: str) -> None:
+        """A message for this watcher alone, whatever its topics (pings)."""
+        self._backlog.append(text)
         self._wakeup.set()
 
     def offer(self, topic: str, text: str) -> None:
@@ -123,11 +139,15 @@ class StreamHub:
     def watchers(self) -> int:
         return len(self._watchers)
 
-    def watches(self, client: str) -> bool:
-        return any(w.client == client for w in self._watchers)
+    def watches(self, lease: str) -> bool:
+        """Whether a live watcher (one that answers pings) shows this control lease."""
+        now = time.monotonic()
+        return any(w.lease == lease and now - w.last_pong < PONG_TIMEOUT for w in self._watchers)
 
-    def add(self, topics: frozenset[str], rate: float, client: str | None) -> Watcher:
-        watcher = Watcher(topics, rate, client)
+    def add(
+        self, topics: frozenset[str], rate: float, client: str | None, lease: str | None = None
+    ) -> Watcher:
+        watcher = Watcher(topics, rate, client, lease)
         self._watchers.add(watcher)
         return watcher
 

@@ -6,7 +6,7 @@ const $$ = (sel) => Array.from(document.querySelectorAll(sel));
 
 const page = {
   info: null, chart: null, state: "disconnected", robot: null, targetQ: null,
-  control: null, ops: new Map(), ws: null, wsRetry: 500,
+  control: null, lease: null, ops: new Map(), ws: null, wsRetry: 500,
   client: sessionStorage.getItem("fxcell-client") ||
     `web page ${Math.random().toString(16).slice(2, 8)} (${navigator.platform || "browser"})`,
   azimuth: -0.9, elevation: 0.45,
@@ -42,8 +42,11 @@ async function api(method, path, body) {
   const headers = { "X-Fxcell-Client": page.client };
   const token = localStorage.getItem("fxcell-token");
   if (token) headers["Authorization"] = `Bearer ${token}`;
+  if (page.lease) headers["X-Fxcell-Lease"] = page.lease;
   if (body !== undefined) headers["Content-Type"] = "application/json";
   const res = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  const lease = res.headers.get("X-Fxcell-Lease");
+  if (lease && lease !== page.lease) setLease(lease);
   let data = null;
   try { data = await res.json(); } catch (e) { data = null; }
   if (!res.ok) {
@@ -122,13 +125,23 @@ function showRobot(r) {
   requestDraw();
 }
 
+function setLease(lease) {
+  // The lease is this page's proof of control: it goes with every command, and the
+  // stream shows it so that an open page keeps control while it answers the pings.
+  page.lease = lease;
+  if (page.ws) page.ws.close();  // reconnects with the lease
+  showControl({ client: page.client, since: Date.now() / 1000 });
+}
+
 function showControl(holder) {
   page.control = holder;
   const el = $("#control");
-  if (!holder) { el.textContent = "control: free"; return; }
-  const mine = holder.client === page.client;
-  el.textContent = mine ? "control: this page" : `controlled by ${holder.client}`;
+  if (!holder) { page.lease = null; }
+  const mine = !!(holder && page.lease && holder.client === page.client);
+  if (holder && !mine && page.lease) page.lease = null;  // taken over by someone else
+  el.textContent = !holder ? "control: free" : mine ? "control: this page" : `controlled by ${holder.client}`;
   $("#take-control").disabled = mine;
+  $("#release-control").disabled = !mine;
 }
 
 function allowed(cmd) {
@@ -172,7 +185,8 @@ function updateOperation(op) {
 
 function connect() {
   const proto = location.protocol === "https:" ? "wss" : "ws";
-  const ws = new WebSocket(`${proto}://${location.host}/api/stream?rate=50&client=${encodeURIComponent(page.client)}`);
+  const lease = page.lease ? `&lease=${encodeURIComponent(page.lease)}` : "";
+  const ws = new WebSocket(`${proto}://${location.host}/api/stream?rate=50&client=${encodeURIComponent(page.client)}${lease}`);
   page.ws = ws;
   ws.onopen = () => { page.wsRetry = 500; $("#link").textContent = "live"; $("#link").className = "pill ok"; };
   ws.onclose = () => {
@@ -185,6 +199,9 @@ function connect() {
 
 function onMessage(m) {
   switch (m.type) {
+    case "ping":  // the daemon checks that this page is alive
+      if (page.ws && page.ws.readyState === WebSocket.OPEN) page.ws.send(JSON.stringify({ type: "pong" }));
+      break;
     case "hello":
       showControl(m.snapshot.control);
       showState(m.snapshot.state);
@@ -240,8 +257,15 @@ $("#stop").addEventListener("click", async () => {
 $("#take-control").addEventListener("click", async () => {
   const holder = page.control && page.control.client;
   if (holder && holder !== page.client && !confirm(`Take control over from ${holder}?`)) return;
-  try { showControl(await api("POST", "/api/control", { force: true })); }
-  catch (e) { log(`take control: ${e.message}`, "error"); }
+  try {
+    const holder = await api("POST", "/api/control", { force: true });
+    setLease(holder.lease);
+    showControl({ client: holder.client, since: holder.since });
+  } catch (e) { log(`take control: ${e.message}`, "error"); }
+});
+$("#release-control").addEventListener("click", async () => {
+  try { await api("DELETE", "/api/control"); page.lease = null; showControl(null); }
+  catch (e) { log(`release control: ${e.message}`, "error"); }
 });
 
 function factors() {
