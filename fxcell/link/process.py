@@ -20,9 +20,11 @@ has been silent for its ``stall_timeout``. It brakes along the planned path (the
 time is slowed to zero on a smooth profile under the braking limits) and then leaves servo
 mode, without needing anything from the client or the state stream.
 
-The trajectory thread keeps time with ``time.sleep`` on absolute deadlines rather than
-ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which
-starved the state pump for up to 20 ms per period.
+The trajectory thread sends one setpoint per state sample, as each sample arrives: locked
+to the controller's clock rather than to a timer of its own (two free-running 2 ms clocks
+beat, so that some controller cycles got two setpoints and some none). It never uses
+ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which starved
+the state pump for up to 20 ms per period.
 """
 
 from __future__ import annotations
@@ -102,6 +104,8 @@ class Link:
         self._traj_lock = threading.Lock()
         self._traj: _Trajectory | None = None
         self.last_state_at = 0.0  # time.monotonic() of the newest state sample
+        self._tick = threading.Condition()
+        self._samples = 0  # state samples received (the controller's clock)
         self.last_heard = time.monotonic()  # ... and of the newest message from the client
 
     # -- sending
@@ -233,6 +237,9 @@ class Link:
     def _publish(self, state: RobotState) -> None:
         self.latest = state
         self.last_state_at = time.monotonic()
+        with self._tick:
+            self._samples += 1
+            self._tick.notify_all()
         self.send(wire.STATE, wire.state_to_tuple(state))
         if self._control_live and state.runtime_state != RuntimeState.PLAYING:
             # the control program ended (pendant stop, safety stop, power off): the
@@ -297,6 +304,13 @@ class Link:
             actual_tcp_speed=tuple(r.getActualTCPSpeed()),
             speed_scaling=r.getSpeedScaling(),
         )
+
+    def next_sample(self, seen: int, timeout: float) -> int:
+        """Wait until a state sample newer than number ``seen`` arrives (at most
+        ``timeout`` s); returns the newest sample's number."""
+        with self._tick:
+            self._tick.wait_for(lambda: self._samples != seen, timeout)
+            return self._samples
 
     # -- calls
 
@@ -611,7 +625,7 @@ class _Trajectory:
         u = 0.0  # position along the path, in samples (fractional while braking)
         braking: tuple[str, float, float] | None = None  # reason, started, duration
         settle_until: float | None = None
-        next_tick: float | None = None
+        seen = link._samples
         status, reason = "completed", ""
         if c is None:
             status, reason = "failed", "no_external_control"
@@ -666,8 +680,6 @@ class _Trajectory:
                         if why is not None:
                             status, reason = "failed", why
                             break
-                    if next_tick is None:
-                        next_tick = time.perf_counter()
                     target = _at(samples, u)
                     ok = c.servoJ(list(target), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain)
                     if not ok:
@@ -682,14 +694,13 @@ class _Trajectory:
                         if braking is None and i % self.PROGRESS_EVERY == 0 and i == u:
                             self._progress(i, len(samples), samples[i])
                         u = min(u + rate, float(len(samples)))
-                    next_tick += CONTROL_PERIOD
-                    delay = next_tick - time.perf_counter()
-                    if delay > 0:
-                        time.sleep(delay)
-                    elif delay < -0.5 * CONTROL_PERIOD:
-                        # Late (a busy machine): never catch up with a burst of setpoints,
-                        # the controller would see a jump; the trajectory stretches instead.
-                        next_tick = time.perf_counter()
+                    # One setpoint per controller cycle, sent when the cycle's state sample
+                    # arrives: locked to the controller's clock, the setpoints never meet
+                    # its cycle in pairs or not at all (two free-running 2 ms clocks beat,
+                    # which made acceleration spikes). Without samples, a 3 ms timer paces
+                    # the stream until the stall brakes it. Late (a busy machine): never a
+                    # burst of setpoints; the trajectory stretches instead.
+                    seen = link.next_sample(seen, 1.5 * CONTROL_PERIOD)
             except Exception as exc:
                 status, reason = "failed", f"link_error: {exc}"
             with contextlib.suppress(Exception):
