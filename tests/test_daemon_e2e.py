@@ -557,3 +557,55 @@ def test_a_command_sent_as_soon_as_the_daemon_serves_waits_for_the_cell(tmp_path
         r = httpx.post(f"{daemon.url}/api/cell/init", headers=headers(), timeout=30)
         assert r.status_code == 200, r.text
         assert daemon.stop(signal.SIGTERM, timeout=10) == 0
+
+
+@pytest.mark.parametrize("fault", ["stop_program", "power_loss"])
+async def test_a_move_the_controller_aborts_answers_with_an_error_status(
+    tmp_path: Path, fault: str
+) -> None:
+    from fxcell.testing import simulator
+
+    with simulator(time_scale=0.2) as sim:
+        config = tmp_path / "cell.yaml"
+        config.write_text(
+            f"robot:\n  host: {sim.host}\ndaemon:\n  token_file: {tmp_path / 'token'}\n"
+        )
+        with DaemonProcess.start(config, token=TOKEN) as daemon:
+            await asyncio.to_thread(daemon.wait_connected)
+            async with httpx.AsyncClient(base_url=daemon.url, timeout=30) as http:
+                r = await http.post("/api/cell/init", headers=headers())
+                assert r.status_code == 200, r.text
+                lease = {"X-Fxcell-Lease": r.headers["X-Fxcell-Lease"]}
+                q = (await state(http))["robot"]["q"]
+                move = asyncio.create_task(
+                    http.post(
+                        "/api/cell/move_joint",
+                        params={"wait": "true"},
+                        json={"target": [q[0] + 1.0, *q[1:]], "velocity_factor": 0.3},
+                        headers={**headers(), **lease},
+                    )
+                )
+                deadline = time.monotonic() + 20
+                while abs((await state(http))["robot"]["qd"][0]) < 0.1:
+                    assert time.monotonic() < deadline, "the move did not start"
+                    await asyncio.sleep(0.02)
+                await asyncio.to_thread(sim.inject, fault)
+                r = await move
+            assert r.status_code in (409, 503), r.text
+            assert r.json()["error"]["type"] in (
+                "ProgramStoppedError",
+                "MoveStoppedError",
+                "ConnectionLostError",
+            )
+            assert daemon.stop(signal.SIGTERM, timeout=10) == 0
+
+
+def test_ctrl_c_in_the_terminal_stops_the_daemon_cleanly(tmp_path: Path) -> None:
+    # Ctrl-C sends SIGINT to the terminal's whole foreground process group; the link and
+    # the simulator have groups of their own, so only the daemon sees it and stops them.
+    with DaemonProcess.start(write_config(tmp_path), token=TOKEN, extra_args=SIM_ARGS) as daemon:
+        daemon.wait_connected()
+        os.killpg(os.getpgid(daemon.proc.pid), signal.SIGINT)
+        assert daemon.proc.wait(10) == 0
+    output = "\n".join(daemon.output)
+    assert "Traceback" not in output, output[-3000:]

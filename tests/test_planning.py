@@ -62,9 +62,7 @@ def test_a_move_blocked_by_the_machine_is_planned_around_it(
     # Between two checked states no point moves more than the resolution, so it stays
     # within half of it of one of them; the margin (5 mm) exceeds that (3 mm), so the
     # real obstacles (no margin), checked four times as densely, are never touched.
-    exact = CollisionChecker.for_config(
-        CONFIG, resolution=checker.resolution / 4, scene_margin=0.0
-    )
+    exact = CollisionChecker.for_config(CONFIG, resolution=checker.resolution / 4, scene_margin=0.0)
     assert checker.scene_margin > checker.resolution / 2
     for a, b in itertools.pairwise(path.waypoints):
         assert checker.motion_free(a, b)
