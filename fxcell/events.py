@@ -10,6 +10,7 @@ what they dropped. Times are wall-clock seconds (``time.time()``).
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import enum
 import logging
 import time
@@ -31,6 +32,13 @@ class Origin(enum.StrEnum):
     INTERNAL = "internal"
 
 
+COMMAND_ORIGIN: contextvars.ContextVar[str | None] = contextvars.ContextVar(
+    "fxcell_command_origin", default=None
+)
+"""Who sent the commands run in this context, when more precise than the Cell's origin
+(the daemon sets the client's name: the page, the CLI, a program)."""
+
+
 @dataclass(frozen=True, slots=True)
 class CommandEvent:
     """A public API call: published once when it starts and once when it ends."""
@@ -38,7 +46,7 @@ class CommandEvent:
     command_id: int
     name: str
     args: Mapping[str, Any]
-    origin: Origin
+    origin: Origin | str
     started: float
     ended: float | None = None
     outcome: Literal["started", "ok", "error"] = "started"

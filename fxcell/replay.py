@@ -654,7 +654,7 @@ async def reexecute(
 
 
 def _jsonable_result(value: Any) -> Any:
-    from fxcell.recorder.schemas import to_jsonable
+    from fxcell.jsonable import to_jsonable
 
     return json.loads(json.dumps(to_jsonable(value)))
 

@@ -609,3 +609,15 @@ def test_ctrl_c_in_the_terminal_stops_the_daemon_cleanly(tmp_path: Path) -> None
         assert daemon.proc.wait(10) == 0
     output = "\n".join(daemon.output)
     assert "Traceback" not in output, output[-3000:]
+
+
+async def test_commands_are_recorded_with_the_client_that_sent_them(
+    daemon: DaemonProcess, http: httpx.AsyncClient
+) -> None:
+    async with Watcher(daemon.url) as watcher:
+        await ensure_ready(http)
+        done = await watcher.wait_for(
+            lambda m: m["type"] == "command" and m["name"] == "init" and m["outcome"] == "ok"
+        )
+    assert done["origin"] == "tester"  # the X-Fxcell-Client name, not just "daemon"
+    assert isinstance(done["result"], type(None) | dict | list | int | float | str)

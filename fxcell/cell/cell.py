@@ -37,8 +37,17 @@ from fxcell.errors import (
     RobotTimeoutError,
     SafeguardStopError,
 )
-from fxcell.events import CommandEvent, EventBus, EventStream, Origin, StateEvent, TransitionEvent
+from fxcell.events import (
+    COMMAND_ORIGIN,
+    CommandEvent,
+    EventBus,
+    EventStream,
+    Origin,
+    StateEvent,
+    TransitionEvent,
+)
 from fxcell.geometry import Pose
+from fxcell.jsonable import to_jsonable
 from fxcell.link import LinkClient, LinkStatus, StateSubscription
 from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
@@ -353,7 +362,8 @@ class Cell:
     async def _command(self, name: str, **args: Any) -> AsyncIterator[dict[str, Any]]:
         command_id = self.bus.next_command_id()
         started = time.time()
-        self.bus.publish(CommandEvent(command_id, name, args, self._origin, started))
+        origin = COMMAND_ORIGIN.get() or self._origin
+        self.bus.publish(CommandEvent(command_id, name, args, origin, started))
         outcome: dict[str, Any] = {"result": None}
         try:
             yield outcome
@@ -363,7 +373,7 @@ class Cell:
                     command_id,
                     name,
                     args,
-                    self._origin,
+                    origin,
                     started,
                     time.time(),
                     "error",
@@ -374,8 +384,8 @@ class Cell:
             raise
         self.bus.publish(
             CommandEvent(
-                command_id, name, args, self._origin, started, time.time(), "ok", None, None,
-                _jsonable(outcome["result"]),
+                command_id, name, args, origin, started, time.time(), "ok", None, None,
+                to_jsonable(outcome["result"]),
             )
         )  # fmt: skip
 
@@ -813,7 +823,7 @@ class Cell:
             plan = await moves.plan(method, start, *plan_args, *factors, **plan_kwargs)
             return await moves.execute(plan, self._link())
 
-        return await self.run_move(name, {k: _jsonable(v) for k, v in args.items()}, body)
+        return await self.run_move(name, {k: to_jsonable(v) for k, v in args.items()}, body)
 
     async def move_joint(
         self,
@@ -895,12 +905,12 @@ class Cell:
 
     async def set_velocity_factor(self, value: float) -> None:
         """Default velocity factor of moves, in (0, 1]; InvalidFactorError otherwise."""
-        async with self._command("set_velocity_factor", value=_jsonable(value)):
+        async with self._command("set_velocity_factor", value=to_jsonable(value)):
             self._moves().set_velocity_factor(value)
 
     async def set_acceleration_factor(self, value: float) -> None:
         """Default acceleration factor of moves, in (0, 1]; InvalidFactorError otherwise."""
-        async with self._command("set_acceleration_factor", value=_jsonable(value)):
+        async with self._command("set_acceleration_factor", value=to_jsonable(value)):
             self._moves().set_acceleration_factor(value)
 
     async def get_velocity_factor(self) -> float:
@@ -924,16 +934,6 @@ class Cell:
 
 def _running_states() -> set[CellState]:
     return {s for s in CellState if s.is_running}
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, ProgramStatus):
-        return {"state": value.state.value, "program": value.program}
-    if isinstance(value, int | float | str | bool) or value is None:
-        return value
-    if isinstance(value, tuple | list):
-        return [_jsonable(v) for v in value]
-    return str(value)
 
 
 def _start_recorder(directory: Path, cell: Cell) -> Any:

@@ -23,7 +23,7 @@ from fxcell.daemon.encoding import jsonable
 from fxcell.daemon.operations import Operation, OperationRegistry
 from fxcell.daemon.stream import StreamHub
 from fxcell.errors import ConnectionLostError
-from fxcell.events import Event, EventBus, StateEvent, TransitionEvent
+from fxcell.events import COMMAND_ORIGIN, Event, EventBus, StateEvent, TransitionEvent
 from fxcell.protocol import RobotState
 
 # Commands whose names differ between the API and the statechart's guard table.
@@ -130,11 +130,18 @@ class CellService:
         *,
         lease: str | None = None,
     ) -> Operation:
-        """Run ``call`` as an operation (control, if needed, was taken by the caller)."""
+        """Run ``call`` as an operation (control, if needed, was taken by the caller).
+
+        Its commands are recorded as sent by ``client`` (the operation's task keeps the
+        context it was created in)."""
         self.require_cell()
-        return self.operations.start(
-            name, args, client, call(), move=name in _GUARD_NAME, lease=lease
-        )
+        token = COMMAND_ORIGIN.set(client)
+        try:
+            return self.operations.start(
+                name, args, client, call(), move=name in _GUARD_NAME, lease=lease
+            )
+        finally:
+            COMMAND_ORIGIN.reset(token)
 
     async def call(self, name: str, **kwargs: Any) -> Any:
         cell = await self.wait_cell()

@@ -417,29 +417,39 @@ class LinkClient:
         try:
             # Plain Popen, reaped in _kill: the link's death is seen on the socket, so no
             # asyncio child watcher is needed. Forking from a thread keeps the loop free.
-            self._process = await asyncio.to_thread(
-                subprocess.Popen,
-                [
-                    sys.executable,
-                    "-m",
-                    "fxcell.link.process",
-                    "--fd",
-                    str(child.fileno()),
-                    "--host",
-                    self.host,
-                    "--frequency",
-                    str(self.frequency),
-                    "--urcap-port",
-                    str(self.urcap_port),
-                    "--receiver",
-                    self.receiver,
-                ],
-                pass_fds=(child.fileno(),),
-                stdin=subprocess.DEVNULL,
-                # its own process group: a Ctrl-C in the terminal reaches only the owner,
-                # which brakes the arm and then stops the link itself
-                process_group=0,
+            spawn = asyncio.ensure_future(
+                asyncio.to_thread(
+                    subprocess.Popen,
+                    [
+                        sys.executable,
+                        "-m",
+                        "fxcell.link.process",
+                        "--fd",
+                        str(child.fileno()),
+                        "--host",
+                        self.host,
+                        "--frequency",
+                        str(self.frequency),
+                        "--urcap-port",
+                        str(self.urcap_port),
+                        "--receiver",
+                        self.receiver,
+                    ],
+                    pass_fds=(child.fileno(),),
+                    stdin=subprocess.DEVNULL,
+                    # its own process group: a Ctrl-C in the terminal reaches only the
+                    # owner, which brakes the arm and then stops the link itself
+                    process_group=0,
+                )
             )
+            try:
+                self._process = await asyncio.shield(spawn)
+            except asyncio.CancelledError:
+                # cancelled while forking: the thread still starts the process; end it
+                process = await spawn
+                process.kill()
+                await asyncio.to_thread(process.wait, 5.0)
+                raise
             self.pid = self._process.pid
             loop = asyncio.get_running_loop()
             protocol = _LinkProtocol(self._handle)

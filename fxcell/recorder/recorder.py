@@ -37,18 +37,13 @@ from fxcell.events import (
     StateEvent,
     TransitionEvent,
 )
+from fxcell.jsonable import to_jsonable
 from fxcell.recorder import topics
 from fxcell.recorder.frames import LinkFrames
 from fxcell.recorder.protobuf import encode_robot_state
 from fxcell.recorder.recovery import recover_unfinished
 from fxcell.recorder.retention import Retention, enforce
-from fxcell.recorder.schemas import (
-    dumps,
-    foxglove_log_level,
-    timestamp,
-    to_jsonable,
-    topic_schemas,
-)
+from fxcell.recorder.schemas import dumps, foxglove_log_level, timestamp, topic_schemas
 
 log = logging.getLogger(__name__)
 
