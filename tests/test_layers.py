@@ -26,6 +26,8 @@ LAYERS: dict[str, int] = {
     "fxcell.geometry": 0,
     "fxcell.events": 0,
     "fxcell.resources": 0,
+    "fxcell.results": 0,
+    "fxcell.commands": 0,
     "fxcell.link": 1,
     "fxcell.link.embedded": 1,
     "fxcell.motion": 2,

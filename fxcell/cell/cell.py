@@ -16,11 +16,11 @@ import contextlib
 import logging
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
+from fxcell.commands import CellCommands, get_command
 from fxcell.config import CellConfig
 from fxcell.errors import (
     ConnectionLostError,
@@ -42,9 +42,10 @@ from fxcell.geometry import Pose
 from fxcell.link import LinkClient, LinkStatus, StateSubscription
 from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
+from fxcell.results import MoveResult, ProgramStatus
 
 if TYPE_CHECKING:
-    from fxcell.motion.moves import MotionController, MoveResult
+    from fxcell.motion.moves import MotionController
 
 log = logging.getLogger(__name__)
 
@@ -72,15 +73,7 @@ _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
 }
 
 
-@dataclass(frozen=True, slots=True)
-class ProgramStatus:
-    """The dashboard's program state: ``PLAYING``/``STOPPED``/``PAUSED`` and the program."""
-
-    state: ProgramState
-    program: str
-
-
-class Cell:
+class Cell(CellCommands):
     """One UR3e cell.
 
     ``host=None`` starts the embedded controller simulator (``fxcell.link.embedded``).
@@ -123,6 +116,10 @@ class Cell:
         self._control_wanted = False
         self._protective_since: float | None = None
         self._move_task: asyncio.Task[Any] | None = None
+        self._motion: MotionController | None = None
+        self._move_queue = asyncio.Lock()
+        self._stops = 0
+        """Counts stop() calls: a queued move that sees it change while waiting ends."""
         self._move_error: FxcellError | None = None
         self._stopping = False
         self._kinematics: Any = None
@@ -336,6 +333,16 @@ class Cell:
         self.bus.publish(event)
 
     # ------------------------------------------------------------- commands
+
+    async def run_command(self, name: str, **args: Any) -> Any:
+        """Run command ``name`` of :data:`fxcell.commands.COMMANDS` with keyword arguments
+        (how the daemon and replay call the Cell)."""
+        entry = get_command(name)
+        entry.check_args(args)
+        method = getattr(type(self), name)
+        if method is getattr(CellCommands, name):
+            raise NotImplementedError(f"Cell does not implement {name}()")
+        return await getattr(self, name)(**args)
 
     @contextlib.asynccontextmanager
     async def _command(self, name: str, **args: Any) -> AsyncIterator[dict[str, Any]]:
@@ -699,8 +706,7 @@ class Cell:
             return
         self._stopping = True
         self._observe(self.robot_state, "stop")
-        controller: MotionController | None = getattr(self, "_motion", None)
-        execution = controller.execution if controller is not None else None
+        execution = self._motion.execution if self._motion is not None else None
         if graceful and execution is not None:
             # Let the move brake itself: its MoveStoppedError carries what it did.
             execution.request_stop()
@@ -717,6 +723,7 @@ class Cell:
         """Stop the running move (it brakes to a stop); True if one was running."""
         async with self._command("stop") as out:
             self.machine.check("stop")
+            self._stops += 1  # ends the moves waiting with queue=True too
             running = self._move_task is not None and not self._move_task.done()
             await self._cancel_move(MoveStoppedError("stopped by stop()"), graceful=True)
             out["result"] = running
@@ -727,12 +734,11 @@ class Cell:
     # check, plan, time, stream, brake. Here: guards, the move task, events.
 
     def _moves(self) -> MotionController:
-        controller: MotionController | None = getattr(self, "_motion", None)
-        if controller is None:
+        if self._motion is None:
             from fxcell.motion.moves import MotionController
 
-            controller = self._motion = MotionController(self.config, publish=self.bus.publish)
-        return controller
+            self._motion = MotionController(self.config, publish=self.bus.publish)
+        return self._motion
 
     @property
     def motion(self) -> MotionController:
@@ -751,13 +757,15 @@ class Cell:
     ) -> MoveResult:
         if queue:
             # Queued moves start in call order, each once the running move has ended
-            # (however it ended).
-            lock: asyncio.Lock | None = getattr(self, "_move_queue", None)
-            if lock is None:
-                lock = self._move_queue = asyncio.Lock()
-            async with lock:
+            # (however it ended); a stop() meanwhile ends them without moving.
+            stops = self._stops
+            async with self._move_queue:
                 while self._move_task is not None and not self._move_task.done():
                     await asyncio.wait({self._move_task})
+                if self._stops != stops:
+                    recorded = {k: _jsonable(v) for k, v in args.items()}
+                    async with self._command(name, **recorded, queue=True):
+                        raise MoveStoppedError(f"{name}() was waiting in the queue: stopped")
                 return await self._move(name, {**args, "queue": True}, method, *plan_args,
                                         **plan_kwargs)  # fmt: skip
         moves = self._moves()

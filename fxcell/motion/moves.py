@@ -55,6 +55,7 @@ from fxcell.motion.trajectory import (
     validate_factor,
 )
 from fxcell.protocol import RobotState
+from fxcell.results import MoveResult
 
 if TYPE_CHECKING:
     from fxcell.link import LinkClient, StateSubscription, TrajectoryHandle, TrajectoryResult
@@ -96,30 +97,6 @@ class MovePlan:
     @property
     def duration(self) -> float:
         return self.trajectory.duration
-
-
-@dataclass(frozen=True)
-class MoveResult:
-    """What a move did."""
-
-    target_joints: tuple[float, ...]
-    target_pose: tuple[float, ...]
-    """Target TCP pose as on the teach pendant (x, y, z, rx, ry, rz)."""
-    reached_joints: tuple[float, ...]
-    reached_pose: tuple[float, ...]
-    joint_error: float
-    """Largest |reached - target| over the joints (rad)."""
-    position_error: float
-    """TCP position error (m)."""
-    orientation_error: float
-    """TCP orientation error (rad)."""
-    planned_duration: float
-    executed_duration: float
-    """From the first streamed sample to the robot at rest (s)."""
-    planner: str
-    stopped: bool = False
-    max_tracking_error: float = 0.0
-    """Largest |actual - planned| joint difference seen while streaming (rad)."""
 
 
 def _vector(value: object, n: int, what: str) -> Array:
