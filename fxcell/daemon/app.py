@@ -23,7 +23,7 @@ import json
 import urllib.parse
 from collections.abc import Awaitable, Callable
 from importlib import resources
-from typing import Annotated, Any
+from typing import Any
 
 from fastapi import APIRouter, Body, FastAPI, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
@@ -184,12 +184,14 @@ def create_app(service: CellService) -> FastAPI:
                 )
 
         else:
+            # A body is needed only when some argument is (go_home takes none).
             required = any(arg.required for arg in command.args)
             body_type = model if required else model | None
+            body_param = Body(...) if required else Body(None)
 
             async def run(  # type: ignore[misc]
                 request: Request,
-                body: Annotated[body_type, Body()] = None,  # type: ignore[valid-type]
+                body: body_type = body_param,  # type: ignore[valid-type]
                 wait: bool = Query(not move, description=wait_doc),
             ) -> JSONResponse:
                 args = _arguments(body)
