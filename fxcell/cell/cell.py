@@ -41,6 +41,14 @@ from fxcell.events import CommandEvent, EventBus, EventStream, Origin, StateEven
 from fxcell.geometry import Pose
 from fxcell.link import LinkClient, LinkStatus, StateSubscription
 from fxcell.link.embedded import EmbeddedSimulator
+from fxcell.motion.runner import (
+    DistanceTarget,
+    JointTarget,
+    MoveRunner,
+    MoveTarget,
+    PoseTarget,
+    RelativeTarget,
+)
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.results import MoveResult, ProgramStatus
 
@@ -115,13 +123,12 @@ class Cell(CellCommands):
         self._shutting_down = False
         self._control_wanted = False
         self._protective_since: float | None = None
-        self._move_task: asyncio.Task[Any] | None = None
+        self._runner: MoveRunner | None = None
+        """The move running, or the last one (its status object)."""
         self._motion: MotionController | None = None
         self._move_queue = asyncio.Lock()
         self._stops = 0
         """Counts stop() calls: a queued move that sees it change while waiting ends."""
-        self._move_error: FxcellError | None = None
-        self._stopping = False
         self._kinematics: Any = None
         self._restore: asyncio.Task[None] | None = None
         self._opened = False
@@ -311,12 +318,12 @@ class Cell(CellCommands):
             self._observe(self.link.latest, reason)
 
     def _observe(self, sample: RobotState | None, detail: str = "") -> None:
-        moving = self._move_task is not None and not self._move_task.done()
+        moving = self._moving()
         target = observed_state(
             sample,
             control_ready=self.link is not None and self.link.control_ready,
             moving=moving,
-            stopping=moving and self._stopping,
+            stopping=moving and self._runner is not None and self._runner.stopping,
             shutting_down=self._shutting_down,
         )
         if target is self._observed:
@@ -326,7 +333,8 @@ class Cell(CellCommands):
             self._protective_since = time.monotonic()
         if moving and target in _MOVE_ABORT_STATES:
             error = _MOVE_ABORT_STATES[target](f"move aborted: robot went to {target.value}")
-            self._abort_move(error)
+            if self._runner is not None:
+                self._runner.abort(error)
         self.machine.sync(target, "observed", detail)
 
     def _on_transition(self, event: TransitionEvent) -> None:
@@ -653,78 +661,66 @@ class Cell(CellCommands):
     async def run_move(
         self, name: str, args: Mapping[str, Any], body: Callable[[], Coroutine[Any, Any, T]]
     ) -> T:
-        """Run ``body`` as the Cell's move task, guarded and cancellable.
+        """Run ``body`` as the Cell's move, guarded and cancellable (see :meth:`_run_move`)."""
+        result: T = await self._run_move(name, args, lambda: MoveRunner(lambda _: body(), name))
+        return result
 
-        For the move methods: only in ``running.external_control_ready``; one move at a
-        time; an observed safety stop, program stop or lost link cancels the task and
-        the caller gets the matching error; :meth:`stop` ends it with
-        :class:`MoveStoppedError`.
+    async def _run_move(
+        self, name: str, args: Mapping[str, Any], make: Callable[[], MoveRunner]
+    ) -> Any:
+        """Run the move ``make()`` returns, as the Cell's one move.
+
+        Only in ``running.external_control_ready``; one move at a time; an observed
+        safety stop, program stop or lost link aborts it and the caller gets the
+        matching error; :meth:`stop` brakes it, ending it with :class:`MoveStoppedError`.
         """
         async with self._command(name, **args) as out:
-            if self._move_task is not None and not self._move_task.done():
+            if self._runner is not None and self._runner.running:
                 raise MoveInProgressError(f"{name}(): another move is running")
             self.machine.check("move", name)
-            self._move_error = None
-            self._stopping = False
-            task: asyncio.Task[T] = asyncio.create_task(body(), name=f"move {name}")
-            self._move_task = task
+            runner = make()
+            self._runner = runner
+            task = runner.start()
             self._observe(self.robot_state, name)
             try:
                 out["result"] = result = await asyncio.shield(task)
                 return result
             except asyncio.CancelledError:
                 if not task.done():  # our caller was cancelled: stop the move too
-                    self._stopping = True
+                    runner.stopping = True
                     self._observe(self.robot_state, f"{name} cancelled")
                     task.cancel()
                     with contextlib.suppress(BaseException):
                         await task
                     raise
-                if self._move_error is not None:
-                    raise self._move_error from None
+                if runner.error is not None:
+                    raise runner.error from None
                 raise MoveStoppedError(f"{name}() was stopped") from None
             except MoveStoppedError:
-                if self._move_error is not None:
-                    raise self._move_error from None
+                if runner.error is not None:
+                    raise runner.error from None
                 raise
             finally:
-                if self._move_task is task:
-                    self._move_task = None
-                self._stopping = False
                 self._observe(self.robot_state, f"{name} ended")
 
-    def _abort_move(self, error: FxcellError) -> None:
-        task = self._move_task
-        if task is not None and not task.done():
-            if self._move_error is None:
-                self._move_error = error
-            task.cancel()
+    def _moving(self) -> bool:
+        return self._runner is not None and self._runner.running
 
     async def _cancel_move(self, error: FxcellError, graceful: bool = False) -> None:
-        task = self._move_task
-        if task is None or task.done():
+        runner = self._runner
+        if runner is None or not runner.running:
             return
-        self._stopping = True
+        runner.stopping = True
         self._observe(self.robot_state, "stop")
-        execution = self._motion.execution if self._motion is not None else None
-        if graceful and execution is not None:
-            # Let the move brake itself: its MoveStoppedError carries what it did.
-            execution.request_stop()
-            with contextlib.suppress(BaseException):
-                async with asyncio.timeout(10.0):
-                    await asyncio.shield(task)
-            if task.done():
-                return
-        self._abort_move(error)
-        with contextlib.suppress(BaseException):
-            await task
+        await runner.stop(error, graceful=graceful)
 
     async def stop(self) -> bool:
-        """Stop the running move (it brakes to a stop); True if one was running."""
+        """Stop the running move (it brakes to a stop) and the moves queued after it;
+        True if one was running."""
         async with self._command("stop") as out:
             self.machine.check("stop")
             self._stops += 1  # ends the moves waiting with queue=True too
-            running = self._move_task is not None and not self._move_task.done()
+            running = self._moving()
             await self._cancel_move(MoveStoppedError("stopped by stop()"), graceful=True)
             out["result"] = running
             return running
@@ -747,43 +743,42 @@ class Cell(CellCommands):
         return self._moves()
 
     async def _move(
-        self,
-        name: str,
-        args: dict[str, Any],
-        method: str,
-        *plan_args: Any,
-        queue: bool = False,
-        **plan_kwargs: Any,
+        self, name: str, args: dict[str, Any], target: MoveTarget, *, queue: bool = False
     ) -> MoveResult:
         if queue:
             # Queued moves start in call order, each once the running move has ended
             # (however it ended); a stop() meanwhile ends them without moving.
             stops = self._stops
             async with self._move_queue:
-                while self._move_task is not None and not self._move_task.done():
-                    await asyncio.wait({self._move_task})
+                while (running := self._runner) is not None and running.task is not None:
+                    if running.task.done():
+                        break
+                    await asyncio.wait({running.task})
                 if self._stops != stops:
                     recorded = {k: _jsonable(v) for k, v in args.items()}
                     async with self._command(name, **recorded, queue=True):
                         raise MoveStoppedError(f"{name}() was waiting in the queue: stopped")
-                return await self._move(name, {**args, "queue": True}, method, *plan_args,
-                                        **plan_kwargs)  # fmt: skip
-        moves = self._moves()
-        vf, af = args.get("velocity_factor"), args.get("acceleration_factor")
-        idle = self._move_task is None or self._move_task.done()
-        if idle and self.state in (CellState.MOVING, CellState.STOPPING):
+                return await self._move(name, {**args, "queue": True}, target)
+        if not self._moving() and self.state in (CellState.MOVING, CellState.STOPPING):
             # The previous move's end is still queued in the state machine: let it land.
             others = [st for st in CellState if st not in (CellState.MOVING, CellState.STOPPING)]
             with contextlib.suppress(RobotTimeoutError):
                 await self.wait_for_state(*others, timeout=1.0)
 
-        async def body() -> MoveResult:
-            factors = moves.factors(vf, af)
-            start = self._sample().actual_q
-            plan = await moves.plan(method, start, *plan_args, *factors, **plan_kwargs)
-            return await moves.execute(plan, self._link())
+        def make() -> MoveRunner:
+            return self._moves().runner(
+                target,
+                self._link(),
+                lambda: self._sample().actual_q,
+                args.get("velocity_factor"),
+                args.get("acceleration_factor"),
+                name=name,
+            )
 
-        return await self.run_move(name, {k: _jsonable(v) for k, v in args.items()}, body)
+        result: MoveResult = await self._run_move(
+            name, {k: _jsonable(v) for k, v in args.items()}, make
+        )
+        return result
 
     async def move_joint(
         self,
@@ -802,7 +797,7 @@ class Cell(CellCommands):
         """
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_joint", args, "plan_joint", target, queue=queue)
+        return await self._move("move_joint", args, JointTarget(target), queue=queue)
 
     async def go_home(
         self,
@@ -813,7 +808,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         """Move to the configured home joints ([0, -π/2, 0, -π/2, 0, 0] by default)."""
         args = {"velocity_factor": velocity_factor, "acceleration_factor": acceleration_factor}
-        return await self._move("go_home", args, "plan_joint", self.config.home, queue=queue)
+        return await self._move("go_home", args, JointTarget(self.config.home), queue=queue)
 
     async def move_pose(
         self,
@@ -831,7 +826,7 @@ class Cell(CellCommands):
         """
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor, "linear": linear}  # fmt: skip
-        return await self._move("move_pose", args, "plan_pose", target, linear=linear, queue=queue)
+        return await self._move("move_pose", args, PoseTarget(target, linear), queue=queue)
 
     async def move_distance(
         self,
@@ -844,7 +839,7 @@ class Cell(CellCommands):
         """Move the TCP by [dx, dy, dz] (m, base axes) on a straight line, orientation kept."""
         args = {"distance": distance, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_distance", args, "plan_distance", distance, queue=queue)
+        return await self._move("move_distance", args, DistanceTarget(distance), queue=queue)
 
     async def move_relative(
         self,
@@ -859,9 +854,8 @@ class Cell(CellCommands):
         args = {"start_pose": start_pose, "target_pose": target_pose,
                 "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move(
-            "move_relative", args, "plan_relative", start_pose, target_pose, queue=queue
-        )
+        target = RelativeTarget(start_pose, target_pose)
+        return await self._move("move_relative", args, target, queue=queue)
 
     async def set_velocity_factor(self, value: float) -> None:
         """Default velocity factor of moves, in (0, 1]; InvalidFactorError otherwise."""
