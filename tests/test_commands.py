@@ -52,7 +52,7 @@ def test_the_table_and_the_client_import_without_the_motion_stack() -> None:
     code = (
         "import sys\n"
         "for m in ('numpy', 'pinocchio', 'rtde_control', 'rtde_receive', 'ompl', 'ruckig',"
-        " 'transitions', 'fastapi'):\n"
+        " 'transitions', 'fastapi', 'pydantic', 'yaml'):\n"
         "    sys.modules[m] = None\n"
         "from fxcell.commands import COMMANDS\n"
         "from fxcell.client import RemoteCell\n"
