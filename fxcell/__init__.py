@@ -9,21 +9,21 @@ from fxcell.errors import FxcellError
 
 if TYPE_CHECKING:
     from fxcell._version import __version__
-    from fxcell.cell import Cell, ProgramStatus
+    from fxcell.cell import Cell
     from fxcell.cell.statemachine import CellState
     from fxcell.config import CellConfig
-    from fxcell.motion.moves import MoveResult
     from fxcell.protocol import ProgramState, RobotMode, RobotState, SafetyMode
+    from fxcell.results import MoveResult, ProgramStatus
 
 # Loaded on first use, so that ``import fxcell`` (and the robot-link process, which
 # imports fxcell.link) stays fast; even the version (importlib.metadata is slow).
 _LAZY = {
     "__version__": "fxcell._version",
     "Cell": "fxcell.cell",
-    "ProgramStatus": "fxcell.cell",
+    "ProgramStatus": "fxcell.results",
     "CellConfig": "fxcell.config",
     "CellState": "fxcell.cell.statemachine",
-    "MoveResult": "fxcell.motion.moves",
+    "MoveResult": "fxcell.results",
     "ProgramState": "fxcell.protocol",
     "RobotMode": "fxcell.protocol",
     "RobotState": "fxcell.protocol",

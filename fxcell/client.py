@@ -30,7 +30,7 @@ from typing import Any
 import httpx
 
 from fxcell import errors
-from fxcell.protocol import RobotMode, SafetyMode
+from fxcell.commands import CellCommands, get_command
 
 DEFAULT_URL = "http://127.0.0.1:8040"
 CLIENT_HEADER = "X-Fxcell-Client"
@@ -132,11 +132,12 @@ class RemoteOperation:
         return self.record
 
 
-class RemoteCell:
+class RemoteCell(CellCommands):
     """The Cell's API against a daemon at ``url`` (``Authorization: Bearer token``).
 
     ``token`` defaults to ``$FXCELL_TOKEN``; without one, queries work and commands
-    raise :class:`~fxcell.errors.NotAuthorizedError`.
+    raise :class:`~fxcell.errors.NotAuthorizedError`. ``transport`` replaces the network
+    (e.g. ``httpx.ASGITransport(app)`` for an in-process daemon app).
     """
 
     def __init__(
@@ -146,6 +147,7 @@ class RemoteCell:
         *,
         name: str | None = None,
         timeout: float = 30.0,
+        transport: httpx.AsyncBaseTransport | None = None,
     ) -> None:
         self.url = url.rstrip("/")
         self.token = token if token is not None else os.environ.get("FXCELL_TOKEN")
@@ -156,6 +158,7 @@ class RemoteCell:
             base_url=self.url,
             timeout=httpx.Timeout(timeout, connect=5.0),
             headers={CLIENT_HEADER: self.name},
+            transport=transport,
         )
 
     async def __aenter__(self) -> RemoteCell:
@@ -218,7 +221,7 @@ class RemoteCell:
         record = await self._request(
             "POST",
             f"/api/cell/{name}",
-            json_body=args or None,
+            json_body=args,
             params={"wait": "false"},
             auth=True,
         )
@@ -310,155 +313,23 @@ class RemoteCell:
                     continue
                 yield message
 
-    # ------------------------------------------------------------- general functions
+    # ------------------------------------------------------------- commands
+    # Every command method (power_on, move_joint, stop, ...) comes from CellCommands,
+    # whose default bodies call run_command: the command table says how each goes over
+    # HTTP and how its answer decodes.
 
-    async def power_on(self) -> None:
-        await self._command("power_on")
-
-    async def brake_release(self) -> None:
-        await self._command("brake_release")
-
-    async def power_off(self) -> None:
-        await self._command("power_off")
-
-    async def init(self) -> None:
-        await self._command("init")
-
-    async def shutdown(self) -> None:
-        await self._command("shutdown")
-
-    async def start_external_control(self) -> None:
-        await self._command("start_external_control")
-
-    async def stop_external_control(self) -> None:
-        await self._command("stop_external_control")
-
-    async def unlock_protective_stop(self, *, wait: bool = False) -> None:
-        await self._command("unlock_protective_stop", wait=wait)
-
-    async def get_robot_mode(self) -> RobotMode:
-        return RobotMode[await self._query("get_robot_mode")]
-
-    async def is_in_remote_control(self) -> bool:
-        return bool(await self._query("is_in_remote_control"))
-
-    async def get_program_state(self) -> Any:
-        """A :class:`fxcell.cell.cell.ProgramStatus` (program state and loaded program)."""
-        from fxcell.cell import ProgramStatus
-        from fxcell.protocol import ProgramState
-
-        status = await self._query("get_program_state")
-        return ProgramStatus(ProgramState(status["state"]), status["program"])
-
-    async def get_safety_status(self) -> SafetyMode:
-        return SafetyMode[await self._query("get_safety_status")]
-
-    async def get_current_joint_values(self) -> list[float]:
-        return list(await self._query("get_current_joint_values"))
-
-    async def get_current_pose(self) -> Any:
-        return await self._query("get_current_pose")
-
-    async def get_current_rpy(self) -> list[float]:
-        return list(await self._query("get_current_rpy"))
-
-    async def get_current_pose_rpy(self) -> list[float]:
-        return list(await self._query("get_current_pose_rpy"))
-
-    async def get_velocity(self) -> list[float]:
-        return list(await self._query("get_velocity"))
-
-    # ------------------------------------------------------------- kinematic functions
-
-    async def move_joint(
-        self,
-        target: Sequence[float],
-        velocity_factor: float | None = None,
-        acceleration_factor: float | None = None,
-    ) -> Any:
-        return await self._move("move_joint", velocity_factor, acceleration_factor, target=target)
-
-    async def go_home(
-        self, velocity_factor: float | None = None, acceleration_factor: float | None = None
-    ) -> Any:
-        return await self._move("go_home", velocity_factor, acceleration_factor)
-
-    async def move_pose(
-        self,
-        target: Sequence[float],
-        velocity_factor: float | None = None,
-        acceleration_factor: float | None = None,
-        *,
-        linear: bool = False,
-    ) -> Any:
-        return await self._move(
-            "move_pose", velocity_factor, acceleration_factor, target=target, linear=linear
-        )
-
-    async def move_distance(
-        self,
-        distance: Sequence[float],
-        velocity_factor: float | None = None,
-        acceleration_factor: float | None = None,
-    ) -> Any:
-        return await self._move(
-            "move_distance", velocity_factor, acceleration_factor, distance=distance
-        )
-
-    async def move_relative(
-        self,
-        start_pose: Sequence[float],
-        target_pose: Sequence[float],
-        velocity_factor: float | None = None,
-        acceleration_factor: float | None = None,
-    ) -> Any:
-        return await self._move(
-            "move_relative",
-            velocity_factor,
-            acceleration_factor,
-            start_pose=start_pose,
-            target_pose=target_pose,
-        )
-
-    async def _move(self, name: str, vf: float | None, af: float | None, **args: Any) -> Any:
-        args = {k: _plain(v) for k, v in args.items()}
-        if vf is not None:
-            args["velocity_factor"] = vf
-        if af is not None:
-            args["acceleration_factor"] = af
-        return _move_result(await self._command(name, **args))
-
-    async def stop(self) -> None:
-        """Stop any motion (needs the token, not control)."""
-        await self._request("POST", "/api/cell/stop", auth=True)
-
-    async def set_velocity_factor(self, value: float) -> None:
-        await self._command("set_velocity_factor", value=value)
-
-    async def set_acceleration_factor(self, value: float) -> None:
-        await self._command("set_acceleration_factor", value=value)
-
-    async def get_velocity_factor(self) -> float:
-        return float(await self._query("get_velocity_factor"))
-
-    async def get_acceleration_factor(self) -> float:
-        return float(await self._query("get_acceleration_factor"))
-
-    async def get_max_acceleration(self) -> Any:
-        return await self._query("get_max_acceleration")
-
-
-def _move_result(record: Any) -> Any:
-    """A move's result as :class:`fxcell.motion.moves.MoveResult` (else the record as is)."""
-    if not isinstance(record, dict):
-        return record
-    from fxcell.motion.moves import MoveResult
-
-    fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in record.items()}
-    try:
-        return MoveResult(**fields)
-    except TypeError:
-        return record
+    async def run_command(self, name: str, **args: Any) -> Any:
+        """Run command ``name`` of :data:`fxcell.commands.COMMANDS` in the daemon; its
+        result decoded into the type the Cell returns."""
+        entry = get_command(name)
+        entry.check_args(args)
+        if entry.kind == "query":
+            value = await self._query(name)
+        else:
+            value = await self._command(
+                name, **{k: _plain(v) for k, v in args.items() if v is not None}
+            )
+        return entry.result.decode(value)
 
 
 def _plain(value: Any) -> Any:

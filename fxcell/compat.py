@@ -18,13 +18,14 @@ import atexit
 import logging
 import math
 import threading
-from collections.abc import Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
 from fxcell.cell import Cell
+from fxcell.commands import COMMANDS
 from fxcell.config import CellConfig
 from fxcell.errors import FxcellError
 
@@ -112,6 +113,56 @@ def _ok(name: str, coro_factory: Any) -> bool:
     return True
 
 
+# ----------------------------------------------------------------- from the command table
+# A seed function that is one command of the table without arguments is derived from it:
+# a command returns True on success (False, logged, on failure), a query its value as the
+# seed did (lists for tuples).
+
+
+def _command_function(name: str) -> Callable[[], bool]:
+    entry = COMMANDS[name]
+    if entry.kind == "query" or any(a.required for a in entry.args):
+        raise TypeError(f"{name} is not a command without arguments")
+
+    def function() -> bool:
+        return _ok(f"fx_{name}", lambda c: c.run_command(name))
+
+    function.__name__ = function.__qualname__ = f"fx_{name}"
+    function.__doc__ = f"{entry.doc}\n\nTrue on success; False (the reason logged) on failure."
+    return function
+
+
+def _query_function(name: str, convert: Callable[[Any], T]) -> Callable[[], T]:
+    entry = COMMANDS[name]
+    if entry.kind != "query":
+        raise TypeError(f"{name} is not a query")
+
+    def function() -> T:
+        return convert(_run(fx_cell().run_command(name)))
+
+    function.__name__ = function.__qualname__ = f"fx_{name}"
+    function.__doc__ = entry.doc
+    return function
+
+
+fx_power_on: Callable[[], bool] = _command_function("power_on")
+fx_brake_release: Callable[[], bool] = _command_function("brake_release")
+fx_power_off: Callable[[], bool] = _command_function("power_off")
+fx_init: Callable[[], bool] = _command_function("init")
+fx_start_external_control: Callable[[], bool] = _command_function("start_external_control")
+fx_stop_external_control: Callable[[], bool] = _command_function("stop_external_control")
+fx_shutdown: Callable[[], bool] = _command_function("shutdown")
+fx_stop: Callable[[], bool] = _command_function("stop")
+fx_is_in_remote_control: Callable[[], bool] = _query_function("is_in_remote_control", bool)
+fx_get_velocity: Callable[[], list[float]] = _query_function("get_velocity", list)
+fx_get_current_joint_values: Callable[[], list[float]] = _query_function(
+    "get_current_joint_values", list
+)
+fx_get_current_pose: Callable[[], list[float]] = _query_function("get_current_pose", list)
+fx_get_current_rpy: Callable[[], list[float]] = _query_function("get_current_rpy", list)
+fx_get_current_pose_rpy: Callable[[], list[float]] = _query_function("get_current_pose_rpy", list)
+
+
 # ----------------------------------------------------------------- kinematic functions
 
 
@@ -161,57 +212,12 @@ def fx_move_relative(
     )
 
 
-def fx_stop() -> bool:
-    """Stop a running move (from another thread); True once the robot is stopped."""
-    return _ok("fx_stop", lambda c: c.stop())
-
-
 # ----------------------------------------------------------------- general functions
-
-
-def fx_power_on() -> bool:
-    """Power the robot on; True once the robot mode is IDLE."""
-    return _ok("fx_power_on", lambda c: c.power_on())
-
-
-def fx_brake_release() -> bool:
-    """Release the brakes; True once the robot mode is RUNNING."""
-    return _ok("fx_brake_release", lambda c: c.brake_release())
-
-
-def fx_power_off() -> bool:
-    """Power the robot off; True once the robot mode is POWER_OFF."""
-    return _ok("fx_power_off", lambda c: c.power_off())
 
 
 def fx_get_robot_mode() -> str:
     """The robot mode name, e.g. ``"RUNNING"`` (the seed stripped ``"Robotmode: "``)."""
     return _run(fx_cell().get_robot_mode()).name
-
-
-def fx_start_external_control() -> bool:
-    """Start external control; True once the control program plays."""
-    return _ok("fx_start_external_control", lambda c: c.start_external_control())
-
-
-def fx_stop_external_control() -> bool:
-    """Stop the running program; True once it is stopped."""
-    return _ok("fx_stop_external_control", lambda c: c.stop_external_control())
-
-
-def fx_init() -> bool:
-    """Power on, release the brakes and start external control as needed."""
-    return _ok("fx_init", lambda c: c.init())
-
-
-def fx_is_in_remote_control() -> bool:
-    """True when the teach pendant is in Remote control."""
-    return _run(fx_cell().is_in_remote_control())
-
-
-def fx_shutdown() -> bool:
-    """Shut down the robot and its controller; True when the command was accepted."""
-    return _ok("fx_shutdown", lambda c: c.shutdown())
 
 
 def fx_unlock_protective_stop() -> bool:
@@ -234,11 +240,6 @@ def fx_get_program_state() -> ProgramStateReply:
     """The program state (``"PLAYING"``/``"STOPPED"``/``"PAUSED"``) and program name."""
     status = _run(fx_cell().get_program_state())
     return ProgramStateReply(status.state.value, status.program)
-
-
-def fx_get_velocity() -> list[float]:
-    """The current joint velocities, rad/s (1x6)."""
-    return list(_run(fx_cell().get_velocity()))
 
 
 def fx_get_acceleration_scaling_factor() -> float:
@@ -296,26 +297,6 @@ def _valid_factor(value: Any) -> bool:
 
 
 # ----------------------------------------------------------------- testing functions
-
-
-def fx_get_current_joint_values() -> list[float]:
-    """The current joint positions, rad (1x6)."""
-    return list(_run(fx_cell().get_current_joint_values()))
-
-
-def fx_get_current_pose() -> list[float]:
-    """The TCP pose: ``[x, y, z, qx, qy, qz, qw]`` (m, unit quaternion)."""
-    return list(_run(fx_cell().get_current_pose()))
-
-
-def fx_get_current_rpy() -> list[float]:
-    """The TCP orientation as ``[roll, pitch, yaw]`` (rad)."""
-    return list(_run(fx_cell().get_current_rpy()))
-
-
-def fx_get_current_pose_rpy() -> list[float]:
-    """The TCP pose as ``[x, y, z, roll, pitch, yaw]``."""
-    return list(_run(fx_cell().get_current_pose_rpy()))
 
 
 __all__ = [name for name in dir() if name.startswith("fx_")] + ["ProgramStateReply"]

@@ -20,6 +20,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from fxcell.commands import COMMANDS
 from fxcell.errors import InvalidArgumentError, RecorderError
 from fxcell.recorder import topics
 from fxcell.recorder.protobuf import decode_robot_state
@@ -402,7 +403,7 @@ def run(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------- re-execute
 
-MOVE_COMMANDS = frozenset({"move_joint", "go_home", "move_pose", "move_distance", "move_relative"})
+MOVE_COMMANDS = frozenset(c.name for c in COMMANDS.values() if c.kind == "move")
 JOINT_TOLERANCE = 0.01
 """rad: largest joint deviation of a re-executed move's path that counts as equal."""
 RESULT_TOLERANCE = 1e-3
@@ -587,7 +588,9 @@ async def reexecute(
     async def issue(c: CommandRecord) -> None:
         t0 = time.time()
         try:
-            value = await getattr(cell, c.name)(**c.args)
+            # Only the command's own parameters: the record may carry context (the
+            # external control mode of start_external_control, ...).
+            value = await cell.run_command(c.name, **COMMANDS[c.name].known_args(c.args))
             outcome: tuple[str, Any] = ("ok", value)
         except Exception as exc:
             outcome = (f"error {type(exc).__name__}", None)
@@ -602,7 +605,7 @@ async def reexecute(
         running: list[asyncio.Task[None]] = []
         previous: CommandRecord | None = None
         for c in commands:
-            if not hasattr(cell, c.name):
+            if c.name not in COMMANDS:
                 results[c.command_id] = ("error unknown command", None, time.time(), time.time())
                 continue
             sequential = (

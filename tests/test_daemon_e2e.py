@@ -436,8 +436,8 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
 async def test_remote_cell_has_the_cells_await_style_api(daemon: DaemonProcess) -> None:
     from fxcell.client import RemoteCell
     from fxcell.errors import InvalidStateError
-    from fxcell.motion.moves import MoveResult
     from fxcell.protocol import RobotMode, SafetyMode
+    from fxcell.results import MoveResult
 
     async with RemoteCell(daemon.url, TOKEN, name="remote tester") as cell:
         await cell.init()
@@ -524,6 +524,9 @@ def test_operator_cli_talks_to_the_daemon(daemon: DaemonProcess) -> None:
     assert "power_on() is refused: the robot is running.external_control_ready" in out.stderr
     q = httpx.get(f"{daemon.url}/api/state").json()["robot"]["q"]
     out = fxcell("move-joint", *(str(v) for v in [q[0] + 0.02, *q[1:]]))
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["joint_error"] < 1e-4
+    out = fxcell("go-home", "-v", "0.5")  # no body needed (it failed with 422 before)
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["joint_error"] < 1e-4
 

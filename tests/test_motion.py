@@ -18,6 +18,13 @@ from fxcell.errors import (
 )
 from fxcell.geometry import Pose
 from fxcell.motion.moves import MotionController, MotionPlanner, MovePlan, lead_setpoints
+from fxcell.motion.runner import (
+    DistanceTarget,
+    JointTarget,
+    MoveTarget,
+    PoseTarget,
+    RelativeTarget,
+)
 from fxcell.motion.trajectory import DT, Limits, rest_to_rest
 
 CONFIG = CellConfig.load()
@@ -135,6 +142,24 @@ def test_move_relative_plans_both_legs_before_moving(planner: MotionPlanner) -> 
         planner.plan_relative(WORK, first, [-0.20, -0.25, -0.05, math.pi, 0.0, 0.0])
 
 
+def test_each_move_target_type_plans_its_kind_of_move(planner: MotionPlanner) -> None:
+    first = [-0.25, -0.20, 0.15, math.pi, 0.0, 0.0]
+    second = [-0.20, -0.25, 0.10, math.pi, 0.0, 0.0]
+    cases: list[tuple[MoveTarget, list[str]]] = [
+        (JointTarget(CONFIG.home), ["joint"]),
+        (PoseTarget(first), ["pose"]),
+        (PoseTarget(first, linear=True), ["linear"]),
+        (DistanceTarget([0.0, 0.0, 0.01]), ["distance"]),
+        (RelativeTarget(first, second), ["pose", "pose"]),
+    ]
+    for target, kinds in cases:
+        plans = planner.plan(target, WORK, 0.5, 0.5)
+        assert [p.kind for p in plans] == kinds, target
+        assert all(p.velocity_factor == 0.5 for p in plans)
+    with pytest.raises(InvalidArgumentError, match="not a move target"):
+        planner.plan("plan_joint", WORK)  # type: ignore[arg-type]
+
+
 def test_lower_factors_make_slower_moves(planner: MotionPlanner) -> None:
     fast = planner.plan_joint(HOME, WORK)
     slow = planner.plan_joint(HOME, WORK, velocity_factor=0.3, acceleration_factor=0.3)
@@ -167,7 +192,7 @@ async def test_the_planner_for_blocked_moves_can_be_chosen() -> None:
     controller.use_planner("BKPIECE1")
     left = [-1.042, -1.271, 1.482, -1.781, -1.571, 2.099]
     right = [-2.792, -1.255, 1.46, -1.776, -1.571, 0.35]  # the machine is in between
-    plan = await controller.plan("plan_joint", left, right, 1.0, 1.0)
+    (plan,) = await controller.plan(JointTarget(right), left, 1.0, 1.0)
     assert isinstance(plan, MovePlan)
     assert plan.planner == "BKPIECE1"
     with pytest.raises(InvalidArgumentError):

@@ -42,6 +42,10 @@ async def _script(cell: Cell) -> None:
     await cell.get_current_pose()
     await cell.get_current_joint_values()
     await cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY)  # the move's end has landed
+    # A standalone start of external control is recorded with its mode: re-execution
+    # passes only the command's own arguments (it failed with TypeError before).
+    await cell.stop_external_control()
+    await cell.start_external_control()
     await cell.power_off()
 
 
@@ -146,6 +150,9 @@ async def test_reexecuting_a_session_reproduces_it(session: Session) -> None:
     assert len(moves) == 1
     assert all(c.joint_deviation is not None for c in moves)
     assert report.comparisons[0].name == "init"  # power_on etc. came from init
+    (start,) = [c for c in report.comparisons if c.name == "start_external_control"]
+    assert start.args["mode"] == "script"  # recorded context, not an argument
+    assert start.outcome == "ok"
 
 
 async def test_reexecuting_with_another_tcp_reports_the_deviation(session: Session) -> None:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from fxcell.cell.cell import Cell, ProgramStatus
+from fxcell.cell.cell import Cell
 from fxcell.cell.statemachine import CellState
+from fxcell.results import ProgramStatus
 
 __all__ = ["Cell", "CellState", "ProgramStatus"]

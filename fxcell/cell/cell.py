@@ -16,11 +16,11 @@ import contextlib
 import logging
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
+from fxcell.commands import CellCommands, get_command
 from fxcell.config import CellConfig
 from fxcell.errors import (
     ConnectionLostError,
@@ -50,10 +50,19 @@ from fxcell.geometry import Pose
 from fxcell.jsonable import to_jsonable
 from fxcell.link import LinkClient, LinkStatus, StateSubscription
 from fxcell.link.embedded import EmbeddedSimulator
+from fxcell.motion.runner import (
+    DistanceTarget,
+    JointTarget,
+    MoveRunner,
+    MoveTarget,
+    PoseTarget,
+    RelativeTarget,
+)
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
+from fxcell.results import MoveResult, ProgramStatus
 
 if TYPE_CHECKING:
-    from fxcell.motion.moves import MotionController, MoveResult
+    from fxcell.motion.moves import MotionController
 
 log = logging.getLogger(__name__)
 
@@ -83,15 +92,7 @@ _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
 }
 
 
-@dataclass(frozen=True, slots=True)
-class ProgramStatus:
-    """The dashboard's program state: ``PLAYING``/``STOPPED``/``PAUSED`` and the program."""
-
-    state: ProgramState
-    program: str
-
-
-class Cell:
+class Cell(CellCommands):
     """One UR3e cell.
 
     ``host=None`` starts the embedded controller simulator (``fxcell.link.embedded``).
@@ -133,9 +134,12 @@ class Cell:
         self._shutting_down = False
         self._control_wanted = False
         self._protective_since: float | None = None
-        self._move_task: asyncio.Task[Any] | None = None
-        self._move_error: FxcellError | None = None
-        self._stopping = False
+        self._runner: MoveRunner | None = None
+        """The move running, or the last one (its status object)."""
+        self._motion: MotionController | None = None
+        self._move_queue = asyncio.Lock()
+        self._stops = 0
+        """Counts stop() calls: a queued move that sees it change while waiting ends."""
         self._kinematics: Any = None
         self._restore: asyncio.Task[None] | None = None
         self._remote_watch: asyncio.Task[None] | None = None
@@ -335,12 +339,12 @@ class Cell:
             self._observe(self.link.latest, reason)
 
     def _observe(self, sample: RobotState | None, detail: str = "") -> None:
-        moving = self._move_task is not None and not self._move_task.done()
+        moving = self._moving()
         target = observed_state(
             sample,
             control_ready=self.link is not None and self.link.control_ready,
             moving=moving,
-            stopping=moving and self._stopping,
+            stopping=moving and self._runner is not None and self._runner.stopping,
             shutting_down=self._shutting_down,
         )
         if target is self._observed:
@@ -350,13 +354,24 @@ class Cell:
             self._protective_since = time.monotonic()
         if moving and target in _MOVE_ABORT_STATES:
             error = _MOVE_ABORT_STATES[target](f"move aborted: robot went to {target.value}")
-            self._abort_move(error)
+            if self._runner is not None:
+                self._runner.abort(error)
         self.machine.sync(target, "observed", detail)
 
     def _on_transition(self, event: TransitionEvent) -> None:
         self.bus.publish(event)
 
     # ------------------------------------------------------------- commands
+
+    async def run_command(self, name: str, **args: Any) -> Any:
+        """Run command ``name`` of :data:`fxcell.commands.COMMANDS` with keyword arguments
+        (how the daemon and replay call the Cell)."""
+        entry = get_command(name)
+        entry.check_args(args)
+        method = getattr(type(self), name)
+        if method is getattr(CellCommands, name):
+            raise NotImplementedError(f"Cell does not implement {name}()")
+        return await getattr(self, name)(**args)
 
     @contextlib.asynccontextmanager
     async def _command(self, name: str, **args: Any) -> AsyncIterator[dict[str, Any]]:
@@ -414,11 +429,12 @@ class Cell:
             local = reply.strip().lower() == "false"
             if local and not self.local_control:
                 log.warning("the teach pendant switched to Local control")
-                self._abort_move(
-                    NotInRemoteControlError(
-                        "move aborted: the teach pendant switched to Local control"
+                if self._runner is not None:
+                    self._runner.abort(
+                        NotInRemoteControlError(
+                            "move aborted: the teach pendant switched to Local control"
+                        )
                     )
-                )
             self.local_control = local
 
     async def _require_remote(self) -> None:
@@ -689,15 +705,21 @@ class Cell:
     async def run_move(
         self, name: str, args: Mapping[str, Any], body: Callable[[], Coroutine[Any, Any, T]]
     ) -> T:
-        """Run ``body`` as the Cell's move task, guarded and cancellable.
+        """Run ``body`` as the Cell's move, guarded and cancellable (see :meth:`_run_move`)."""
+        result: T = await self._run_move(name, args, lambda: MoveRunner(lambda _: body(), name))
+        return result
 
-        For the move methods: only in ``running.external_control_ready``; one move at a
-        time; an observed safety stop, program stop or lost link cancels the task and
-        the caller gets the matching error; :meth:`stop` ends it with
-        :class:`MoveStoppedError`.
+    async def _run_move(
+        self, name: str, args: Mapping[str, Any], make: Callable[[], MoveRunner]
+    ) -> Any:
+        """Run the move ``make()`` returns, as the Cell's one move.
+
+        Only in ``running.external_control_ready``; one move at a time; an observed
+        safety stop, program stop or lost link aborts it and the caller gets the
+        matching error; :meth:`stop` brakes it, ending it with :class:`MoveStoppedError`.
         """
         async with self._command(name, **args) as out:
-            if self._move_task is not None and not self._move_task.done():
+            if self._runner is not None and self._runner.running:
                 raise MoveInProgressError(f"{name}(): another move is running")
             self.machine.check("move", name)
             if self.local_control:
@@ -705,67 +727,49 @@ class Cell:
                     f"{name}() refused: the teach pendant is in Local control; "
                     "switch it to Remote Control"
                 )
-            self._move_error = None
-            self._stopping = False
-            task: asyncio.Task[T] = asyncio.create_task(body(), name=f"move {name}")
-            self._move_task = task
+            runner = make()
+            self._runner = runner
+            task = runner.start()
             self._observe(self.robot_state, name)
             try:
                 out["result"] = result = await asyncio.shield(task)
                 return result
             except asyncio.CancelledError:
                 if not task.done():  # our caller was cancelled: stop the move too
-                    self._stopping = True
+                    runner.stopping = True
                     self._observe(self.robot_state, f"{name} cancelled")
                     task.cancel()
                     with contextlib.suppress(BaseException):
                         await task
                     raise
-                if self._move_error is not None:
-                    raise self._move_error from None
+                if runner.error is not None:
+                    raise runner.error from None
                 raise MoveStoppedError(f"{name}() was stopped") from None
             except MoveStoppedError:
-                if self._move_error is not None:
-                    raise self._move_error from None
+                if runner.error is not None:
+                    raise runner.error from None
                 raise
             finally:
-                if self._move_task is task:
-                    self._move_task = None
-                self._stopping = False
                 self._observe(self.robot_state, f"{name} ended")
 
-    def _abort_move(self, error: FxcellError) -> None:
-        task = self._move_task
-        if task is not None and not task.done():
-            if self._move_error is None:
-                self._move_error = error
-            task.cancel()
+    def _moving(self) -> bool:
+        return self._runner is not None and self._runner.running
 
     async def _cancel_move(self, error: FxcellError, graceful: bool = False) -> None:
-        task = self._move_task
-        if task is None or task.done():
+        runner = self._runner
+        if runner is None or not runner.running:
             return
-        self._stopping = True
+        runner.stopping = True
         self._observe(self.robot_state, "stop")
-        controller: MotionController | None = getattr(self, "_motion", None)
-        execution = controller.execution if controller is not None else None
-        if graceful and execution is not None:
-            # Let the move brake itself: its MoveStoppedError carries what it did.
-            execution.request_stop()
-            with contextlib.suppress(BaseException):
-                async with asyncio.timeout(10.0):
-                    await asyncio.shield(task)
-            if task.done():
-                return
-        self._abort_move(error)
-        with contextlib.suppress(BaseException):
-            await task
+        await runner.stop(error, graceful=graceful)
 
     async def stop(self) -> bool:
-        """Stop the running move (it brakes to a stop); True if one was running."""
+        """Stop the running move (it brakes to a stop) and the moves queued after it;
+        True if one was running."""
         async with self._command("stop") as out:
             self.machine.check("stop")
-            running = self._move_task is not None and not self._move_task.done()
+            self._stops += 1  # ends the moves waiting with queue=True too
+            running = self._moving()
             await self._cancel_move(MoveStoppedError("stopped by stop()"), graceful=True)
             out["result"] = running
             return running
@@ -775,12 +779,11 @@ class Cell:
     # check, plan, time, stream, brake. Here: guards, the move task, events.
 
     def _moves(self) -> MotionController:
-        controller: MotionController | None = getattr(self, "_motion", None)
-        if controller is None:
+        if self._motion is None:
             from fxcell.motion.moves import MotionController
 
-            controller = self._motion = MotionController(self.config, publish=self.bus.publish)
-        return controller
+            self._motion = MotionController(self.config, publish=self.bus.publish)
+        return self._motion
 
     @property
     def motion(self) -> MotionController:
@@ -789,41 +792,42 @@ class Cell:
         return self._moves()
 
     async def _move(
-        self,
-        name: str,
-        args: dict[str, Any],
-        method: str,
-        *plan_args: Any,
-        queue: bool = False,
-        **plan_kwargs: Any,
+        self, name: str, args: dict[str, Any], target: MoveTarget, *, queue: bool = False
     ) -> MoveResult:
         if queue:
             # Queued moves start in call order, each once the running move has ended
-            # (however it ended).
-            lock: asyncio.Lock | None = getattr(self, "_move_queue", None)
-            if lock is None:
-                lock = self._move_queue = asyncio.Lock()
-            async with lock:
-                while self._move_task is not None and not self._move_task.done():
-                    await asyncio.wait({self._move_task})
-                return await self._move(name, {**args, "queue": True}, method, *plan_args,
-                                        **plan_kwargs)  # fmt: skip
-        moves = self._moves()
-        vf, af = args.get("velocity_factor"), args.get("acceleration_factor")
-        idle = self._move_task is None or self._move_task.done()
-        if idle and self.state in (CellState.MOVING, CellState.STOPPING):
+            # (however it ended); a stop() meanwhile ends them without moving.
+            stops = self._stops
+            async with self._move_queue:
+                while (running := self._runner) is not None and running.task is not None:
+                    if running.task.done():
+                        break
+                    await asyncio.wait({running.task})
+                if self._stops != stops:
+                    recorded = {k: to_jsonable(v) for k, v in args.items()}
+                    async with self._command(name, **recorded, queue=True):
+                        raise MoveStoppedError(f"{name}() was waiting in the queue: stopped")
+                return await self._move(name, {**args, "queue": True}, target)
+        if not self._moving() and self.state in (CellState.MOVING, CellState.STOPPING):
             # The previous move's end is still queued in the state machine: let it land.
             others = [st for st in CellState if st not in (CellState.MOVING, CellState.STOPPING)]
             with contextlib.suppress(RobotTimeoutError):
                 await self.wait_for_state(*others, timeout=1.0)
 
-        async def body() -> MoveResult:
-            factors = moves.factors(vf, af)
-            start = self._sample().actual_q
-            plan = await moves.plan(method, start, *plan_args, *factors, **plan_kwargs)
-            return await moves.execute(plan, self._link())
+        def make() -> MoveRunner:
+            return self._moves().runner(
+                target,
+                self._link(),
+                lambda: self._sample().actual_q,
+                args.get("velocity_factor"),
+                args.get("acceleration_factor"),
+                name=name,
+            )
 
-        return await self.run_move(name, {k: to_jsonable(v) for k, v in args.items()}, body)
+        result: MoveResult = await self._run_move(
+            name, {k: to_jsonable(v) for k, v in args.items()}, make
+        )
+        return result
 
     async def move_joint(
         self,
@@ -842,7 +846,7 @@ class Cell:
         """
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_joint", args, "plan_joint", target, queue=queue)
+        return await self._move("move_joint", args, JointTarget(target), queue=queue)
 
     async def go_home(
         self,
@@ -853,7 +857,7 @@ class Cell:
     ) -> MoveResult:
         """Move to the configured home joints ([0, -π/2, 0, -π/2, 0, 0] by default)."""
         args = {"velocity_factor": velocity_factor, "acceleration_factor": acceleration_factor}
-        return await self._move("go_home", args, "plan_joint", self.config.home, queue=queue)
+        return await self._move("go_home", args, JointTarget(self.config.home), queue=queue)
 
     async def move_pose(
         self,
@@ -871,7 +875,7 @@ class Cell:
         """
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor, "linear": linear}  # fmt: skip
-        return await self._move("move_pose", args, "plan_pose", target, linear=linear, queue=queue)
+        return await self._move("move_pose", args, PoseTarget(target, linear), queue=queue)
 
     async def move_distance(
         self,
@@ -884,7 +888,7 @@ class Cell:
         """Move the TCP by [dx, dy, dz] (m, base axes) on a straight line, orientation kept."""
         args = {"distance": distance, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_distance", args, "plan_distance", distance, queue=queue)
+        return await self._move("move_distance", args, DistanceTarget(distance), queue=queue)
 
     async def move_relative(
         self,
@@ -899,9 +903,8 @@ class Cell:
         args = {"start_pose": start_pose, "target_pose": target_pose,
                 "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move(
-            "move_relative", args, "plan_relative", start_pose, target_pose, queue=queue
-        )
+        target = RelativeTarget(start_pose, target_pose)
+        return await self._move("move_relative", args, target, queue=queue)
 
     async def set_velocity_factor(self, value: float) -> None:
         """Default velocity factor of moves, in (0, 1]; InvalidFactorError otherwise."""

@@ -24,15 +24,15 @@ import time
 import urllib.parse
 from collections.abc import Awaitable, Callable
 from importlib import resources
-from typing import Annotated, Any
+from typing import Any
 
 from fastapi import APIRouter, Body, FastAPI, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel
 
 from fxcell._version import __version__
+from fxcell.commands import COMMANDS, Command
 from fxcell.daemon import models
 from fxcell.daemon.control import LEASE_HEADER
 from fxcell.daemon.encoding import error_info, jsonable
@@ -44,50 +44,6 @@ from fxcell.errors import FxcellError, NotAuthorizedError, RemoteError
 CLIENT_HEADER = "X-Fxcell-Client"
 STATIC = resources.files("fxcell.daemon") / "static"
 
-# name -> (request model or None, summary)
-GENERAL_COMMANDS: dict[str, tuple[type[BaseModel] | None, str]] = {
-    "power_on": (None, "Power the arm on; returns when the robot mode is IDLE."),
-    "brake_release": (None, "Release the brakes; returns when the robot mode is RUNNING."),
-    "power_off": (None, "Power the arm off; returns when the robot mode is POWER_OFF."),
-    "init": (None, "Power on, release the brakes and start external control (idempotent)."),
-    "shutdown": (None, "Shut the controller down."),
-    "start_external_control": (None, "Start the external control program."),
-    "stop_external_control": (None, "Stop the external control program."),
-    "unlock_protective_stop": (
-        models.UnlockRequest,
-        "Unlock a protective stop (5 s after it) and restore external control.",
-    ),
-    "set_velocity_factor": (models.FactorRequest, "Default velocity factor of moves, in (0, 1]."),
-    "set_acceleration_factor": (
-        models.FactorRequest,
-        "Default acceleration factor of moves, in (0, 1].",
-    ),
-}
-MOVE_COMMANDS: dict[str, tuple[type[models.Factors], str]] = {
-    "move_joint": (models.MoveJointRequest, "Move to joint positions (rad)."),
-    "go_home": (models.GoHomeRequest, "Move to the configured home joints."),
-    "move_pose": (models.MovePoseRequest, "Move the TCP to a pose (base frame)."),
-    "move_distance": (models.MoveDistanceRequest, "Move the TCP along a straight line (m)."),
-    "move_relative": (
-        models.MoveRelativeRequest,
-        "Move by the displacement between two poses.",
-    ),
-}
-QUERIES: dict[str, str] = {
-    "get_robot_mode": "Robot mode (POWER_OFF, IDLE, RUNNING, ...).",
-    "get_safety_status": "Safety status (NORMAL, PROTECTIVE_STOP, ...).",
-    "get_program_state": "Program state of the controller.",
-    "is_in_remote_control": "Whether the pendant is in Remote control.",
-    "get_current_joint_values": "Actual joint positions (rad).",
-    "get_current_pose": "TCP pose: position (m) and quaternion (x, y, z, w).",
-    "get_current_rpy": "TCP orientation as roll, pitch, yaw (rad).",
-    "get_current_pose_rpy": "TCP pose as x, y, z, roll, pitch, yaw.",
-    "get_velocity": "Actual joint velocities (rad/s).",
-    "get_velocity_factor": "Default velocity factor of moves.",
-    "get_acceleration_factor": "Default acceleration factor of moves.",
-    "get_max_acceleration": "Joint acceleration limits (rad/s²).",
-}
-
 
 def _validation_message(exc: RequestValidationError) -> str:
     parts = []
@@ -95,6 +51,11 @@ def _validation_message(exc: RequestValidationError) -> str:
         loc = ".".join(str(p) for p in err.get("loc", ()) if p != "body") or "body"
         parts.append(f"{loc}: {err.get('msg', 'invalid')}")
     return "invalid request: " + "; ".join(parts)
+
+
+def _arguments(body: Any) -> dict[str, Any]:
+    """A request body's arguments (those left out take the command's defaults)."""
+    return {} if body is None else dict(body.model_dump(exclude_none=True))
 
 
 def create_app(service: CellService) -> FastAPI:
@@ -204,9 +165,13 @@ def create_app(service: CellService) -> FastAPI:
     async def get_statechart() -> dict[str, Any]:
         return service.statechart_data()
 
-    # ------------------------------------------------------------- queries
+    # ------------------------------------------------------------- the command table
+    # One route per entry of fxcell.commands.COMMANDS: queries GET, the rest POST with
+    # the request model derived from the entry (no body needed when no field is).
 
-    def add_query(name: str, summary: str) -> None:
+    def add_query(command: Command) -> None:
+        name = command.name
+
         async def query() -> dict[str, Any]:
             return {"result": jsonable(await service.query(name))}
 
@@ -214,86 +179,79 @@ def create_app(service: CellService) -> FastAPI:
             f"/cell/{name}",
             query,
             methods=["GET"],
-            summary=summary,
+            summary=command.summary,
+            description=command.doc,
             name=name,
             responses={409: {"model": models.ErrorResponse}, 503: {"model": models.ErrorResponse}},
         )
 
-    for name, summary in QUERIES.items():
-        add_query(name, summary)
+    def add_command(command: Command) -> None:
+        name = command.name
+        model = models.REQUEST_MODELS[name]
+        move = command.kind == "move"
+        wait_doc = "answer when the move has ended" if move else "answer when done"
+
+        if model is None:
+
+            async def run(
+                request: Request, wait: bool = Query(not move, description=wait_doc)
+            ) -> JSONResponse:
+                return await respond(
+                    request,
+                    name,
+                    {},
+                    lambda: service.call(name),
+                    wait=wait,
+                    needs_control=command.needs_control,
+                )
+
+        else:
+            # A body is needed only when some argument is (go_home takes none).
+            required = any(arg.required for arg in command.args)
+            body_type = model if required else model | None
+            body_param = Body(...) if required else Body(None)
+
+            async def run(  # type: ignore[misc]
+                request: Request,
+                body: body_type = body_param,  # type: ignore[valid-type]
+                wait: bool = Query(not move, description=wait_doc),
+            ) -> JSONResponse:
+                args = _arguments(body)
+                return await respond(
+                    request,
+                    name,
+                    args,
+                    lambda: service.call(name, **args),
+                    wait=wait,
+                    needs_control=command.needs_control,
+                )
+
+        needs = "the token" + (" and control" if command.needs_control else ", not control")
+        api.add_api_route(
+            f"/cell/{name}",
+            run,
+            methods=["POST"],
+            summary=command.summary + (" Runs as an operation (202)." if move else ""),
+            description=f"{command.doc}\n\nNeeds {needs}.",
+            name=name,
+            status_code=202 if move else 200,
+            responses=op_responses,
+            response_model=models.OperationModel,
+        )
+
+    for command in COMMANDS.values():
+        if command.kind == "query":
+            add_query(command)
+        else:
+            add_command(command)
 
     @api.get("/cell/state", summary="The state machine's current state")
     async def cell_state() -> dict[str, Any]:
         return {"result": service.machine_state()}
 
-    # ------------------------------------------------------------- commands
-
-    def add_general(name: str, model: type[BaseModel] | None, summary: str) -> None:
-        if model is None:
-
-            async def command(
-                request: Request, wait: bool = Query(True, description="answer when done")
-            ) -> JSONResponse:
-                return await respond(request, name, {}, lambda: service.call(name), wait=wait)
-
-        else:
-
-            async def command(  # type: ignore[misc]
-                request: Request,
-                body: Annotated[model, Body()],  # type: ignore[valid-type]
-                wait: bool = Query(True, description="answer when done"),
-            ) -> JSONResponse:
-                args = body.model_dump()  # type: ignore[attr-defined]
-                return await respond(
-                    request, name, args, lambda: service.call(name, **args), wait=wait
-                )
-
-        api.add_api_route(
-            f"/cell/{name}",
-            command,
-            methods=["POST"],
-            summary=summary,
-            name=name,
-            responses=op_responses,
-            response_model=models.OperationModel,
-        )
-
-    for name, (model, summary) in GENERAL_COMMANDS.items():
-        add_general(name, model, summary)
-
-    def add_move(name: str, model: type[models.Factors], summary: str) -> None:
-        async def move(
-            request: Request,
-            body: Annotated[model, Body()],  # type: ignore[valid-type]
-            wait: bool = Query(False, description="answer when the move has ended"),
-        ) -> JSONResponse:
-            args = body.model_dump(exclude_none=True)  # type: ignore[attr-defined]
-            return await respond(request, name, args, lambda: service.call(name, **args), wait=wait)
-
-        api.add_api_route(
-            f"/cell/{name}",
-            move,
-            methods=["POST"],
-            summary=summary + " Runs as an operation (202).",
-            name=name,
-            status_code=202,
-            responses=op_responses,
-            response_model=models.OperationModel,
-        )
-
-    for name, (model, summary) in MOVE_COMMANDS.items():
-        add_move(name, model, summary)
-
-    @api.post(
-        "/cell/stop",
-        summary="Stop any motion (needs the token, not control)",
-        response_model=models.OperationModel,
-        responses=op_responses,
-    )
-    async def stop(request: Request) -> JSONResponse:
-        return await respond(
-            request, "stop", {}, lambda: service.call("stop"), wait=True, needs_control=False
-        )
+    @api.get("/commands", summary="The command table: arguments, units, guards, results")
+    async def get_commands() -> dict[str, Any]:
+        return service.commands_data()
 
     # ------------------------------------------------------------- operations
 

@@ -18,15 +18,9 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-GENERAL = (
-    ("power-on", "power the arm on (returns when IDLE)"),
-    ("brake-release", "release the brakes (returns when RUNNING)"),
-    ("power-off", "power the arm off"),
-    ("init", "power on, release the brakes, start external control"),
-    ("shutdown", "shut the controller down"),
-    ("start-external-control", "start the external control program"),
-    ("stop-external-control", "stop the external control program"),
-)
+from fxcell.commands import COMMANDS, Arg, Command
+
+_SHORT = {"velocity_factor": "-v", "acceleration_factor": "-a"}
 
 
 def register(sub: Any) -> None:
@@ -73,39 +67,15 @@ def register(sub: Any) -> None:
     client_parser("status", "show the state of the cell served by a running daemon").set_defaults(
         func=_client(_status)
     )
-    for name, text in GENERAL:
-        client_parser(name, text).set_defaults(func=_client(_general(name.replace("-", "_"))))
-    c = client_parser("unlock-protective-stop", "unlock a protective stop")
-    c.add_argument("--wait", action="store_true", help="wait out the controller's 5 s rule")
-    c.set_defaults(func=_client(_unlock))
-
-    def move_parser(name: str, text: str) -> argparse.ArgumentParser:
-        m = client_parser(name, text)
-        m.add_argument("-v", "--velocity-factor", type=float)
-        m.add_argument("-a", "--acceleration-factor", type=float)
-        m.add_argument(
-            "--no-wait", action="store_true", help="print the operation id and return at once"
-        )
-        return m
-
-    m = move_parser("move-joint", "move to joint positions (6 values, rad)")
-    m.add_argument("target", nargs=6, type=float, metavar="Q")
-    m.set_defaults(func=_client(_move("move_joint", lambda a: {"target": a.target})))
-    m = move_parser("go-home", "move to the home joints")
-    m.set_defaults(func=_client(_move("go_home", lambda a: {})))
-    m = move_parser(
-        "move-pose", "move the TCP to x y z roll pitch yaw (or x y z qx qy qz qw), m and rad"
-    )
-    m.add_argument("target", nargs="+", type=float, metavar="V")
-    m.add_argument("--linear", action="store_true", help="straight TCP line")
-    m.set_defaults(
-        func=_client(_move("move_pose", lambda a: {"target": a.target, "linear": a.linear}))
-    )
-    m = move_parser("move-distance", "move the TCP by dx dy dz (m) along the base axes")
-    m.add_argument("distance", nargs=3, type=float, metavar="D")
-    m.set_defaults(func=_client(_move("move_distance", lambda a: {"distance": a.distance})))
-
-    client_parser("stop", "stop any motion").set_defaults(func=_client(_stop))
+    # One subcommand per entry of the command table (power-on, move-joint, stop, ...).
+    for command in COMMANDS.values():
+        c = client_parser(command.name.replace("_", "-"), command.summary)
+        _add_arguments(c, command)
+        if command.kind == "move":
+            c.add_argument(
+                "--no-wait", action="store_true", help="print the operation id and return at once"
+            )
+        c.set_defaults(func=_client(_table_command(command)))
     c = client_parser("operations", "list running and recent operations")
     c.set_defaults(func=_client(_operations))
     c = client_parser("cancel", "cancel an operation (a move stops)")
@@ -206,40 +176,62 @@ async def _status(cell: Any, args: argparse.Namespace) -> Any:
     return "\n".join(lines)
 
 
-def _general(name: str) -> ClientCommand:
-    async def command(cell: Any, args: argparse.Namespace) -> Any:
-        await getattr(cell, name)()
-        return f"{name}: done (state {await cell.get_state()})"
-
-    return command
-
-
-async def _unlock(cell: Any, args: argparse.Namespace) -> Any:
-    await cell.unlock_protective_stop(wait=args.wait)
-    return f"unlock_protective_stop: done (state {await cell.get_state()})"
-
-
-def _move(name: str, build: Callable[[argparse.Namespace], dict[str, Any]]) -> ClientCommand:
-    async def command(cell: Any, args: argparse.Namespace) -> Any:
-        body = build(args)
-        for key in ("velocity_factor", "acceleration_factor"):
-            if getattr(args, key) is not None:
-                body[key] = getattr(args, key)
-        op = await cell.start(name, **body)
-        if args.no_wait:
-            return op.id
-        try:
-            return await op.wait()
-        except KeyboardInterrupt:
-            await op.cancel()
-            raise
-
-    return command
+def _add_arguments(parser: argparse.ArgumentParser, command: Command) -> None:
+    """Arguments of a table command: a single required one positional, others options."""
+    required = [a for a in command.args if a.required]
+    for arg in command.args:
+        kind = arg.type
+        unit = f" ({kind.unit})" if kind.unit else ""
+        options: dict[str, Any] = {"help": arg.doc + unit}
+        if kind.scalar == "bool":
+            options["action"] = "store_true"
+        else:
+            options["type"] = float
+            if kind.length is not None:
+                low, high = kind.length
+                options["nargs"] = low if low == high else "+"
+                options["metavar"] = arg.name[0].upper()
+        if arg.required and len(required) == 1:
+            parser.add_argument(arg.name, **options)
+            continue
+        flags = [f"--{arg.name.replace('_', '-')}"]
+        if arg.name in _SHORT:
+            flags.insert(0, _SHORT[arg.name])
+        parser.add_argument(*flags, dest=arg.name, required=arg.required, **options)
 
 
-async def _stop(cell: Any, args: argparse.Namespace) -> Any:
-    await cell.stop()
-    return "stopped"
+def _arguments(command: Command, args: argparse.Namespace) -> dict[str, Any]:
+    values = {a.name: getattr(args, a.name) for a in command.args}
+    return {k: v for k, v in values.items() if v is not None and _given(command, k, v)}
+
+
+def _given(command: Command, name: str, value: Any) -> bool:
+    arg: Arg = next(a for a in command.args if a.name == name)
+    return arg.required or value != arg.default
+
+
+def _table_command(command: Command) -> ClientCommand:
+    name = command.name
+
+    async def run(cell: Any, args: argparse.Namespace) -> Any:
+        from fxcell.daemon.encoding import jsonable
+
+        body = _arguments(command, args)
+        if command.kind == "move":
+            op = await cell.start(name, **body)
+            if args.no_wait:
+                return op.id
+            try:
+                return await op.wait()
+            except KeyboardInterrupt:
+                await op.cancel()
+                raise
+        result = await cell.run_command(name, **body)
+        if command.kind == "command" and command.result.annotation == "None":
+            return f"{name}: done (state {await cell.get_state()})"
+        return jsonable(result)
+
+    return run
 
 
 async def _operations(cell: Any, args: argparse.Namespace) -> Any:

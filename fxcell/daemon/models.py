@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
+
+from fxcell import commands
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Factor = Annotated[
@@ -33,42 +35,45 @@ class Body(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
 
-class Factors(Body):
-    velocity_factor: Factor | None = None
-    acceleration_factor: Factor | None = None
+Flag = bool
+Seconds = Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)]
 
-    def kwargs(self) -> dict[str, Any]:
-        return {k: v for k, v in self.model_dump().items() if v is not None}
-
-
-class MoveJointRequest(Factors):
-    target: Joints
-
-
-class GoHomeRequest(Factors):
-    pass
+# The pydantic type of each argument type of the command table.
+FIELD_TYPES: dict[str, Any] = {
+    commands.FACTOR.name: Factor,
+    commands.JOINTS.name: Joints,
+    commands.POSE.name: PoseList,
+    commands.VECTOR3.name: Vector3,
+    commands.FLAG.name: Flag,
+    commands.SECONDS.name: Seconds,
+}
 
 
-class MovePoseRequest(Factors):
-    target: PoseList
-    linear: bool = False
+def request_model(command: commands.Command) -> type[Body] | None:
+    """The request body of ``command``, built from its table entry (None: no arguments)."""
+    if not command.args:
+        return None
+    fields: dict[str, Any] = {}
+    for arg in command.args:
+        annotation = FIELD_TYPES[arg.type.name]
+        unit = f" ({arg.type.unit})" if arg.type.unit else ""
+        info = Field(description=arg.doc + unit)
+        if arg.required:
+            fields[arg.name] = (Annotated[annotation, info], ...)
+        elif arg.default is None:
+            fields[arg.name] = (Annotated[annotation | None, info], None)
+        else:
+            fields[arg.name] = (Annotated[annotation, info], arg.default)
+    name = "".join(part.title() for part in command.name.split("_")) + "Request"
+    model: type[Body] = create_model(name, __base__=Body, **fields)
+    return model
 
 
-class MoveDistanceRequest(Factors):
-    distance: Vector3 = Field(description="TCP displacement along the base axes (m)")
-
-
-class MoveRelativeRequest(Factors):
-    start_pose: PoseList
-    target_pose: PoseList
-
-
-class FactorRequest(Body):
-    value: Factor
-
-
-class UnlockRequest(Body):
-    wait: bool = Field(False, description="wait out the controller's 5 s rule instead of failing")
+REQUEST_MODELS: dict[str, type[Body] | None] = {
+    name: request_model(command)
+    for name, command in commands.COMMANDS.items()
+    if command.kind != "query"
+}
 
 
 class ControlRequest(Body):

@@ -16,6 +16,7 @@ from typing import Any
 
 from fxcell._version import __version__
 from fxcell.cell.statemachine import CellState, Statechart, load_statechart
+from fxcell.commands import COMMANDS, get_command
 from fxcell.config import CellConfig
 from fxcell.daemon.auth import check_bearer
 from fxcell.daemon.control import ControlLock, Holder
@@ -25,15 +26,6 @@ from fxcell.daemon.stream import StreamHub
 from fxcell.errors import ConnectionLostError
 from fxcell.events import COMMAND_ORIGIN, Event, EventBus, StateEvent, TransitionEvent
 from fxcell.protocol import RobotState
-
-# Commands whose names differ between the API and the statechart's guard table.
-_GUARD_NAME = {
-    "move_joint": "move",
-    "go_home": "move",
-    "move_pose": "move",
-    "move_distance": "move",
-    "move_relative": "move",
-}
 
 
 class CellService:
@@ -138,18 +130,18 @@ class CellService:
         token = COMMAND_ORIGIN.set(client)
         try:
             return self.operations.start(
-                name, args, client, call(), move=name in _GUARD_NAME, lease=lease
+                name, args, client, call(), move=get_command(name).kind == "move", lease=lease
             )
         finally:
             COMMAND_ORIGIN.reset(token)
 
     async def call(self, name: str, **kwargs: Any) -> Any:
         cell = await self.wait_cell()
-        return await getattr(cell, name)(**kwargs)
+        return await cell.run_command(name, **kwargs)
 
     async def query(self, name: str) -> Any:
         cell = await self.wait_cell()
-        return await getattr(cell, name)()
+        return await cell.run_command(name)
 
     async def cancel_operation(self, op: Operation) -> None:
         await self.operations.cancel(op)
@@ -164,7 +156,12 @@ class CellService:
         return cached
 
     def _allowed_states(self, command: str) -> list[str]:
-        return [s.value for s in self.statechart.allowed(_GUARD_NAME.get(command, command))]
+        """States admitting ``command``: a statechart guard or a command of the table."""
+        entry = COMMANDS.get(command)
+        guard = entry.guard if entry is not None else command
+        if guard is None:
+            return [s.value for s in CellState]
+        return [s.value for s in self.statechart.allowed(guard)]
 
     # ------------------------------------------------------------- views
 
@@ -206,6 +203,35 @@ class CellService:
             "limits": jsonable(cfg.limits),
             "scene": jsonable(cfg.scene.objects),
             "recorder": jsonable(cfg.recorder),
+        }
+
+    def commands_data(self) -> dict[str, Any]:
+        """The command table as data (for clients and the operator page)."""
+        return {
+            name: {
+                "kind": c.kind,
+                "summary": c.summary,
+                "doc": c.doc,
+                "args": [
+                    {
+                        "name": a.name,
+                        "type": a.type.name,
+                        "unit": a.type.unit,
+                        "length": list(a.type.length) if a.type.length else None,
+                        "required": a.required,
+                        "default": jsonable(a.default),
+                        "keyword_only": a.keyword_only,
+                        "doc": a.doc,
+                    }
+                    for a in c.args
+                ],
+                "result": c.result.annotation,
+                "guard": c.guard,
+                "allowed": self._allowed_states(name),
+                "changes_robot": c.changes_robot,
+                "needs_control": c.needs_control,
+            }
+            for name, c in COMMANDS.items()
         }
 
     def statechart_data(self) -> dict[str, Any]:

@@ -45,6 +45,14 @@ from fxcell.geometry import Pose
 from fxcell.link.process import Guard
 from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
+from fxcell.motion.runner import (
+    DistanceTarget,
+    JointTarget,
+    MoveRunner,
+    MoveTarget,
+    PoseTarget,
+    RelativeTarget,
+)
 from fxcell.motion.trajectory import (
     DT,
     Limits,
@@ -56,6 +64,7 @@ from fxcell.motion.trajectory import (
     validate_factor,
 )
 from fxcell.protocol import RobotState
+from fxcell.results import MoveResult
 
 if TYPE_CHECKING:
     from fxcell.link import LinkClient, StateSubscription, TrajectoryHandle, TrajectoryResult
@@ -97,30 +106,6 @@ class MovePlan:
     @property
     def duration(self) -> float:
         return self.trajectory.duration
-
-
-@dataclass(frozen=True)
-class MoveResult:
-    """What a move did."""
-
-    target_joints: tuple[float, ...]
-    target_pose: tuple[float, ...]
-    """Target TCP pose as on the teach pendant (x, y, z, rx, ry, rz)."""
-    reached_joints: tuple[float, ...]
-    reached_pose: tuple[float, ...]
-    joint_error: float
-    """Largest |reached - target| over the joints (rad)."""
-    position_error: float
-    """TCP position error (m)."""
-    orientation_error: float
-    """TCP orientation error (rad)."""
-    planned_duration: float
-    executed_duration: float
-    """From the first streamed sample to the robot at rest (s)."""
-    planner: str
-    stopped: bool = False
-    max_tracking_error: float = 0.0
-    """Largest |actual - planned| joint difference seen while streaming (rad)."""
 
 
 def _vector(value: object, n: int, what: str) -> Array:
@@ -224,6 +209,26 @@ class MotionPlanner:
         )
 
     # ------------------------------------------------------------ plans
+
+    def plan(
+        self,
+        target: MoveTarget,
+        start: ArrayLike,
+        velocity_factor: float = 1.0,
+        acceleration_factor: float = 1.0,
+    ) -> list[MovePlan]:
+        """The plans (legs) of a move from ``start`` joints to ``target``."""
+        vf, af = velocity_factor, acceleration_factor
+        match target:
+            case JointTarget(joints):
+                return [self.plan_joint(start, joints, vf, af)]
+            case PoseTarget(pose, linear):
+                return [self.plan_pose(start, pose, vf, af, linear=linear)]
+            case DistanceTarget(distance):
+                return [self.plan_distance(start, distance, vf, af)]
+            case RelativeTarget(start_pose, target_pose):
+                return self.plan_relative(start, start_pose, target_pose, vf, af)
+        raise InvalidArgumentError(f"not a move target: {target!r}")
 
     def plan_joint(
         self,
@@ -813,14 +818,21 @@ class MotionController:
         )
         return vf, af
 
-    async def plan(self, method: str, *args: object, **kwargs: object) -> MovePlan | list[MovePlan]:
-        """Run ``MotionPlanner.<method>(*args, **kwargs)`` in a worker thread.
+    async def plan(
+        self,
+        target: MoveTarget,
+        start: ArrayLike,
+        velocity_factor: float = 1.0,
+        acceleration_factor: float = 1.0,
+    ) -> list[MovePlan]:
+        """Plan ``target`` from ``start`` joints in a worker thread (see
+        :meth:`MotionPlanner.plan`).
 
         One plan at a time: a move cancelled while planning leaves its thread running to
         the end, and the planner's Pinocchio data must not be shared with the next one.
         """
 
-        def locked() -> MovePlan | list[MovePlan]:
+        def locked() -> list[MovePlan]:
             with self._plan_lock:
                 joint = self.planner.joint_planner
                 if joint.planner_name != self._planner_name:
@@ -831,13 +843,40 @@ class MotionController:
                         planner=self._planner_name,
                         timeout=joint.timeout,
                     )
-                result: MovePlan | list[MovePlan] = getattr(self.planner, method)(*args, **kwargs)
-                return result
+                return self.planner.plan(target, start, velocity_factor, acceleration_factor)
 
         return await asyncio.to_thread(locked)
 
-    async def execute(self, plans: MovePlan | Sequence[MovePlan], link: LinkClient) -> MoveResult:
-        """Stream each plan in turn; the result of the last (see :class:`MoveExecution`)."""
+    def runner(
+        self,
+        target: MoveTarget,
+        link: LinkClient,
+        start: Callable[[], ArrayLike],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        name: str = "move",
+    ) -> MoveRunner:
+        """A :class:`MoveRunner` for ``target``: factors checked (else the defaults),
+        planned from the joints ``start()`` reads when it runs, executed through ``link``."""
+
+        async def work(runner: MoveRunner) -> MoveResult:
+            factors = self.factors(velocity_factor, acceleration_factor)
+            plans = await self.plan(target, start(), *factors)
+            return await self.execute(plans, link, runner=runner)
+
+        return MoveRunner(work, name)
+
+    async def execute(
+        self,
+        plans: MovePlan | Sequence[MovePlan],
+        link: LinkClient,
+        *,
+        runner: MoveRunner | None = None,
+    ) -> MoveResult:
+        """Stream each plan in turn; the result of the last (see :class:`MoveExecution`).
+
+        ``runner`` is told the execution of each leg (so that its stop brakes it)."""
         seq = [plans] if isinstance(plans, MovePlan) else list(plans)
         result: MoveResult | None = None
         for plan in seq:
@@ -853,6 +892,8 @@ class MotionController:
                 on_tracking=functools.partial(self._event, move_id, "tracking"),
             )
             self.execution = execution
+            if runner is not None:
+                runner.execution = execution
             try:
                 result = await execution.run()
             except MoveStoppedError as exc:
@@ -862,6 +903,8 @@ class MotionController:
                 raise
             finally:
                 self.execution = None
+                if runner is not None:
+                    runner.execution = None
             self._event(move_id, "result", asdict(result))
         assert result is not None
         return result

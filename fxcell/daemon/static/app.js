@@ -5,7 +5,7 @@ const $ = (sel) => document.querySelector(sel);
 const $$ = (sel) => Array.from(document.querySelectorAll(sel));
 
 const page = {
-  info: null, chart: null, state: "disconnected", robot: null, targetQ: null,
+  info: null, chart: null, commands: null, state: "disconnected", robot: null, targetQ: null,
   control: null, lease: null, ops: new Map(), ws: null, wsRetry: 500,
   client: sessionStorage.getItem("fxcell-client") ||
     `web page ${Math.random().toString(16).slice(2, 8)} (${navigator.platform || "browser"})`,
@@ -144,17 +144,18 @@ function showControl(holder) {
   $("#release-control").disabled = !mine;
 }
 
+// The command table (/api/commands) names the states in which each command is admitted.
 function allowed(cmd) {
-  if (!page.chart) return false;
-  const guard = page.chart.commands[cmd];
-  return guard ? guard.includes(page.state) : true;
+  if (!page.commands) return false;
+  const entry = page.commands[cmd];
+  return entry ? entry.allowed.includes(page.state) : false;
 }
 
 function updateButtons() {
-  for (const b of $$("button[data-command]")) {
-    b.disabled = !allowed(b.dataset.move ? "move" : b.dataset.command);
+  for (const b of $$("button[data-command]")) b.disabled = !allowed(b.dataset.command);
+  for (const f of $$("form.move[data-command]")) {
+    for (const b of f.querySelectorAll("button[type=submit]")) b.disabled = !allowed(f.dataset.command);
   }
-  for (const b of $$("form.move button[type=submit]")) b.disabled = !allowed("move");
 }
 
 function updateOperation(op) {
@@ -538,8 +539,9 @@ function renderStatechart() {
 
 async function start() {
   try {
-    const [info, chart, snap] = await Promise.all([api("GET", "/api/info"), api("GET", "/api/statechart"), api("GET", "/api/state")]);
-    page.info = info; page.chart = chart;
+    const [info, chart, commands, snap] = await Promise.all([
+      api("GET", "/api/info"), api("GET", "/api/statechart"), api("GET", "/api/commands"), api("GET", "/api/state")]);
+    page.info = info; page.chart = chart; page.commands = commands;
     $("#robot-name").textContent = `· ${info.robot}${info.simulated ? "" : " (real robot)"} · v${info.version}`;
     showControl(snap.control);
     page.state = "";

@@ -1,0 +1,508 @@
+"""The cell's command table: every command, its typed arguments, guard, result and docs, once.
+
+:class:`CellCommands` is the typing ``Protocol`` both :class:`fxcell.cell.Cell` (in
+process) and :class:`fxcell.client.RemoteCell` (over the daemon's HTTP API) satisfy.
+Each method is one command; its ``@command(...)`` decoration is the table entry:
+
+- ``kind``: ``query`` (reads, never changes the robot: ``GET /api/cell/<name>``),
+  ``command`` (changes the robot or the cell, answers when done) or ``move`` (a move:
+  runs as an operation, answers at once over HTTP);
+- ``args``: the :class:`ArgType` of each parameter (units, lengths, docs);
+- ``guard``: the key of the statechart's ``commands`` table (``statecharts/robot.yaml``)
+  that admits the command (default: its own name; ``None``: always admitted);
+- ``result``: the :class:`ResultType` (how a JSON answer decodes into the Python type
+  the method is annotated with).
+
+:data:`COMMANDS` is built from them. The daemon's routes and request models, the
+``RemoteCell`` methods (the default bodies below: ``run_command``), the CLI
+subcommands, replay's re-execution and the operator page's command list are derived
+from it. Adding a command: a decorated method here, its implementation in ``Cell``
+(and a guard in the statechart if it needs one). See ``docs/ARCHITECTURE.md``.
+
+This module imports neither numpy nor the motion stack: the light network client
+uses it.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
+
+from fxcell.errors import InvalidArgumentError
+from fxcell.protocol import ProgramState, RobotMode, SafetyMode
+from fxcell.results import MoveResult, ProgramStatus
+
+if TYPE_CHECKING:
+    from fxcell.geometry import Pose
+
+Kind = Literal["query", "command", "move"]
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+# ----------------------------------------------------------------- argument types
+
+
+@dataclass(frozen=True)
+class ArgType:
+    """The type of a command argument: what it means, its unit, its shape.
+
+    ``length`` is ``(min, max)`` for a list of numbers, ``None`` for a scalar;
+    ``scalar`` is ``float`` or ``bool``; ``bounds`` is ``(low, high)`` for a float,
+    ``low`` exclusive, ``high`` inclusive.
+    """
+
+    name: str
+    doc: str
+    unit: str = ""
+    length: tuple[int, int] | None = None
+    scalar: Literal["float", "bool"] = "float"
+    bounds: tuple[float, float] | None = None
+
+
+FACTOR = ArgType("factor", "scale of the joint limits, in (0, 1]", "", bounds=(0.0, 1.0))
+JOINTS = ArgType("joints", "joint positions, base to wrist 3", "rad", (6, 6))
+POSE = ArgType(
+    "pose",
+    "[x, y, z, roll, pitch, yaw] or [x, y, z, qx, qy, qz, qw] in the base frame",
+    "m, rad",
+    (6, 7),
+)
+VECTOR3 = ArgType("vector3", "displacement along the base axes (x, y, z)", "m", (3, 3))
+FLAG = ArgType("flag", "true or false", scalar="bool")
+SECONDS = ArgType("seconds", "time limit", "s", bounds=(0.0, 3600.0))
+
+ARG_TYPES: tuple[ArgType, ...] = (FACTOR, JOINTS, POSE, VECTOR3, FLAG, SECONDS)
+
+
+# ----------------------------------------------------------------- result types
+
+
+@dataclass(frozen=True)
+class ResultType:
+    """What a command returns: its annotation and how its JSON form decodes to it."""
+
+    annotation: str
+    decode: Callable[[Any], Any]
+
+
+def _floats(value: Any) -> tuple[float, ...]:
+    return tuple(float(v) for v in value)
+
+
+def _move_result(value: Any) -> MoveResult:
+    fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in value.items()}
+    return MoveResult(**fields)
+
+
+NONE = ResultType("None", lambda value: None)
+BOOL = ResultType("bool", bool)
+FLOAT = ResultType("float", float)
+FLOATS = ResultType("tuple[float, ...]", _floats)
+RPY = ResultType("tuple[float, float, float]", _floats)
+ROBOT_MODE = ResultType("RobotMode", lambda value: RobotMode[value])
+SAFETY_MODE = ResultType("SafetyMode", lambda value: SafetyMode[value])
+PROGRAM_STATUS = ResultType(
+    "ProgramStatus", lambda value: ProgramStatus(ProgramState(value["state"]), value["program"])
+)
+MOVE_RESULT = ResultType("MoveResult", _move_result)
+
+
+# ----------------------------------------------------------------- the table
+
+
+@dataclass(frozen=True)
+class Arg:
+    """One parameter of a command."""
+
+    name: str
+    type: ArgType
+    required: bool
+    default: Any
+    keyword_only: bool
+    doc: str
+
+
+@dataclass(frozen=True)
+class Command:
+    """One entry of the command table."""
+
+    name: str
+    kind: Kind
+    doc: str
+    args: tuple[Arg, ...]
+    result: ResultType
+    guard: str | None
+    """Key of the statechart's ``commands`` table; ``None``: admitted in every state."""
+    needs_control: bool
+    """Over the daemon: needs control of the cell (``stop`` needs only the token)."""
+    signature: inspect.Signature
+
+    @property
+    def changes_robot(self) -> bool:
+        """Whether the command changes the robot or the cell (needs the daemon's token)."""
+        return self.kind != "query"
+
+    @property
+    def summary(self) -> str:
+        return self.doc.split("\n\n", 1)[0].replace("\n", " ").replace("``", "")
+
+    def check_args(self, args: Mapping[str, Any]) -> None:
+        """Raise :class:`InvalidArgumentError` for a name the command does not take."""
+        unknown = set(args) - {a.name for a in self.args}
+        if unknown:
+            raise InvalidArgumentError(
+                f"{self.name}() takes no argument {', '.join(sorted(unknown))}"
+            )
+
+    def known_args(self, args: Mapping[str, Any]) -> dict[str, Any]:
+        """``args`` restricted to the command's parameters (recorded extras dropped)."""
+        names = {a.name for a in self.args}
+        return {k: v for k, v in args.items() if k in names}
+
+
+@dataclass(frozen=True)
+class _Spec:
+    kind: Kind
+    result: ResultType
+    args: Mapping[str, ArgType]
+    guard: str | Literal[True] | None
+    needs_control: bool
+    docs: Mapping[str, str]
+
+
+def command(
+    kind: Kind,
+    result: ResultType,
+    *,
+    args: Mapping[str, ArgType] | None = None,
+    guard: str | Literal[True] | None = True,
+    needs_control: bool = True,
+    docs: Mapping[str, str] | None = None,
+) -> Callable[[F], F]:
+    """Mark a :class:`CellCommands` method as a command (``guard=True``: its own name)."""
+
+    def mark(fn: F) -> F:
+        fn.__fxcell_command__ = _Spec(  # type: ignore[attr-defined]
+            kind, result, dict(args or {}), guard, needs_control, dict(docs or {})
+        )
+        return fn
+
+    return mark
+
+
+def _given(frame: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in frame.items() if k != "self"}
+
+
+# Common parameter docs.
+_DOCS = {
+    "velocity_factor": "velocity factor of this move (default: the cell's)",
+    "acceleration_factor": "acceleration factor of this move (default: the cell's)",
+    "queue": "wait for a running move to end instead of failing with MoveInProgressError",
+    "timeout": "time limit (default: the cell's command timeout)",
+}
+_MOVE = {"velocity_factor": FACTOR, "acceleration_factor": FACTOR, "queue": FLAG}
+
+
+class CellCommands(Protocol):
+    """The cell's commands, satisfied by ``Cell`` and ``RemoteCell``.
+
+    Every method's default body sends it through :meth:`run_command` (how
+    ``RemoteCell`` implements them all); ``Cell`` implements each one.
+    """
+
+    async def run_command(self, name: str, **args: Any) -> Any:
+        """Run command ``name`` of :data:`COMMANDS` with keyword arguments."""
+        ...
+
+    # ------------------------------------------------------------- general
+
+    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    async def power_on(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Power the arm on; returns when the robot mode is IDLE."""
+        return await self.run_command("power_on", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    async def brake_release(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Release the brakes; returns when the robot mode is RUNNING."""
+        return await self.run_command("brake_release", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    async def power_off(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Power the arm off; returns when the robot mode is POWER_OFF."""
+        return await self.run_command("power_off", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    async def init(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Power on, release the brakes and start external control, as far as needed.
+
+        Idempotent: a cell already under external control returns at once.
+        """
+        return await self.run_command("init", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    async def start_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Start the control program (script upload or URCap program, as configured).
+
+        Returns when the program is PLAYING and accepts commands.
+        """
+        return await self.run_command("start_external_control", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    async def stop_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Stop the control program; returns when no program is playing."""
+        return await self.run_command("stop_external_control", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command(
+        "command",
+        NONE,
+        args={"wait": FLAG, "timeout": SECONDS},
+        docs={"wait": "wait out the controller's 5 s rule instead of failing", **_DOCS},
+    )
+    async def unlock_protective_stop(
+        self,
+        wait: bool = False,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+    ) -> None:
+        """Unlock a protective stop and re-establish external control if it was on.
+
+        The controller refuses within 5 s of the stop: that raises
+        ``ProtectiveStopUnlockTooSoonError``, unless ``wait`` is true, when this waits
+        until the controller accepts.
+        """
+        return await self.run_command("unlock_protective_stop", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    async def shutdown(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """Shut down the robot and its controller; returns when the controller is gone."""
+        return await self.run_command("shutdown", **_given(locals()))  # type: ignore[no-any-return]
+
+    # ------------------------------------------------------------- queries
+
+    @command("query", ROBOT_MODE)
+    async def get_robot_mode(self) -> RobotMode:
+        """The robot mode (``RobotMode.RUNNING``, ``IDLE``, ``POWER_OFF``, ...)."""
+        return await self.run_command("get_robot_mode")  # type: ignore[no-any-return]
+
+    @command("query", SAFETY_MODE)
+    async def get_safety_status(self) -> SafetyMode:
+        """The safety mode (``SafetyMode.NORMAL``, ``PROTECTIVE_STOP``, ...)."""
+        return await self.run_command("get_safety_status")  # type: ignore[no-any-return]
+
+    @command("query", PROGRAM_STATUS)
+    async def get_program_state(self) -> ProgramStatus:
+        """The controller's program state and loaded program (dashboard ``programState``)."""
+        return await self.run_command("get_program_state")  # type: ignore[no-any-return]
+
+    @command("query", BOOL)
+    async def is_in_remote_control(self) -> bool:
+        """True when the teach pendant is in Remote control."""
+        return await self.run_command("is_in_remote_control")  # type: ignore[no-any-return]
+
+    @command("query", FLOATS)
+    async def get_current_joint_values(self) -> tuple[float, ...]:
+        """The six joint positions, rad."""
+        return await self.run_command("get_current_joint_values")  # type: ignore[no-any-return]
+
+    @command("query", FLOATS)
+    async def get_current_pose(self) -> tuple[float, ...]:
+        """The TCP pose: position (m) and quaternion ``(x, y, z, qx, qy, qz, qw)``."""
+        return await self.run_command("get_current_pose")  # type: ignore[no-any-return]
+
+    @command("query", RPY, guard="get_current_pose")
+    async def get_current_rpy(self) -> tuple[float, float, float]:
+        """The TCP orientation as roll, pitch, yaw (rad), R = Rz(y)·Ry(p)·Rx(r)."""
+        return await self.run_command("get_current_rpy")  # type: ignore[no-any-return]
+
+    @command("query", FLOATS, guard="get_current_pose")
+    async def get_current_pose_rpy(self) -> tuple[float, ...]:
+        """The TCP pose as ``(x, y, z, roll, pitch, yaw)`` (m, rad)."""
+        return await self.run_command("get_current_pose_rpy")  # type: ignore[no-any-return]
+
+    @command("query", FLOATS)
+    async def get_velocity(self) -> tuple[float, ...]:
+        """The six joint velocities, rad/s."""
+        return await self.run_command("get_velocity")  # type: ignore[no-any-return]
+
+    @command("query", FLOAT, guard=None)
+    async def get_velocity_factor(self) -> float:
+        """The default velocity factor of moves."""
+        return await self.run_command("get_velocity_factor")  # type: ignore[no-any-return]
+
+    @command("query", FLOAT, guard=None)
+    async def get_acceleration_factor(self) -> float:
+        """The default acceleration factor of moves."""
+        return await self.run_command("get_acceleration_factor")  # type: ignore[no-any-return]
+
+    @command("query", FLOATS, guard=None)
+    async def get_max_acceleration(self) -> tuple[float, ...]:
+        """The joints' configured maximum accelerations (rad/s², before the factor)."""
+        return await self.run_command("get_max_acceleration")  # type: ignore[no-any-return]
+
+    # ------------------------------------------------------------- factors
+
+    @command("command", NONE, args={"value": FACTOR}, guard=None)
+    async def set_velocity_factor(self, value: float) -> None:
+        """Default velocity factor of moves, in (0, 1]; InvalidFactorError otherwise."""
+        return await self.run_command("set_velocity_factor", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"value": FACTOR}, guard=None)
+    async def set_acceleration_factor(self, value: float) -> None:
+        """Default acceleration factor of moves, in (0, 1]; InvalidFactorError otherwise."""
+        return await self.run_command("set_acceleration_factor", **_given(locals()))  # type: ignore[no-any-return]
+
+    # ------------------------------------------------------------- moves
+
+    @command("move", MOVE_RESULT, args={"target": JOINTS, **_MOVE}, guard="move", docs=_DOCS)
+    async def move_joint(
+        self,
+        target: Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
+    ) -> MoveResult:
+        """Move to joint positions (rad) on a jerk-limited, collision-free trajectory.
+
+        Factors in (0, 1] scale the joint velocity / acceleration limits for this move
+        (default: the cell's factors, see ``set_velocity_factor``). While another move
+        runs, a move raises ``MoveInProgressError``, or with ``queue=True`` waits for it
+        to end and then starts (every move takes ``queue``; ``stop()`` also ends the
+        moves waiting so).
+        """
+        return await self.run_command("move_joint", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("move", MOVE_RESULT, args=_MOVE, guard="move", docs=_DOCS)
+    async def go_home(
+        self,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
+    ) -> MoveResult:
+        """Move to the configured home joints ([0, -π/2, 0, -π/2, 0, 0] by default)."""
+        return await self.run_command("go_home", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command(
+        "move",
+        MOVE_RESULT,
+        args={"target": POSE, "linear": FLAG, **_MOVE},
+        guard="move",
+        docs={"linear": "move the TCP on a straight line", **_DOCS},
+    )
+    async def move_pose(
+        self,
+        target: Pose | Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        linear: bool = False,
+        queue: bool = False,
+    ) -> MoveResult:
+        """Move the TCP to a pose: a Pose, [x, y, z, qx, qy, qz, qw] or [x, y, z, r, p, y].
+
+        ``linear=True`` moves the TCP on a straight line (else a joint-space move to the
+        IK solution nearest the current joints).
+        """
+        return await self.run_command("move_pose", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("move", MOVE_RESULT, args={"distance": VECTOR3, **_MOVE}, guard="move", docs=_DOCS)
+    async def move_distance(
+        self,
+        distance: Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
+    ) -> MoveResult:
+        """Move the TCP by [dx, dy, dz] (m, base axes) on a straight line, orientation kept."""
+        return await self.run_command("move_distance", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command(
+        "move",
+        MOVE_RESULT,
+        args={"start_pose": POSE, "target_pose": POSE, **_MOVE},
+        guard="move",
+        docs={"start_pose": "the pose to go first", "target_pose": "the pose to go then", **_DOCS},
+    )
+    async def move_relative(
+        self,
+        start_pose: Pose | Sequence[float],
+        target_pose: Pose | Sequence[float],
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
+    ) -> MoveResult:
+        """Move the TCP to ``start_pose``, then to ``target_pose`` (two joint-space moves).
+
+        Both legs are planned, and so checked, before the robot moves.
+        """
+        return await self.run_command("move_relative", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", BOOL, needs_control=False)
+    async def stop(self) -> bool:
+        """Stop the running move (it brakes to a stop) and the moves queued after it.
+
+        True if a move was running. Over the daemon it needs the token, not control.
+        """
+        return await self.run_command("stop")  # type: ignore[no-any-return]
+
+
+def _build() -> dict[str, Command]:
+    table: dict[str, Command] = {}
+    for name, fn in vars(CellCommands).items():
+        spec: _Spec | None = getattr(fn, "__fxcell_command__", None)
+        if spec is None:
+            continue
+        signature = inspect.signature(fn)
+        params = [p for p in signature.parameters.values() if p.name != "self"]
+        if {p.name for p in params} != set(spec.args):
+            raise TypeError(f"{name}: the argument types do not match the parameters")
+        if spec.kind == "query" and params:
+            raise TypeError(f"{name}: a query takes no arguments (GET /api/cell/<name>)")
+        args = tuple(
+            Arg(
+                p.name,
+                spec.args[p.name],
+                p.default is inspect.Parameter.empty,
+                None if p.default is inspect.Parameter.empty else p.default,
+                p.kind is inspect.Parameter.KEYWORD_ONLY,
+                spec.docs.get(p.name, spec.args[p.name].doc),
+            )
+            for p in params
+        )
+        guard = name if spec.guard is True else spec.guard
+        doc = inspect.cleandoc(fn.__doc__ or "")
+        table[name] = Command(
+            name, spec.kind, doc, args, spec.result, guard, spec.needs_control, signature
+        )
+    return table
+
+
+COMMANDS: dict[str, Command] = _build()
+"""Every command of the cell, by name, in definition order."""
+
+
+def get_command(name: str) -> Command:
+    """The table entry of ``name``; :class:`InvalidArgumentError` for an unknown one."""
+    try:
+        return COMMANDS[name]
+    except KeyError:
+        raise InvalidArgumentError(f"unknown command {name!r}") from None
+
+
+__all__ = [
+    "ARG_TYPES",
+    "COMMANDS",
+    "Arg",
+    "ArgType",
+    "CellCommands",
+    "Command",
+    "ResultType",
+    "command",
+    "get_command",
+]

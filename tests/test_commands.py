@@ -1,0 +1,196 @@
+"""The command table: its agreement with the statechart, Cell/RemoteCell parity, derived
+routes and CLI, and one behaviour suite run against both Cell and RemoteCell."""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import subprocess
+import sys
+from collections.abc import AsyncIterator, Iterator
+from typing import Any
+
+import httpx
+import pytest
+
+from fxcell.cell import Cell, CellState
+from fxcell.cell.statemachine import load_statechart
+from fxcell.client import RemoteCell
+from fxcell.commands import COMMANDS, CellCommands
+from fxcell.errors import InvalidArgumentError, InvalidStateError, MoveStoppedError
+from fxcell.protocol import ProgramState, RobotMode, SafetyMode
+from fxcell.results import MoveResult, ProgramStatus
+from fxcell.testing import SimulatorHandle, simulator
+
+TIME_SCALE = 0.05
+TOKEN = "commands-test-token-0123456789"
+
+
+# ----------------------------------------------------------------- the table
+
+
+def test_the_guards_of_the_table_are_the_statecharts_commands() -> None:
+    chart = load_statechart()
+    guards = {c.guard for c in COMMANDS.values() if c.guard is not None}
+    assert guards == set(chart.commands)
+
+
+def test_cell_and_remote_cell_have_the_tables_signatures_and_result_types() -> None:
+    for name, entry in COMMANDS.items():
+        declared = inspect.signature(getattr(CellCommands, name))
+        assert inspect.signature(getattr(Cell, name)) == declared, name
+        assert name in vars(Cell), f"Cell does not implement {name}()"
+        # RemoteCell runs every command through the table (the Protocol's bodies).
+        assert getattr(RemoteCell, name) is getattr(CellCommands, name), name
+        assert declared.return_annotation == entry.result.annotation, name
+        assert [a.name for a in entry.args] == [p for p in declared.parameters if p != "self"]
+    table_methods = {n for n, f in vars(CellCommands).items() if hasattr(f, "__fxcell_command__")}
+    assert table_methods == set(COMMANDS)
+
+
+def test_the_table_and_the_client_import_without_the_motion_stack() -> None:
+    code = (
+        "import sys\n"
+        "for m in ('numpy', 'pinocchio', 'rtde_control', 'rtde_receive', 'ompl', 'ruckig',"
+        " 'transitions', 'fastapi', 'pydantic', 'yaml'):\n"
+        "    sys.modules[m] = None\n"
+        "from fxcell.commands import COMMANDS\n"
+        "from fxcell.client import RemoteCell\n"
+        "print(len(COMMANDS))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout) == len(COMMANDS)
+
+
+def test_every_command_has_a_route_and_a_cli_subcommand() -> None:
+    from fxcell.cli import build_parser
+    from fxcell.config import CellConfig
+    from fxcell.daemon.app import create_app
+    from fxcell.daemon.service import CellService
+
+    app = create_app(CellService(CellConfig(), TOKEN))
+    paths = app.openapi()["paths"]
+    parser = build_parser()
+    for name, entry in COMMANDS.items():
+        method = "get" if entry.kind == "query" else "post"
+        assert method in paths[f"/api/cell/{name}"], name
+        parsed = parser.parse_args([name.replace("_", "-"), *_cli_args(entry)])
+        assert callable(parsed.func)
+    schema = paths["/api/cell/move_relative"]["post"]
+    assert "then to" in schema["description"]  # it is not a displacement between two poses
+
+
+def _cli_args(entry: Any) -> list[str]:
+    """Values for the required arguments: a single one positional, else options."""
+    required = [a for a in entry.args if a.required]
+    out: list[str] = []
+    for arg in required:
+        values = ["0.1"] * (arg.type.length[0] if arg.type.length else 1)
+        flag = [] if len(required) == 1 else [f"--{arg.name.replace('_', '-')}"]
+        out += flag + values
+    return out
+
+
+async def test_unknown_arguments_are_refused_before_anything_is_sent() -> None:
+    remote = RemoteCell("http://127.0.0.1:9", TOKEN)  # nothing listens there
+    try:
+        with pytest.raises(InvalidArgumentError, match="takes no argument mode"):
+            await remote.run_command("start_external_control", mode="script")
+        with pytest.raises(InvalidArgumentError, match="unknown command"):
+            await remote.run_command("fly")
+    finally:
+        await remote.close(release=False)
+
+
+# ----------------------------------------------------------------- one suite, two cells
+
+
+@pytest.fixture(scope="module")
+def shared_sim() -> Iterator[SimulatorHandle]:
+    with simulator(time_scale=TIME_SCALE) as handle:
+        yield handle
+
+
+def _reset(sim: SimulatorHandle) -> None:
+    sim.inject("remote_control")
+    if sim.state()["runtime_state"] != "STOPPED":
+        sim.dashboard("stop")
+    if sim.state()["robot_mode"] != "POWER_OFF":
+        sim.dashboard("power off")
+    sim.wait_for("robot_mode", "POWER_OFF")
+
+
+@pytest.fixture(params=["Cell", "RemoteCell"])
+async def api(request: pytest.FixtureRequest, shared_sim: SimulatorHandle) -> AsyncIterator[Any]:
+    """The same commands, in process (Cell) and through the daemon's app (RemoteCell)."""
+    await asyncio.to_thread(_reset, shared_sim)
+    async with Cell(host=shared_sim.host) as cell:
+        await cell.wait_for_state(CellState.POWER_OFF)
+        if request.param == "Cell":
+            yield cell
+            return
+        from fxcell.daemon.app import create_app
+        from fxcell.daemon.service import CellService
+
+        service = CellService(cell.config, TOKEN)
+        service.attach(cell)
+        transport = httpx.ASGITransport(app=create_app(service))
+        async with RemoteCell("http://daemon", TOKEN, transport=transport) as remote:
+            yield remote
+        await service.operations.cancel_all()
+        service.detach()
+
+
+async def test_queries_return_the_same_types(api: CellCommands) -> None:
+    assert await api.get_robot_mode() is RobotMode.POWER_OFF
+    assert await api.get_safety_status() is SafetyMode.NORMAL
+    assert await api.is_in_remote_control() is True
+    status = await api.get_program_state()
+    assert isinstance(status, ProgramStatus)
+    assert status.state is ProgramState.STOPPED
+    for floats in (
+        await api.get_current_joint_values(),
+        await api.get_current_pose(),
+        await api.get_current_rpy(),
+        await api.get_velocity(),
+        await api.get_max_acceleration(),
+    ):
+        assert isinstance(floats, tuple)
+        assert all(isinstance(v, float) for v in floats)
+    assert len(await api.get_current_pose()) == 7
+    assert isinstance(await api.get_velocity_factor(), float)
+
+
+async def test_refusals_and_stop_without_a_move(api: CellCommands) -> None:
+    with pytest.raises(InvalidStateError) as refused:
+        await api.go_home()
+    assert "external_control_ready" in str(refused.value.allowed)
+    assert await api.stop() is False  # a bool on both (RemoteCell returned None before)
+
+
+async def test_go_home_without_arguments_then_a_stop_ends_the_queued_move(
+    api: CellCommands,
+) -> None:
+    await api.init()
+    await api.move_joint([0.2, -1.4, 0.2, -1.6, 0.0, 0.0], 0.5, 0.5)
+    result = await api.go_home()  # no arguments: it failed with 422 over HTTP before
+    assert isinstance(result, MoveResult)
+    assert result.joint_error < 1e-3
+    assert result.target_joints == pytest.approx((0, -1.5708, 0, -1.5708, 0, 0), abs=1e-4)
+
+    first = asyncio.create_task(api.move_joint([0.6, -1.4, 0.2, -1.6, 0.0, 0.0], 0.2, 0.2))
+    for _ in range(1000):  # until the first move streams
+        if max(abs(v) for v in await api.get_velocity()) > 0.01:
+            break
+        await asyncio.sleep(0.01)
+    queued = asyncio.create_task(api.go_home(queue=True))
+    await asyncio.sleep(0.1)
+    assert await api.stop() is True
+    for task in (first, queued):
+        with pytest.raises(MoveStoppedError):
+            await task
+    await asyncio.sleep(0.3)
+    assert max(abs(v) for v in await api.get_velocity()) < 1e-4  # the queued move never ran
