@@ -163,7 +163,9 @@ async def test_full_life_cycle_over_http_and_websocket(
         assert expected in dests
     commands = [(m["name"], m["outcome"]) for m in watcher.of("command")]
     assert ("power_on", "ok") in commands
-    assert all(m["origin"] == "daemon" for m in watcher.of("command"))
+    # commands carry the client that sent them; queries (GET) the daemon
+    assert {m["origin"] for m in watcher.of("command")} == {"daemon", "tester"}
+    assert all(m["origin"] == "tester" for m in watcher.of("command") if m["name"] == "power_on")
     ops = [m for m in watcher.of("operation") if m["status"] == "succeeded"]
     assert [m["name"] for m in ops][-1] == "init"
 
