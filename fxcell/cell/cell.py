@@ -99,6 +99,9 @@ class Cell(CellCommands):
     Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
     ``record`` names a directory for an MCAP flight record of the session (default:
     the configuration's ``recorder.directory`` when ``recorder.enabled``).
+
+    The commands (``init``, ``move_joint``, ``stop``, ...) are those of
+    :class:`fxcell.commands.CellCommands`, where each is documented once.
     """
 
     def __init__(
@@ -481,7 +484,6 @@ class Cell(CellCommands):
             ) from None
 
     async def power_on(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
-        """Power the arm on; returns when the robot mode is IDLE."""
         async with self._command("power_on"):
             state = self.machine.check("power_on")
             if state is CellState.POWER_OFF:
@@ -489,7 +491,6 @@ class Cell(CellCommands):
             await self._await_effect("power_on", {CellState.IDLE}, timeout)
 
     async def brake_release(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
-        """Release the brakes; returns when the robot mode is RUNNING."""
         async with self._command("brake_release"):
             state = self.machine.check("brake_release")
             if state is CellState.IDLE:
@@ -497,7 +498,6 @@ class Cell(CellCommands):
             await self._await_effect("brake_release", _running_states(), timeout)
 
     async def power_off(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
-        """Power the arm off; returns when the robot mode is POWER_OFF."""
         async with self._command("power_off"):
             state = self.machine.check("power_off")
             if state is not CellState.POWER_OFF:
@@ -506,10 +506,6 @@ class Cell(CellCommands):
             await self._await_effect("power_off", {CellState.POWER_OFF}, timeout)
 
     async def init(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
-        """Power on, release the brakes and start external control, as far as needed.
-
-        Idempotent: a cell already under external control returns at once.
-        """
         async with self._command("init"):
             self.machine.check("init")
             if self.state in (CellState.POWER_OFF, CellState.POWERING_ON):
@@ -520,10 +516,6 @@ class Cell(CellCommands):
                 await self.start_external_control(timeout=timeout)
 
     async def start_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
-        """Start the control program (script upload or URCap program, as configured).
-
-        Returns when the program is PLAYING and accepts commands.
-        """
         async with self._command("start_external_control", mode=self.external_control):
             state = self.machine.check("start_external_control")
             if state is CellState.EXTERNAL_CONTROL_READY:
@@ -539,7 +531,6 @@ class Cell(CellCommands):
             )
 
     async def stop_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
-        """Stop the control program; returns when no program is playing."""
         async with self._command("stop_external_control"):
             self.machine.check("stop_external_control")
             self._control_wanted = False
@@ -554,12 +545,6 @@ class Cell(CellCommands):
         *,
         timeout: float | None = None,  # noqa: ASYNC109
     ) -> None:
-        """Unlock a protective stop and re-establish external control if it was on.
-
-        The controller refuses within 5 s of the stop: that raises
-        :class:`ProtectiveStopUnlockTooSoonError`, unless ``wait`` is true, when this
-        waits until the controller accepts.
-        """
         async with self._command("unlock_protective_stop", wait=wait):
             self.machine.check("unlock_protective_stop")
             await self._require_remote()
@@ -594,7 +579,6 @@ class Cell(CellCommands):
                 )
 
     async def shutdown(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
-        """Shut down the robot and its controller; returns when the controller is gone."""
         async with self._command("shutdown"):
             self.machine.check("shutdown")
             await self._require_remote()
@@ -621,21 +605,18 @@ class Cell(CellCommands):
     # ------------------------------------------------------------- queries
 
     async def get_robot_mode(self) -> RobotMode:
-        """The robot mode (``RobotMode.RUNNING``, ``IDLE``, ``POWER_OFF``, ...)."""
         async with self._command("get_robot_mode") as out:
             self.machine.check("get_robot_mode")
             out["result"] = mode = RobotMode(self._sample().robot_mode)
             return mode
 
     async def get_safety_status(self) -> SafetyMode:
-        """The safety mode (``SafetyMode.NORMAL``, ``PROTECTIVE_STOP``, ...)."""
         async with self._command("get_safety_status") as out:
             self.machine.check("get_safety_status")
             out["result"] = mode = SafetyMode(self._sample().safety_mode)
             return mode
 
     async def get_program_state(self) -> ProgramStatus:
-        """The controller's program state and loaded program (dashboard ``programState``)."""
         async with self._command("get_program_state") as out:
             self.machine.check("get_program_state")
             reply = await self._link().dashboard("programState")
@@ -648,7 +629,6 @@ class Cell(CellCommands):
             return status
 
     async def is_in_remote_control(self) -> bool:
-        """True when the teach pendant is in Remote control."""
         async with self._command("is_in_remote_control") as out:
             self.machine.check("is_in_remote_control")
             reply = await self._link().dashboard("is in remote control")
@@ -656,7 +636,6 @@ class Cell(CellCommands):
             return remote
 
     async def get_current_joint_values(self) -> tuple[float, ...]:
-        """The six joint positions, rad."""
         async with self._command("get_current_joint_values") as out:
             self.machine.check("get_current_joint_values")
             out["result"] = q = tuple(self._sample().actual_q)
@@ -671,7 +650,6 @@ class Cell(CellCommands):
         return pose
 
     async def get_current_pose(self) -> tuple[float, ...]:
-        """The TCP pose: position (m) and quaternion ``(x, y, z, qx, qy, qz, qw)``."""
         async with self._command("get_current_pose") as out:
             self.machine.check("get_current_pose")
             pose = self._tcp_pose()
@@ -679,14 +657,12 @@ class Cell(CellCommands):
             return result
 
     async def get_current_rpy(self) -> tuple[float, float, float]:
-        """The TCP orientation as roll, pitch, yaw (rad), R = Rz(y)·Ry(p)·Rx(r)."""
         async with self._command("get_current_rpy") as out:
             self.machine.check("get_current_pose")
             out["result"] = rpy = self._tcp_pose().rpy
             return rpy
 
     async def get_current_pose_rpy(self) -> tuple[float, ...]:
-        """The TCP pose as ``(x, y, z, roll, pitch, yaw)``."""
         async with self._command("get_current_pose_rpy") as out:
             self.machine.check("get_current_pose")
             pose = self._tcp_pose()
@@ -694,7 +670,6 @@ class Cell(CellCommands):
             return result
 
     async def get_velocity(self) -> tuple[float, ...]:
-        """The six joint velocities, rad/s."""
         async with self._command("get_velocity") as out:
             self.machine.check("get_velocity")
             out["result"] = qd = tuple(self._sample().actual_qd)
@@ -764,8 +739,6 @@ class Cell(CellCommands):
         await runner.stop(error, graceful=graceful)
 
     async def stop(self) -> bool:
-        """Stop the running move (it brakes to a stop) and the moves queued after it;
-        True if one was running."""
         async with self._command("stop") as out:
             self.machine.check("stop")
             self._stops += 1  # ends the moves waiting with queue=True too
@@ -837,13 +810,6 @@ class Cell(CellCommands):
         *,
         queue: bool = False,
     ) -> MoveResult:
-        """Move to joint positions (rad) on a jerk-limited, collision-free trajectory.
-
-        Factors in (0, 1] scale the joint velocity / acceleration limits for this move
-        (default: the cell's factors, see :meth:`set_velocity_factor`). While another
-        move runs, a move raises :class:`MoveInProgressError`, or with ``queue=True``
-        waits for it to end and then starts (every move method takes ``queue``).
-        """
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
         return await self._move("move_joint", args, JointTarget(target), queue=queue)
@@ -855,7 +821,6 @@ class Cell(CellCommands):
         *,
         queue: bool = False,
     ) -> MoveResult:
-        """Move to the configured home joints ([0, -π/2, 0, -π/2, 0, 0] by default)."""
         args = {"velocity_factor": velocity_factor, "acceleration_factor": acceleration_factor}
         return await self._move("go_home", args, JointTarget(self.config.home), queue=queue)
 
@@ -868,11 +833,6 @@ class Cell(CellCommands):
         linear: bool = False,
         queue: bool = False,
     ) -> MoveResult:
-        """Move the TCP to a pose: a Pose, [x, y, z, qx, qy, qz, qw] or [x, y, z, r, p, y].
-
-        ``linear=True`` moves the TCP on a straight line (else a joint-space move to the
-        IK solution nearest the current joints).
-        """
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor, "linear": linear}  # fmt: skip
         return await self._move("move_pose", args, PoseTarget(target, linear), queue=queue)
@@ -885,7 +845,6 @@ class Cell(CellCommands):
         *,
         queue: bool = False,
     ) -> MoveResult:
-        """Move the TCP by [dx, dy, dz] (m, base axes) on a straight line, orientation kept."""
         args = {"distance": distance, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
         return await self._move("move_distance", args, DistanceTarget(distance), queue=queue)
@@ -899,7 +858,6 @@ class Cell(CellCommands):
         *,
         queue: bool = False,
     ) -> MoveResult:
-        """Move to ``start_pose``, then to ``target_pose`` (both checked before moving)."""
         args = {"start_pose": start_pose, "target_pose": target_pose,
                 "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
@@ -907,29 +865,24 @@ class Cell(CellCommands):
         return await self._move("move_relative", args, target, queue=queue)
 
     async def set_velocity_factor(self, value: float) -> None:
-        """Default velocity factor of moves, in (0, 1]; InvalidFactorError otherwise."""
         async with self._command("set_velocity_factor", value=to_jsonable(value)):
             self._moves().set_velocity_factor(value)
 
     async def set_acceleration_factor(self, value: float) -> None:
-        """Default acceleration factor of moves, in (0, 1]; InvalidFactorError otherwise."""
         async with self._command("set_acceleration_factor", value=to_jsonable(value)):
             self._moves().set_acceleration_factor(value)
 
     async def get_velocity_factor(self) -> float:
-        """The default velocity factor of moves."""
         async with self._command("get_velocity_factor") as out:
             out["result"] = factor = self._moves().velocity_factor
             return factor
 
     async def get_acceleration_factor(self) -> float:
-        """The default acceleration factor of moves."""
         async with self._command("get_acceleration_factor") as out:
             out["result"] = factor = self._moves().acceleration_factor
             return factor
 
     async def get_max_acceleration(self) -> tuple[float, ...]:
-        """The joints' configured maximum accelerations (rad/s², before the factor)."""
         async with self._command("get_max_acceleration") as out:
             out["result"] = limits = self._moves().max_acceleration
             return limits
