@@ -209,7 +209,7 @@ async def test_operator_powers_on_moves_and_stops_from_the_page(
     browser: Browser, daemon: DaemonProcess, tmp_path: Path
 ) -> None:
     await browser.call("Page.navigate", url=f"{daemon.url}/#token={TOKEN}")
-    await browser.wait_for("document.querySelector('#link').textContent === 'live'")
+    await browser.wait_for("document.querySelector('#link').textContent === 'daemon live'")
     await browser.wait_for(state_is("power_off"))
     assert await browser.js("location.hash") == ""  # the token left the address bar
     disabled = await browser.js(
@@ -313,3 +313,75 @@ def check_screenshot(png: bytes, regions: dict[str, list[float]]) -> None:
         return p[1] > p[0] + 15 and p[1] > p[2] + 10
 
     assert share(crop("#cell-state"), greenish) > 0.5
+
+
+async def test_the_page_says_why_and_what_to_do_next_on_a_small_screen(
+    browser: Browser, daemon: DaemonProcess
+) -> None:
+    import httpx
+
+    await browser.call(
+        "Emulation.setDeviceMetricsOverride", width=1366, height=768,
+        deviceScaleFactor=1, mobile=False,
+    )  # fmt: skip
+    await browser.call("Page.navigate", url=f"{daemon.url}/#token={TOKEN}")
+    await browser.wait_for("document.querySelector('#link').textContent === 'daemon live'")
+    await browser.wait_for("document.querySelector('#remote').textContent === 'remote control'")
+    banner = "document.querySelector('#situation')"
+
+    async def situation() -> dict[str, Any]:
+        value: dict[str, Any] = await browser.js(
+            f"(() => {{ const r = {banner}.getBoundingClientRect();"
+            "return {text: document.querySelector('#situation-text').textContent,"
+            f"kind: {banner}.dataset.kind,"
+            "top: r.top, bottom: r.bottom}; })()"
+        )
+        return value
+
+    other = {"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": "intruder@lab"}
+    async with httpx.AsyncClient(base_url=daemon.url, timeout=30) as http:
+        # someone else takes control and powers the robot off: the page says to run init
+        r = await http.post("/api/control", json={"force": True}, headers=other)
+        lease = r.json()["lease"]
+        r = await http.post("/api/cell/power_off", headers={**other, "X-Fxcell-Lease": lease})
+        assert r.status_code == 200, r.text
+        await browser.wait_for(state_is("power_off"))
+        await browser.wait_for(f"{banner}.textContent.includes('run init')")
+        seen = await situation()
+        assert seen["kind"] == "warn"
+        assert seen["top"] >= 0  # where the operator looks
+        assert seen["bottom"] <= 768
+        (SCREENSHOT_DIR / "fxcell-page-power-off.png").write_bytes(await browser.screenshot())
+
+        # a command refused because another client holds control: the reason, in the banner
+        await browser.click("button[data-command=power_on]")
+        await browser.wait_for(f"{banner}.dataset.kind === 'bad'")
+        seen = await situation()
+        assert "refused" in seen["text"]
+        assert "controlled by 'intruder@lab'" in seen["text"]
+        assert seen["bottom"] <= 768
+        (SCREENSHOT_DIR / "fxcell-page-refused.png").write_bytes(await browser.screenshot())
+        assert "intruder@lab" in await browser.js("document.querySelector('#control').textContent")
+        r = await http.request("DELETE", "/api/control", headers={**other, "X-Fxcell-Lease": lease})
+        assert r.json() == {"released": True}
+
+    # the page's own command now goes through and clears the refusal
+    await browser.click("button[data-command=init]")
+    await browser.wait_for(state_is("running.external_control_ready"), within=30)
+    await browser.wait_for(f"{banner}.dataset.kind === 'ok'")
+    assert (await situation())["text"] == "Ready for moves."
+    assert await browser.js("document.querySelector('#control').textContent") == (
+        "control: this page"
+    )
+    await browser.click("#release-control")
+    await browser.wait_for("document.querySelector('#control').textContent === 'control: free'")
+    # state names fit their box, the joint inputs show their whole values
+    assert await browser.js(
+        "(() => { const e = document.querySelector('#cell-state');"
+        "return e.scrollWidth <= e.clientWidth; })()"
+    )
+    assert await browser.js(
+        "[...document.querySelectorAll('#form-joint input')]"
+        ".every(i => i.scrollWidth <= i.clientWidth + 1)"
+    )
+    assert await browser.js("document.querySelector('link[rel=icon]') !== null")

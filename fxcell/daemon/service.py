@@ -183,6 +183,7 @@ class CellService:
             "state": self._state,
             "connected": self.cell is not None,
             "cell_error": self.cell_error,
+            "remote_control": (None if self.cell is None else not self.cell.local_control),
             "robot": robot,
             "allowed": list(self.allowed_commands()),
             "control": self.control.describe(),

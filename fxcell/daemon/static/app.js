@@ -67,13 +67,92 @@ async function command(name, body, opts = {}) {
   try {
     const op = await api("POST", `/api/cell/${name}${wait}`, body);
     if (op && op.id) updateOperation(op);
+    if (name !== "stop") { page.problem = null; showSituation(); }
     return op;
   } catch (e) {
     log(`${name} refused: ${e.type}: ${e.message}`, "error");
     if (opts.errorBox) opts.errorBox.textContent = e.message;
+    reportProblem(`${label(name)} refused`, e.message);
     return null;
   }
 }
+
+// ------------------------------------------------------------------ the situation banner
+// One line under the header, where the operator looks: what the cell is doing and what
+// to do next (the statechart's `next` for each state), or why the last command failed.
+
+function label(name) { return name.replaceAll("_", " "); }
+
+function reportProblem(what, why) {
+  page.problem = { what, why, at: Date.now() };
+  showSituation();
+}
+
+function nextStep(state) {
+  if (!page.chart) return "";
+  const target = state === "disconnected" ? "disconnected" : `connected.${state}`;
+  const find = (states, prefix) => {
+    for (const s of states) {
+      const name = prefix + s.name;
+      if (name === target) return s.next || "";
+      if (s.children && target.startsWith(name + ".")) return find(s.children, name + ".");
+    }
+    return "";
+  };
+  return find(page.chart.states, "");
+}
+
+function showSituation() {
+  const el = $("#situation"), text = $("#situation-text");
+  let kind = "info", message;
+  const state = page.state || "disconnected";
+  const wsUp = page.ws && page.ws.readyState === WebSocket.OPEN;
+  if (!wsUp) {
+    kind = "bad"; message = "No connection to the fxcell daemon: is it running? (the page retries by itself)";
+  } else if (page.problem) {
+    kind = "bad"; message = `${page.problem.what}: ${page.problem.why}`;
+  } else if (state === "disconnected") {
+    kind = "bad";
+    message = `Robot not connected${page.cellError ? ": " + page.cellError : ""}. ${nextStep(state)}`;
+  } else if (page.remote === false) {
+    kind = "warn"; message = "The teach pendant is in Local control: switch it to Remote Control to command the cell.";
+  } else if (/protective_stop|safeguard_stop|emergency_stop|fault/.test(state)) {
+    kind = "bad"; message = `${label(state)}: ${nextStep(state)}`;
+  } else if (state.includes("external_control_ready")) {
+    kind = "ok"; message = "Ready for moves.";
+  } else if (state.includes("moving")) {
+    kind = "info"; message = "Moving. STOP brakes the arm to rest.";
+  } else {
+    const next = nextStep(state);
+    message = `${label(state.replace("running.", ""))}${next ? ": " + next : ""}`;
+    kind = /power_off|idle|program_stopped/.test(state) ? "warn" : "info";
+  }
+  el.className = `situation ${kind}`;
+  el.dataset.kind = kind;
+  text.textContent = message.charAt(0).toUpperCase() + message.slice(1);
+  $("#situation-dismiss").hidden = !page.problem;
+}
+
+function showRemote(remote) {
+  page.remote = remote;
+  const el = $("#remote");
+  if (remote === null || remote === undefined) { el.textContent = "remote: ?"; el.className = "pill"; }
+  else if (remote) { el.textContent = "remote control"; el.className = "pill ok"; }
+  else { el.textContent = "LOCAL control"; el.className = "pill warn"; }
+  showSituation();
+}
+
+$("#situation-dismiss").addEventListener("click", () => { page.problem = null; showSituation(); });
+
+async function pollCell() {
+  // what the stream does not carry: why the robot is not connected, the Local/Remote switch
+  try {
+    const snap = await api("GET", "/api/state");
+    page.cellError = snap.cell_error;
+    showRemote(snap.remote_control);
+  } catch (e) { /* the stream's own reconnect shows a lost daemon */ }
+}
+setInterval(pollCell, 2000);
 
 // ------------------------------------------------------------------ status display
 
@@ -97,16 +176,21 @@ function showState(state) {
   if (!state || state === page.state && page.chart && page.renderedState === state) return;
   page.state = state;
   const el = $("#cell-state");
-  el.textContent = state;
+  el.textContent = label(state.replace("running.", ""));  // whole words, never wrapped
   el.className = "big-state " + stateClass(state);
   el.dataset.state = state;
+  el.title = state;
+  if (state === "disconnected") {  // the last sample is stale: do not show it as current
+    for (const id of ["#robot-mode", "#safety-mode", "#runtime-state"]) $(id).textContent = "unknown (no link)";
+  }
   updateButtons();
   renderStatechart();
+  showSituation();
 }
 
 function showRobot(r) {
   page.robot = r;
-  if (!r) return;
+  if (!r || page.state === "disconnected") return;
   const form = $("#form-joint");
   if (!page.prefilled) {   // once: later the operator's input is left alone
     page.prefilled = true;
@@ -189,9 +273,11 @@ function connect() {
   const lease = page.lease ? `&lease=${encodeURIComponent(page.lease)}` : "";
   const ws = new WebSocket(`${proto}://${location.host}/api/stream?rate=50&client=${encodeURIComponent(page.client)}${lease}`);
   page.ws = ws;
-  ws.onopen = () => { page.wsRetry = 500; $("#link").textContent = "live"; $("#link").className = "pill ok"; };
+  ws.onopen = () => { page.wsRetry = 500; $("#link").textContent = "daemon live"; $("#link").className = "pill ok"; };
   ws.onclose = () => {
-    $("#link").textContent = "offline"; $("#link").className = "pill bad";
+    $("#link").textContent = "daemon offline"; $("#link").className = "pill bad";
+    page.problem = null;
+    showSituation();
     setTimeout(connect, page.wsRetry);
     page.wsRetry = Math.min(page.wsRetry * 2, 5000);
   };
@@ -204,6 +290,8 @@ function onMessage(m) {
       if (page.ws && page.ws.readyState === WebSocket.OPEN) page.ws.send(JSON.stringify({ type: "pong" }));
       break;
     case "hello":
+      page.cellError = m.snapshot.cell_error;
+      showRemote(m.snapshot.remote_control);
       showControl(m.snapshot.control);
       showState(m.snapshot.state);
       showRobot(m.snapshot.robot);
@@ -226,7 +314,10 @@ function onMessage(m) {
       break;
     case "operation":
       updateOperation(m);
-      if (m.status === "failed") log(`${m.id} ${m.name} failed: ${m.error.message}`, "error");
+      if (m.status === "failed") {
+        log(`${m.id} ${m.name} failed: ${m.error.message}`, "error");
+        reportProblem(`${label(m.name)} failed`, m.error.message);
+      }
       else if (m.status === "cancelled") log(`${m.id} ${m.name} cancelled`, "warn");
       break;
     case "control":
@@ -252,7 +343,7 @@ for (const b of $$("button[data-command]")) {
 }
 $("#form-joint button[data-command=go_home]").addEventListener("click", () => command("go_home", factors()));
 $("#stop").addEventListener("click", async () => {
-  log("STOP requested", "warn");
+  log("STOP requested");
   await command("stop", undefined);
 });
 $("#take-control").addEventListener("click", async () => {
