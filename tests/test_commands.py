@@ -171,7 +171,7 @@ async def api(request: pytest.FixtureRequest, shared_sim: SimulatorHandle) -> As
         service = CellService(cell.config, TOKEN)
         service.attach(cell)
         transport = httpx.ASGITransport(app=create_app(service))
-        async with RemoteCell("http://daemon", TOKEN, transport=transport) as remote:
+        async with RemoteCell("http://127.0.0.1:8040", TOKEN, transport=transport) as remote:
             yield remote
         await service.operations.cancel_all()
         service.detach()
