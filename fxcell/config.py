@@ -55,6 +55,12 @@ class RobotConfig(_Model):
     stall_timeout: float = Field(0.05, ge=0.01, le=0.09)
     """... and when no robot state has arrived for this long (s); below the 100 ms after
     which the cell declares the link down."""
+    calibration: str | None = None
+    """UR ``calibration.conf`` of the arm; ``None``: read it from the controller at connect
+    (primary interface, kinematics info)."""
+    accept_nominal_kinematics: bool = False
+    """Allow pose moves on the nominal model when the calibration cannot be read (the TCP may
+    then be millimetres off); otherwise such moves raise ``UncalibratedError``."""
 
 
 class ToolConfig(_Model):

@@ -22,6 +22,16 @@ class ConfigError(FxcellError, ValueError):
     """A configuration file or value is invalid; the message names the bad key."""
 
 
+class CalibrationError(FxcellError, ValueError):
+    """A calibration (UR's ``calibration.conf`` or the controller's kinematics info) is
+    unreadable or malformed."""
+
+
+class UncalibratedError(FxcellError):
+    """A pose move was refused: the arm's calibration could not be read and the configuration
+    does not accept the nominal model (``robot.accept_nominal_kinematics``); nothing was sent."""
+
+
 # ----------------------------------------------------------------- bad input
 
 
