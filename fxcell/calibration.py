@@ -41,7 +41,8 @@ KINEMATICS_INFO_SIZE = 5 + _KIN_BODY.size
 """Bytes of the whole sub-package, its 4-byte length and 1-byte type included (225)."""
 
 CALIBRATION_STATUS_LINEARISED = 2
-"""``calibration_status`` of a calibrated arm (0 not initialised, 1 not linearised, 2 linearised)."""
+"""``calibration_status`` of a calibrated arm (0 not initialised, 1 not linearised,
+2 linearised)."""
 
 _ZERO: Six = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _KEYS = ("delta_theta", "delta_a", "delta_d", "delta_alpha")
@@ -54,7 +55,7 @@ def _six(values: Sequence[float], what: str) -> Six:
         raise CalibrationError(f"{what} must be 6 numbers, got {values!r}") from None
     if len(out) != 6 or not all(math.isfinite(v) for v in out):
         raise CalibrationError(f"{what} must be 6 finite numbers, got {values!r}")
-    return out  # type: ignore[return-value]
+    return out
 
 
 @dataclass(frozen=True)

@@ -56,11 +56,8 @@ class RobotConfig(_Model):
     """... and when no robot state has arrived for this long (s); below the 100 ms after
     which the cell declares the link down."""
     calibration: str | None = None
-    """UR ``calibration.conf`` of the arm; ``None``: read it from the controller at connect
-    (primary interface, kinematics info)."""
-    accept_nominal_kinematics: bool = False
-    """Allow pose moves on the nominal model when the calibration cannot be read (the TCP may
-    then be millimetres off); otherwise such moves raise ``UncalibratedError``."""
+    """The arm's ``calibration.conf`` (UR's format): FK and IK use the calibrated model;
+    ``None``: the nominal UR3e model."""
 
 
 class ToolConfig(_Model):

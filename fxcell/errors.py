@@ -27,11 +27,6 @@ class CalibrationError(FxcellError, ValueError):
     unreadable or malformed."""
 
 
-class UncalibratedError(FxcellError):
-    """A pose move was refused: the arm's calibration could not be read and the configuration
-    does not accept the nominal model (``robot.accept_nominal_kinematics``); nothing was sent."""
-
-
 # ----------------------------------------------------------------- bad input
 
 

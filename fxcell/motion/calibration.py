@@ -30,12 +30,11 @@ from fxcell.motion.kinematics import (
     JointValidity,
     Kinematics,
     _joints,
-    _pose_error,
     dh_transform,
 )
 
 if TYPE_CHECKING:
-    from fxcell.config import JointLimits
+    from fxcell.config import CellConfig, JointLimits
 
 Backend = Literal["pinocchio", "numpy"]
 
@@ -113,7 +112,8 @@ class CalibratedKinematics(Kinematics):
             pin.framesForwardKinematics(model, data, q)
             out: FloatArray = data.oMf[fid].homogeneous
             return out
-        return self._frames(q)[7]
+        frame: FloatArray = self._frames(q)[7]
+        return frame
 
     def forward(self, q: ArrayLike) -> Pose:
         F = self._frames(q)[7]
@@ -292,3 +292,14 @@ def calibrated_model(calibration: Calibration, tcp: Pose | None = None) -> Any:
     tool = placement * pin.SE3((tcp or Pose.identity()).matrix)
     model.addFrame(pin.Frame("tcp", parent, flange, tool, pin.FrameType.OP_FRAME))
     return model
+
+
+def kinematics_for(config: CellConfig, *, backend: Backend = "pinocchio") -> Kinematics:
+    """The arm of a configuration: calibrated when ``robot.calibration`` names a file (read
+    here; CalibrationError if it is unreadable), else the nominal UR3e; with the tool's TCP
+    and the joint limits."""
+    tcp, limits = config.tool.tcp, config.limits
+    if config.robot.calibration is None:
+        return Kinematics.ur3e(tcp, limits)
+    calibration = Calibration.load(config.robot.calibration)
+    return CalibratedKinematics.ur3e_calibrated(calibration, tcp, limits, backend=backend)
