@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 
 from fxcell.calibration import Calibration
 from fxcell.errors import SingularityError, UnreachableError
-from fxcell.geometry import Pose, matrix_to_rotvec
+from fxcell.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
 from fxcell.motion.kinematics import (
     JOINT_NAMES,
     TWO_PI,
@@ -42,7 +42,15 @@ CONVERGED = 1e-12
 """Pose error norm (m and rad together) at which refinement stops."""
 ACCEPTED = 1e-9
 """Pose error norm above which a refined branch is dropped (did not converge)."""
-_ITERATIONS = 12
+_ITERATIONS = 20
+_EDGE_STEPS = (0.005, 0.02)
+"""Metres by which a target at the edge of the nominal workspace is moved to find starts."""
+_ROUNDING = 1e-11
+"""Pose error norm below which a step that does not improve ends the refinement."""
+_SAME_START = 0.05
+"""Radians (per joint) within which two starting points count as one."""
+_EDGE_TURN = 0.02
+"""Radians by which a target near a wrist singularity is turned to find starts."""
 
 
 class CalibratedKinematics(Kinematics):
@@ -160,13 +168,44 @@ class CalibratedKinematics(Kinematics):
         M = self.nominal.forward(q).matrix @ F_inv @ target.matrix
         return Pose._raw(M[:3, 3].copy(), M[:3, :3].copy())
 
+    def _corrected(self, target: Pose, q: FloatArray) -> FloatArray:
+        """The nominal solution for ``target`` corrected by the offset at ``q`` (a nominal
+        solution of a branch): on the same branch and ~1e-6 m from the calibrated solution;
+        ``q`` itself if the corrected target has no solution."""
+        try:
+            return self.nominal.inverse(self.nominal_target(target, q), q)
+        except UnreachableError:
+            return q
+
     def _starts(self, target: Pose, seed: FloatArray) -> list[FloatArray]:
-        """Nominal closed-form solutions to refine: for the offset-corrected target first, then
-        for the target itself, nearest ``seed`` first within each."""
+        """Nominal closed-form solutions to refine, each re-solved for the target corrected by
+        the offset on its own branch: from the target and the seed-corrected target, nearest
+        ``seed`` first."""
+        return [self._corrected(target, q) for q in self._first_starts(target, seed)]
+
+    def _first_starts(self, target: Pose, seed: FloatArray) -> list[FloatArray]:
+        """Nominal solutions for the target, the seed-corrected target and, since a branch
+        at the edge of the nominal workspace (arm stretched, wrist centre near axis 1, wrist
+        singular) may have none, for targets moved a little inwards (towards the shoulder),
+        outwards (away from axis 1) and turned about the tool's axes; nearest seed first."""
+        p, R = target.position, target.rotation
+        inwards = np.array([0.0, 0.0, UR3E_DH.d[0]]) - p
+        inwards /= max(float(np.linalg.norm(inwards)), 1e-9)
+        outwards = np.array([p[0], p[1], 0.0])
+        outwards /= max(float(np.linalg.norm(outwards)), 1e-9)
+        poses = [target, self.nominal_target(target, seed)]
+        poses += [Pose._raw(p + step * d, R) for step in _EDGE_STEPS for d in (inwards, outwards)]
+        poses += [
+            Pose._raw(p, R @ rotvec_to_matrix(sign * _EDGE_TURN * axis))
+            for axis in np.eye(3)
+            for sign in (1.0, -1.0)
+        ]
         out: list[FloatArray] = []
-        for pose in (self.nominal_target(target, seed), target):
-            out += self.nominal.inverse_all(pose, seed)
-        # at the edge of the nominal workspace neither may have a solution: start at the seed
+        for pose in poses:
+            for q in self.nominal.inverse_all(pose, seed):
+                if not any(np.max(np.abs(q - kept)) < _SAME_START for kept in out):
+                    out.append(q)
+        out.sort(key=lambda q: float(np.sum((q - seed) ** 2)))
         return out or [seed]
 
     def inverse(
@@ -182,13 +221,12 @@ class CalibratedKinematics(Kinematics):
         target = pose if isinstance(pose, Pose) else Pose.parse(pose)
         s = np.zeros(6) if seed is None else np.array(_joints(seed))
         if valid is None and singularity_margin is None:
-            for start in (self.nominal_target(target, s), target):
-                try:
-                    q = self.solve(self.nominal.inverse(start, s), target)
-                except UnreachableError:
-                    q = None
-                if q is not None:
-                    return q
+            try:
+                q = self.solve(self._corrected(target, self.nominal.inverse(target, s)), target)
+            except UnreachableError:
+                q = None
+            if q is not None:
+                return q
         solutions = self.inverse_all(target, s)
         if not solutions:
             raise UnreachableError(
@@ -255,23 +293,43 @@ class CalibratedKinematics(Kinematics):
         return frames[7], np.vstack((np.cross(z, d).T, z.T))
 
     def _newton(self, q: FloatArray, target: Pose) -> tuple[FloatArray, float]:
-        """Newton steps (damped when the Jacobian is singular) on the TCP pose error."""
+        """Newton steps on the TCP pose error; a step that does not lower the error is
+        retried damped (Levenberg-Marquardt), as near a singularity."""
         Rt, pt = target.rotation, target.position
+
+        def error(F: FloatArray) -> FloatArray:
+            return np.concatenate((pt - F[:3, 3], matrix_to_rotvec(Rt @ F[:3, :3].T)))
+
+        F, J = self._tcp_and_jacobian(q)
+        err = error(F)
+        norm = float(np.linalg.norm(err))
         lam = 0.0
-        norm = math.inf
-        for k in range(_ITERATIONS + 1):
-            F, J = self._tcp_and_jacobian(q)
-            err = np.concatenate((pt - F[:3, 3], matrix_to_rotvec(Rt @ F[:3, :3].T)))
-            norm = float(np.linalg.norm(err))
-            if norm < CONVERGED or k == _ITERATIONS:
+        for _ in range(_ITERATIONS):
+            if norm < CONVERGED:
                 break
-            if lam == 0.0:
-                try:
-                    q = q + np.linalg.solve(J, err)
-                    continue
-                except np.linalg.LinAlgError:
-                    lam = 1e-10
-            q = q + J.T @ np.linalg.solve(J @ J.T + lam * np.eye(6), err)
+            try:
+                if lam == 0.0:
+                    step = np.linalg.solve(J, err)
+                else:
+                    step = J.T @ np.linalg.solve(J @ J.T + lam * np.eye(6), err)
+            except np.linalg.LinAlgError:
+                lam = max(lam, 1e-9)
+                continue
+            trial = q + step
+            F, J_trial = self._tcp_and_jacobian(trial)
+            trial_err = error(F)
+            trial_norm = float(np.linalg.norm(trial_err))
+            if trial_norm < norm:
+                q, J, err, norm = trial, J_trial, trial_err, trial_norm
+                lam *= 0.1 if lam > 1e-9 else 0.0
+            else:
+                if norm < _ROUNDING:  # at the rounding floor: no better step exists
+                    break
+                lam = 1e-6 if lam == 0.0 else lam * 10.0
+                if lam > 1.0:
+                    break
+                if self.backend == "pinocchio":
+                    self._tcp_and_jacobian(q)  # keep Pinocchio's data at q
         return q, norm
 
 
