@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Awaitable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -88,24 +88,24 @@ async def pose_target(cell: Cell, offset: tuple[float, float, float]) -> Pose:
     return Pose(here.position + np.array(offset), here.rotation)
 
 
-async def traced(cell: Cell, move: asyncio.Future[object] | object) -> list[Pose]:
-    """The reported TCP at every sample while ``move`` (an awaitable) runs."""
-    trace: list[Pose] = []
+async def traced(cell: Cell, move: Awaitable[object]) -> list[Pose]:
+    """The reported TCP at every sample while ``move`` runs (converted afterwards: the loop
+    stays free for the move's heartbeat)."""
+    samples: list[tuple[float, ...]] = []
     with cell.robot_states() as states:
-        task = asyncio.ensure_future(move)  # type: ignore[arg-type]
 
         async def collect() -> None:
             async for s in states:
-                trace.append(reported_tcp(s))
+                samples.append(s.actual_tcp_pose)
 
         collector = asyncio.create_task(collect())
         try:
-            await task
+            await move
         finally:
             collector.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await collector
-    return trace
+    return [Pose.from_ur(p) @ TOOL for p in samples]
 
 
 def line_deviation(trace: list[Pose], start: Pose, end: Pose) -> float:
