@@ -11,6 +11,8 @@ if TYPE_CHECKING:
     from fxcell._version import __version__
     from fxcell.cell import Cell
     from fxcell.cell.statemachine import CellState
+    from fxcell.client import RemoteCell
+    from fxcell.commands import CellCommands
     from fxcell.config import CellConfig
     from fxcell.protocol import ProgramState, RobotMode, RobotState, SafetyMode
     from fxcell.results import MoveResult, ProgramStatus
@@ -23,6 +25,8 @@ _LAZY = {
     "ProgramStatus": "fxcell.results",
     "CellConfig": "fxcell.config",
     "CellState": "fxcell.cell.statemachine",
+    "CellCommands": "fxcell.commands",
+    "RemoteCell": "fxcell.client",
     "MoveResult": "fxcell.results",
     "ProgramState": "fxcell.protocol",
     "RobotMode": "fxcell.protocol",
@@ -42,12 +46,14 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "Cell",
+    "CellCommands",
     "CellConfig",
     "CellState",
     "FxcellError",
     "MoveResult",
     "ProgramState",
     "ProgramStatus",
+    "RemoteCell",
     "RobotMode",
     "RobotState",
     "SafetyMode",

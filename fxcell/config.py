@@ -55,6 +55,9 @@ class RobotConfig(_Model):
     stall_timeout: float = Field(0.05, ge=0.01, le=0.09)
     """... and when no robot state has arrived for this long (s); below the 100 ms after
     which the cell declares the link down."""
+    calibration: str | None = None
+    """The arm's ``calibration.conf`` (UR's format): FK and IK use the calibrated model;
+    ``None``: the nominal UR3e model."""
 
 
 class ToolConfig(_Model):

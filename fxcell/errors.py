@@ -22,6 +22,11 @@ class ConfigError(FxcellError, ValueError):
     """A configuration file or value is invalid; the message names the bad key."""
 
 
+class CalibrationError(FxcellError, ValueError):
+    """A calibration (UR's ``calibration.conf`` or the controller's kinematics info) is
+    unreadable or malformed."""
+
+
 # ----------------------------------------------------------------- bad input
 
 

@@ -48,6 +48,39 @@ def test_cell_and_remote_cell_have_the_tables_signatures_and_result_types() -> N
     assert table_methods == set(COMMANDS)
 
 
+def test_cell_checks_the_guard_the_table_names() -> None:
+    import ast
+    import textwrap
+
+    for name, entry in COMMANDS.items():
+        if entry.kind == "move":
+            continue  # every move goes through Cell._run_move, which checks "move"
+        tree = ast.parse(textwrap.dedent(inspect.getsource(getattr(Cell, name))))
+        checked = [
+            node.args[0].value
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "check"
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+        ]
+        assert checked[:1] == ([entry.guard] if entry.guard else []), name
+    run_move = inspect.getsource(Cell._run_move)
+    assert 'self.machine.check("move", name)' in run_move
+    assert {c.guard for c in COMMANDS.values() if c.kind == "move"} == {"move"}
+
+
+def test_the_operator_page_names_only_commands_of_the_table() -> None:
+    import re
+    from importlib import resources
+
+    html = (resources.files("fxcell.daemon") / "static" / "index.html").read_text()
+    named = set(re.findall(r'data-command="([a-z_]+)"', html))
+    assert named
+    assert named <= set(COMMANDS)
+
+
 def test_the_table_and_the_client_import_without_the_motion_stack() -> None:
     code = (
         "import sys\n"
@@ -138,7 +171,7 @@ async def api(request: pytest.FixtureRequest, shared_sim: SimulatorHandle) -> As
         service = CellService(cell.config, TOKEN)
         service.attach(cell)
         transport = httpx.ASGITransport(app=create_app(service))
-        async with RemoteCell("http://127.0.0.1", TOKEN, transport=transport) as remote:
+        async with RemoteCell("http://127.0.0.1:8040", TOKEN, transport=transport) as remote:
             yield remote
         await service.operations.cancel_all()
         service.detach()

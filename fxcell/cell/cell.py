@@ -643,9 +643,9 @@ class Cell(CellCommands):
 
     def _tcp_pose(self) -> Pose:
         if self._kinematics is None:
-            from fxcell.motion.kinematics import Kinematics
+            from fxcell.motion.calibration import kinematics_for
 
-            self._kinematics = Kinematics.ur3e(self.config.tool.tcp)
+            self._kinematics = kinematics_for(self.config, backend="numpy")
         pose: Pose = self._kinematics.forward(self._sample().actual_q)
         return pose
 

@@ -9,24 +9,6 @@ from pydantic import BaseModel, ConfigDict, Field, create_model
 from fxcell import commands
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
-Factor = Annotated[
-    float,
-    Field(gt=0, le=1, allow_inf_nan=False, description="scale of the joint limits, in (0, 1]"),
-]
-Joints = Annotated[
-    list[Finite],
-    Field(min_length=6, max_length=6, description="joint positions (rad), base to wrist 3"),
-]
-PoseList = Annotated[
-    list[Finite],
-    Field(
-        min_length=6,
-        max_length=7,
-        description="[x, y, z, roll, pitch, yaw] or [x, y, z, qx, qy, qz, qw] in the base frame "
-        "(m, rad)",
-    ),
-]
-Vector3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 
 
 class Body(BaseModel):
@@ -36,17 +18,20 @@ class Body(BaseModel):
 
 
 Flag = bool
-Seconds = Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)]
 
-# The pydantic type of each argument type of the command table.
-FIELD_TYPES: dict[str, Any] = {
-    commands.FACTOR.name: Factor,
-    commands.JOINTS.name: Joints,
-    commands.POSE.name: PoseList,
-    commands.VECTOR3.name: Vector3,
-    commands.FLAG.name: Flag,
-    commands.SECONDS.name: Seconds,
-}
+
+def field_type(kind: commands.ArgType) -> Any:
+    """The pydantic type of an argument type of the command table: a finite float in its
+    bounds (low exclusive, high inclusive), a list of finite floats of its lengths, or a
+    flag (JSON types only: the models are strict)."""
+    if kind.scalar == "bool":
+        return Flag
+    if kind.length is not None:
+        low, high = kind.length
+        return Annotated[list[Finite], Field(min_length=low, max_length=high)]
+    if kind.bounds is not None:
+        return Annotated[Finite, Field(gt=kind.bounds[0], le=kind.bounds[1])]
+    return Finite
 
 
 def request_model(command: commands.Command) -> type[Body] | None:
@@ -55,7 +40,7 @@ def request_model(command: commands.Command) -> type[Body] | None:
         return None
     fields: dict[str, Any] = {}
     for arg in command.args:
-        annotation = FIELD_TYPES[arg.type.name]
+        annotation = field_type(arg.type)
         unit = f" ({arg.type.unit})" if arg.type.unit else ""
         info = Field(description=arg.doc + unit)
         if arg.required:

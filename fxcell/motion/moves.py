@@ -43,7 +43,7 @@ from fxcell.errors import (
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
 from fxcell.link.process import Guard
-from fxcell.motion.kinematics import Kinematics
+from fxcell.motion.calibration import kinematics_for
 from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
 from fxcell.motion.runner import (
     DistanceTarget,
@@ -134,7 +134,7 @@ class MotionPlanner:
     ) -> None:
         self.config = config
         self.limits = config.limits
-        self.kinematics = Kinematics.ur3e(tcp=config.tool.tcp, limits=config.limits)
+        self.kinematics = kinematics_for(config)
         if checker is None:
             from fxcell.motion.collision import CollisionChecker  # Pinocchio + coal: load on use
 

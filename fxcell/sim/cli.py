@@ -48,6 +48,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="cell configuration (scene, home): default config/cell.yaml")
     p.add_argument("--joints", type=_joints, help="initial joint positions q1,...,q6 (rad)")
     p.add_argument(
+        "--calibration",
+        metavar="FILE",
+        help="the arm's factory calibration (UR's calibration.conf): default all-zero deltas",
+    )
+    p.add_argument(
         "--urcap-port",
         type=int,
         default=50002,
@@ -106,7 +111,15 @@ def run(args: argparse.Namespace) -> int:
 
     if args.exit_with_parent:
         _watch_parent()
+    from fxcell.calibration import Calibration
+    from fxcell.errors import CalibrationError
+
     config = CellConfig.load(args.config)
+    try:
+        calibration = Calibration.load(args.calibration) if args.calibration else None
+    except CalibrationError as exc:
+        print(f"fxcell sim: {exc}", file=sys.stderr)
+        return 2
     return serve(
         args.host,
         time_scale=args.time_scale,
@@ -114,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
         joints=args.joints,
         urcap_port=args.urcap_port,
         realtime=args.realtime,
+        calibration=calibration,
     )
 
 

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
 from fxcell.link.embedded import CONTROL_PORT
 from fxcell.protocol import (
@@ -153,7 +154,9 @@ class SimServer:
         config: CellConfig | None = None,
         joints: Sequence[float] | None = None,
         urcap_port: int = URCAP_SCRIPT_PORT,
+        calibration: Calibration | None = None,
     ) -> None:
+        from fxcell.motion.calibration import CalibratedKinematics
         from fxcell.motion.kinematics import Kinematics
 
         self.host = host
@@ -161,8 +164,14 @@ class SimServer:
         self.urcap_port = urcap_port
         limits = (self.config.limits.position_min, self.config.limits.position_max)
 
+        self.calibration = calibration or Calibration.nominal()
+        cal = self.calibration
+
         def make_kinematics(tcp: Any) -> Kinematics:
-            return Kinematics.ur3e(tcp, limits)
+            if cal.is_nominal:
+                return Kinematics.ur3e(tcp, limits)
+            # the controller's FK, actual_TCP_pose and its own moves use the calibrated model
+            return CalibratedKinematics(cal, tcp, limits, backend="numpy")
 
         table = next((o for o in self.config.scene.objects if o.name == "table"), None)
         guard = TableGuard(table.position, table.size) if table is not None else None
@@ -455,13 +464,19 @@ def run(
     joints: Sequence[float] | None = None,
     urcap_port: int = URCAP_SCRIPT_PORT,
     realtime: bool = False,
+    calibration: Calibration | None = None,
 ) -> int:
     """Run the simulator until SIGINT/SIGTERM or a dashboard ``shutdown``; exit code."""
     from fxcell.sim.controller import DELAYS
 
     _raise_priority(realtime)
     sim = SimServer(
-        host, time_scale=time_scale, config=config, joints=joints, urcap_port=urcap_port
+        host,
+        time_scale=time_scale,
+        config=config,
+        joints=joints,
+        urcap_port=urcap_port,
+        calibration=calibration,
     )
     loop = new_event_loop()
     try:

@@ -1,0 +1,271 @@
+"""The arm's factory calibration: UR's file and wire formats, and the calibrated kinematics."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fxcell.calibration import KINEMATICS_INFO_SIZE, KINEMATICS_INFO_TYPE, Calibration
+from fxcell.config import CellConfig
+from fxcell.errors import CalibrationError, UnreachableError
+from fxcell.motion.calibration import CalibratedKinematics, calibrated_model, kinematics_for
+from fxcell.motion.kinematics import Kinematics
+
+pytestmark = pytest.mark.timeout(60)
+
+TCP = [0.0, 0.0, 0.1507, 0.0, 0.0, 0.0]
+
+# The layout of a controller's /root/.urcontrol/calibration.conf (values made up here).
+UR_CONF = """\
+[mounting]
+delta_theta = [ -8.2e-05, 0.00103, -0.00067, 0.00057, -4.6e-05, 9.7e-07]
+delta_a = [ -0.000161, 0.00104, 0.00164, -9.6e-05, -2.9e-05, 0]
+delta_d = [ 0.000505, 0.0011, -0.0019, 0.0008, -0.000212, -0.000126]
+delta_alpha = [ -0.000321, -0.00156, -0.00178, -0.00106, 0.000999, 0]
+joint_checksum = [ 0x6e0f7bf, 0xa32a713f, 0xf636a50, 0x9ec2338a, 0xa1afded8, 0xb29b2979]
+calibration_status = 2 # 0 == notInitialized / 1 == notLinearised / 2 == Linearised
+joint_raw_offset = [ 0x31aa98, 0x324a55, 0xd4b163, 0xdd705d, 0xdce343, 0xdce0d7]
+"""
+
+lengths = st.floats(-0.002, 0.002, allow_nan=False)
+angles = st.floats(-0.002, 0.002, allow_nan=False)
+six_lengths = st.tuples(*[lengths] * 6)
+six_angles = st.tuples(*[angles] * 6)
+calibrations = st.builds(Calibration, six_angles, six_lengths, six_lengths, six_angles)
+joints = st.tuples(*[st.floats(-math.pi, math.pi, allow_nan=False)] * 6)
+
+
+def _pose_error(k: Kinematics, q: object, target: object) -> tuple[float, float]:
+    from fxcell.geometry import Pose
+
+    assert isinstance(target, Pose)
+    p = k.forward(np.asarray(q, float))
+    return float(np.linalg.norm(p.position - target.position)), p.angle_to(target)
+
+
+def _away_from_singularities(k: Kinematics, q: np.ndarray) -> bool:
+    shoulder, elbow, wrist = k.singularity_margins(q)
+    return shoulder > 0.02 and elbow > 0.05 and wrist > 0.05
+
+
+# ----------------------------------------------------------------- formats
+
+
+def test_reads_the_controllers_calibration_conf_layout() -> None:
+    c = Calibration.parse_conf(UR_CONF)
+    assert c.delta_theta[1] == 0.00103
+    assert c.delta_a[5] == 0.0
+    assert c.delta_d == (0.000505, 0.0011, -0.0019, 0.0008, -0.000212, -0.000126)
+    assert c.delta_alpha[0] == -0.000321
+    assert not c.is_nominal
+    assert c.max_length_delta == 0.0019
+    assert c.max_angle_delta == 0.00178
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[mounting]\ndelta_theta = [0,0,0,0,0,0]\n", "no delta_a"),
+        (UR_CONF.replace("delta_a = [ -0.000161,", "delta_a = [ "), "6 finite numbers"),
+        (UR_CONF.replace("0.00104", "abc"), "not numbers"),
+        (UR_CONF.replace("delta_d = [", "delta_d = ("), "must be a [list]"),
+        (UR_CONF.replace("0.00104", "nan"), "6 finite numbers"),
+    ],
+)
+def test_a_malformed_calibration_file_is_a_calibration_error(text: str, message: str) -> None:
+    with pytest.raises(CalibrationError, match=message.replace("[", r"\[")):
+        Calibration.parse_conf(text)
+
+
+def test_an_unreadable_calibration_file_is_a_calibration_error(tmp_path: object) -> None:
+    with pytest.raises(CalibrationError, match="cannot read"):
+        Calibration.load("/nonexistent/calibration.conf")
+
+
+@settings(max_examples=50, deadline=None)
+@given(calibrations)
+def test_calibration_conf_round_trips_exactly(c: Calibration) -> None:
+    assert Calibration.parse_conf(c.to_conf()) == c
+
+
+@settings(max_examples=50, deadline=None)
+@given(calibrations)
+def test_kinematics_info_carries_the_calibrated_dh_and_round_trips(c: Calibration) -> None:
+    package = c.kinematics_info()
+    assert len(package) == KINEMATICS_INFO_SIZE == 225
+    assert struct.unpack_from(">IB", package) == (225, KINEMATICS_INFO_TYPE)
+    # checksums, then the calibrated (nominal + delta) θ, a, d, α, then the status
+    fields = struct.unpack_from(">6I24dI", package, 5)
+    assert fields[:6] == c.joint_checksums()
+    assert fields[6:30] == tuple(v for values in c.dh() for v in values)
+    assert fields[30] == 2
+    back = Calibration.from_kinematics_info(package)
+    for key in ("delta_theta", "delta_a", "delta_d", "delta_alpha"):
+        assert np.allclose(getattr(back, key), getattr(c, key), rtol=0, atol=1e-15)
+    assert Calibration.from_kinematics_info(package[5:]).checksum == back.checksum
+
+
+@settings(max_examples=30, deadline=None)
+@given(calibrations, st.integers(5 + 24, KINEMATICS_INFO_SIZE - 5))
+def test_a_changed_dh_value_fails_its_joints_checksum(c: Calibration, at: int) -> None:
+    package = bytearray(c.kinematics_info())
+    package[at] ^= 0x01
+    with pytest.raises(CalibrationError, match="checksum mismatch"):
+        Calibration.from_kinematics_info(bytes(package))
+
+
+def test_checksums_tell_calibrations_apart_and_nominal_is_all_zero() -> None:
+    nominal = Calibration.nominal()
+    assert nominal.is_nominal
+    assert nominal.summary()["nominal"] is True
+    c = Calibration.parse_conf(UR_CONF)
+    assert c.checksum != nominal.checksum
+    changed = Calibration(c.delta_theta, c.delta_a, c.delta_d, (0.0,) * 6)
+    assert [
+        a == b for a, b in zip(c.joint_checksums(), changed.joint_checksums(), strict=True)
+    ] == [
+        False,
+        False,
+        False,
+        False,
+        False,
+        True,
+    ]
+    assert len(c.checksum) == 8
+    assert int(c.checksum, 16) >= 0
+
+
+def test_not_a_kinematics_info_package_is_refused() -> None:
+    package = bytearray(Calibration.nominal().kinematics_info())
+    package[4] = 4
+    with pytest.raises(CalibrationError, match="not a kinematics info"):
+        Calibration.from_kinematics_info(bytes(package))
+    with pytest.raises(CalibrationError, match="bytes of body"):
+        Calibration.from_kinematics_info(bytes(package[:100]))
+
+
+# ----------------------------------------------------------------- kinematics
+
+
+@settings(max_examples=40, deadline=None)
+@given(joints)
+def test_all_zero_deltas_give_the_nominal_arm(q: tuple[float, ...]) -> None:
+    nominal = Kinematics.ur3e(TCP)
+    for backend in ("numpy", "pinocchio"):
+        k = CalibratedKinematics(Calibration.nominal(), TCP, backend=backend)
+        assert np.allclose(k.forward(q).matrix, nominal.forward(q).matrix, atol=1e-14)
+        assert np.allclose(k.jacobian(q), nominal.jacobian(q), atol=1e-13)
+
+
+@settings(max_examples=40, deadline=None)
+@given(calibrations, joints)
+def test_pinocchio_model_and_numpy_chain_agree(c: Calibration, q: tuple[float, ...]) -> None:
+    import pinocchio as pin
+
+    k = CalibratedKinematics(c, TCP)
+    model = calibrated_model(c, k.tcp)
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, np.array(q))
+    assert np.allclose(
+        data.oMf[model.getFrameId("tcp")].homogeneous, k.forward(q).matrix, atol=1e-13
+    )
+    assert np.allclose(
+        data.oMf[model.getFrameId("tool0")].homogeneous, k.forward_flange(q).matrix, atol=1e-13
+    )
+
+
+@settings(max_examples=40, deadline=None)
+@given(calibrations, joints)
+def test_calibrated_jacobian_is_the_derivative_of_the_forward_kinematics(
+    c: Calibration, q: tuple[float, ...]
+) -> None:
+    from fxcell.geometry import matrix_to_rotvec
+
+    k = CalibratedKinematics(c, TCP, backend="numpy")
+    J = k.jacobian(q)
+    p0 = k.forward(q)
+    h = 1e-7
+    for j in range(6):
+        dq = np.array(q)
+        dq[j] += h
+        p1 = k.forward(dq)
+        v = (p1.position - p0.position) / h
+        w = np.asarray(matrix_to_rotvec(p1.rotation @ p0.rotation.T)) / h
+        assert np.allclose(J[:3, j], v, atol=1e-6)
+        assert np.allclose(J[3:, j], w, atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(calibrations, joints, st.sampled_from(["pinocchio", "numpy"]))
+def test_calibrated_inverse_reaches_poses_the_nominal_inverse_misses(
+    c: Calibration, q: tuple[float, ...], backend: str
+) -> None:
+    k = CalibratedKinematics(c, TCP, backend=backend)  # type: ignore[arg-type]
+    qa = np.array(q)
+    if not _away_from_singularities(k, qa):
+        return
+    target = k.forward(qa)
+    solution = k.inverse(target, qa + 0.01)
+    dp, da = _pose_error(k, solution, target)
+    assert dp < 1e-10
+    assert da < 1e-10
+    assert np.max(np.abs(solution - qa)) < 1e-6  # the branch of the seed
+    for other in k.inverse_all(target, qa):
+        dp, da = _pose_error(k, other, target)
+        assert dp < 1e-10
+        assert da < 1e-10
+
+
+def test_nominal_inverse_on_a_calibrated_arm_misses_by_millimetres() -> None:
+    c = Calibration.parse_conf(UR_CONF)
+    k = CalibratedKinematics(c, TCP)
+    rng = np.random.default_rng(3)
+    misses = []
+    for _ in range(50):
+        q = rng.uniform(-math.pi, math.pi, 6)
+        if not _away_from_singularities(k, q):
+            continue
+        target = k.forward(q)
+        misses.append(_pose_error(k, k.nominal.inverse(target, q), target)[0])
+        assert _pose_error(k, k.inverse(target, q), target)[0] < 1e-10
+    assert len(misses) > 10
+    assert np.median(misses) > 1e-3
+
+
+def test_the_calibrated_inverse_honours_validity_and_limits() -> None:
+    c = Calibration.parse_conf(UR_CONF)
+    k = CalibratedKinematics(c, TCP)
+    q = np.array([0.4, -1.4, 1.6, -1.8, -1.57, 0.0])
+    target = k.forward(q)
+    everything = k.inverse_all(target, q)
+    assert len(everything) >= 4
+    other = k.inverse(target, q, valid=lambda s: np.max(np.abs(s - q)) > 0.1)
+    assert np.max(np.abs(other - q)) > 0.1
+    with pytest.raises(UnreachableError, match="none accepted"):
+        k.inverse(target, q, valid=lambda s: False)
+    with pytest.raises(UnreachableError):
+        k.inverse([2.0, 0.0, 0.1, 0.0, 3.14, 0.0], q)
+    tight = CalibratedKinematics(c, TCP, ([-0.1] * 6, [0.1] * 6))
+    with pytest.raises(UnreachableError):
+        tight.inverse(target, q)
+
+
+def test_kinematics_for_a_config_reads_its_calibration_file(tmp_path: object) -> None:
+    from pathlib import Path
+
+    assert isinstance(tmp_path, Path)
+    path = tmp_path / "calibration.conf"
+    path.write_text(UR_CONF)
+    plain = kinematics_for(CellConfig())
+    assert type(plain) is Kinematics
+    calibrated = kinematics_for(CellConfig.from_dict({"robot": {"calibration": str(path)}}))
+    assert isinstance(calibrated, CalibratedKinematics)
+    assert calibrated.calibration == Calibration.parse_conf(UR_CONF)
+    assert calibrated.with_tcp(None).calibration == calibrated.calibration
+    with pytest.raises(CalibrationError):
+        kinematics_for(CellConfig.from_dict({"robot": {"calibration": str(path) + ".missing"}}))
