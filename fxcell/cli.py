@@ -13,6 +13,7 @@ import importlib
 import logging
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from fxcell._version import __version__
 from fxcell.errors import FxcellError
@@ -44,8 +45,44 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
     for name in SUBCOMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+        try:
+            module = importlib.import_module(name)
+        except ImportError as exc:  # a light install (fxcell[client]) lacks the cell stack
+            for command in CELL_ONLY.get(name, ()):
+                _needs_cell_extra(sub, command, exc)
+            continue
+        module.register(sub)
     return parser
+
+
+# The packages of the `cell` extra: a light install (`fxcell[client]`) lacks them.
+CELL_STACK = frozenset(
+    {
+        "numpy", "pinocchio", "coal", "hppfcl", "ompl", "ruckig", "rtde_control",
+        "rtde_receive", "rtde_io", "dashboard_client", "mcap", "zstandard", "fastapi",
+        "starlette", "uvicorn", "matplotlib", "foxglove", "transitions",
+    }
+)  # fmt: skip
+
+# What each module contributes, for a light install that cannot import it.
+CELL_ONLY: dict[str, tuple[str, ...]] = {
+    "fxcell.info": ("info",),
+    "fxcell.cell.statemachine": ("statechart",),
+    "fxcell.sim.cli": ("sim",),
+    "fxcell.replay": ("replay",),
+    "fxcell.recorder.commands": ("logs",),
+}
+
+
+def _needs_cell_extra(sub: Any, command: str, exc: ImportError) -> None:
+    why = f"'fxcell {command}' needs the cell stack ({exc.name or exc}): pip install 'fxcell[cell]'"
+    p = sub.add_parser(command, help=f"(needs fxcell[cell]) {why}", add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+
+    def refuse(args: argparse.Namespace) -> int:
+        raise FxcellError(why)
+
+    p.set_defaults(func=refuse)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -67,6 +104,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return func(args)
     except FxcellError as exc:
         print(f"fxcell: error: {exc}", file=sys.stderr)
+        return 1
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").split(".")[0] not in CELL_STACK:
+            raise
+        print(
+            f"fxcell: error: this command needs the cell stack ({exc.name}): "
+            "pip install 'fxcell[cell]'",
+            file=sys.stderr,
+        )
         return 1
     except KeyboardInterrupt:
         return 130

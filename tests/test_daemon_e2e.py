@@ -626,3 +626,17 @@ async def test_commands_are_recorded_with_the_client_that_sent_them(
         )
     assert done["origin"] == "tester"  # the X-Fxcell-Client name, not just "daemon"
     assert isinstance(done["result"], type(None) | dict | list | int | float | str)
+
+
+def test_no_simulator_refuses_to_start_without_a_robot_host(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", "fxcell", "daemon", "--config", str(write_config(tmp_path)),
+         "--no-simulator", "--no-record"],
+        capture_output=True, text=True, timeout=60, check=False,
+        env={**os.environ, "FXCELL_TOKEN": TOKEN},
+    )  # fmt: skip
+    assert out.returncode == 1
+    assert "no robot host configured" in out.stderr

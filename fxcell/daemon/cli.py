@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from fxcell.commands import COMMANDS, Arg, Command
+from fxcell.errors import FxcellError
 
 _SHORT = {"velocity_factor": "-v", "acceleration_factor": "-a"}
 
@@ -48,6 +49,11 @@ def register(sub: Any) -> None:
         help="embedded simulator only: scale its controller delays (e.g. 0.2 for tests)",
     )
     p.add_argument("--no-record", action="store_true", help="do not record MCAP logs")
+    p.add_argument(
+        "--no-simulator",
+        action="store_true",
+        help="refuse to start without a robot host (never fall back to the embedded simulator)",
+    )
     p.add_argument("--log-dir", help="MCAP directory (default: recorder.directory, logs/)")
     p.set_defaults(func=_run_daemon, default_log_level=logging.INFO)
 
@@ -91,7 +97,13 @@ def register(sub: Any) -> None:
 
 def _run_daemon(args: argparse.Namespace) -> int:
     from fxcell.config import CellConfig
-    from fxcell.daemon.server import serve
+
+    try:
+        from fxcell.daemon.server import serve
+    except ImportError as exc:
+        raise FxcellError(
+            f"the daemon needs the cell stack ({exc.name or exc}): pip install 'fxcell[cell]'"
+        ) from None
 
     config = CellConfig.load(args.config)
     data = config.model_dump()
@@ -103,6 +115,11 @@ def _run_daemon(args: argparse.Namespace) -> int:
     if args.robot:
         data["robot"]["host"] = args.robot
     config = CellConfig.from_dict(data, source="command line")
+    if getattr(args, "no_simulator", False) and config.robot.host is None:
+        raise FxcellError(
+            "no robot host configured (robot.host in the configuration, or --robot HOST); "
+            "--no-simulator refuses to start the embedded simulator"
+        )
     record = None if args.no_record else Path(args.log_dir or config.recorder.directory)
     sim = {"time_scale": args.sim_time_scale} if args.sim_time_scale else None
     return serve(config, record=record, simulator_options=sim)

@@ -705,7 +705,8 @@ class LinkClient:
         """Stream (N, 6) joint positions spaced 2 ms apart with servoJ at 500 Hz.
 
         ``guard``: the braking limits and timeouts with which the link process stops the
-        trajectory by itself (defaults: 4/8 rad/s², 40 rad/s³, 50 ms)."""
+        trajectory by itself (defaults: 4/8 rad/s², 40 rad/s³; 100 ms without the client,
+        80 ms without state)."""
         array = _check_samples(samples)
         if not 0.03 <= lookahead_time <= 0.2:
             raise InvalidArgumentError("lookahead_time must be within [0.03, 0.2] s")

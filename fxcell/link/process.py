@@ -519,9 +519,9 @@ class Guard:
     """Per-joint deceleration limit of a self-initiated stop (rad/s²)."""
     brake_jerk: float = 40.0
     """Jerk limit of a self-initiated stop (rad/s³)."""
-    cell_timeout: float | None = 0.05
+    cell_timeout: float | None = 0.1
     """Brake when the client has sent nothing for this long (s; None: never)."""
-    stall_timeout: float = 0.05
+    stall_timeout: float = 0.08
     """Brake when no state sample has arrived for this long (s)."""
 
 
