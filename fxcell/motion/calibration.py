@@ -352,12 +352,25 @@ def calibrated_model(calibration: Calibration, tcp: Pose | None = None) -> Any:
     return model
 
 
+CONTROLLER = "controller"
+"""``robot.calibration`` value: read the calibration from the controller at connect."""
+
+
 def kinematics_for(config: CellConfig, *, backend: Backend = "pinocchio") -> Kinematics:
     """The arm of a configuration: calibrated when ``robot.calibration`` names a file (read
-    here; CalibrationError if it is unreadable), else the nominal UR3e; with the tool's TCP
-    and the joint limits."""
+    here; CalibrationError if it is unreadable), else the nominal UR3e (until the Cell has
+    read the controller's calibration); with the tool's TCP and the joint limits."""
+    source = config.robot.calibration
+    if source is None or source == CONTROLLER:
+        return Kinematics.ur3e(config.tool.tcp, config.limits)
+    return calibrated_kinematics(config, Calibration.load(source), backend=backend)
+
+
+def calibrated_kinematics(
+    config: CellConfig, calibration: Calibration, *, backend: Backend = "pinocchio"
+) -> Kinematics:
+    """The configuration's arm (TCP, limits) with ``calibration``; nominal if all-zero."""
     tcp, limits = config.tool.tcp, config.limits
-    if config.robot.calibration is None:
+    if calibration.is_nominal:
         return Kinematics.ur3e(tcp, limits)
-    calibration = Calibration.load(config.robot.calibration)
     return CalibratedKinematics.ur3e_calibrated(calibration, tcp, limits, backend=backend)
