@@ -24,6 +24,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "fxcell.cell.statemachine",
     "fxcell.daemon.cli",
     "fxcell.sim.cli",
+    "fxcell.link.primary",
     "fxcell.replay",
     "fxcell.recorder.commands",
 )

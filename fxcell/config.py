@@ -58,8 +58,12 @@ class RobotConfig(_Model):
     """... and when no robot state has arrived for this long (s); below the 100 ms after
     which the cell declares the link down."""
     calibration: str | None = None
-    """The arm's ``calibration.conf`` (UR's format): FK and IK use the calibrated model;
+    """Where the arm's factory calibration comes from: a ``calibration.conf`` file (UR's
+    format), or ``controller`` (its primary interface's kinematics info, read at connect);
     ``None``: the nominal UR3e model."""
+    accept_nominal_kinematics: bool = False
+    """With ``calibration: controller``: when it cannot be read, plan pose moves on the nominal
+    model (the TCP may be millimetres off) instead of refusing them (``UncalibratedError``)."""
 
 
 class ToolConfig(_Model):

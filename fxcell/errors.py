@@ -27,6 +27,12 @@ class CalibrationError(FxcellError, ValueError):
     unreadable or malformed."""
 
 
+class UncalibratedError(FxcellError):
+    """A pose move was refused: the arm's calibration could not be read from the controller
+    and the configuration does not accept the nominal model
+    (``robot.accept_nominal_kinematics``); nothing was sent."""
+
+
 # ----------------------------------------------------------------- bad input
 
 

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import socket
+import struct
+import threading
 from collections.abc import AsyncIterator, Awaitable, Iterator
 from pathlib import Path
 
@@ -19,6 +22,7 @@ import pytest
 from fxcell.calibration import Calibration
 from fxcell.cell import Cell
 from fxcell.config import CellConfig
+from fxcell.errors import UncalibratedError
 from fxcell.geometry import Pose
 from fxcell.protocol import RobotState
 from fxcell.testing import SimulatorHandle, simulator
@@ -61,9 +65,9 @@ async def ready_cell(sim: SimulatorHandle, config: CellConfig) -> AsyncIterator[
         yield cell
 
 
-def calibrated_config(path: Path) -> CellConfig:
-    robot = NOMINAL.robot.model_copy(update={"calibration": str(path)})
-    return NOMINAL.model_copy(update={"robot": robot})
+def calibrated_config(source: Path | str, **robot: object) -> CellConfig:
+    settings = NOMINAL.robot.model_copy(update={"calibration": str(source), **robot})
+    return NOMINAL.model_copy(update={"robot": settings})
 
 
 def reported_tcp(sample: RobotState) -> Pose:
@@ -122,6 +126,8 @@ async def test_a_calibrated_cell_reaches_targets_as_the_controller_reports_them(
     calibrated_sim: SimulatorHandle, calibration_file: Path
 ) -> None:
     async with ready_cell(calibrated_sim, calibrated_config(calibration_file)) as cell:
+        assert cell.controller_info["calibration_checksum"] == CALIBRATION.checksum
+        assert cell.controller_info["calibration_source"] == str(calibration_file)
         target = await pose_target(cell, (0.03, -0.02, 0.04))
         await cell.move_pose(target)
         dp, da = errors(await settled_tcp(cell), target)
@@ -164,3 +170,62 @@ async def test_the_nominal_model_misses_a_calibrated_arms_targets_by_millimetres
         dp, _ = errors(await settled_tcp(cell), target)
         assert dp > 1e-3, dp
         assert line_deviation(trace, start, target) > LINE_TOL
+
+
+@contextlib.contextmanager
+def primary_interface(host: str, package: bytes) -> Iterator[None]:
+    """Port 30001 on the simulator's address sending a robot-state message with ``package``
+    (the simulator does not serve the primary interface yet)."""
+    server = socket.create_server((host, 30001))
+    stop = threading.Event()
+    message = struct.pack(">IB", 5 + len(package), 16) + package
+
+    def serve() -> None:
+        with server:
+            server.settimeout(0.1)
+            while not stop.is_set():
+                with contextlib.suppress(TimeoutError):
+                    conn, _ = server.accept()
+                    with conn:
+                        conn.sendall(message)
+                        stop.wait(1.0)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(5)
+
+
+async def test_the_cell_reads_the_calibration_from_the_controller(
+    calibrated_sim: SimulatorHandle,
+) -> None:
+    with primary_interface(calibrated_sim.host, CALIBRATION.kinematics_info()):
+        async with ready_cell(calibrated_sim, calibrated_config("controller")) as cell:
+            assert cell.controller_info["calibration_source"] == f"controller {cell.host}"
+            assert cell.controller_info["calibration_checksum"] == CALIBRATION.checksum
+            target = await pose_target(cell, (0.02, 0.02, 0.03))
+            await cell.move_pose(target)
+            dp, da = errors(await settled_tcp(cell), target)
+            assert dp < POSITION_TOL, dp
+            assert da < ANGLE_TOL, da
+
+
+async def test_pose_moves_are_refused_when_the_calibration_cannot_be_read(
+    calibrated_sim: SimulatorHandle,
+) -> None:
+    # nothing serves 30001 on the simulator's address: the calibration is unreadable
+    async with ready_cell(calibrated_sim, calibrated_config("controller")) as cell:
+        assert cell.controller_info["calibration_source"].startswith("unreadable")
+        start = cell.robot_state.actual_q
+        target = await pose_target(cell, (0.02, 0.0, 0.0))
+        with pytest.raises(UncalibratedError, match="accept_nominal_kinematics"):
+            await cell.move_pose(target)
+        with pytest.raises(UncalibratedError):
+            await cell.move_distance([0.0, 0.0, 0.01])
+        assert cell.robot_state.actual_q == pytest.approx(start, abs=1e-9)
+    accepting = calibrated_config("controller", accept_nominal_kinematics=True)
+    async with ready_cell(calibrated_sim, accepting) as cell:
+        await cell.move_distance([0.0, 0.0, 0.01])  # nominal, as configured

@@ -13,16 +13,19 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
+from fxcell.calibration import Calibration
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
 from fxcell.commands import CellCommands, get_command
 from fxcell.config import CellConfig
 from fxcell.errors import (
+    CalibrationError,
     ConnectionLostError,
     EmergencyStopError,
     FxcellError,
@@ -143,7 +146,8 @@ class Cell(CellCommands):
         self._move_queue = asyncio.Lock()
         self._stops = 0
         """Counts stop() calls: a queued move that sees it change while waiting ends."""
-        self._kinematics: Any = None
+        self.calibration: Calibration | None = None
+        """The arm's calibration the planner uses (None: not read, or unreadable)."""
         self._restore: asyncio.Task[None] | None = None
         self._remote_watch: asyncio.Task[None] | None = None
         self.local_control = False
@@ -195,6 +199,7 @@ class Cell(CellCommands):
             await self.link.start(wait=True)
             await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
             self.controller_info = await self._read_controller_info()
+            self.controller_info.update(await self._use_calibration())
             if self._recorder is not None:
                 self._recorder.update_metadata(self.controller_info)
             self._remote_watch = asyncio.create_task(self._watch_remote(), name="remote watch")
@@ -279,6 +284,37 @@ class Cell(CellCommands):
                 f"{sorted(s.value for s in wanted)}"
             ) from None
         return self.state
+
+    async def _use_calibration(self) -> dict[str, str]:
+        """Take the arm's calibration (``robot.calibration``: a file, the controller's primary
+        interface, or none) into the planner; its deltas and checksum for the log metadata."""
+        from fxcell.motion.calibration import CONTROLLER
+
+        source = self.config.robot.calibration
+        calibration: Calibration | None = None
+        if source is None:
+            calibration = Calibration.nominal()
+            source = "nominal (robot.calibration not set)"
+        elif source == CONTROLLER:
+            from fxcell.link.primary import read_calibration
+
+            assert self._host is not None
+            try:
+                calibration = await asyncio.to_thread(read_calibration, self._host)
+            except CalibrationError as exc:
+                log.warning("the arm's calibration: %s", exc)
+                self._moves().planner.use_calibration(None, str(exc))
+                return {"calibration_source": f"unreadable: {exc}"}
+            source = f"controller {self._host}"
+            self._moves().planner.use_calibration(calibration)
+        else:
+            calibration = Calibration.load(source)  # the planner read it already
+        self.calibration = calibration
+        return {
+            "calibration_source": source,
+            "calibration_checksum": calibration.checksum,
+            "calibration": json.dumps(calibration.summary()),
+        }
 
     async def _read_controller_info(self) -> dict[str, str]:
         """Controller version, serial number and model, as the dashboard reports them."""
@@ -642,11 +678,7 @@ class Cell(CellCommands):
             return q
 
     def _tcp_pose(self) -> Pose:
-        if self._kinematics is None:
-            from fxcell.motion.calibration import kinematics_for
-
-            self._kinematics = kinematics_for(self.config, backend="numpy")
-        pose: Pose = self._kinematics.forward(self._sample().actual_q)
+        pose: Pose = self._moves().planner.kinematics.forward(self._sample().actual_q)
         return pose
 
     async def get_current_pose(self) -> tuple[float, ...]:

@@ -13,7 +13,7 @@ Pinocchio). Two or three steps bring a millimetre-off start to ~1e-13 m.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
@@ -177,36 +177,47 @@ class CalibratedKinematics(Kinematics):
         except UnreachableError:
             return q
 
-    def _starts(self, target: Pose, seed: FloatArray) -> list[FloatArray]:
-        """Nominal closed-form solutions to refine, each re-solved for the target corrected by
-        the offset on its own branch: from the target and the seed-corrected target, nearest
-        ``seed`` first."""
-        return [self._corrected(target, q) for q in self._first_starts(target, seed)]
+    def _solutions(self, target: Pose, seed: FloatArray) -> Iterator[FloatArray]:
+        """Calibrated solutions, distinct, lazily: each start (see :meth:`_start_groups`)
+        re-solved for the target corrected by the offset on its own branch, then refined."""
+        tried: list[FloatArray] = []
+        found: list[FloatArray] = []
+        for group in self._start_groups(target, seed):
+            for start in group:
+                if any(np.max(np.abs(start - t)) < _SAME_START for t in tried):
+                    continue
+                tried.append(start)
+                q = self.solve(self._corrected(target, start), target)
+                if q is not None and not any(np.max(np.abs(q - f)) < 1e-9 for f in found):
+                    found.append(q)
+                    yield q
 
-    def _first_starts(self, target: Pose, seed: FloatArray) -> list[FloatArray]:
-        """Nominal solutions for the target, the seed-corrected target and, since a branch
-        at the edge of the nominal workspace (arm stretched, wrist centre near axis 1, wrist
-        singular) may have none, for targets moved a little inwards (towards the shoulder),
-        outwards (away from axis 1) and turned about the tool's axes; nearest seed first."""
+    def _start_groups(self, target: Pose, seed: FloatArray) -> Iterator[list[FloatArray]]:
+        """Nominal solutions to start from, nearest ``seed`` first within each group: for the
+        target and the seed-corrected target; then, since a branch at the edge of the nominal
+        workspace (arm stretched, wrist centre near axis 1, wrist singular) may have none, for
+        targets moved a little inwards (towards the shoulder), outwards (away from axis 1)
+        and turned about the tool's axes; last the seed itself."""
+
+        def nearest_first(poses: list[Pose]) -> list[FloatArray]:
+            out = [q for pose in poses for q in self.nominal.inverse_all(pose, seed)]
+            out.sort(key=lambda q: float(np.sum((q - seed) ** 2)))
+            return out
+
+        yield nearest_first([target, self.nominal_target(target, seed)])
         p, R = target.position, target.rotation
         inwards = np.array([0.0, 0.0, UR3E_DH.d[0]]) - p
         inwards /= max(float(np.linalg.norm(inwards)), 1e-9)
         outwards = np.array([p[0], p[1], 0.0])
         outwards /= max(float(np.linalg.norm(outwards)), 1e-9)
-        poses = [target, self.nominal_target(target, seed)]
-        poses += [Pose._raw(p + step * d, R) for step in _EDGE_STEPS for d in (inwards, outwards)]
-        poses += [
+        edge = [Pose._raw(p + step * d, R) for step in _EDGE_STEPS for d in (inwards, outwards)]
+        edge += [
             Pose._raw(p, R @ rotvec_to_matrix(sign * _EDGE_TURN * axis))
             for axis in np.eye(3)
             for sign in (1.0, -1.0)
         ]
-        out: list[FloatArray] = []
-        for pose in poses:
-            for q in self.nominal.inverse_all(pose, seed):
-                if not any(np.max(np.abs(q - kept)) < _SAME_START for kept in out):
-                    out.append(q)
-        out.sort(key=lambda q: float(np.sum((q - seed) ** 2)))
-        return out or [seed]
+        yield nearest_first(edge)
+        yield [seed]
 
     def inverse(
         self,
@@ -227,15 +238,9 @@ class CalibratedKinematics(Kinematics):
                 q = None
             if q is not None:
                 return q
-        solutions = self.inverse_all(target, s)
-        if not solutions:
-            raise UnreachableError(
-                f"no inverse-kinematics solution of the calibrated arm within the limits: "
-                f"{target!r}"
-            )
         singular: str | None = None
         rejected = 0
-        for q in solutions:
+        for q in self._solutions(target, s):
             if singularity_margin is not None:
                 kind = self.singularity(q, distance=singularity_margin, sine=singularity_margin)
                 if kind is not None:
@@ -250,8 +255,13 @@ class CalibratedKinematics(Kinematics):
                 f"every inverse-kinematics solution for {target!r} is within "
                 f"{singularity_margin} of a singularity (the nearest: {singular})"
             )
+        if rejected == 0:
+            raise UnreachableError(
+                f"no inverse-kinematics solution of the calibrated arm within the limits: "
+                f"{target!r}"
+            )
         raise UnreachableError(
-            f"{len(solutions)} inverse-kinematics solutions within the joint limits, "
+            f"{rejected} inverse-kinematics solutions within the joint limits, "
             f"none accepted by the validity check, for {target!r}"
         )
 
@@ -261,11 +271,7 @@ class CalibratedKinematics(Kinematics):
         """Each nominal branch refined onto the calibrated model, nearest ``seed`` first."""
         target = pose if isinstance(pose, Pose) else Pose.parse(pose)
         s = np.zeros(6) if seed is None else np.array(_joints(seed))
-        out: list[FloatArray] = []
-        for q0 in self._starts(target, s):
-            q = self.solve(q0, target)
-            if q is not None and not any(np.max(np.abs(q - kept)) < 1e-9 for kept in out):
-                out.append(q)
+        out = list(self._solutions(target, s))
         out.sort(key=lambda q: float(np.sum((q - s) ** 2)))
         return out
 
@@ -352,12 +358,25 @@ def calibrated_model(calibration: Calibration, tcp: Pose | None = None) -> Any:
     return model
 
 
+CONTROLLER = "controller"
+"""``robot.calibration`` value: read the calibration from the controller at connect."""
+
+
 def kinematics_for(config: CellConfig, *, backend: Backend = "pinocchio") -> Kinematics:
     """The arm of a configuration: calibrated when ``robot.calibration`` names a file (read
-    here; CalibrationError if it is unreadable), else the nominal UR3e; with the tool's TCP
-    and the joint limits."""
+    here; CalibrationError if it is unreadable), else the nominal UR3e (until the Cell has
+    read the controller's calibration); with the tool's TCP and the joint limits."""
+    source = config.robot.calibration
+    if source is None or source == CONTROLLER:
+        return Kinematics.ur3e(config.tool.tcp, config.limits)
+    return calibrated_kinematics(config, Calibration.load(source), backend=backend)
+
+
+def calibrated_kinematics(
+    config: CellConfig, calibration: Calibration, *, backend: Backend = "pinocchio"
+) -> Kinematics:
+    """The configuration's arm (TCP, limits) with ``calibration``; nominal if all-zero."""
     tcp, limits = config.tool.tcp, config.limits
-    if config.robot.calibration is None:
+    if calibration.is_nominal:
         return Kinematics.ur3e(tcp, limits)
-    calibration = Calibration.load(config.robot.calibration)
     return CalibratedKinematics.ur3e_calibrated(calibration, tcp, limits, backend=backend)

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
 from fxcell.errors import (
     CollisionError,
@@ -38,12 +39,13 @@ from fxcell.errors import (
     RobotFaultError,
     SafeguardStopError,
     TrackingError,
+    UncalibratedError,
     UnreachableError,
 )
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
 from fxcell.link.process import Guard
-from fxcell.motion.calibration import kinematics_for
+from fxcell.motion.calibration import calibrated_kinematics, kinematics_for
 from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
 from fxcell.motion.runner import (
     DistanceTarget,
@@ -135,6 +137,8 @@ class MotionPlanner:
         self.config = config
         self.limits = config.limits
         self.kinematics = kinematics_for(config)
+        self.uncalibrated: str | None = None
+        """Why pose moves are refused (the calibration could not be read), or None."""
         if checker is None:
             from fxcell.motion.collision import CollisionChecker  # Pinocchio + coal: load on use
 
@@ -163,6 +167,18 @@ class MotionPlanner:
     def braking_limits(self) -> Limits:
         """Limits for stopping: the configured braking limits, whatever the move's factors."""
         return Limits.for_braking(self.limits)
+
+    def use_calibration(self, calibration: Calibration | None, why: str = "") -> None:
+        """Plan on ``calibration`` (the controller's, read at connect); None: it could not
+        be read (``why``), so pose moves raise UncalibratedError unless the configuration
+        accepts the nominal model."""
+        self.uncalibrated = None
+        if calibration is not None:
+            self.kinematics = calibrated_kinematics(self.config, calibration)
+            return
+        self.kinematics = kinematics_for(self.config)
+        if not self.config.robot.accept_nominal_kinematics:
+            self.uncalibrated = why or "the arm's calibration could not be read"
 
     def tcp_pose(self, joints: ArrayLike) -> Pose:
         return self.kinematics.forward(np.asarray(joints, float))
@@ -219,6 +235,12 @@ class MotionPlanner:
     ) -> list[MovePlan]:
         """The plans (legs) of a move from ``start`` joints to ``target``."""
         vf, af = velocity_factor, acceleration_factor
+        if self.uncalibrated is not None and not isinstance(target, JointTarget):
+            raise UncalibratedError(
+                f"pose moves are refused: {self.uncalibrated}; the nominal model would put the "
+                "TCP millimetres off (set robot.accept_nominal_kinematics to allow it, or give "
+                "robot.calibration a calibration.conf)"
+            )
         match target:
             case JointTarget(joints):
                 return [self.plan_joint(start, joints, vf, af)]
