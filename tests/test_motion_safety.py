@@ -64,7 +64,7 @@ def _sim_motion(handle: SimulatorHandle, over: float = 0.05) -> float:
 
 
 async def test_a_stalled_state_stream_brakes_the_move_before_its_caller_hears(
-    shared: SimulatorHandle,
+    shared: SimulatorHandle, caplog: pytest.LogCaptureFixture
 ) -> None:
     async with ready_cell(shared) as cell:
         move = asyncio.create_task(cell.move_joint(FAR))
@@ -83,6 +83,8 @@ async def test_a_stalled_state_stream_brakes_the_move_before_its_caller_hears(
         await cell.wait_for_state(
             CellState.EXTERNAL_CONTROL_READY, CellState.PROGRAM_STOPPED, timeout=10
         )
+    # the hole in the state stream is on record (the recorder keeps fxcell's log records)
+    assert any("state stream gap" in r.getMessage() for r in caplog.records)
 
 
 async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandle) -> None:
