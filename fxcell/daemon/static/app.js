@@ -122,6 +122,9 @@ function showSituation() {
     kind = "ok"; message = "Ready for moves.";
   } else if (state.includes("moving")) {
     kind = "info"; message = "Moving. STOP brakes the arm to rest.";
+  } else if (state.includes("program_stopped") && page.robot && page.robot.runtime_state === "PLAYING") {
+    kind = "warn";
+    message = "fxcell's external control is not connected, although a program plays on the controller: run init (or start external control)";
   } else {
     const next = nextStep(state);
     message = `${label(state.replace("running.", ""))}${next ? ": " + next : ""}`;
