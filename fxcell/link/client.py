@@ -310,7 +310,7 @@ class LinkClient:
         self._hold = False
         self._last_sample = 0.0
         self._last_message = 0.0  # time.monotonic() of the newest message of any kind
-        self._link_state_age = 0.0  # the link process's own age of its newest sample
+        self._link_fresh = 0.0  # time.monotonic() (system-wide) of the link's newest sample
         self._last_timestamp: float | None = None  # controller time of the newest sample
         self.gaps = 0
         """State-stream gaps seen (each logged as a warning, so recorded in the MCAP /log)."""
@@ -461,8 +461,7 @@ class LinkClient:
             child.close()
         self._writer = transport
         self._hold = False  # the watchdog starts with the first sample (status UP)
-        self._last_sample = self._last_message = time.monotonic()
-        self._link_state_age = 0.0
+        self._last_sample = self._last_message = self._link_fresh = time.monotonic()
         self._last_timestamp = None
         watchdog = asyncio.create_task(self._watchdog(), name="link watchdog")
         beat = asyncio.create_task(self._beat(), name="link beat")
@@ -517,13 +516,16 @@ class LinkClient:
                     self._down(f"no robot state for {silent:.1f} s")
                 await asyncio.sleep(0.05)
                 continue
+            # The link process's clock is this one (CLOCK_MONOTONIC is system-wide): while
+            # it talks (pulses), its newest sample tells the state stream's age now.
             mute = now - self._last_message
-            if self._link_state_age >= STALE_AFTER:
-                self._down(f"no robot state for {self._link_state_age * 1000:.0f} ms")
+            age = now - max(self._link_fresh, self._last_sample)
+            if age >= STALE_AFTER and mute < STALE_AFTER:
+                self._down(f"no robot state for {age * 1000:.0f} ms")
             elif mute >= MUTE_AFTER:
                 self._down(f"the link process has been silent for {mute * 1000:.0f} ms")
             else:
-                await asyncio.sleep(0.02)
+                await asyncio.sleep(0.005)
 
     def _down(self, reason: str) -> None:
         """The link is down: brake every running trajectory, then say so."""
@@ -578,7 +580,6 @@ class LinkClient:
         if kind == wire.STATE:
             state = wire.state_from_tuple(message[1], now)
             self._last_sample = now
-            self._link_state_age = 0.0
             previous, self._last_timestamp = self._last_timestamp, state.timestamp
             if previous is not None and state.timestamp - previous > GAP_REPORT:
                 self.gaps += 1
@@ -613,13 +614,11 @@ class LinkClient:
             if self._on_control is not None:
                 self._on_control(self.control_ready, str(reason))
         elif kind == wire.PULSE:
-            _, link_now, last_state_at = message
-            if last_state_at > 0:
-                self._link_state_age = max(link_now - last_state_at, 0.0)
+            _, _link_now, last_state_at = message
+            self._link_fresh = max(self._link_fresh, last_state_at)
         elif kind == wire.HOLD:
             self._hold = bool(message[1])
-            self._last_sample = time.monotonic()
-            self._link_state_age = 0.0
+            self._last_sample = self._link_fresh = time.monotonic()
         elif kind == wire.FATAL:
             _, text, failures = message
             self.last_failure = str(RobotLinkError(text, failures))
