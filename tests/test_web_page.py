@@ -385,3 +385,29 @@ async def test_the_page_says_why_and_what_to_do_next_on_a_small_screen(
         ".every(i => i.scrollWidth <= i.clientWidth + 1)"
     )
     assert await browser.js("document.querySelector('link[rel=icon]') !== null")
+
+
+async def test_the_page_says_why_the_robot_is_not_connected(
+    browser: Browser, tmp_path: Path
+) -> None:
+    config = tmp_path / "cell.yaml"
+    config.write_text(
+        f"robot:\n  host: 127.0.0.254\n  connect_timeout: 0.5\n"
+        f"daemon:\n  token_file: {tmp_path / 'token'}\n"
+    )
+    with DaemonProcess.start(config, token=TOKEN) as unreachable:
+        await browser.call(
+            "Emulation.setDeviceMetricsOverride", width=1366, height=768,
+            deviceScaleFactor=1, mobile=False,
+        )  # fmt: skip
+        await browser.call("Page.navigate", url=f"{unreachable.url}/#token={TOKEN}")
+        await browser.wait_for("document.querySelector('#link').textContent === 'daemon live'")
+        text = "document.querySelector('#situation-text').textContent"
+        await browser.wait_for(f"{text}.startsWith('Robot not connected: ')", within=30)
+        assert await browser.js("document.querySelector('#situation').dataset.kind") == "bad"
+        assert "127.0.0.254" in await browser.js(text)  # the reason names the robot
+        assert await browser.js("document.querySelector('#robot-mode').textContent") in (
+            "–",
+            "no link",
+        )
+        (SCREENSHOT_DIR / "fxcell-page-not-connected.png").write_bytes(await browser.screenshot())

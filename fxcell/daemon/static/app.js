@@ -184,7 +184,7 @@ function showState(state) {
   el.dataset.state = state;
   el.title = state;
   if (state === "disconnected") {  // the last sample is stale: do not show it as current
-    for (const id of ["#robot-mode", "#safety-mode", "#runtime-state"]) $(id).textContent = "unknown (no link)";
+    for (const id of ["#robot-mode", "#safety-mode", "#runtime-state"]) $(id).textContent = "no link";
   }
   updateButtons();
   renderStatechart();
