@@ -135,8 +135,12 @@ async def test_control_ready_follows_the_control_program(link: LinkClient, sim: 
     await _until(lambda: not link.control_ready, 1.0, "control reported lost")
     await link.start_control("script", "external_control.urp", 10.0)  # re-uploads the script
     assert link.control_ready
-    assert link.latest is not None
-    assert link.latest.runtime_state == RuntimeState.PLAYING
+    # the reply (worker thread) may overtake the state sample that shows PLAYING (pump)
+    await _until(
+        lambda: link.latest is not None and link.latest.runtime_state == RuntimeState.PLAYING,
+        1.0,
+        "a PLAYING sample",
+    )
 
 
 async def test_bad_trajectory_is_refused_before_sending(link: LinkClient) -> None:
