@@ -736,9 +736,9 @@ class MoveExecution:
         finished = settled_at if settled_at is not None else time.monotonic()
         return MoveResult(
             target_joints=tuple(plan.target_joints.tolist()),
-            target_pose=target_pose.as_ur(),
+            target_pose=tuple(target_pose.as_quaternion_list()),
             reached_joints=tuple(reached.tolist()),
-            reached_pose=reached_pose.as_ur(),
+            reached_pose=tuple(reached_pose.as_quaternion_list()),
             joint_error=float(np.max(np.abs(reached - plan.target_joints))),
             position_error=float(np.linalg.norm(reached_pose.position - target_pose.position)),
             orientation_error=float(reached_pose.angle_to(target_pose)),
