@@ -99,6 +99,7 @@ class Cell(CellCommands):
     """One UR3e cell.
 
     ``host=None`` starts the embedded controller simulator (``fxcell.link.embedded``).
+    Without ``config`` the shipped configuration is used (its tool, limits and scene).
     Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
     ``record`` names a directory for an MCAP flight record of the session (default:
     the configuration's ``recorder.directory`` when ``recorder.enabled``).
@@ -118,7 +119,8 @@ class Cell(CellCommands):
         origin: Origin = Origin.LIBRARY,
         simulator_options: Mapping[str, Any] | None = None,
     ) -> None:
-        self.config = config or CellConfig()
+        # Without a config, the shipped one: its scene, tool and limits (never an empty scene).
+        self.config = config if config is not None else CellConfig.load()
         robot = self.config.robot
         self._host = host if host is not None else robot.host
         self.external_control = external_control or robot.external_control
