@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.calibration import Calibration
+from fxcell.cell.gripper import Gripper
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
 from fxcell.commands import CellCommands, get_command
 from fxcell.config import CellConfig
@@ -156,6 +157,7 @@ class Cell(CellCommands):
         """The teach pendant is in Local control (polled every 0.25 s): moves are refused
         and a running move brakes."""
         self._opened = False
+        self._gripper: Gripper | None = None
 
     @classmethod
     def from_config(cls, config: str | Path | CellConfig | None = None, **kwargs: Any) -> Cell:
@@ -165,6 +167,13 @@ class Cell(CellCommands):
         return cls(config=config, **kwargs)
 
     # ------------------------------------------------------------- life cycle
+
+    @property
+    def gripper(self) -> Gripper:
+        """The Robotiq Hand-E (through the Robotiq URCap's socket on the controller)."""
+        if self._gripper is None:
+            self._gripper = Gripper(self)
+        return self._gripper
 
     @property
     def host(self) -> str | None:
@@ -222,6 +231,8 @@ class Cell(CellCommands):
             with contextlib.suppress(BaseException):
                 await self._restore
             self._restore = None
+        if self._gripper is not None:
+            await self._gripper.close_connection()
         if self.link is not None:
             await self.link.close()
         if self._machine_task is not None:
