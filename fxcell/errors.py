@@ -209,3 +209,34 @@ class SimulatorError(FxcellError):
 
 class ProgramStoppedError(MoveStoppedError):
     """The control program stopped during a move (teach-pendant stop, or it ended)."""
+
+
+# ----------------------------------------------------------------- gripper
+
+
+class GripperError(FxcellError):
+    """The Robotiq Hand-E (through the Robotiq URCap's socket) failed a command."""
+
+
+class GripperNotPoweredError(GripperError):
+    """The arm is off, so the tool flange (and the gripper) has no power; nothing was sent."""
+
+
+class GripperNotActivatedError(GripperError):
+    """The gripper is not activated (``STA`` is not 3): call ``activate()`` first."""
+
+
+class GripperFaultError(GripperError):
+    """The gripper reports a fault (``FLT``); it stays faulted until re-activated."""
+
+    def __init__(self, code: int, message: str = "") -> None:
+        self.code = code
+        super().__init__(message or f"the gripper reports fault 0x{code:02X}; re-activate it")
+
+
+class NothingGraspedError(GripperError):
+    """An object was expected between the fingers, but they closed on nothing."""
+
+
+class ObjectLostError(GripperError):
+    """The object the gripper held is no longer between its fingers."""

@@ -26,9 +26,11 @@ class MoveResult:
 
     target_joints: tuple[float, ...]
     target_pose: tuple[float, ...]
-    """Target TCP pose as on the teach pendant (x, y, z, rx, ry, rz)."""
+    """Target TCP pose ``(x, y, z, qx, qy, qz, qw)``, the form ``get_current_pose`` returns
+    and ``move_pose`` accepts (a six-number list would be read as roll, pitch, yaw)."""
     reached_joints: tuple[float, ...]
     reached_pose: tuple[float, ...]
+    """Reached TCP pose ``(x, y, z, qx, qy, qz, qw)``: can be passed back to ``move_pose``."""
     joint_error: float
     """Largest |reached - target| over the joints (rad)."""
     position_error: float

@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 import pytest_asyncio
 
+from fxcell.link import embedded
 from fxcell.link.embedded import EmbeddedSimulator
 
 TEST_TIME_SCALE = 0.05  # controller delays in tests: power on 0.1 s, brake release 75 ms
@@ -58,7 +59,8 @@ class SimulatorHandle:
     Use it with ``with`` or ``async with`` (see :func:`simulator`). ``inject`` triggers
     a fault (``protective_stop``, ``emergency_stop``, ``stall_rtde``, 2.0, ...),
     ``dashboard`` sends one raw Dashboard command, ``bring_up`` powers on and releases
-    the brakes, ``set_joints`` places the resting arm.
+    the brakes, ``set_joints`` places the resting arm; ``add_object``, ``objects`` and
+    ``gripper`` place and report the simulated world's objects and the Hand-E.
     """
 
     def __init__(self, time_scale: float, **options: Any) -> None:
@@ -87,6 +89,29 @@ class SimulatorHandle:
 
     def set_joints(self, q: Sequence[float]) -> None:
         self._sim.set_joints(q)
+
+    def gripper(self) -> dict[str, Any]:
+        """The simulated Hand-E: registers, finger ``width`` (m), ``held`` object name."""
+        return embedded.gripper_state(self.host)
+
+    def objects(self) -> dict[str, dict[str, Any]]:
+        """Every simulated object: kind, width, height, mass, pose (UR vector), held."""
+        return embedded.objects(self.host)
+
+    def add_object(
+        self,
+        name: str,
+        kind: str,
+        *,
+        width: float,
+        height: float,
+        mass: float,
+        position: Sequence[float],
+    ) -> None:
+        """Place an upright object whose grip point is at ``position`` (base frame, m)."""
+        embedded.add_object(
+            self.host, name, kind, width=width, height=height, mass=mass, position=position
+        )
 
     def dashboard(self, command: str, timeout: float = 5.0) -> str:
         """Send one Dashboard command on a fresh connection; returns the reply line."""

@@ -60,3 +60,15 @@ def test_limits_file_is_read_relative_to_the_cell_file(tmp_path: Path) -> None:
     (tmp_path / "lim.yaml").write_text("jerk: [5, 5, 5, 5, 5, 5]\n")
     (tmp_path / "cell.yaml").write_text("limits_file: lim.yaml\n")
     assert CellConfig.load(tmp_path / "cell.yaml").limits.jerk == (5.0,) * 6
+
+
+def test_a_cell_without_a_config_plans_in_the_shipped_scene() -> None:
+    from fxcell.cell import Cell
+
+    cell = Cell(host="192.0.2.1")  # not opened: nothing connects
+    shipped = CellConfig.load()
+    assert cell.config.scene.objects  # never an empty scene
+    assert cell.config.scene == shipped.scene
+    assert cell.config.tool == shipped.tool
+    assert cell.config.limits == shipped.limits
+    assert cell.host == "192.0.2.1"

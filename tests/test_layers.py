@@ -30,6 +30,7 @@ LAYERS: dict[str, int] = {
     "fxcell.results": 0,
     "fxcell.commands": 0,
     "fxcell.calibration": 0,
+    "fxcell.settling": 0,
     "fxcell.link": 1,
     "fxcell.link.embedded": 1,
     "fxcell.motion": 2,

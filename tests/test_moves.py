@@ -182,6 +182,17 @@ async def test_move_pose_reaches_three_poses(sim: _Simulators) -> None:
             assert result.position_error <= POSITION_TOL
 
 
+async def test_a_reached_pose_fed_back_into_move_pose_stays_put(sim: _Simulators) -> None:
+    async with ready_cell(sim) as cell:
+        first = await cell.move_pose(POSES[1])
+        np.testing.assert_allclose(first.reached_pose, await cell.get_current_pose(), atol=1e-6)
+        again = await cell.move_pose(first.reached_pose)
+        # A rotation vector read as roll, pitch, yaw was 0.71 rad off here.
+        assert again.orientation_error <= ANGLE_TOL
+        assert pose_errors(Pose.parse(again.reached_pose), first.reached_pose)[1] <= ANGLE_TOL
+        assert np.max(np.abs(np.subtract(again.reached_joints, first.reached_joints))) < 1e-4
+
+
 async def test_move_distance_moves_the_tcp_by_the_vector(sim: _Simulators) -> None:
     async with ready_cell(sim) as cell:
         for target in POSES:
@@ -275,7 +286,7 @@ async def test_move_relative_goes_to_the_start_then_the_target_pose(sim: _Simula
         assert angle_error <= ANGLE_TOL
         results = [e for e in events if e.kind == "result"]
         assert len(results) == 2  # two legs
-        first = Pose.from_ur(results[0].data["reached_pose"])
+        first = Pose.parse(results[0].data["reached_pose"])
         assert pose_errors(first, start)[0] <= POSITION_TOL
         assert result.reached_pose == results[1].data["reached_pose"]
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.calibration import Calibration
+from fxcell.cell.gripper import Gripper
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
 from fxcell.commands import CellCommands, get_command
 from fxcell.config import CellConfig
@@ -99,6 +100,7 @@ class Cell(CellCommands):
     """One UR3e cell.
 
     ``host=None`` starts the embedded controller simulator (``fxcell.link.embedded``).
+    Without ``config`` the shipped configuration is used (its tool, limits and scene).
     Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
     ``record`` names a directory for an MCAP flight record of the session (default:
     the configuration's ``recorder.directory`` when ``recorder.enabled``).
@@ -118,7 +120,8 @@ class Cell(CellCommands):
         origin: Origin = Origin.LIBRARY,
         simulator_options: Mapping[str, Any] | None = None,
     ) -> None:
-        self.config = config or CellConfig()
+        # Without a config, the shipped one: its scene, tool and limits (never an empty scene).
+        self.config = config if config is not None else CellConfig.load()
         robot = self.config.robot
         self._host = host if host is not None else robot.host
         self.external_control = external_control or robot.external_control
@@ -154,6 +157,7 @@ class Cell(CellCommands):
         """The teach pendant is in Local control (polled every 0.25 s): moves are refused
         and a running move brakes."""
         self._opened = False
+        self._gripper: Gripper | None = None
 
     @classmethod
     def from_config(cls, config: str | Path | CellConfig | None = None, **kwargs: Any) -> Cell:
@@ -163,6 +167,13 @@ class Cell(CellCommands):
         return cls(config=config, **kwargs)
 
     # ------------------------------------------------------------- life cycle
+
+    @property
+    def gripper(self) -> Gripper:
+        """The Robotiq Hand-E (through the Robotiq URCap's socket on the controller)."""
+        if self._gripper is None:
+            self._gripper = Gripper(self)
+        return self._gripper
 
     @property
     def host(self) -> str | None:
@@ -220,6 +231,8 @@ class Cell(CellCommands):
             with contextlib.suppress(BaseException):
                 await self._restore
             self._restore = None
+        if self._gripper is not None:
+            await self._gripper.close_connection()
         if self.link is not None:
             await self.link.close()
         if self._machine_task is not None:

@@ -29,7 +29,7 @@ from fxcell.errors import InvalidArgumentError, SimulatorError
 
 SIM_MODULE = "fxcell.sim"
 CONTROL_PORT = 29990  # the simulator's control port (fault injection, state)
-PORTS = (29999, 30004, 30003, 30002, CONTROL_PORT)
+PORTS = (29999, 30004, 30003, 30002, 63352, CONTROL_PORT)  # 63352: Robotiq URCap gripper
 FAULTS = (
     "protective_stop",
     "emergency_stop",
@@ -42,6 +42,8 @@ FAULTS = (
     "stall_rtde",
     "stop_program",
     "power_loss",
+    "gripper_fault",  # [CODE]: the Hand-E reports FLT CODE (default 0x0E) and stops
+    "gripper_drop",  # the held object slips out of the fingers
 )
 BIND_FAILED = 2  # the simulator's exit code when it cannot listen
 
@@ -112,6 +114,44 @@ def stats(host: str, *, reset: bool = False, timeout: float = 5.0) -> dict[str, 
         result: dict[str, Any] = json.loads(answer)
     except ValueError:
         raise SimulatorError(f"simulator at {host} sent a bad stats reply: {answer!r}") from None
+    return result
+
+
+def gripper_state(host: str, timeout: float = 5.0) -> dict[str, Any]:
+    """The simulated Hand-E's registers, finger width (m) and the name of the held object."""
+    return _json_request(host, "gripper", timeout)
+
+
+def objects(host: str, timeout: float = 5.0) -> dict[str, dict[str, Any]]:
+    """Every object of the simulated world: kind, size, mass, pose (UR vector), held."""
+    return _json_request(host, "objects", timeout)
+
+
+def add_object(
+    host: str,
+    name: str,
+    kind: str,
+    *,
+    width: float,
+    height: float,
+    mass: float,
+    position: Sequence[float],
+    timeout: float = 5.0,
+) -> None:
+    """Place an upright object (grip point at ``position``) in the simulated world."""
+    words = ["add_object", name, kind, *(repr(float(v)) for v in (width, height, mass))]
+    words += [repr(float(v)) for v in position]
+    answer = _request(host, " ".join(words), timeout)
+    if not answer.startswith("ok"):
+        raise SimulatorError(f"simulator refused add_object: {answer}")
+
+
+def _json_request(host: str, line: str, timeout: float) -> dict[str, Any]:
+    answer = _request(host, line, timeout)
+    try:
+        result: dict[str, Any] = json.loads(answer)
+    except ValueError:
+        raise SimulatorError(f"simulator at {host} sent a bad {line} reply: {answer!r}") from None
     return result
 
 

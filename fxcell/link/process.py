@@ -51,6 +51,7 @@ from fxcell.protocol import (
     RuntimeState,
     SafetyMode,
 )
+from fxcell.settling import ARRIVE_TOLERANCE, SETTLE_VELOCITY
 
 log = logging.getLogger("fxcell.link.process")
 
@@ -735,14 +736,10 @@ class _Trajectory:
         )
 
 
-SETTLED_POSITION = 1e-4  # rad
-SETTLED_VELOCITY = 1e-3  # rad/s
-
-
 def _settled(state: RobotState, target: tuple[float, ...]) -> bool:
     error = wire.max_abs_difference(state.actual_q, target)
     speed = max(abs(v) for v in state.actual_qd)
-    return error < SETTLED_POSITION and speed < SETTLED_VELOCITY
+    return error < ARRIVE_TOLERANCE and speed < SETTLE_VELOCITY
 
 
 def main(argv: list[str] | None = None) -> int:

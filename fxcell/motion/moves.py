@@ -67,6 +67,7 @@ from fxcell.motion.trajectory import (
 )
 from fxcell.protocol import RobotState
 from fxcell.results import MoveResult
+from fxcell.settling import ARRIVE_TOLERANCE, REST_VELOCITY, SETTLE_POSITION, SETTLE_VELOCITY
 
 if TYPE_CHECKING:
     from fxcell.link import LinkClient, StateSubscription, TrajectoryHandle, TrajectoryResult
@@ -429,14 +430,14 @@ class ExecutionOptions:
     where it differs from the original by ~½·Δa·t² (µrad); erring early delays the stop."""
     settle_timeout: float = 0.5
     """How long the target is held after the last sample for the robot to settle (s)."""
-    settle_position: float = 1e-6
+    settle_position: float = SETTLE_POSITION
     """A move has arrived when every joint is within this of its target (rad)..."""
-    settle_velocity: float = 1e-3
+    settle_velocity: float = SETTLE_VELOCITY
     """...and slower than this (rad/s)."""
-    arrive_tolerance: float = 1e-4
+    arrive_tolerance: float = ARRIVE_TOLERANCE
     """If the hold ends first (a real arm's encoders may never read 1e-6 rad), the move
     still counts as arrived within this (rad, about 50 µm at the TCP); else TrackingError."""
-    rest_velocity: float = 1e-3
+    rest_velocity: float = REST_VELOCITY
     """After a stop, the robot is at rest below this joint speed (rad/s)."""
 
     @property
@@ -736,9 +737,9 @@ class MoveExecution:
         finished = settled_at if settled_at is not None else time.monotonic()
         return MoveResult(
             target_joints=tuple(plan.target_joints.tolist()),
-            target_pose=target_pose.as_ur(),
+            target_pose=tuple(target_pose.as_quaternion_list()),
             reached_joints=tuple(reached.tolist()),
-            reached_pose=reached_pose.as_ur(),
+            reached_pose=tuple(reached_pose.as_quaternion_list()),
             joint_error=float(np.max(np.abs(reached - plan.target_joints))),
             position_error=float(np.linalg.norm(reached_pose.position - target_pose.position)),
             orientation_error=float(reached_pose.angle_to(target_pose)),

@@ -5,9 +5,9 @@ rounds to milliseconds). The cycle is scheduled on absolute deadlines: each wake
 first sends the due RTDE packets, then advances the controller by as many 2 ms steps as
 have elapsed (so controller time follows the wall clock even after a late wake-up).
 
-Ports: Dashboard 29999, RTDE 30004, script 30003 and 30002, and the simulator's own
-control port 29990 (fault injection and state queries, one text line per request,
-see :data:`CONTROL_PORT`).
+Ports: Dashboard 29999, RTDE 30004, script 30003 and 30002, the Robotiq URCap's gripper
+socket 63352 (:mod:`fxcell.sim.gripper`), and the simulator's own control port 29990
+(fault injection and state queries, one text line per request, see :data:`CONTROL_PORT`).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import numpy as np
 
 from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
+from fxcell.geometry import Pose
 from fxcell.link.embedded import CONTROL_PORT
 from fxcell.protocol import (
     CONTROL_PERIOD,
@@ -41,13 +42,14 @@ from fxcell.protocol import (
 )
 from fxcell.sim.controller import Controller, FaultError
 from fxcell.sim.dashboard import Dashboard, DashboardConnection
+from fxcell.sim.gripper import URCAP_GRIPPER_PORT, GripperConnection, HandE, SimObject
 from fxcell.sim.motion import Arm, TableGuard
 from fxcell.sim.rtde import RTDEHub
 
 log = logging.getLogger(__name__)
 
 # CONTROL_PORT (29990), shared with the launcher: "inject FAULT [ARGS]", "state", "set_joints q..."
-PORTS = (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, SECONDARY_PORT, CONTROL_PORT)
+PORTS = (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, SECONDARY_PORT, URCAP_GRIPPER_PORT, CONTROL_PORT)
 IDLE_PERIOD = 0.02  # s: cycle period while no client streams and nothing moves
 URCAP_TIMEOUT = 5.0
 URCAP_END_MARKER = "# NODE_CONTROL_LOOP_ENDS"
@@ -199,6 +201,14 @@ class SimServer:
         self._idle = False
         self.hub.on_activity = self.wake
         self.publish_state()
+        self.gripper = HandE(
+            time_scale=time_scale,
+            tcp_pose=lambda: Pose.from_ur(self.hub.state.actual_tcp_pose),
+            powered=lambda: (
+                self.controller.robot_mode
+                in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
+            ),
+        )
 
     # ------------------------------------------------------------------ state
 
@@ -279,6 +289,7 @@ class SimServer:
         if steps:
             self.controller.tick(steps)
             self.publish_state()
+            self.gripper.tick(self.controller.time)
         # Nobody streaming and nothing moving: wake at 50 Hz (the controller clock catches
         # up in one step). Streaming or motion: every cycle.
         self._idle = self.controller.idle and not self.hub.streaming
@@ -300,6 +311,14 @@ class SimServer:
             return "error: empty request"
         cmd, args = words[0].lower(), words[1:]
         c = self.controller
+        if cmd == "inject" and args and args[0].lower() in ("gripper_fault", "gripper_drop"):
+            return self._inject_gripper(args[0].lower(), args[1:])
+        if cmd == "gripper":
+            return json.dumps(self.gripper.state())
+        if cmd == "objects":
+            return json.dumps({n: o.as_json() for n, o in self.gripper.objects.items()})
+        if cmd == "add_object":
+            return self._add_object(args)
         if cmd == "inject" and args:
             try:
                 return "ok: " + c.inject(args[0].lower(), args[1:])
@@ -350,8 +369,46 @@ class SimServer:
             if self.arm.moving or self.arm.generator is not None:
                 return "error: the arm is moving"
             self.arm.set_state(q, None, None)
+            self.publish_state()  # the reply means the new pose is what every port reports
+            self.gripper.tick(c.time)
             return "ok: joints set"
-        return f"error: unknown request {line!r} (inject FAULT [ARGS] | state | set_joints Q*6)"
+        return (
+            f"error: unknown request {line!r} (inject FAULT [ARGS] | state | stats | "
+            "set_joints Q*6 | gripper | objects | add_object NAME KIND W H M X Y Z)"
+        )
+
+    def _inject_gripper(self, fault: str, args: list[str]) -> str:
+        if fault == "gripper_drop":
+            if args:
+                return "error: gripper_drop takes no arguments"
+            return "ok: " + self.gripper.drop()
+        if len(args) > 1:
+            return "error: gripper_fault takes at most a CODE"
+        try:
+            code = int(args[0], 0) if args else 0x0E
+        except ValueError:
+            return f"error: gripper_fault: not a fault code: {args[0]!r}"
+        if not 1 <= code <= 255:
+            return "error: gripper_fault: CODE must be in 1..255"
+        return "ok: " + self.gripper.inject_fault(code)
+
+    def _add_object(self, args: list[str]) -> str:
+        usage = "error: add_object NAME KIND WIDTH HEIGHT MASS X Y Z (m, kg; upright)"
+        if len(args) != 8:
+            return usage
+        try:
+            width, height, mass, x, y, z = (float(v) for v in args[2:])
+        except ValueError:
+            return usage
+        values = (width, height, mass, x, y, z)
+        if not all(math.isfinite(v) for v in values) or min(width, height, mass) <= 0:
+            return "error: add_object: sizes and mass must be finite and > 0"
+        if width >= 0.050:
+            return "error: add_object: wider than the Hand-E's 50 mm stroke"
+        self.gripper.add_object(
+            SimObject(args[0], args[1], width, height, mass, Pose.from_ur([x, y, z, 0, 0, 0]))
+        )
+        return f"ok: {args[0]} placed"
 
     # ------------------------------------------------------------------ URCap
 
@@ -401,6 +458,7 @@ class SimServer:
             (DASHBOARD_PORT, lambda: DashboardConnection(self.dashboard, self.controller.shutdown)),
             (SCRIPT_PORT, lambda: ScriptConnection(self.controller)),
             (SECONDARY_PORT, lambda: ScriptConnection(self.controller)),
+            (URCAP_GRIPPER_PORT, lambda: GripperConnection(self.gripper)),
             (CONTROL_PORT, lambda: ControlConnection(self)),
         ]
         try:
@@ -420,7 +478,8 @@ class SimServer:
         if announce:
             print(
                 f"fxcell sim listening on {self.host}: dashboard {DASHBOARD_PORT}, rtde "
-                f"{RTDE_PORT}, script {SCRIPT_PORT}/{SECONDARY_PORT}, control {CONTROL_PORT}",
+                f"{RTDE_PORT}, script {SCRIPT_PORT}/{SECONDARY_PORT}, "
+                f"gripper {URCAP_GRIPPER_PORT}, control {CONTROL_PORT}",
                 flush=True,
             )
         try:
