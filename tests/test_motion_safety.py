@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import AsyncIterator, Iterator, Sequence
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 
 import numpy as np
 import pytest
@@ -56,6 +56,21 @@ async def _moving(cell: Cell, speed: float = 0.2, within: float = 5.0) -> None:
                     return
 
 
+def _until(condition: Callable[[], bool], within: float) -> None:
+    deadline = time.monotonic() + within
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.01)
+
+
+def _until_at_rest(handle: SimulatorHandle, within: float = 5.0) -> None:
+    """Wait until the simulated arm's own joint speeds are zero."""
+    deadline = time.monotonic() + within
+    while max(map(abs, handle.state()["qd"])) > 1e-6:
+        assert time.monotonic() < deadline, "the simulated arm did not come to rest"
+        time.sleep(0.01)
+
+
 def _sim_motion(handle: SimulatorHandle, over: float = 0.05) -> float:
     """How far (rad, largest joint) the simulated arm moves during ``over`` seconds."""
     q0 = np.array(handle.state()["q"])
@@ -79,7 +94,7 @@ async def test_a_stalled_state_stream_brakes_the_move_before_its_caller_hears(
         travelled = float(np.max(np.abs(np.array(shared.state()["q"]) - q_at_stall)))
         assert travelled < 0.4, f"the arm went on for {travelled:.3f} rad after the stall"
         assert abs(shared.state()["q"][0] - FAR[0]) > 0.5
-        await asyncio.sleep(0.6)  # the stall ends: the link comes back, the arm at rest
+        # the stall ends: the link comes back, the arm at rest
         await cell.wait_for_state(
             CellState.EXTERNAL_CONTROL_READY, CellState.PROGRAM_STOPPED, timeout=10
         )
@@ -98,7 +113,7 @@ async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandl
         link._writer.abort()  # as if the process holding it died
         with contextlib.suppress(Exception):
             await move
-        await asyncio.sleep(1.0)  # the longest brake at this speed is well below this
+        await asyncio.to_thread(_until_at_rest, shared)
         assert await asyncio.to_thread(_sim_motion, shared, 0.05) < 1e-4
         assert abs(shared.state()["q"][0] - FAR[0]) > 0.5
 
@@ -117,8 +132,8 @@ async def test_local_control_brakes_a_running_move_and_refuses_new_ones(
         with pytest.raises((NotInRemoteControlError, InvalidStateError)):
             await cell.move_joint(WORK)
         await asyncio.to_thread(shared.inject, "remote_control")
-        await asyncio.sleep(0.6)  # the cell polls the switch every 0.25 s
-        assert not cell.local_control
+        # the cell polls the switch every 0.25 s
+        await asyncio.to_thread(_until, lambda: not cell.local_control, 5.0)
 
 
 def test_the_link_brake_duration_respects_the_braking_limits() -> None:
