@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
 
 from fxcell.errors import InvalidArgumentError
 from fxcell.protocol import ProgramState, RobotMode, SafetyMode
-from fxcell.results import MoveResult, ProgramStatus
+from fxcell.results import GripResult, MoveResult, ProgramStatus
 
 if TYPE_CHECKING:
     from fxcell.geometry import Pose
@@ -73,7 +73,13 @@ VECTOR3 = ArgType("vector3", "displacement along the base axes (x, y, z)", "m", 
 FLAG = ArgType("flag", "true or false", scalar="bool")
 SECONDS = ArgType("seconds", "time limit", "s", bounds=(0.0, 3600.0))
 
-ARG_TYPES: tuple[ArgType, ...] = (FACTOR, JOINTS, POSE, VECTOR3, FLAG, SECONDS)
+GRIP_WIDTH = ArgType("grip_width", "finger opening, 0 (closed) to 0.050 (open)", "m")
+GRIP_SPEED = ArgType("grip_speed", "finger speed, 0.020 to 0.150", "m/s")
+GRIP_FORCE = ArgType("grip_force", "grip force, 20 to 185", "N")
+
+ARG_TYPES: tuple[ArgType, ...] = (
+    FACTOR, JOINTS, POSE, VECTOR3, FLAG, SECONDS, GRIP_WIDTH, GRIP_SPEED, GRIP_FORCE,
+)  # fmt: skip
 
 
 # ----------------------------------------------------------------- result types
@@ -107,6 +113,9 @@ PROGRAM_STATUS = ResultType(
     "ProgramStatus", lambda value: ProgramStatus(ProgramState(value["state"]), value["program"])
 )
 MOVE_RESULT = ResultType("MoveResult", _move_result)
+GRIP_RESULT = ResultType(
+    "GripResult", lambda value: GripResult(float(value["width"]), bool(value["holding"]))
+)
 
 
 # ----------------------------------------------------------------- the table
@@ -203,6 +212,7 @@ _DOCS = {
     "queue": "wait for a running move to end instead of failing with MoveInProgressError",
     "timeout": "time limit (default: the cell's command timeout)",
 }
+_GRIP_DOCS = {"expect_object": "raise NothingGraspedError if the fingers close on nothing"}
 _MOVE = {"velocity_factor": FACTOR, "acceleration_factor": FACTOR, "queue": FLAG}
 
 
@@ -442,6 +452,62 @@ class CellCommands(Protocol):
         Both legs are planned, and so checked, before the robot moves.
         """
         return await self.run_command("move_relative", **_given(locals()))  # type: ignore[no-any-return]
+
+    # ------------------------------------------------------------- gripper
+
+    @command("command", NONE, guard="gripper")
+    async def gripper_activate(self) -> None:
+        """Activate the Robotiq Hand-E (needs the arm powered; once after each power-up)."""
+        return await self.run_command("gripper_activate")  # type: ignore[no-any-return]
+
+    @command("command", GRIP_RESULT, args={"speed": GRIP_SPEED}, guard="gripper")
+    async def gripper_open(self, *, speed: float = 0.150) -> GripResult:
+        """Open the gripper fully; returns where the fingers stopped and whether they hold."""
+        return await self.run_command("gripper_open", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command(
+        "command",
+        GRIP_RESULT,
+        args={"speed": GRIP_SPEED, "grip_force": GRIP_FORCE, "expect_object": FLAG},
+        guard="gripper",
+        docs=_GRIP_DOCS,
+    )
+    async def gripper_close(
+        self, *, speed: float = 0.150, grip_force: float = 185.0, expect_object: bool = False
+    ) -> GripResult:
+        """Close the gripper fully or until an object stops the fingers.
+
+        ``expect_object=True`` raises ``NothingGraspedError`` when they close on nothing.
+        """
+        return await self.run_command("gripper_close", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command(
+        "command",
+        GRIP_RESULT,
+        args={
+            "width": GRIP_WIDTH,
+            "speed": GRIP_SPEED,
+            "grip_force": GRIP_FORCE,
+            "expect_object": FLAG,
+        },
+        guard="gripper",
+        docs=_GRIP_DOCS,
+    )
+    async def gripper_move(
+        self,
+        width: float,
+        *,
+        speed: float = 0.150,
+        grip_force: float = 185.0,
+        expect_object: bool = False,
+    ) -> GripResult:
+        """Move the fingers to an opening (m) at a speed (m/s) with at most a force (N)."""
+        return await self.run_command("gripper_move", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("query", FLOAT, guard="gripper")
+    async def get_gripper_width(self) -> float:
+        """The gripper's finger opening (m)."""
+        return await self.run_command("get_gripper_width")  # type: ignore[no-any-return]
 
     @command("command", BOOL, needs_control=False)
     async def stop(self) -> bool:

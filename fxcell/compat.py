@@ -161,6 +161,15 @@ fx_get_current_joint_values: Callable[[], list[float]] = _query_function(
 fx_get_current_pose: Callable[[], list[float]] = _query_function("get_current_pose", list)
 fx_get_current_rpy: Callable[[], list[float]] = _query_function("get_current_rpy", list)
 fx_get_current_pose_rpy: Callable[[], list[float]] = _query_function("get_current_pose_rpy", list)
+fx_gripper_activate: Callable[[], bool] = _command_function("gripper_activate")
+fx_gripper_open: Callable[[], bool] = _command_function("gripper_open")
+fx_gripper_close: Callable[[], bool] = _command_function("gripper_close")
+fx_get_gripper_width: Callable[[], float] = _query_function("get_gripper_width", float)
+
+
+def fx_gripper_move(width: float, speed: float = 0.150, force: float = 185.0) -> bool:
+    """Move the gripper's fingers to an opening (m) at a speed (m/s), force at most (N)."""
+    return _ok("fx_gripper_move", lambda c: c.gripper_move(width, speed=speed, grip_force=force))
 
 
 # ----------------------------------------------------------------- kinematic functions

@@ -20,6 +20,14 @@ class ProgramStatus:
     program: str
 
 
+@dataclass(frozen=True, slots=True)
+class GripResult:
+    """Where the gripper's fingers stopped (opening in m) and whether they hold an object."""
+
+    width: float
+    holding: bool
+
+
 @dataclass(frozen=True)
 class MoveResult:
     """What a move did."""

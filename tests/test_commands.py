@@ -17,9 +17,14 @@ from fxcell.cell import Cell, CellState
 from fxcell.cell.statemachine import load_statechart
 from fxcell.client import RemoteCell
 from fxcell.commands import COMMANDS, CellCommands
-from fxcell.errors import InvalidArgumentError, InvalidStateError, MoveStoppedError
+from fxcell.errors import (
+    InvalidArgumentError,
+    InvalidStateError,
+    MoveStoppedError,
+    NothingGraspedError,
+)
 from fxcell.protocol import ProgramState, RobotMode, SafetyMode
-from fxcell.results import MoveResult, ProgramStatus
+from fxcell.results import GripResult, MoveResult, ProgramStatus
 from fxcell.testing import SimulatorHandle, simulator
 
 TIME_SCALE = 0.05
@@ -227,3 +232,20 @@ async def test_go_home_without_arguments_then_a_stop_ends_the_queued_move(
             await task
     await asyncio.sleep(0.3)
     assert max(abs(v) for v in await api.get_velocity()) < 1e-4  # the queued move never ran
+
+
+async def test_gripper_commands_answer_the_same_on_both(api: CellCommands) -> None:
+    with pytest.raises(InvalidStateError):
+        await api.gripper_activate()  # the arm is off: no tool power
+    await api.init()
+    await api.gripper_activate()
+    opened = await api.gripper_open()
+    assert isinstance(opened, GripResult)
+    assert opened == GripResult(pytest.approx(0.05), False)  # type: ignore[arg-type]
+    moved = await api.gripper_move(0.02, speed=0.15, grip_force=50.0)
+    assert moved.width == pytest.approx(0.02, abs=2e-4)
+    assert await api.get_gripper_width() == pytest.approx(0.02, abs=2e-4)
+    with pytest.raises(NothingGraspedError):
+        await api.gripper_close(expect_object=True)
+    with pytest.raises(InvalidArgumentError):
+        await api.gripper_move(0.08)

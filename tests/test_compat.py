@@ -97,3 +97,14 @@ def test_fx_stop_from_another_thread_stops_a_move(connected: SimulatorHandle) ->
     assert results == [False]  # the move did not reach its target
     assert max(map(abs, compat.fx_get_velocity())) < 1e-3
     assert compat.fx_move_joint(WORK, 0.5, 0.5) is True
+
+
+def test_gripper_functions_return_booleans_and_the_width(connected: SimulatorHandle) -> None:
+    assert compat.fx_init() is True
+    assert compat.fx_gripper_activate() is True
+    assert compat.fx_gripper_move(0.03) is True
+    assert compat.fx_get_gripper_width() == pytest.approx(0.03, abs=2e-4)
+    assert compat.fx_gripper_move(0.08) is False  # beyond the 50 mm stroke: refused, logged
+    assert compat.fx_gripper_close() is True
+    assert compat.fx_get_gripper_width() == pytest.approx(0.0)
+    assert compat.fx_gripper_open() is True

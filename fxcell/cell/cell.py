@@ -63,7 +63,7 @@ from fxcell.motion.runner import (
     RelativeTarget,
 )
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
-from fxcell.results import MoveResult, ProgramStatus
+from fxcell.results import GripResult, MoveResult, ProgramStatus
 
 if TYPE_CHECKING:
     from fxcell.motion.moves import MotionController
@@ -926,6 +926,41 @@ class Cell(CellCommands):
         async with self._command("get_acceleration_factor") as out:
             out["result"] = factor = self._moves().acceleration_factor
             return factor
+
+    # ------------------------------------------------------------- gripper
+
+    async def gripper_activate(self) -> None:
+        self.machine.check("gripper")
+        await self.gripper.activate()
+
+    async def gripper_open(self, *, speed: float = 0.150) -> GripResult:
+        self.machine.check("gripper")
+        return await self.gripper.open(speed=speed)
+
+    async def gripper_close(
+        self, *, speed: float = 0.150, grip_force: float = 185.0, expect_object: bool = False
+    ) -> GripResult:
+        self.machine.check("gripper")
+        return await self.gripper.close(speed=speed, force=grip_force, expect_object=expect_object)
+
+    async def gripper_move(
+        self,
+        width: float,
+        *,
+        speed: float = 0.150,
+        grip_force: float = 185.0,
+        expect_object: bool = False,
+    ) -> GripResult:
+        self.machine.check("gripper")
+        return await self.gripper.move(
+            width, speed=speed, force=grip_force, expect_object=expect_object
+        )
+
+    async def get_gripper_width(self) -> float:
+        async with self._command("get_gripper_width") as outcome:
+            self.machine.check("gripper")
+            outcome["result"] = await self.gripper.get_width()
+            return float(outcome["result"])
 
     async def get_max_acceleration(self) -> tuple[float, ...]:
         async with self._command("get_max_acceleration") as out:

@@ -12,7 +12,6 @@ import asyncio
 import contextlib
 import math
 import time
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from fxcell.errors import (
@@ -27,6 +26,7 @@ from fxcell.errors import (
 )
 from fxcell.link.gripper import URCapGripperClient
 from fxcell.protocol import RobotMode
+from fxcell.results import GripResult
 
 if TYPE_CHECKING:
     from fxcell.cell.cell import Cell
@@ -37,14 +37,6 @@ FORCE_RANGE = (20.0, 185.0)  # N
 POLL = 0.01  # s between two status reads while the fingers move
 ACTIVATION_TIMEOUT = 10.0  # s
 _POWERED = (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
-
-
-@dataclass(frozen=True)
-class GripResult:
-    """Where the fingers stopped (m) and whether they hold an object."""
-
-    width: float
-    holding: bool
 
 
 def _register(value: float, lo: float, hi: float) -> int:
