@@ -20,7 +20,8 @@ from fxcell.daemon.process import DaemonProcess, free_port
 ROOT = Path(__file__).resolve().parent.parent
 TOKEN = "packaging-token-0123456789abcdef"
 
-pytestmark = pytest.mark.slow
+# installing into fresh virtual environments takes 30-90 s on a busy machine
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,8 @@
 
 The simulator runs in its own process (``python -m fxcell.sim``): ur_rtde holds the GIL
 while it connects, so an in-process simulator would deadlock its clients. Its ports are
-fixed, so each simulator gets its own loopback address (127.0.0.2 … 127.0.0.254),
+fixed, so each simulator gets its own loopback address (127.0.0.2 … 127.0.0.253; .254 is
+kept free so that tests can name an address where no controller ever answers),
 picked at random and checked by binding every port. This module never imports
 ``fxcell.sim``; it talks to the process over its control port (fault injection, state).
 """
@@ -61,13 +62,14 @@ def address_is_free(host: str, ports: Sequence[int] = PORTS) -> bool:
 
 
 def free_loopback_host(rng: random.Random | None = None, attempts: int = 200) -> str:
-    """A random 127.0.0.x address (x in 2..254) on which every simulator port is free."""
+    """A random 127.0.0.x address (x in 2..253) on which every simulator port is free
+    (127.0.0.254 stays free: tests use it as an unreachable controller)."""
     rng = rng or random.SystemRandom()
     for _ in range(attempts):
-        host = f"127.0.0.{rng.randint(2, 254)}"
+        host = f"127.0.0.{rng.randint(2, 253)}"
         if address_is_free(host):
             return host
-    raise SimulatorError("no free loopback address for the simulator (127.0.0.2-254 all busy)")
+    raise SimulatorError("no free loopback address for the simulator (127.0.0.2-253 all busy)")
 
 
 def _request(host: str, line: str, timeout: float) -> str:

@@ -53,6 +53,10 @@ _EDGE_TURN = 0.02
 """Radians by which a target near a wrist singularity is turned to find starts."""
 
 
+BRANCH_TOLERANCE = 0.05
+"""rad: how far the calibrated solution may lie from the nominal one it was refined from."""
+
+
 class CalibratedKinematics(Kinematics):
     """A UR3e with a factory calibration (and a TCP): FK and IK on the calibrated model.
 
@@ -233,14 +237,18 @@ class CalibratedKinematics(Kinematics):
         s = np.zeros(6) if seed is None else np.array(_joints(seed))
         if valid is None and singularity_margin is None:
             try:
-                q = self.solve(self._corrected(target, self.nominal.inverse(target, s)), target)
+                start = self.nominal.inverse(target, s)
+                q = self.solve(self._corrected(target, start), target)
             except UnreachableError:
                 q = None
-            if q is not None:
+            # the refinement must stay on the nominal branch nearest the seed (the deltas
+            # are millimetres); Newton that wandered to another branch is not an answer
+            if q is not None and float(np.max(np.abs(q - start))) < BRANCH_TOLERANCE:
                 return q
         singular: str | None = None
         rejected = 0
-        for q in self._solutions(target, s):
+        candidates = sorted(self._solutions(target, s), key=lambda q: float(np.sum((q - s) ** 2)))
+        for q in candidates:
             if singularity_margin is not None:
                 kind = self.singularity(q, distance=singularity_margin, sine=singularity_margin)
                 if kind is not None:
