@@ -37,6 +37,16 @@ def _positive(text: str) -> float:
     return value
 
 
+def _machine_io(text: str) -> Any:
+    from fxcell.errors import InvalidArgumentError
+    from fxcell.sim.fusion import parse_machine_io
+
+    try:
+        return parse_machine_io(text)
+    except InvalidArgumentError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="loopback address to serve on")
     p.add_argument(
@@ -63,6 +73,38 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="run the control cycle with SCHED_FIFO priority (if permitted; else reniced)",
     )
+    machine = p.add_argument_group("fusion machine and objects")
+    machine.add_argument(
+        "--no-machine",
+        dest="machine",
+        action="store_false",
+        help="no simulated fusion machine (its input signals are free for set-input)",
+    )
+    machine.add_argument(
+        "--machine-io",
+        type=_machine_io,
+        metavar="NAME=SIGNAL,...",
+        help="the machine's signals, default start=DO0,ready=DI0,busy=DI1,done=DI2,error=DI3",
+    )
+    machine.add_argument(
+        "--fusion-time",
+        type=_positive,
+        default=600.0,
+        metavar="S",
+        help="fusion duration (s, x --time-scale), default 600",
+    )
+    machine.add_argument(
+        "--cooling-time",
+        type=_positive,
+        default=300.0,
+        metavar="S",
+        help="cooling duration (s, x --time-scale), default 300",
+    )
+    machine.add_argument(
+        "--crucibles",
+        metavar="A1,A2,...|N",
+        help="start with crucibles (with samples) in these rack slots, or the first N",
+    )
     p.add_argument(
         "--exit-with-parent",
         action="store_true",
@@ -80,12 +122,102 @@ def register(sub: Any) -> None:
     i.add_argument("fault", choices=FAULTS)
     i.add_argument("args", nargs="*", help="fault arguments (stall_rtde SECONDS)")
     i.set_defaults(func=run_inject)
+    push = inner.add_parser(
+        "push", help="move the arm by hand while it is in freedrive (teach mode)"
+    )
+    push.add_argument("--host", default="127.0.0.1", help="the simulator's address")
+    push.add_argument(
+        "delta",
+        nargs="+",
+        type=float,
+        help="DX DY DZ (m, TCP in the base frame) or six joint deltas (rad)",
+    )
+    push.set_defaults(func=run_push)
+    si = inner.add_parser(
+        "set-input",
+        help="set a controller input of a running simulator (play a wired device)",
+        description="INPUT: DI5 or 5 (standard digital), CI2 (configurable), TI0 (tool), "
+        "AI0/AI1 (standard analog), TAI0/TAI1 (tool analog). VALUE: 0/1, or a number for "
+        "analog inputs. Inputs the fusion machine drives are refused.",
+    )
+    si.add_argument("--host", default="127.0.0.1", help="the simulator's address")
+    si.add_argument("input", metavar="INPUT")
+    si.add_argument("value", metavar="VALUE")
+    si.set_defaults(func=run_set_input)
+    po = inner.add_parser(
+        "place-object",
+        help="put an object at a layout slot of a running simulator",
+        description="The object's grip point goes to the slot's grip pose. An object "
+        "already there keeps its contents; a new crucible carries a sample unless "
+        "CONTENTS is '-' (empty).",
+    )
+    po.add_argument("--host", default="127.0.0.1", help="the simulator's address")
+    po.add_argument("name")
+    po.add_argument("kind", help="object kind of the layout (crucible, bead)")
+    po.add_argument("station")
+    po.add_argument("slot")
+    po.add_argument("contents", nargs="?", help="what it carries ('-': nothing)")
+    po.set_defaults(func=run_place_object)
+    m = inner.add_parser("machine", help="print the simulated fusion machine's state (JSON)")
+    m.add_argument("--host", default="127.0.0.1", help="the simulator's address")
+    m.set_defaults(func=run_machine)
 
 
 def run_inject(args: argparse.Namespace) -> int:
     from fxcell.link.embedded import inject
 
     print(inject(args.host, args.fault, *args.args))
+    return 0
+
+
+def run_push(args: argparse.Namespace) -> int:
+    from fxcell.errors import SimulatorError
+    from fxcell.link.embedded import push
+
+    try:
+        push(args.host, args.delta)
+    except (SimulatorError, OSError) as exc:
+        print(f"fxcell sim push: {exc}", file=sys.stderr)
+        return 1
+    print("pushed")
+    return 0
+
+
+def run_set_input(args: argparse.Namespace) -> int:
+    from fxcell.errors import SimulatorError
+    from fxcell.link.embedded import set_input
+
+    try:
+        print(set_input(args.host, args.input, args.value))
+    except SimulatorError as exc:
+        print(f"fxcell sim set-input: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run_place_object(args: argparse.Namespace) -> int:
+    from fxcell.errors import SimulatorError
+    from fxcell.link.embedded import place_object
+
+    try:
+        print(place_object(args.host, args.name, args.kind, args.station, args.slot, args.contents))
+    except SimulatorError as exc:
+        print(f"fxcell sim place-object: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run_machine(args: argparse.Namespace) -> int:
+    import json
+
+    from fxcell.errors import SimulatorError
+    from fxcell.link.embedded import machine_state
+
+    try:
+        print(json.dumps(machine_state(args.host), indent=2))
+    except SimulatorError as exc:
+        print(f"fxcell sim machine: {exc}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -128,6 +260,11 @@ def run(args: argparse.Namespace) -> int:
         urcap_port=args.urcap_port,
         realtime=args.realtime,
         calibration=calibration,
+        machine=args.machine,
+        machine_io=args.machine_io,
+        fusion_time=args.fusion_time,
+        cooling_time=args.cooling_time,
+        crucibles=args.crucibles,
     )
 
 

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from fxcell.errors import InvalidArgumentError
 from fxcell.link.embedded import FAULTS  # one list of faults, shared with the launcher
 from fxcell.protocol import (
     CONTROL_PERIOD,
@@ -25,10 +26,12 @@ from fxcell.protocol import (
     SafetyMode,
     SafetyStatusBits,
 )
+from fxcell.sim.signals import Signal
 
 if TYPE_CHECKING:
     from fxcell.sim.motion import Arm
     from fxcell.sim.script import ControlScript
+    from fxcell.sim.urscript import Program
 
 log = logging.getLogger(__name__)
 
@@ -90,21 +93,64 @@ class Registers:
 
     in_int: list[int] = field(default_factory=lambda: [0] * REGISTER_COUNT)
     in_double: list[float] = field(default_factory=lambda: [0.0] * REGISTER_COUNT)
-    in_bits: int = 0  # input bit registers 64..127 as one 64-bit word
+    in_bits: int = 0  # input bit registers 0..63 as one 64-bit word
+    in_bits_high: int = 0  # input bit registers 64..127 (the script's boolean registers 0..63)
     out_int: list[int] = field(default_factory=lambda: [0] * REGISTER_COUNT)
     out_double: list[float] = field(default_factory=lambda: [0.0] * REGISTER_COUNT)
-    out_bits: int = 0
+    out_bits: int = 0  # output bit registers 0..63
+    out_bits_high: int = 0  # output bit registers 64..127
 
 
 @dataclass
 class IOState:
-    """Digital and analog I/O as set by RTDE inputs."""
+    """Digital and analog I/O: outputs as set by RTDE inputs, inputs as set from outside.
+
+    An input driven by a simulated device (the fusion machine) is *owned* by it: only its
+    owner sets it (:meth:`set_input`).
+    """
 
     standard_digital: int = 0
     configurable_digital: int = 0
     tool_digital: int = 0
     analog_out: list[float] = field(default_factory=lambda: [0.0, 0.0])
     speed_slider: float = 1.0
+    digital_in: int = 0  # standard 0-7, configurable 8-15, tool 16-17 (RTDE's bit layout)
+    analog_in: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    tool_analog_in: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    input_owners: dict[str, str] = field(default_factory=dict)  # "DI0" -> its owner
+
+    @property
+    def input_bits(self) -> int:
+        """``actual_digital_input_bits``."""
+        return self.digital_in
+
+    def output(self, signal: Signal) -> bool:
+        """The value of a digital output (``DO``, ``CO``, ``TO``)."""
+        return bool(self.output_bits >> signal.bit & 1)
+
+    def input(self, signal: Signal) -> float:
+        """The value of an input (1.0/0.0 for digital ones)."""
+        if signal.kind == "AI":
+            return self.analog_in[signal.index]
+        if signal.kind == "TAI":
+            return self.tool_analog_in[signal.index]
+        return float(self.digital_in >> signal.bit & 1)
+
+    def set_input(self, signal: Signal, value: float, owner: str | None = None) -> None:
+        """Set an input; an input owned by a device only by ``owner`` (else ValueError)."""
+        if not signal.is_input:
+            raise InvalidArgumentError(f"{signal} is an output: only the robot sets it")
+        holder = self.input_owners.get(str(signal))
+        if holder is not None and holder != owner:
+            raise InvalidArgumentError(f"{signal} is driven by {holder}")
+        if signal.kind == "AI":
+            self.analog_in[signal.index] = float(value)
+        elif signal.kind == "TAI":
+            self.tool_analog_in[signal.index] = float(value)
+        elif value:
+            self.digital_in |= 1 << signal.bit
+        else:
+            self.digital_in &= ~(1 << signal.bit)
 
     @property
     def output_bits(self) -> int:
@@ -140,7 +186,10 @@ class Controller:
         self.payload_mass = 0.0
         self.payload_cog = (0.0, 0.0, 0.0)
         self.tcp: tuple[float, ...] = (0.0,) * 6  # set by the program (set_tcp)
-        self.script: ControlScript | None = None
+        self.teach_mode = False  # freedrive: the arm follows a hand (`push` on the control port)
+        self.script: ControlScript | None = None  # ur_rtde's control script, emulated
+        self.program: Program | None = None  # any other URScript program, interpreted
+        self.kinematics_info_hidden = False  # fault: no calibration on the primary interface
         self.program_kind: str | None = None  # "urp" | "script" | None
         self.last_stop_reason = ""
         self.log_messages: list[str] = []
@@ -154,11 +203,17 @@ class Controller:
         self.on_drop_rtde: Callable[[], None] = lambda: None
         self.on_shutdown: Callable[[], None] = lambda: None
         self.request_urcap_program: Callable[[], None] = lambda: None
+        self.on_robot_message: Callable[[bytes], None] = lambda message: None
         self._timers: list[tuple[float, int, Callable[[], None]]] = []
         self._timer_seq = 0
         self._pending: dict[str, int] = {}  # name -> timer seq, for cancellable transitions
 
     # ------------------------------------------------------------------ timing
+
+    @property
+    def digital_input_bits(self) -> int:
+        """Standard 0-7, configurable 8-15, tool 16-17 (set from outside or by the machine)."""
+        return self.io.input_bits
 
     def delay(self, name: str) -> float:
         return DELAYS[name] * self.time_scale
@@ -193,7 +248,12 @@ class Controller:
     @property
     def idle(self) -> bool:
         """Nothing changes from cycle to cycle but the clock (and pending timers)."""
-        return self.script is None and self.watchdog is None and not self.arm.active
+        return (
+            self.script is None
+            and self.program is None
+            and self.watchdog is None
+            and not self.arm.active
+        )
 
     def tick(self, steps: int = 1) -> None:
         """Advance ``steps`` control cycles: timers, watchdog, script, motion, safety."""
@@ -208,8 +268,12 @@ class Controller:
             self._run_timers()
             if self.watchdog is not None and self.runtime_state == RuntimeState.PLAYING:
                 self._check_watchdog()
-            if self.script is not None and self.runtime_state == RuntimeState.PLAYING:
-                self.script.step()
+            if self.runtime_state == RuntimeState.PLAYING:
+                if self.script is not None:
+                    self.script.step()
+                elif self.program is not None:
+                    self._step_program(self.program)
+            self.arm.speed_fraction = self.io.speed_slider
             moving = self.robot_mode == RobotMode.RUNNING
             violation = self.arm.step(CONTROL_PERIOD, enabled=moving)
             if violation is not None:
@@ -351,6 +415,8 @@ class Controller:
         if not self.remote_control and not via_urcap:
             log.warning("script refused: robot is in local control")
             return False
+        if text.lstrip().startswith("sec ") and not via_urcap:
+            return self.run_secondary(text)
         if not self.can_move:
             log.warning(
                 "script refused: robot mode %s, safety %s",
@@ -359,9 +425,19 @@ class Controller:
             )
             return False
         from fxcell.sim.script import ControlScript, is_control_script
+        from fxcell.sim.urscript import Program, URScriptError
 
-        if self.script is not None or (
-            self.runtime_state != RuntimeState.STOPPED and not via_urcap
+        program: Program | None = None
+        if not is_control_script(text):
+            try:
+                program = Program(self, text)
+            except URScriptError as exc:  # the controller's compiler refuses it
+                self.runtime_error(exc.message, exc.line, exc.column)
+                return False
+        if (
+            self.script is not None
+            or self.program is not None
+            or (self.runtime_state != RuntimeState.STOPPED and not via_urcap)
         ):
             self._stop_program("replaced by a new program")
             self.arm.stop_motion()
@@ -371,12 +447,12 @@ class Controller:
             if not self.can_move:
                 self._stop_program("robot not ready when the program started")
                 return
-            if is_control_script(text):
+            if program is None:
                 self.script = ControlScript(self, text)
             else:
                 self.script = None
-                log.info("simulator does not interpret URScript: program ends at once")
-                self.after(4 * CONTROL_PERIOD, lambda: self._stop_program("program finished"))
+                self.program = program
+                log.info("URScript program %s started", program.name)
             self.program_kind = "urp" if via_urcap else "script"
             self.runtime_state = RuntimeState.PLAYING
 
@@ -386,12 +462,86 @@ class Controller:
             self.after(self.delay("program_start"), start, name="program")
         return True
 
+    def run_secondary(self, text: str) -> bool:
+        """A ``sec`` program: runs at once beside the main program (it cannot take time)."""
+        from fxcell.sim.urscript import Program, URScriptError
+
+        try:
+            program = Program(self, text, secondary=True)
+        except URScriptError as exc:
+            self.runtime_error(exc.message, exc.line, exc.column)
+            return False
+        log.info("secondary program %s runs", program.name)
+        program.step()
+        if program.error is not None:
+            e = program.error
+            self.runtime_error(e.message, e.line, e.column, stop=False)
+            return False
+        return True
+
+    def _step_program(self, program: Program) -> None:
+        if not program.step():
+            return
+        self.program = None
+        if program.error is not None:
+            e = program.error
+            self.runtime_error(e.message, e.line, e.column)
+        else:
+            self._stop_program("program finished")
+
+    def runtime_error(
+        self, text: str, line: int = 0, column: int = 0, *, stop: bool = True
+    ) -> None:
+        """A runtime (or compile) error, reported as the controller does: a runtime exception
+        message on the primary/secondary interfaces and the log; the program stops."""
+        from fxcell.sim.primary import runtime_exception_message
+
+        entry = f"Runtime exception: {text} (line {line}, column {column})"
+        log.error("%s", entry)
+        self.log_messages.append(entry)
+        self.on_robot_message(runtime_exception_message(text, line, column, self.time))
+        if stop:
+            self._stop_program(f"runtime exception: {text}")
+            self.arm.stop_motion()
+
+    def report_error(self, text: str) -> None:
+        """An error the program survives: the log and a text message to the clients."""
+        from fxcell.sim.primary import text_message
+
+        log.error("%s", text)
+        self.log_messages.append(f"error: {text}")
+        self.on_robot_message(text_message(text, self.time))
+
+    def text_message(self, text: str) -> None:
+        """``textmsg``: the log and a text message to the primary/secondary clients."""
+        from fxcell.sim.primary import text_message
+
+        log.info("textmsg: %s", text)
+        self.log_messages.append(f"textmsg: {text}")
+        self.on_robot_message(text_message(text, self.time))
+
+    def set_digital_output(self, bit: int, value: bool) -> None:
+        """Standard outputs are bits 0-7, configurable 8-15, tool 16-17."""
+        io = self.io
+        if bit < 8:
+            io.standard_digital = (io.standard_digital & ~(1 << bit)) | (int(value) << bit)
+        elif bit < 16:
+            n = bit - 8
+            io.configurable_digital = (io.configurable_digital & ~(1 << n)) | (int(value) << n)
+        else:
+            n = bit - 16
+            io.tool_digital = (io.tool_digital & ~(1 << n)) | (int(value) << n)
+
     def script_finished(self, reason: str) -> None:
         """The control script ended by itself (stopScript, unsupported command, IK failure)."""
         self._stop_program(reason)
 
     def _stop_program(self, reason: str) -> None:
         self.cancel("program")
+        self.teach_mode = False  # teach mode ends with the program, as on the controller
+        if self.program is not None:
+            self.program.terminate()
+            self.program = None
         if self.runtime_state != RuntimeState.STOPPED or self.script is not None:
             log.info("program stopped: %s", reason)
             self.last_stop_reason = reason
@@ -485,6 +635,8 @@ class Controller:
             self.on_drop_rtde()
         elif fault == "stop_program":
             self.stop("stopped on the teach pendant")
+        elif fault in ("hide_kinematics_info", "show_kinematics_info"):
+            self.kinematics_info_hidden = fault == "hide_kinematics_info"
         elif fault == "power_loss":
             self.cancel("power")
             self.cancel("brakes")

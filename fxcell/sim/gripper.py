@@ -61,6 +61,7 @@ class SimObject:
     mass: float  # kg
     pose: Pose
     held_from: Pose | None = None  # the object in the TCP frame while held
+    contents: str | None = None  # what it carries (a crucible's sample), None when empty
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -70,6 +71,7 @@ class SimObject:
             "mass": self.mass,
             "pose": list(self.pose.as_ur()),
             "held": self.held_from is not None,
+            "contents": self.contents,
         }
 
 

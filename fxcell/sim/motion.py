@@ -437,6 +437,10 @@ class TableGuard:
         return LINK_NAMES[int(np.argmax(inside))], 0.0
 
 
+# Programmed moves follow the speed slider as on the real robot (servo/speed tracking and
+# stops run in real time).
+_SCALED = (JointMove, LinearMove, MotionSequence)
+
 LINK_NAMES = ("upper arm", "forearm", "wrist 1", "wrist 2", "wrist 3", "tool")
 
 
@@ -462,6 +466,7 @@ class Arm:
         self.suspended: Motion | None = None
         self.table = table
         self.version = 0  # bumped whenever q changes: lets the state cache FK
+        self.speed_fraction = 1.0  # the speed slider: scales time along programmed moves
         self._guard_budget = 0.0  # m a link point may still travel before the next table check
 
     @property
@@ -555,8 +560,16 @@ class Arm:
             self._abort_current("robot not running")
             self.set_state(self.q, None, None)
             return None
+        scale = self.speed_fraction if isinstance(gen, _SCALED) else 1.0
+        if scale <= 0.0:  # slider at zero: the programmed move holds where it is
+            if self.qd is not ZERO6:
+                self.set_state(self.q, None, None)
+            return None
         try:
-            finished = gen.step(self, dt)
+            finished = gen.step(self, dt * scale)
+            if scale != 1.0 and self.qd is not ZERO6:
+                self.qd = self.qd * scale  # path time runs slower than the clock
+                self.qdd = self.qdd * (scale * scale)
             self.check_position(self.q, "motion")
         except SafetyLimitError as exc:
             gen.token.finish(failed=str(exc))

@@ -45,6 +45,8 @@ TYPE_CODES = {
 VECTOR_TYPES = frozenset({"VECTOR3D", "VECTOR6D", "VECTOR6INT32", "VECTOR6UINT32"})
 MAX_WRITE_BUFFER = 4 * 1024 * 1024  # a client this far behind is dropped
 QUIET_CYCLES = 250  # a started client silent this long is read by the event loop instead
+MAX_RECIPE_NAMES = 2048  # bytes: the RTDE guide's limit on a recipe's list of names
+V1_FREQUENCY = 125.0  # Hz: protocol version 1 outputs have no frequency of their own
 
 V6 = "VECTOR6D"
 # name -> (RTDE type, Python expression over the StreamState ``s`` and registers ``r``)
@@ -87,8 +89,8 @@ OUTPUTS: dict[str, tuple[str, str]] = {
     "robot_status_bits": ("UINT32", "s.robot_status_bits"),
     "safety_status_bits": ("UINT32", "s.safety_status_bits"),
     "analog_io_types": ("UINT32", "0"),
-    "standard_analog_input0": ("DOUBLE", "0.0"),
-    "standard_analog_input1": ("DOUBLE", "0.0"),
+    "standard_analog_input0": ("DOUBLE", "s.analog_in[0]"),
+    "standard_analog_input1": ("DOUBLE", "s.analog_in[1]"),
     "standard_analog_output0": ("DOUBLE", "s.analog_out[0]"),
     "standard_analog_output1": ("DOUBLE", "s.analog_out[1]"),
     "io_current": ("DOUBLE", "0.0"),
@@ -98,8 +100,8 @@ OUTPUTS: dict[str, tuple[str, str]] = {
     "euromap67_24V_current": ("DOUBLE", "0.0"),
     "tool_mode": ("UINT32", "0"),
     "tool_analog_input_types": ("UINT32", "0"),
-    "tool_analog_input0": ("DOUBLE", "0.0"),
-    "tool_analog_input1": ("DOUBLE", "0.0"),
+    "tool_analog_input0": ("DOUBLE", "s.tool_analog_in[0]"),
+    "tool_analog_input1": ("DOUBLE", "s.tool_analog_in[1]"),
     "tool_output_voltage": ("INT32", "24"),
     "tool_output_current": ("DOUBLE", "0.0"),
     "tool_temperature": ("DOUBLE", "30.0"),
@@ -116,18 +118,23 @@ OUTPUTS: dict[str, tuple[str, str]] = {
     "payload_inertia": (V6, "s.zero6"),
     "script_control_line": ("UINT32", "0"),
     "ft_raw_wrench": (V6, "s.zero6"),
-    "joint_position_deviation_ratio": (V6, "s.zero6"),
+    "joint_position_deviation_ratio": ("DOUBLE", "0.0"),
     "collision_detection_ratio": ("DOUBLE", "0.0"),
     "time_scale_source": ("INT32", "0"),
+    "tcp_offset": (V6, "s.tcp_offset"),
+    "actual_configurable_digital_input_bits": ("UINT64", "(s.digital_input_bits >> 8) & 0xFF"),
+    "actual_configurable_digital_output_bits": ("UINT64", "(s.digital_output_bits >> 8) & 0xFF"),
+    "encoder0_raw": ("INT32", "0"),
+    "encoder1_raw": ("INT32", "0"),
 }
 for _i in range(REGISTER_COUNT):
     OUTPUTS[f"output_int_register_{_i}"] = ("INT32", f"r.out_int[{_i}]")
     OUTPUTS[f"output_double_register_{_i}"] = ("DOUBLE", f"r.out_double[{_i}]")
     OUTPUTS[f"input_int_register_{_i}"] = ("INT32", f"r.in_int[{_i}]")
     OUTPUTS[f"input_double_register_{_i}"] = ("DOUBLE", f"r.in_double[{_i}]")
-for _i in range(64, 128):
-    OUTPUTS[f"output_bit_register_{_i}"] = ("BOOL", f"bool((r.out_bits >> {_i - 64}) & 1)")
-    OUTPUTS[f"input_bit_register_{_i}"] = ("BOOL", f"bool((r.in_bits >> {_i - 64}) & 1)")
+for _i in range(64, 128):  # the upper bit registers: a word of their own (r.*_bits_high)
+    OUTPUTS[f"output_bit_register_{_i}"] = ("BOOL", f"bool((r.out_bits_high >> {_i - 64}) & 1)")
+    OUTPUTS[f"input_bit_register_{_i}"] = ("BOOL", f"bool((r.in_bits_high >> {_i - 64}) & 1)")
 
 # Inputs: name -> RTDE type. Registers are written straight into the register file;
 # the I/O fields are collected per packet and applied together (mask + value).
@@ -192,13 +199,19 @@ class StreamState:
         self.joint_voltage = z6
         self.elbow_position = self.zero3
         self.analog_out = [0.0, 0.0]
+        self.analog_in = [0.0, 0.0]
+        self.tool_analog_in = [0.0, 0.0]
         self.payload = 0.0
         self.payload_cog = self.zero3
+        self.tcp_offset = z6
 
 
-def compile_output_recipe(names: list[str], recipe_id: int) -> Callable[[Any, Any], bytes]:
-    """A function ``pack(s, r) -> bytes`` writing one whole ``U`` packet for ``names``."""
-    fmt = ">HBB"
+def compile_output_recipe(
+    names: list[str], recipe_id: int, *, with_id: bool = True
+) -> Callable[[Any, Any], bytes]:
+    """A function ``pack(s, r) -> bytes`` writing one whole ``U`` packet for ``names``
+    (protocol version 1 packets carry no recipe id: ``with_id=False``)."""
+    fmt = ">HBB" if with_id else ">HB"
     args = []
     for name in names:
         rtde_type, expr = OUTPUTS[name]
@@ -207,7 +220,8 @@ def compile_output_recipe(names: list[str], recipe_id: int) -> Callable[[Any, An
     packer = struct.Struct(fmt)
     source = (
         "def pack(s, r, _pack=_pack):\n"
-        f"    return _pack({packer.size}, 85, {recipe_id}, {', '.join(args)})\n"
+        f"    return _pack({packer.size}, 85, {f'{recipe_id}, ' if with_id else ''}"
+        f"{', '.join(args)})\n"
     )
     namespace: dict[str, Any] = {"_pack": packer.pack}
     exec(compile(source, f"<rtde recipe {recipe_id}>", "exec"), namespace)
@@ -290,12 +304,18 @@ def _apply_io(controller: Controller, io: dict[str, Any]) -> None:
         regs.in_bits = (regs.in_bits & ~0xFFFFFFFF) | int(io["input_bit_registers0_to_31"])
     if "input_bit_registers32_to_63" in io:
         regs.in_bits = (regs.in_bits & 0xFFFFFFFF) | int(io["input_bit_registers32_to_63"]) << 32
+    for name, value in io.items():
+        if name.startswith("input_bit_register_"):
+            bit = int(name.rsplit("_", 1)[1]) - 64
+            regs.in_bits_high = (regs.in_bits_high & ~(1 << bit)) | (int(bool(value)) << bit)
 
 
 class OutputRecipe:
-    def __init__(self, names: list[str], recipe_id: int, frequency: float) -> None:
+    def __init__(
+        self, names: list[str], recipe_id: int, frequency: float, *, with_id: bool = True
+    ) -> None:
         self.names = names
-        self.pack = compile_output_recipe(names, recipe_id)
+        self.pack = compile_output_recipe(names, recipe_id, with_id=with_id)
         self.step = frequency / 500.0
         self.phase = 1.0 - self.step  # the first cycle after start sends
 
@@ -409,6 +429,7 @@ class RTDEConnection:
         self.started = False
         self.quiet = 0  # cycles without input while started
         self.watched = False  # started but read by the event loop (a silent client)
+        self.protocol = 2  # the version the client negotiated (1 or 2)
 
     def poll(self) -> None:
         """The cycle's read. A client silent for a while (a receive-only client) is handed
@@ -541,6 +562,8 @@ class RTDEConnection:
             self.hub.on_activity()
         elif kind == 86:  # 'V' protocol version
             version = struct.unpack_from(">H", payload)[0] if len(payload) >= 2 else 0
+            if version in (1, 2):
+                self.protocol = version
             self._send(86, bytes([1 if version in (1, 2) else 0]))
         elif kind == 118:  # 'v' controller version
             from fxcell.sim.controller import POLYSCOPE_VERSION
@@ -569,22 +592,56 @@ class RTDEConnection:
         else:
             log.debug("RTDE %s: ignoring packet type %d", self.peer, kind)
 
+    def text_message(self, text: str, level: int = 1) -> None:
+        """An ``M`` packet (level 0 exception, 1 error, 2 warning, 3 info)."""
+        msg = text.encode("ascii", "replace")[:255]
+        if self.protocol == 1:
+            self._send(77, bytes([level]) + msg)
+        else:
+            self._send(
+                77, bytes([len(msg)]) + msg + bytes([len(b"RTDE")]) + b"RTDE" + bytes([level])
+            )
+
+    def _too_long(self, kind: int, names: bytes) -> bool:
+        """Refuse a recipe whose list of names exceeds the controller's limit."""
+        if len(names) <= MAX_RECIPE_NAMES:
+            return False
+        log.warning("RTDE %s: recipe of %d bytes refused", self.peer, len(names))
+        self.text_message(
+            f"recipe refused: the list of names is {len(names)} bytes, "
+            f"the limit is {MAX_RECIPE_NAMES}"
+        )
+        self._send(kind, b"\x00")
+        return True
+
     def _setup_outputs(self, payload: bytes) -> None:
-        if len(payload) < 8:
+        v1 = self.protocol == 1
+        if v1:  # version 1: names only, a fixed 125 Hz, no recipe id anywhere
+            frequency, raw = V1_FREQUENCY, payload
+        elif len(payload) < 8:
             self._send(79, b"\x00")
             return
-        frequency = struct.unpack_from(">d", payload)[0]
-        names = [n.strip() for n in payload[8:].decode("ascii", "replace").split(",") if n.strip()]
+        else:
+            frequency, raw = struct.unpack_from(">d", payload)[0], payload[8:]
+        if self._too_long(79, raw):
+            return
+        names = [n.strip() for n in raw.decode("ascii", "replace").split(",") if n.strip()]
         types = [OUTPUTS[n][0] if n in OUTPUTS else "NOT_FOUND" for n in names]
         if not names or "NOT_FOUND" in types or not frequency > 0:
-            self._send(79, b"\x00" + ",".join(types).encode())
+            self._send(79, (b"" if v1 else b"\x00") + ",".join(types).encode())
             return
         frequency = min(frequency, 500.0)
+        if v1:
+            self.outputs = [OutputRecipe(names, 0, frequency, with_id=False)]
+            self._send(79, ",".join(types).encode())
+            return
         recipe_id = len(self.outputs) + 1
         self.outputs.append(OutputRecipe(names, recipe_id, frequency))
         self._send(79, bytes([recipe_id]) + ",".join(types).encode())
 
     def _setup_inputs(self, payload: bytes) -> None:
+        if self._too_long(73, payload):
+            return
         names = [n.strip() for n in payload.decode("ascii", "replace").split(",") if n.strip()]
         types = []
         for n in names:

@@ -41,8 +41,26 @@ log = logging.getLogger(__name__)
 
 # Commands the script's main loop treats as real-time: processed, then "ready" at once.
 REALTIME = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
-# Commands that only adjust force-mode or dynamics settings in this script version.
-NO_OPS = frozenset({20, 21, 59, 67, 68, 69, 70, 71})
+# Commands that only adjust settings without effect here (gravity, dynamics queries).
+NO_OPS = frozenset({59, 67, 68, 69, 70, 71})
+# Commands the simulator cannot model (no force/torque sensing, no contact): refused with a
+# logged error, answered so the client does not hang, and the script stays usable.
+UNMODELLED = {
+    6: "force_mode",
+    7: "force_mode_stop",
+    8: "zero_ftsensor",
+    20: "force_mode_set_damping",
+    21: "force_mode_set_gain_scaling",
+    25: "tool_contact",
+    51: "move_until_contact",
+    56: "ft_rtde_input_enable",
+    57: "enable_external_ft_sensor",
+    62: "start_contact_detection",
+    63: "stop_contact_detection",
+    64: "read_contact_detection",
+    66: "direct_torque",
+}
+REFUSAL_LOG_INTERVAL = 1.0  # s: a refused command streamed at 500 Hz is logged once a second
 # Both the uploaded program and the bare body the ExternalControl URCap receives have it.
 SCRIPT_MARKER = "def rtde_cmd():"
 
@@ -99,6 +117,7 @@ class ControlScript:
         self.async_op_id = 0
         self.target_waypoint: Pose | None = None
         self._generation = -1  # input generation last processed by a real-time command
+        self._refused_at: dict[int, float] = {}  # command -> controller time last reported
         self._last_realtime = -1
         log.info("RTDE Control Script Loaded (register offsets int %d, float %d)", self.oi, self.of)
         self._async_progress(-1)
@@ -313,6 +332,11 @@ class ControlScript:
         elif cmd == C.SET_PAYLOAD or cmd == 65:  # 65: set_target_payload
             x, y, z = self._floats(1, 3)
             self.c.set_payload(self._float(0), None if x == y == z == 0.0 else (x, y, z))
+        elif cmd == C.TEACH_MODE or cmd == C.END_TEACH_MODE:
+            self._stop_async_move()
+            self.servo = None
+            self.speed = None
+            self.c.teach_mode = cmd == C.TEACH_MODE
         elif cmd == C.SET_TCP:
             arm.set_tcp(self._floats(0))
             self.c.tcp = tuple(self._floats(0))
@@ -372,11 +396,24 @@ class ControlScript:
             log.info("Received stop script!")
             self.terminated = True
             self.c.script_finished("stopScript")
+        elif cmd in UNMODELLED:
+            self._refuse(cmd)
         elif cmd in NO_OPS:
             pass
         else:
             name = C(cmd).name if cmd in C._value2member_map_ else str(cmd)
             raise ScriptError(f"command {name} is not supported by the simulator")
+
+    def _refuse(self, cmd: int) -> None:
+        """An unmodelled command: a zero result, an error in the log, the script goes on."""
+        self._write_int(1, 0)
+        last = self._refused_at.get(cmd)
+        if last is None or self.c.time - last >= REFUSAL_LOG_INTERVAL:
+            self._refused_at[cmd] = self.c.time
+            self.c.report_error(
+                f"{UNMODELLED[cmd]} (command {cmd}) is not supported by the simulator: "
+                "ignored, the control script continues"
+            )
 
     def _async_stop_finished(self, token: MotionToken) -> None:
         if token is self.stop_token and not self.terminated:

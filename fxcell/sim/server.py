@@ -22,14 +22,16 @@ import selectors
 import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
+from fxcell.errors import InvalidArgumentError
 from fxcell.geometry import Pose
+from fxcell.layout import Layout
 from fxcell.link.embedded import CONTROL_PORT
 from fxcell.protocol import (
     CONTROL_PERIOD,
@@ -42,14 +44,36 @@ from fxcell.protocol import (
 )
 from fxcell.sim.controller import Controller, FaultError
 from fxcell.sim.dashboard import Dashboard, DashboardConnection
+from fxcell.sim.fusion import (
+    COOLING_TIME,
+    FUSION_TIME,
+    MOULDS_STATION,
+    POSITIONS_STATION,
+    SEAT_TOLERANCE,
+    FusionMachine,
+    object_at,
+    slots_of,
+)
+from fxcell.sim.fusion import FAULTS as MACHINE_FAULTS
+from fxcell.sim.fusion import OWNER as MACHINE_OWNER
 from fxcell.sim.gripper import URCAP_GRIPPER_PORT, GripperConnection, HandE, SimObject
 from fxcell.sim.motion import Arm, TableGuard
+from fxcell.sim.primary import PRIMARY_PORT, ClientInterfaces, StateConnection, StateSource
 from fxcell.sim.rtde import RTDEHub
+from fxcell.sim.signals import Signal, parse_signal, parse_value
 
 log = logging.getLogger(__name__)
 
 # CONTROL_PORT (29990), shared with the launcher: "inject FAULT [ARGS]", "state", "set_joints q..."
-PORTS = (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, SECONDARY_PORT, URCAP_GRIPPER_PORT, CONTROL_PORT)
+PORTS = (
+    DASHBOARD_PORT,
+    RTDE_PORT,
+    PRIMARY_PORT,
+    SECONDARY_PORT,
+    SCRIPT_PORT,
+    URCAP_GRIPPER_PORT,
+    CONTROL_PORT,
+)
 IDLE_PERIOD = 0.02  # s: cycle period while no client streams and nothing moves
 URCAP_TIMEOUT = 5.0
 URCAP_END_MARKER = "# NODE_CONTROL_LOOP_ENDS"
@@ -157,6 +181,11 @@ class SimServer:
         joints: Sequence[float] | None = None,
         urcap_port: int = URCAP_SCRIPT_PORT,
         calibration: Calibration | None = None,
+        machine: bool = True,
+        machine_io: Mapping[str, Signal] | None = None,
+        fusion_time: float = FUSION_TIME,
+        cooling_time: float = COOLING_TIME,
+        crucibles: str | None = None,
     ) -> None:
         from fxcell.motion.calibration import CalibratedKinematics
         from fxcell.motion.kinematics import Kinematics
@@ -200,6 +229,10 @@ class SimServer:
         self._send_count = 0
         self._idle = False
         self.hub.on_activity = self.wake
+        # 30001/30002/30003: primary/secondary state at 10 Hz, real-time packets at 500 Hz
+        self.clients = ClientInterfaces(StateSource(self.controller, self.hub.state, cal))
+        self.clients.on_activity = self.wake
+        self.controller.on_robot_message = self.clients.broadcast
         self.publish_state()
         self.gripper = HandE(
             time_scale=time_scale,
@@ -209,6 +242,40 @@ class SimServer:
                 in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
             ),
         )
+        self.layout = Layout(self.config.layout)
+        # every slot's grip point, to tell where an object stands (the layout is fixed)
+        self._slot_points = [
+            (
+                st.name,
+                st.config.holds,
+                st.slots,
+                np.array([st.grip_pose(x).position for x in st.slots]),
+            )
+            for st in self.layout
+        ]
+        self.machine: FusionMachine | None = None
+        stations = self.layout.stations
+        if machine and POSITIONS_STATION in stations and MOULDS_STATION in stations:
+            self.machine = FusionMachine(
+                self.layout,
+                self.gripper.objects,
+                self.controller.io,
+                time_scale=time_scale,
+                fusion_time=fusion_time,
+                cooling_time=cooling_time,
+                signals=machine_io,
+            )
+        elif machine:
+            log.warning(
+                "no fusion machine: the layout has no %r and %r stations",
+                POSITIONS_STATION,
+                MOULDS_STATION,
+            )
+        if crucibles:
+            rack = self.layout.station("rack")
+            for slot in slots_of(rack, crucibles):
+                self.place_object(f"crucible-{slot}", rack.config.holds, "rack", slot, "sample")
+        self.publish_state()
 
     # ------------------------------------------------------------------ state
 
@@ -254,10 +321,14 @@ class SimServer:
         s.robot_current = 0.6 if powered else 0.0
         s.joint_voltage = (48.0,) * 6 if powered else s.zero6
         s.digital_output_bits = c.io.output_bits
+        s.digital_input_bits = c.io.input_bits
+        s.analog_in = c.io.analog_in
+        s.tool_analog_in = c.io.tool_analog_in
         s.analog_out = c.io.analog_out
         s.target_speed_fraction = c.io.speed_slider
         s.payload = c.payload_mass
         s.payload_cog = c.payload_cog
+        s.tcp_offset = c.tcp
 
     # ------------------------------------------------------------------ cycle
 
@@ -288,11 +359,14 @@ class SimServer:
             self._send_count += 1
         if steps:
             self.controller.tick(steps)
+            if self.machine is not None:
+                self.machine.tick(self.controller.time)
             self.publish_state()
             self.gripper.tick(self.controller.time)
+            self.clients.stream()
         # Nobody streaming and nothing moving: wake at 50 Hz (the controller clock catches
         # up in one step). Streaming or motion: every cycle.
-        self._idle = self.controller.idle and not self.hub.streaming
+        self._idle = self.controller.idle and not self.hub.streaming and not self.clients.streaming
         wake_at = self._deadline + (IDLE_PERIOD - CONTROL_PERIOD if self._idle else 0.0)
         self._handle = loop.call_at(wake_at, self._cycle)
 
@@ -313,12 +387,26 @@ class SimServer:
         c = self.controller
         if cmd == "inject" and args and args[0].lower() in ("gripper_fault", "gripper_drop"):
             return self._inject_gripper(args[0].lower(), args[1:])
+        if cmd == "inject" and args and args[0].lower() in MACHINE_FAULTS:
+            if self.machine is None:
+                return "error: the simulator has no fusion machine"
+            if len(args) > 1:
+                return f"error: {args[0].lower()} takes no arguments"
+            return "ok: " + self.machine.inject(args[0].lower())
         if cmd == "gripper":
             return json.dumps(self.gripper.state())
         if cmd == "objects":
-            return json.dumps({n: o.as_json() for n, o in self.gripper.objects.items()})
+            return json.dumps({n: self._object_json(o) for n, o in self.gripper.objects.items()})
         if cmd == "add_object":
             return self._add_object(args)
+        if cmd == "place_object":
+            return self._place_object(args)
+        if cmd == "set_input":
+            return self._set_input(args)
+        if cmd == "machine":
+            if self.machine is None:
+                return "error: the simulator has no fusion machine"
+            return json.dumps(self.machine.report())
         if cmd == "inject" and args:
             try:
                 return "ok: " + c.inject(args[0].lower(), args[1:])
@@ -335,6 +423,8 @@ class SimServer:
                     "q": self.arm.q.tolist(),
                     "qd": self.arm.qd.tolist(),
                     "tcp": list(c.tcp),
+                    "payload": c.payload_mass,
+                    "teach_mode": c.teach_mode,
                     "program": c.loaded_program,
                     "control_script": c.script is not None,
                     "last_stop_reason": c.last_stop_reason,
@@ -359,6 +449,8 @@ class SimServer:
                     "late_cycles": self.late_cycles,
                 }
             )
+        if cmd == "push":
+            return self._push(args)
         if cmd == "set_joints":
             try:
                 q = [float(v) for v in args]
@@ -374,8 +466,46 @@ class SimServer:
             return "ok: joints set"
         return (
             f"error: unknown request {line!r} (inject FAULT [ARGS] | state | stats | "
-            "set_joints Q*6 | gripper | objects | add_object NAME KIND W H M X Y Z)"
+            "set_joints Q*6 | push DX DY DZ | push D1..D6 | gripper | objects | "
+            "add_object NAME KIND W H M X Y Z)"
+            "set_joints Q*6 | gripper | objects | add_object NAME KIND W H M X Y Z | "
+            "place_object NAME KIND STATION SLOT [CONTENTS] | set_input SIGNAL VALUE | machine)"
         )
+
+    def _push(self, args: list[str]) -> str:
+        """Move the arm by hand in freedrive: the TCP by (dx, dy, dz) m in the base frame,
+        or the joints by six deltas (rad)."""
+        usage = "error: push DX DY DZ (m, TCP in the base frame) | push D1..D6 (rad)"
+        try:
+            delta = [float(v) for v in args]
+        except ValueError:
+            return usage
+        if len(delta) not in (3, 6) or not all(math.isfinite(v) for v in delta):
+            return usage
+        if not self.controller.teach_mode:
+            return "error: the arm is not in freedrive (teach mode): it resists being pushed"
+        if self.arm.moving:
+            return "error: the arm is moving"
+        q = np.asarray(self.arm.q, float)
+        if len(delta) == 6:
+            target = q + np.asarray(delta)
+        else:
+            pose = self.arm.kinematics.forward(q)
+            goal = Pose(pose.position + np.asarray(delta), pose.rotation)
+            solutions = self.arm.kinematics.inverse_all(goal)
+            if not solutions:
+                return "error: push: the arm cannot reach there"
+            target = min(
+                (np.asarray(s) for s in solutions), key=lambda s: float(np.abs(s - q).max())
+            )
+            if float(np.abs(target - q).max()) > 0.5:
+                return "error: push: that would flip the arm's configuration"
+        if np.any(np.abs(target) > 2 * math.pi):
+            return "error: push: beyond the joint limits"
+        self.arm.set_state(target.tolist(), None, None)
+        self.publish_state()
+        self.gripper.tick(self.controller.time)
+        return "ok: pushed"
 
     def _inject_gripper(self, fault: str, args: list[str]) -> str:
         if fault == "gripper_drop":
@@ -409,6 +539,80 @@ class SimServer:
             SimObject(args[0], args[1], width, height, mass, Pose.from_ur([x, y, z, 0, 0, 0]))
         )
         return f"ok: {args[0]} placed"
+
+    def _object_json(self, obj: SimObject) -> dict[str, object]:
+        """An object's JSON plus the layout slot it stands in (``station``/``slot``, or None)."""
+        data = obj.as_json()
+        data["station"] = data["slot"] = None
+        if obj.held_from is None:
+            for station, kind, slots, points in self._slot_points:
+                if kind != obj.kind:
+                    continue
+                distance = np.linalg.norm(points - obj.pose.position, axis=1)
+                i = int(np.argmin(distance))
+                if distance[i] <= SEAT_TOLERANCE:
+                    data["station"], data["slot"] = station, slots[i]
+                    break
+        return data
+
+    def place_object(
+        self, name: str, kind: str, station: str, slot: str, contents: str | None = None
+    ) -> str:
+        """Put a new object (or move one) with its grip point at a layout slot's grip pose."""
+        if kind not in self.layout.config.objects:
+            known = ", ".join(sorted(self.layout.config.objects)) or "none"
+            raise InvalidArgumentError(f"unknown object kind {kind!r} (known: {known})")
+        st, slot = self.layout.slot(station, slot)
+        if st.config.holds != kind:
+            raise InvalidArgumentError(f"station {st.name!r} holds {st.config.holds}s, not {kind}s")
+        there = object_at(self.gripper.objects, st, slot)
+        if there is not None and there.name != name:
+            raise InvalidArgumentError(f"{st.name} {slot} is taken by {there.name}")
+        size = self.layout.config.objects[kind]
+        self.gripper.add_object(
+            SimObject(
+                name,
+                kind,
+                size.width,
+                size.height,
+                size.mass,
+                st.grip_pose(slot),
+                contents=contents,
+            )
+        )
+        return f"{name} placed in {st.name} {slot}"
+
+    def _place_object(self, args: list[str]) -> str:
+        if len(args) not in (4, 5):
+            return "error: place_object NAME KIND STATION SLOT [CONTENTS]"
+        name, kind, station, slot = args[:4]
+        # an object moved keeps its contents; a new crucible comes with a sample ("-": empty)
+        contents: str | None
+        if len(args) == 5:
+            contents = None if args[4] == "-" else args[4]
+        elif name in self.gripper.objects:
+            contents = self.gripper.objects[name].contents
+        else:
+            contents = "sample" if kind == "crucible" else None
+        try:
+            return "ok: " + self.place_object(name, kind, station, slot, contents)
+        except InvalidArgumentError as exc:
+            return f"error: place_object: {exc}"
+
+    def _set_input(self, args: list[str]) -> str:
+        if len(args) != 2:
+            return "error: set_input SIGNAL VALUE (e.g. DI5 1, CI2 0, TI0 1, AI0 4.2)"
+        try:
+            signal = parse_signal(args[0])
+            value = parse_value(signal, args[1])
+            self.controller.io.set_input(signal, value)
+        except InvalidArgumentError as exc:
+            hint = ""
+            if MACHINE_OWNER in str(exc):
+                hint = " (free it with --no-machine or another --machine-io)"
+            return f"error: set_input: {exc}{hint}"
+        self.publish_state()  # the reply means every RTDE client gets the new value next
+        return f"ok: {signal} = {value:g}"
 
     # ------------------------------------------------------------------ URCap
 
@@ -444,6 +648,10 @@ class SimServer:
 
     # ------------------------------------------------------------------ life
 
+    def _client_interface(self, *, realtime: bool) -> StateConnection:
+        script = ScriptConnection(self.controller)
+        return StateConnection(self.clients, realtime, script.data_received)
+
     def request_stop(self) -> None:
         if self._stopping is not None:
             self._stopping.set()
@@ -456,8 +664,9 @@ class SimServer:
             await asyncio.sleep(boot_delay)
         factories: list[tuple[int, Any]] = [
             (DASHBOARD_PORT, lambda: DashboardConnection(self.dashboard, self.controller.shutdown)),
-            (SCRIPT_PORT, lambda: ScriptConnection(self.controller)),
-            (SECONDARY_PORT, lambda: ScriptConnection(self.controller)),
+            (PRIMARY_PORT, lambda: self._client_interface(realtime=False)),
+            (SECONDARY_PORT, lambda: self._client_interface(realtime=False)),
+            (SCRIPT_PORT, lambda: self._client_interface(realtime=True)),
             (URCAP_GRIPPER_PORT, lambda: GripperConnection(self.gripper)),
             (CONTROL_PORT, lambda: ControlConnection(self)),
         ]
@@ -478,7 +687,8 @@ class SimServer:
         if announce:
             print(
                 f"fxcell sim listening on {self.host}: dashboard {DASHBOARD_PORT}, rtde "
-                f"{RTDE_PORT}, script {SCRIPT_PORT}/{SECONDARY_PORT}, "
+                f"{RTDE_PORT}, primary/secondary/real-time {PRIMARY_PORT}/{SECONDARY_PORT}/"
+                f"{SCRIPT_PORT}, "
                 f"gripper {URCAP_GRIPPER_PORT}, control {CONTROL_PORT}",
                 flush=True,
             )
@@ -490,18 +700,27 @@ class SimServer:
             if self._urcap_task is not None:
                 self._urcap_task.cancel()
             self.hub.close()
+            self.clients.close()
             for srv in self._servers:
                 srv.close()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.remove_signal_handler(sig)
 
 
+PRIORITY_ENV = "FXCELL_SIM_PRIORITY"
+"""Set to ``normal`` to keep the simulator at its parent's priority (benchmarks comparing
+it with a peer at equal priority); anything else leaves the default (raised)."""
+
+
 def _raise_priority(realtime: bool = False, nice: int = -5) -> None:
     """Best effort: a controller keeps time before other work (needs the privilege).
 
     ``realtime`` asks for SCHED_FIFO at a low priority (the kernel still throttles
-    real-time tasks at 95 % of a core); else the process is reniced.
+    real-time tasks at 95 % of a core); else the process is reniced. Nothing is changed
+    when the environment sets ``FXCELL_SIM_PRIORITY=normal``.
     """
+    if os.environ.get(PRIORITY_ENV, "").strip().lower() == "normal":
+        return
     if realtime:
         with contextlib.suppress(OSError, AttributeError):
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
@@ -524,19 +743,29 @@ def run(
     urcap_port: int = URCAP_SCRIPT_PORT,
     realtime: bool = False,
     calibration: Calibration | None = None,
+    **world: Any,
 ) -> int:
-    """Run the simulator until SIGINT/SIGTERM or a dashboard ``shutdown``; exit code."""
+    """Run the simulator until SIGINT/SIGTERM or a dashboard ``shutdown``; exit code.
+
+    ``world``: the fusion machine and objects (:class:`SimServer`'s ``machine``,
+    ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``).
+    """
     from fxcell.sim.controller import DELAYS
 
     _raise_priority(realtime)
-    sim = SimServer(
-        host,
-        time_scale=time_scale,
-        config=config,
-        joints=joints,
-        urcap_port=urcap_port,
-        calibration=calibration,
-    )
+    try:
+        sim = SimServer(
+            host,
+            time_scale=time_scale,
+            config=config,
+            joints=joints,
+            urcap_port=urcap_port,
+            calibration=calibration,
+            **world,
+        )
+    except InvalidArgumentError as exc:
+        print(f"fxcell sim: {exc}", file=sys.stderr)
+        return 2
     loop = new_event_loop()
     try:
         loop.run_until_complete(sim.serve(boot_delay=DELAYS["boot"] * time_scale))

@@ -271,7 +271,7 @@ def test_watchdog_stops_the_program_when_the_client_starves_it(ready: Robot) -> 
 
 def test_unsupported_command_stops_the_program_instead_of_hanging(ready: Robot) -> None:
     t0 = time.monotonic()
-    assert not ready.c.teachMode()
+    assert not ready.c.jogStart([0.0] * 6)  # jogging is not modelled
     assert time.monotonic() - t0 < 2.0
     assert not ready.c.isProgramRunning()
     assert "not supported" in ready.sim.state()["last_stop_reason"]
@@ -288,3 +288,20 @@ def test_reupload_while_running_restarts_the_script(ready: Robot) -> None:
     assert ready.c.reuploadScript()  # stopScript, dashboard "stop", upload again
     wait_until(ready.c.isProgramRunning, what="the new script")
     assert ready.c.moveJ([0.1, *START[1:]], 1.0, 2.0)
+
+
+def test_force_mode_and_contact_moves_are_refused_and_the_script_stays_usable(
+    ready: Robot,
+) -> None:
+    c = ready.c
+    t0 = time.monotonic()
+    c.forceMode([0.0] * 6, [0, 0, 1, 0, 0, 0], [0.0, 0.0, -10.0, 0.0, 0.0, 0.0], 2, [0.1] * 6)
+    c.forceModeStop()
+    c.moveUntilContact([0.0, 0.0, -0.02, 0.0, 0.0, 0.0])
+    assert time.monotonic() - t0 < 10.0  # answered, never the client's 300 s wait
+    assert c.isProgramRunning()
+    assert c.moveJ([0.1, *START[1:]], 1.0, 2.0)  # the next command works
+    assert np.allclose(fresh(ready.r).getActualQ(), [0.1, *START[1:]], atol=1e-9)
+    log = ready.sim.state()["log"]
+    for name in ("force_mode", "force_mode_stop", "move_until_contact"):
+        assert any(f"{name} (command" in m and "not supported" in m for m in log), log

@@ -216,3 +216,19 @@ def test_stall_rtde_pauses_the_stream_and_drop_rtde_closes_it(sim: SimulatorHand
         assert isinstance(read_until_error(c), ConnectionError)
     finally:
         c.close()
+
+
+@pytest.mark.parametrize(("env", "reniced"), [(None, True), ("normal", False), ("NORMAL ", False)])
+def test_the_simulator_raises_its_priority_unless_told_to_stay_normal(
+    monkeypatch: pytest.MonkeyPatch, env: str | None, reniced: bool
+) -> None:
+    from fxcell.sim import server
+
+    calls: list[tuple[int, int, int]] = []
+    monkeypatch.setattr(server.os, "setpriority", lambda *a: calls.append(a))
+    if env is None:
+        monkeypatch.delenv(server.PRIORITY_ENV, raising=False)
+    else:
+        monkeypatch.setenv(server.PRIORITY_ENV, env)
+    server._raise_priority()
+    assert bool(calls) is reniced

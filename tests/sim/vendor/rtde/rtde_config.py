@@ -1,0 +1,51 @@
+# Copyright (c) 2016-2022, Universal Robots A/S,
+# All rights reserved.
+# Redistribution and use in source and binary forms, with or without
+# modification, are permitted provided that the following conditions are met:
+#    * Redistributions of source code must retain the above copyright
+#      notice, this list of conditions and the following disclaimer.
+#    * Redistributions in binary form must reproduce the above copyright
+#      notice, this list of conditions and the following disclaimer in the
+#      documentation and/or other materials provided with the distribution.
+#    * Neither the name of the Universal Robots A/S nor the names of its
+#      contributors may be used to endorse or promote products derived
+#      from this software without specific prior written permission.
+# THIS SOFTWARE IS PROVIDED BY THE COPYRIGHT HOLDERS AND CONTRIBUTORS "AS IS" AND
+# ANY EXPRESS OR IMPLIED WARRANTIES, INCLUDING, BUT NOT LIMITED TO, THE IMPLIED
+# WARRANTIES OF MERCHANTABILITY AND FITNESS FOR A PARTICULAR PURPOSE ARE
+# DISCLAIMED. IN NO EVENT SHALL UNIVERSAL ROBOTS A/S BE LIABLE FOR ANY
+# DIRECT, INDIRECT, INCIDENTAL, SPECIAL, EXEMPLARY, OR CONSEQUENTIAL DAMAGES
+# (INCLUDING, BUT NOT LIMITED TO, PROCUREMENT OF SUBSTITUTE GOODS OR SERVICES;
+# LOSS OF USE, DATA, OR PROFITS; OR BUSINESS INTERRUPTION) HOWEVER CAUSED AND
+# ON ANY THEORY OF LIABILITY, WHETHER IN CONTRACT, STRICT LIABILITY, OR TORT
+# (INCLUDING NEGLIGENCE OR OTHERWISE) ARISING IN ANY WAY OUT OF THE USE OF THIS
+# SOFTWARE, EVEN IF ADVISED OF THE POSSIBILITY OF SUCH DAMAGE.
+
+import xml.etree.ElementTree as ET
+
+
+class Recipe(object):
+    __slots__ = ["key", "names", "types"]
+
+    @staticmethod
+    def parse(recipe_node):
+        rmd = Recipe()
+        rmd.key = recipe_node.get("key")
+        rmd.names = [f.get("name") for f in recipe_node.findall("field")]
+        rmd.types = [f.get("type") for f in recipe_node.findall("field")]
+        return rmd
+
+
+class ConfigFile(object):
+    def __init__(self, filename):
+        self.__filename = filename
+        tree = ET.parse(self.__filename)
+        root = tree.getroot()
+        recipes = [Recipe.parse(r) for r in root.findall("recipe")]
+        self.__dictionary = dict()
+        for r in recipes:
+            self.__dictionary[r.key] = r
+
+    def get_recipe(self, key):
+        r = self.__dictionary[key]
+        return r.names, r.types
