@@ -38,6 +38,7 @@ from typing import Any
 
 import httpx
 import websockets
+from _harness import Targets
 
 from fxcell.daemon.process import DaemonProcess
 from fxcell.testing import simulator
@@ -265,18 +266,11 @@ def main() -> int:
         + " ms (simulator's own joints)"
     )
     print(f"  state stream delivery      {100 * out['stream_delivery']:.1f} % of 500 Hz")
-    misses = []
-    if out["moves_completed"] < MOVES:
-        misses.append(f"moves {out['moves_completed']}/{MOVES}")
-    if stop_p99 > 50:
-        misses.append(f"STOP p99 {stop_p99:.1f} ms > 50 ms")
-    if worst_after > 20:
-        misses.append(f"motion {worst_after:.0f} ms after an abort > 20 ms")
-    if misses:
-        print("target missed: " + "; ".join(misses))
-        return 1
-    print("target met")
-    return 0
+    targets = Targets("load")
+    targets.check("moves completed under load", out["moves_completed"], "==", MOVES)
+    targets.check("STOP round trip p99 under uploads", stop_p99, "<=", 50.0, "ms")
+    targets.check("motion after an abort, worst", worst_after, "<=", 20.0, "ms")
+    return targets.finish()
 
 
 if __name__ == "__main__":

@@ -28,6 +28,8 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from typing import Any
 
+from _harness import Targets
+
 from fxcell.link import LinkClient
 from fxcell.protocol import CONTROL_PERIOD
 from fxcell.testing import SimulatorHandle, simulator
@@ -242,16 +244,22 @@ async def main() -> int:
     worst_p99 = max(r["p99"] for k, r in ours.items() if k != "idle")
     worst_max = max(r["max"] for k, r in ours.items() if k != "idle")
     stream = ours["stream"]
-    ok = worst_p99 <= 5 and worst_max <= 20 and stream["rate"] >= 499 and stream["gaps"] == 0
     print(
-        f"fxcell worst p99 {worst_p99:.2f} ms (target 5), "
-        f"worst max {worst_max:.2f} ms (target 20), "
-        f"stream {stream['rate']:.1f} Hz with {int(stream['gaps'])} gaps: "
-        f"{'MET' if ok else 'NOT MET'} (noise floor now: p99 {ours['idle']['p99']:.2f} ms, "
-        f"max {ours['idle']['max']:.2f} ms; load average {os.getloadavg()[0]:.1f} on "
-        f"{os.cpu_count()} cores)"
+        f"noise floor now: p99 {ours['idle']['p99']:.2f} ms, max {ours['idle']['max']:.2f} ms; "
+        f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
     )
-    return 0
+    targets = Targets("loop_lag")
+    targets.check(
+        "event-loop lag, worst phase p99", worst_p99, "<=", 5.0, "ms",
+        peer=max(peer["connect"]["p99"], peer["control"]["p99"]), peer_name="ur_rtde in-process",
+    )  # fmt: skip
+    targets.check(
+        "event-loop lag, worst phase max", worst_max, "<=", 20.0, "ms",
+        peer=max(peer["connect"]["max"], peer["control"]["max"]), peer_name="ur_rtde in-process",
+    )  # fmt: skip
+    targets.check("state stream delivered", stream["rate"], ">=", 499.0, "Hz")
+    targets.check("state stream gaps (samples lost)", stream["gaps"], "==", 0)
+    return targets.finish()
 
 
 if __name__ == "__main__":

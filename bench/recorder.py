@@ -11,12 +11,18 @@ Three parts, one process:
      flushed every 500 (1 s chunks): the library's own floor;
    - peer ``mcap + json``: the same Writer with the states encoded as JSON, the common
      approach (performance anchors: about 20 µs per message).
-2. session: a real-time session at 500 Hz for ``--duration`` seconds (default 600):
-   writer-thread and submit CPU as a share of one core, drops, submit latency p99.
+2. session: a real-time session at 500 Hz for ``--duration`` seconds (default 60; the
+   10-minute figure with ``--long``): writer-thread and submit CPU as a share of one
+   core, drops, submit latency p99.
 3. replay: ``fxcell replay --summary`` of a ``--hours`` long file (default 1 h, about
-   1.8 million state samples), written by the recorder with a simulated clock.
+   1.8 million state samples), written by the recorder with a simulated clock; then every
+   state sample of it read back and decoded (``LogReader`` + ``decode_robot_state``).
 
-Targets: <= 2 % of one core at 500 Hz, zero drops, summary of a one-hour file < 5 s.
+Peers: the bare mcap writer (raw and with JSON) for the CPU per message; the
+performance anchors' 110k–160k decoded messages/s for the read-back.
+
+Targets: micro and session <= 2 % of one core at 500 Hz, zero drops, summary of a
+one-hour file < 5 s, state samples decoded >= 100k/s.
 """
 
 from __future__ import annotations
@@ -32,11 +38,13 @@ from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
+from _harness import Targets
 from mcap.writer import Writer
 
 from fxcell.events import Event, StateEvent
-from fxcell.recorder import Recorder
-from fxcell.recorder.protobuf import encode_robot_state
+from fxcell.recorder import Recorder, topics
+from fxcell.recorder.protobuf import decode_robot_state, encode_robot_state
+from fxcell.recorder.reading import LogReader
 from fxcell.recorder.synthetic import Planned, SyntheticSession, play
 from fxcell.replay import format_summary, summarize
 
@@ -192,11 +200,15 @@ def timed(fn: Callable[[], object]) -> tuple[float, object]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=600.0, help="real-time session, s")
+    parser.add_argument("--duration", type=float, default=60.0, help="real-time session, s")
+    parser.add_argument("--long", action="store_true", help="a 10-minute session")
     parser.add_argument("--hours", type=float, default=1.0, help="length of the replay file")
     parser.add_argument("--rounds", type=int, default=30, help="micro-benchmark rounds")
     parser.add_argument("--skip", action="append", default=[], help="micro, session or replay")
     args = parser.parse_args()
+    if args.long:
+        args.duration = max(args.duration, 600.0)
+    targets = Targets("recorder")
     with tempfile.TemporaryDirectory() as tmp:
         directory = Path(tmp)
         if "micro" not in args.skip:
@@ -210,13 +222,20 @@ def main() -> int:
             print(f"  ratio fxcell / mcap raw    {fx / raw:5.2f}")
             print(f"  ratio fxcell / mcap + json {fx / js:5.2f}")
             print(f"  at 500 Hz: fxcell {fx * 500 / 1e4:.2f} % of one core (target <= 2 %)")
+            targets.check(
+                "micro: CPU at 500 Hz", fx * 500 / 1e4, "<=", 2.0, "% core",
+                peer=js * 500 / 1e4, peer_name="mcap + json",
+            )  # fmt: skip
         if "session" not in args.skip:
             print(f"== real-time session at 500 Hz for {args.duration:.0f} s")
             s = session(args.duration, directory)
             for k, v in s.items():
                 print(f"  {k:<18} {v:,.3f}" if isinstance(v, float) else f"  {k:<18} {v:,}")
-            ok = s["core_share_pct"] <= 2.0 and s["dropped"] == 0
-            print(f"  target <= 2 % of one core and 0 drops: {'met' if ok else 'NOT met'}")
+            targets.check(
+                f"session {args.duration:.0f} s: CPU at 500 Hz", s["core_share_pct"], "<=", 2.0,
+                "% core",
+            )  # fmt: skip
+            targets.check(f"session {args.duration:.0f} s: drops", s["dropped"], "==", 0)
         if "replay" not in args.skip:
             print(f"== replay summary of a {args.hours:g} h file")
             gen, path = timed(lambda: hour_file(args.hours, directory))
@@ -231,7 +250,19 @@ def main() -> int:
             print("  " + "\n  ".join(text.splitlines()[:8]))
             print(f"  summary: median {statistics.median(times):.2f} s, max {max(times):.2f} s"
                   f" (target < 5 s)")  # fmt: skip
-    return 0
+            targets.check(f"summary of a {args.hours:g} h file", max(times), "<", 5.0, "s")
+            t0 = time.perf_counter()
+            decoded = 0
+            for msg in LogReader(path).messages([topics.ROBOT_STATE]):
+                decode_robot_state(msg.data)
+                decoded += 1
+            rate = decoded / (time.perf_counter() - t0)
+            print(f"  read back and decoded {decoded:,} state samples: {rate:,.0f} /s")
+            targets.check(
+                "state samples decoded per second", rate, ">=", 100_000, "/s",
+                peer=110_000, peer_name="anchor, low end",
+            )  # fmt: skip
+    return targets.finish()
 
 
 if __name__ == "__main__":

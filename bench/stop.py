@@ -5,9 +5,12 @@ A +2.5 rad base move (full speed, configured limits) runs against the embedded s
 Measured from the ``stop()`` call to the first 500 Hz state sample with every joint slower
 than 1e-4 rad/s; distance = base travel in that time.
 
-Peer, same run: the physical bound — the jerk-limited time-optimal braking from the
-robot's state at the ``stop()`` call (the planned state where the plan passes the robot's
-position then) under the configured braking limits (Ruckig), and its distance.
+Peer, same run, computed here in closed form (``bench/_bounds.py``, tested against Ruckig),
+not by fxcell: the jerk-limited time-optimal braking of each joint from the state the
+stream showed at the ``stop()`` call (velocity, and acceleration from the last two
+samples' velocities) under the configured braking limits; the slowest joint's time, less
+the closed-form tail in which the velocity is already below the 1e-4 rad/s threshold
+(``sqrt(2·1e-4/j)``, 2.2 ms at 40 rad/s³). Nothing is taken off the measurement.
 (The seed slept v/a after MoveIt's stop.)
 
 Target: time to rest <= bound + 10 ms.
@@ -18,21 +21,23 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import math
 import statistics
 import time
 
 import numpy as np
+from _bounds import braking_bound
+from _harness import Targets
 
 from fxcell.cell import Cell
 from fxcell.config import CellConfig
 from fxcell.errors import MoveStoppedError
 from fxcell.events import StateEvent
-from fxcell.motion.trajectory import Limits, braking, braking_duration, rest_to_rest
+from fxcell.motion.trajectory import Limits
 from fxcell.protocol import RobotState
 from fxcell.testing import simulator
 
 CONFIG = CellConfig.load()
-MOVE_LIMITS = Limits.from_config(CONFIG.limits)  # what the move is planned with
 BRAKING = Limits.for_braking(CONFIG.limits)  # what stop() brakes with
 REST = 1e-4  # rad/s: a jerk-limited stop crosses 1e-3 rad/s some 14 ms before its end
 
@@ -68,25 +73,24 @@ async def trial(cell: Cell, target: list[float], after: float) -> dict[str, floa
     finally:
         unsubscribe()
     rest = next(s for s in states if s.received_at > called and max(map(abs, s.actual_qd)) < REST)
-    # The robot follows the planned trajectory (servoJ lag compensated): its state at the
-    # stop() call is the planned state where the plan passes its position (a busy machine
-    # may stretch the timing, never the path).
-    planned = rest_to_rest(states[0].actual_q, target, MOVE_LIMITS)
-    index = int(np.searchsorted(planned.positions[:, 0], at_stop.actual_q[0]))
-    p, qd, qdd = planned.state(index)
-    bound = braking_duration(qd, qdd, BRAKING)
-    profile = braking(p, qd, qdd, BRAKING)
+    before = states[states.index(at_stop) - 1]
+    dt = at_stop.timestamp - before.timestamp
+    qd = np.array(at_stop.actual_qd)
+    qdd = (qd - np.array(before.actual_qd)) / dt if dt > 0 else np.zeros(6)
+    qdd = np.clip(qdd, -BRAKING.acceleration, BRAKING.acceleration)
+    bound = braking_bound(qd, qdd, BRAKING.acceleration, BRAKING.jerk)
+    bound -= math.sqrt(2 * REST / float(np.max(BRAKING.jerk)))  # already below REST
+    # distance the base would travel on its own optimal braking (v·t - ... from the bound)
     return {
         "speed": float(abs(qd[0])),
         "time": rest.received_at - called,
         "bound": bound,
         "distance": abs(rest.actual_q[0] - at_stop.actual_q[0]),
-        "bound_distance": abs(profile.positions[-1][0] - p[0]),
         "returned": returned - called,
     }
 
 
-async def main() -> None:
+async def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--moments", type=float, nargs="*", default=[0.4, 1.0, 1.8, 2.6, 3.2])
     args = parser.parse_args()
@@ -100,18 +104,21 @@ async def main() -> None:
                 await cell.move_joint(home)
                 rows.append((after, await trial(cell, target, after)))
     print(f"{'stop at':>8} {'speed':>7} {'to rest':>8} {'bound':>7} {'over':>7} "
-          f"{'dist':>8} {'bound d':>8} {'stop() ret':>10}")  # fmt: skip
+          f"{'dist':>8} {'stop() ret':>10}")  # fmt: skip
     for after, r in rows:
         over = (r["time"] - r["bound"]) * 1e3
         print(f"{after:7.1f}s {r['speed']:7.3f} {r['time']:8.3f} {r['bound']:7.3f} {over:+6.1f}ms "
-              f"{r['distance']:8.4f} {r['bound_distance']:8.4f} {r['returned']:10.3f}")  # fmt: skip
+              f"{r['distance']:8.4f} {r['returned']:10.3f}")  # fmt: skip
     overs = [(r["time"] - r["bound"]) * 1e3 for _, r in rows]
-    print(
-        f"overhead over the bound: median {statistics.median(overs):+.1f} ms, "
-        f"max {max(overs):+.1f} ms; target <= +10 ms: "
-        f"{'met' if max(overs) <= 10 else 'NOT met'}"
-    )
+    print(f"overhead over the bound: median {statistics.median(overs):+.1f} ms")
+    targets = Targets("stop")
+    worst = max(range(len(rows)), key=lambda i: overs[i])
+    targets.check(
+        f"time to rest over the bound, worst of {len(rows)}", overs[worst], "<=", 10.0, "ms",
+        peer=0.0, peer_name=f"bound {rows[worst][1]['bound'] * 1e3:.0f} ms",
+    )  # fmt: skip
+    return targets.finish()
 
 
 if __name__ == "__main__":
-    asyncio.run(main())
+    raise SystemExit(asyncio.run(main()))
