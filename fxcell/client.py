@@ -24,7 +24,8 @@ import json
 import os
 import socket
 import urllib.parse
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -292,6 +293,46 @@ class RemoteCell(CellCommands):
         self.lease = None
         return bool(body["released"])
 
+    # ------------------------------------------------------------- the job
+
+    async def job_status(self) -> dict[str, Any]:
+        """The fusion-machine job: state, progress, each sample's locations, questions."""
+        result: dict[str, Any] = await self._request("GET", "/api/job")
+        return result
+
+    async def job_start(self, run: Mapping[str, Any] | str | Path) -> dict[str, Any]:
+        """Start a run: a run file (YAML or JSON, read here) or the run as a mapping; it is
+        validated by the daemon before anything moves (``JobSpecError``)."""
+        if not isinstance(run, Mapping):
+            run = read_run_file(run)
+        return await self._job("start", {"run": dict(run)})
+
+    async def job_pause(self) -> dict[str, Any]:
+        """Pause at the next safe point (the current step finishes first)."""
+        return await self._job("pause")
+
+    async def job_resume(self, answers: Mapping[str, str] | None = None) -> dict[str, Any]:
+        """Resume, answering the recovery questions (question id → place) if there are any."""
+        return await self._job("resume", {"answers": dict(answers or {})})
+
+    async def job_abort(self) -> dict[str, Any]:
+        """Abort the current step (the arm brakes); the run stays resumable."""
+        return await self._job("abort")
+
+    async def job_confirm(self, prompt: str | None = None) -> dict[str, Any]:
+        """Manual machine mode: confirm the machine was started, or is done."""
+        return await self._job("confirm", {"prompt": prompt} if prompt else {})
+
+    async def job_discard(self) -> dict[str, Any]:
+        """Forget a paused or faulted run (the samples stay where the job says they are)."""
+        return await self._job("discard")
+
+    async def _job(self, name: str, body: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        result: dict[str, Any] = await self._request(
+            "POST", f"/api/job/{name}", json_body=dict(body or {}), auth=True
+        )
+        return result
+
     async def stream(
         self, *, rate: float = 50.0, topics: Sequence[str] | None = None
     ) -> AsyncIterator[dict[str, Any]]:
@@ -330,6 +371,21 @@ class RemoteCell(CellCommands):
                 name, **{k: _plain(v) for k, v in args.items() if v is not None}
             )
         return entry.result.decode(value)
+
+
+def read_run_file(path: str | Path) -> dict[str, Any]:
+    """A run file (YAML or JSON) as a mapping; :class:`InvalidArgumentError` if unreadable."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except OSError as exc:
+        raise errors.InvalidArgumentError(f"cannot read run file {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise errors.InvalidArgumentError(f"{path}: not valid YAML or JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise errors.InvalidArgumentError(f"{path}: a run is a mapping with a 'samples' list")
+    return data
 
 
 def _plain(value: Any) -> Any:

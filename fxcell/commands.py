@@ -25,8 +25,9 @@ uses it.
 
 from __future__ import annotations
 
+import contextlib
 import inspect
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
 
@@ -57,7 +58,8 @@ class ArgType:
     doc: str
     unit: str = ""
     length: tuple[int, int] | None = None
-    scalar: Literal["float", "bool"] = "float"
+    scalar: Literal["float", "bool", "str", "level"] = "float"
+    """``level``: a flag or a number (an IO value: digital true/false, analog 0..1)."""
     bounds: tuple[float, float] | None = None
 
 
@@ -77,8 +79,18 @@ GRIP_WIDTH = ArgType("grip_width", "finger opening, 0 (closed) to 0.050 (open)",
 GRIP_SPEED = ArgType("grip_speed", "finger speed, 0.020 to 0.150", "m/s")
 GRIP_FORCE = ArgType("grip_force", "grip force, 20 to 185", "N")
 
+NAME = ArgType("name", "a name (letters, digits, '_', '-')", scalar="str")
+SIGNAL = ArgType("signal", "an IO signal name of the configuration (io.signals)", scalar="str")
+LEVEL = ArgType(
+    "level", "digital: true or false; analog output: fraction 0..1 of its range", scalar="level"
+)
+STATION = ArgType("station", "a station of the layout (rack, tray, machine, moulds)", scalar="str")
+SLOT = ArgType("slot", "a slot of the station: row letter and column number, e.g. B3", scalar="str")
+FRAME_POINT = ArgType("frame_point", "origin, x_point or xy_point", scalar="str")
+
 ARG_TYPES: tuple[ArgType, ...] = (
     FACTOR, JOINTS, POSE, VECTOR3, FLAG, SECONDS, GRIP_WIDTH, GRIP_SPEED, GRIP_FORCE,
+    NAME, SIGNAL, LEVEL, STATION, SLOT, FRAME_POINT,
 )  # fmt: skip
 
 
@@ -113,6 +125,7 @@ PROGRAM_STATUS = ResultType(
     "ProgramStatus", lambda value: ProgramStatus(ProgramState(value["state"]), value["program"])
 )
 MOVE_RESULT = ResultType("MoveResult", _move_result)
+MAPPING = ResultType("dict[str, Any]", dict)
 GRIP_RESULT = ResultType(
     "GripResult", lambda value: GripResult(float(value["width"]), bool(value["holding"]))
 )
@@ -214,6 +227,12 @@ _DOCS = {
 }
 _GRIP_DOCS = {"expect_object": "raise NothingGraspedError if the fingers close on nothing"}
 _MOVE = {"velocity_factor": FACTOR, "acceleration_factor": FACTOR, "queue": FLAG}
+_AT_SLOT = {
+    "station": STATION,
+    "slot": SLOT,
+    "velocity_factor": FACTOR,
+    "acceleration_factor": FACTOR,
+}
 
 
 class CellCommands(Protocol):
@@ -508,6 +527,121 @@ class CellCommands(Protocol):
     async def get_gripper_width(self) -> float:
         """The gripper's finger opening (m)."""
         return await self.run_command("get_gripper_width")  # type: ignore[no-any-return]
+
+    # ------------------------------------------------------------- IO
+
+    @command("query", MAPPING, guard="io")
+    async def get_io(self) -> dict[str, Any]:
+        """Every configured IO signal's value: digital ones true/false, analog ones in V or A."""
+        return await self.run_command("get_io")  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"signal": SIGNAL, "value": LEVEL}, guard="io")
+    async def io_set(self, signal: str, value: bool | float) -> None:
+        """Set an output by its configured name; returns once the controller reports it."""
+        return await self.run_command("io_set", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command(
+        "command", FLOAT, args={"signal": SIGNAL, "value": LEVEL, "timeout": SECONDS}, guard="io"
+    )
+    async def io_wait_for(
+        self,
+        signal: str,
+        value: bool | float = True,
+        timeout: float = 60.0,  # noqa: ASYNC109
+    ) -> float:
+        """Wait until a signal reads ``value`` (analog: reaches at least it); returns the
+        seconds waited, or raises ``IOTimeoutError``."""
+        return await self.run_command("io_wait_for", **_given(locals()))  # type: ignore[no-any-return]
+
+    # ------------------------------------------------------------- teach-in
+
+    @command("command", NONE)
+    async def freedrive_start(self) -> None:
+        """Put the arm in freedrive (teach mode): it can be guided by hand until
+        ``freedrive_stop``. Moves are refused meanwhile."""
+        return await self.run_command("freedrive_start")  # type: ignore[no-any-return]
+
+    @command("command", NONE)
+    async def freedrive_stop(self) -> None:
+        """End freedrive; the arm holds where it was left."""
+        return await self.run_command("freedrive_stop")  # type: ignore[no-any-return]
+
+    @contextlib.asynccontextmanager
+    async def freedrive(self) -> AsyncIterator[None]:
+        """``async with cell.freedrive():`` the arm can be guided by hand inside the block."""
+        await self.freedrive_start()
+        try:
+            yield
+        finally:
+            await self.freedrive_stop()
+
+    @command("command", MAPPING, args={"name": NAME}, guard="teach")
+    async def teach(self, name: str) -> dict[str, Any]:
+        """Store the current joints and TCP pose as position ``name`` (re-teaching keeps the
+        previous value in the positions file); returns what was stored."""
+        return await self.run_command("teach", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("query", MAPPING, guard=None)
+    async def get_positions(self) -> dict[str, Any]:
+        """Every taught position: name → joints (rad), TCP pose and when it was taught."""
+        return await self.run_command("get_positions")  # type: ignore[no-any-return]
+
+    @command("move", MOVE_RESULT, args={"name": NAME, **_MOVE}, guard="move", docs=_DOCS)
+    async def move_to(
+        self,
+        name: str,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
+    ) -> MoveResult:
+        """Move to a taught position (its joints), or to ``home``; an unknown name raises
+        ``UnknownPositionError`` listing the known ones."""
+        return await self.run_command("move_to", **_given(locals()))  # type: ignore[no-any-return]
+
+    # ------------------------------------------------------------- layout, pick and place
+
+    @command("query", MAPPING, guard=None)
+    async def get_layout(self) -> dict[str, Any]:
+        """The stations: frame, slots (name → grip pose), object kind, body; for drawing."""
+        return await self.run_command("get_layout")  # type: ignore[no-any-return]
+
+    @command("command", MAPPING, args={"station": STATION, "point": FRAME_POINT}, guard="teach")
+    async def teach_frame_point(self, station: str, point: str) -> dict[str, Any]:
+        """Re-teach one point of a station's frame (``origin``, ``x_point``, ``xy_point``) at
+        the TCP's current position. Once all three are re-taught (any order) the frame
+        changes, and every slot and the station's obstacle move with it; returns
+        ``{"applied", "pending", "frame"}``."""
+        return await self.run_command("teach_frame_point", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("move", GRIP_RESULT, args=_AT_SLOT, guard="move", docs=_DOCS)
+    async def pick(
+        self,
+        station: str,
+        slot: str,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> GripResult:
+        """Pick the object in a slot: approach above it, descend straight, grip (an empty
+        slot raises ``NothingGraspedError``, the arm back above it), rise straight.
+
+        Bad station or slot names and unreachable slots raise before anything moves; a
+        station in an interlocked zone (the fusion machine while busy) raises
+        ``InterlockError``. The held object is then part of collision checking and the
+        payload set on the controller.
+        """
+        return await self.run_command("pick", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("move", GRIP_RESULT, args=_AT_SLOT, guard="move", docs=_DOCS)
+    async def place(
+        self,
+        station: str,
+        slot: str,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> GripResult:
+        """Place the held object in a slot: approach, descend straight, release, rise."""
+        return await self.run_command("place", **_given(locals()))  # type: ignore[no-any-return]
 
     @command("command", BOOL, needs_control=False)
     async def stop(self) -> bool:

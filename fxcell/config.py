@@ -9,14 +9,24 @@ metres, radians, seconds.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from fxcell.errors import ConfigError
+from fxcell.layout import LayoutConfig
 from fxcell.resources import resource_dir
+from fxcell.signals import parse_signal
 
 CONFIG_DIR = resource_dir("config")
 
@@ -70,7 +80,9 @@ class ToolConfig(_Model):
     tcp: Vector6 = SEED_TCP
     """Tool centre point in the flange frame: x, y, z (m) and rotation vector (rad)."""
     payload: float = Field(1.0, ge=0, le=3.0)
-    """Payload mass in kg (Hand-E with fingers is about 1 kg)."""
+    """Payload mass in kg (Hand-E with fingers is about 1 kg); what it holds is added."""
+    payload_cog: Vector3 = (0.0, 0.0, 0.055)
+    """Centre of gravity of the payload in the flange frame (m)."""
 
 
 class JointLimits(_Model):
@@ -141,6 +153,62 @@ class DaemonConfig(_Model):
     the daemon may be reached; other names are refused (DNS-rebinding protection)."""
 
 
+class IOConfig(_Model):
+    """Named IO signals (task code uses the names, never the addresses) and interlocks."""
+
+    signals: dict[str, str] = {}
+    """Name → address (``DI2``, ``DO0``, ``CI3``, ``TO1``, ``AI0``, ...; see fxcell.signals)."""
+    interlocks: dict[str, str] = {}
+    """Zone → signal: no move into a station of that zone while the signal is on."""
+
+    @field_validator("signals")
+    @classmethod
+    def _addresses(cls, v: dict[str, str]) -> dict[str, str]:
+        out = {}
+        for name, address in v.items():
+            if not name.isidentifier():
+                raise ValueError(f"signal name {name!r} must be an identifier (letters, _, digits)")
+            out[name] = parse_signal(address).address
+        return out
+
+    @model_validator(mode="after")
+    def _interlocks_known(self) -> IOConfig:
+        for zone, signal in self.interlocks.items():
+            if signal not in self.signals:
+                raise ValueError(f"interlock of zone {zone!r}: no signal {signal!r}")
+        return self
+
+
+def default_state_dir() -> Path:
+    """Where fxcell keeps what the cell is taught and its job database, for the shipped config
+    (``$FXCELL_STATE_DIR``, else ``$XDG_STATE_HOME/fxcell`` or ``~/.local/state/fxcell``)."""
+    explicit = os.environ.get("FXCELL_STATE_DIR")
+    if explicit:
+        return Path(explicit).expanduser()
+    base = os.environ.get("XDG_STATE_HOME") or "~/.local/state"
+    return Path(base).expanduser() / "fxcell"
+
+
+class JobConfig(_Model):
+    """The fusion-machine job (``fxcell.job``): its database and the machine's timing."""
+
+    database: Path = Path("job.sqlite3")
+    """The job's SQLite database (runs, sample locations, steps): relative paths are read
+    beside the config file (for the shipped config: in :func:`default_state_dir`)."""
+    manual: bool = False
+    """Ask the operator to start the machine and to confirm it is done, instead of using
+    the machine's IO signals."""
+    ready_timeout: float = Field(60.0, gt=0)
+    """Seconds to wait for ``machine_ready`` before loading a crucible."""
+    start_timeout: float = Field(10.0, gt=0)
+    """Seconds the machine has to report ``machine_busy`` after the start pulse."""
+    done_timeout: float = Field(3600.0, gt=0)
+    """Seconds a fusion cycle (fusion, cooling and a margin) may take until ``machine_done``."""
+    cycle_estimate: float = Field(900.0, gt=0)
+    """Seconds a fusion cycle is expected to take, for the time-left estimate until one has
+    been measured."""
+
+
 class CellConfig(_Model):
     """Everything a :class:`~fxcell.cell.cell.Cell` and the daemon need."""
 
@@ -149,20 +217,40 @@ class CellConfig(_Model):
     home: Vector6 = HOME_JOINTS
     limits: JointLimits = JointLimits()
     scene: SceneConfig = SceneConfig()
+    """Fixed obstacles that are not stations (the table); stations add their bodies."""
+    layout: LayoutConfig = LayoutConfig()
+    io: IOConfig = IOConfig()
+    positions_file: Path = Path("positions.yaml")
+    """Taught positions and station frames (written by ``cell.teach``): relative paths are
+    read beside the config file (for the shipped config: in :func:`default_state_dir`)."""
     recorder: RecorderConfig = RecorderConfig()
     daemon: DaemonConfig = DaemonConfig()
+    job: JobConfig = JobConfig()
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> CellConfig:
-        """Load ``cell.yaml``; ``limits_file``/``scene_file`` keys are read relative to it."""
-        path = Path(path) if path is not None else CONFIG_DIR / "cell.yaml"
-        data = _read_yaml(path)
-        for key, section in (("limits_file", "limits"), ("scene_file", "scene")):
-            ref = data.pop(key, None)
-            if ref is not None:
-                if section in data:
-                    raise ConfigError(f"{path}: give either {key!r} or {section!r}, not both")
-                data[section] = _read_yaml(path.parent / str(ref))
+        """Load ``cell.yaml``; ``limits_file``/``scene_file``/``layout_file`` are read beside it.
+
+        A user's file overrides the shipped configuration: what it leaves out (limits,
+        scene, layout, IO signals, ...) comes from the shipped files, mappings merged key by
+        key, so no cell ever plans without the cell's scene.
+        """
+        shipped = CONFIG_DIR / "cell.yaml"
+        path = Path(path) if path is not None else shipped
+        data = _with_sections(_read_yaml(path), path)
+        own = path.resolve() == shipped.resolve()
+        if not own:
+            data = _merged(_with_sections(_read_yaml(shipped), shipped), data)
+        base = default_state_dir() if own else path.parent
+        positions = Path(str(data.get("positions_file", "positions.yaml"))).expanduser()
+        data["positions_file"] = positions if positions.is_absolute() else base / positions
+        job = data.get("job") or {}
+        if isinstance(job, dict):  # else from_dict names the error
+            database = Path(str(job.get("database", "job.sqlite3"))).expanduser()
+            data["job"] = {
+                **job,
+                "database": database if database.is_absolute() else base / database,
+            }
         return cls.from_dict(data, source=str(path))
 
     @classmethod
@@ -174,6 +262,32 @@ class CellConfig(_Model):
                 f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in exc.errors()
             )
             raise ConfigError(f"{source}: {problems}") from None
+
+
+def _with_sections(data: dict[str, Any], path: Path) -> dict[str, Any]:
+    """``data`` with its ``*_file`` references read (relative to ``path``'s directory)."""
+    for key, section in (
+        ("limits_file", "limits"),
+        ("scene_file", "scene"),
+        ("layout_file", "layout"),
+    ):
+        ref = data.pop(key, None)
+        if ref is not None:
+            if section in data:
+                raise ConfigError(f"{path}: give either {key!r} or {section!r}, not both")
+            data[section] = _read_yaml(path.parent / str(ref))
+    return data
+
+
+def _merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``override`` on top of ``base``: mappings merged key by key, anything else replaced."""
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merged(out[key], value)
+        else:
+            out[key] = value
+    return out
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:

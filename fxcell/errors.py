@@ -238,5 +238,91 @@ class NothingGraspedError(GripperError):
     """An object was expected between the fingers, but they closed on nothing."""
 
 
+class HoldingError(GripperError):
+    """Refused for what the gripper holds: a pick while it holds something, a place while it
+    holds nothing or an object the station does not take; nothing moved."""
+
+
 class ObjectLostError(GripperError):
     """The object the gripper held is no longer between its fingers."""
+
+
+# ----------------------------------------------------------------- layout, IO, teach
+
+
+class LayoutError(InvalidArgumentError):
+    """A station, slot or taught frame of the cell layout is unknown or malformed."""
+
+
+class UnknownStationError(LayoutError):
+    """A station name the layout does not have; the message lists the known ones."""
+
+
+class SlotError(LayoutError):
+    """A slot name that is malformed or outside its station's grid; nothing moved."""
+
+
+class UnknownSignalError(InvalidArgumentError):
+    """An IO signal name the configuration does not have (``io.signals``), or a value the
+    signal cannot take; the message lists the known names."""
+
+
+class IOTimeoutError(FxcellError, TimeoutError):
+    """An IO signal did not reach the awaited value in time."""
+
+
+class UnknownPositionError(InvalidArgumentError):
+    """A taught position name that does not exist; the message lists the known ones."""
+
+
+class InterlockError(FxcellError):
+    """A move into a zone was refused (or stopped) because the zone's interlock signal is on,
+    e.g. the fusion machine reports busy; nothing moved into the zone."""
+
+
+# ----------------------------------------------------------------- job
+
+
+class JobError(FxcellError):
+    """The fusion-machine job failed or refused a request."""
+
+
+class JobSpecError(JobError, InvalidArgumentError):
+    """A run file or run dict is invalid; nothing moved.
+
+    ``sample`` names the sample (its id, or ``#n`` counting from 1 when it has none) and
+    ``field`` the offending field, when the problem is in one sample.
+    """
+
+    def __init__(self, message: str, sample: str | None = None, field: str | None = None) -> None:
+        self.sample = sample
+        self.field = field
+        where = ""
+        if sample is not None:
+            where = f"sample {sample}" + (f", field {field!r}" if field else "") + ": "
+        super().__init__(where + message)
+
+
+class JobStateError(JobError):
+    """A job command is not allowed in the job's current state; nothing changed."""
+
+    def __init__(self, command: str, state: str, allowed: Iterable[str]) -> None:
+        self.command = command
+        self.state = state
+        self.allowed = tuple(allowed)
+        super().__init__(
+            f"job {command}() is refused: the job is {state} "
+            f"({command} needs {', '.join(self.allowed) or 'no state'})"
+        )
+
+
+class JobAnswerError(JobError, ValueError):
+    """A recovery answer is missing, or names a place that is not one of the question's choices."""
+
+
+class JobStoreError(JobError):
+    """The job database is unreadable, or its records contradict each other."""
+
+
+class MachineError(JobError):
+    """The fusion machine reports an error, or did not answer as its protocol requires."""

@@ -85,6 +85,16 @@ class MotionEvent:
 
 
 @dataclass(frozen=True, slots=True)
+class DeviceEvent:
+    """A change of a device beside the arm: ``gripper`` (width, object held, fault) or
+    ``job`` (a fusion-machine job's steps and samples); recorded on topic ``/<device>``."""
+
+    time: float
+    device: Literal["gripper", "job"]
+    data: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
 class LogEvent:
     """A log record worth keeping with the session (warnings, errors, notices)."""
 
@@ -96,7 +106,7 @@ class LogEvent:
     line: int = 0
 
 
-Event = CommandEvent | TransitionEvent | StateEvent | MotionEvent | LogEvent
+Event = CommandEvent | TransitionEvent | StateEvent | MotionEvent | DeviceEvent | LogEvent
 Subscriber = Callable[[Event], None]
 
 

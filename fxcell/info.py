@@ -39,4 +39,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"robot: {robot} (external control: {config.robot.external_control})")
     print(f"tcp: {list(config.tool.tcp)}")
     print(f"scene: {', '.join(o.name for o in config.scene.objects) or 'empty'}")
+    stations = [
+        f"{name} ({st.rows}x{st.columns} {st.holds})" for name, st in config.layout.stations.items()
+    ]
+    print(f"stations: {', '.join(stations) or 'none'}")
+    print(f"positions: {config.positions_file}")
     return 0

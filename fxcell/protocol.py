@@ -56,6 +56,21 @@ class SafetyMode(enum.IntEnum):
     SYSTEM_THREE_POSITION_ENABLING_STOP = 13
 
 
+SAFETY_STOPS: dict[int, str] = {
+    SafetyMode.PROTECTIVE_STOP: "protective_stop",
+    SafetyMode.SAFEGUARD_STOP: "safeguard_stop",
+    SafetyMode.AUTOMATIC_MODE_SAFEGUARD_STOP: "safeguard_stop",
+    SafetyMode.SYSTEM_THREE_POSITION_ENABLING_STOP: "safeguard_stop",
+    SafetyMode.SYSTEM_EMERGENCY_STOP: "emergency_stop",
+    SafetyMode.ROBOT_EMERGENCY_STOP: "emergency_stop",
+    SafetyMode.VIOLATION: "fault",
+    SafetyMode.FAULT: "fault",
+}
+"""The safety modes in which the arm is stopped, and which kind of stop each is: the one
+table the link process (why a trajectory ends), the state machine (the cell's state, named
+the same) and the errors of aborted moves derive from."""
+
+
 class RuntimeState(enum.IntEnum):
     """``runtime_state``: the state of the controller's program."""
 
@@ -114,6 +129,8 @@ class ControlCommand(enum.IntEnum):
     SPEED_STOP = 15
     SERVO_STOP = 16
     SET_PAYLOAD = 17
+    TEACH_MODE = 18
+    END_TEACH_MODE = 19
     SERVOL = 24
     SET_TCP = 29
     GET_IK_ARGS = 30
@@ -163,4 +180,39 @@ class RobotState:
     actual_tcp_speed: tuple[float, ...] = (0.0,) * 6
     speed_scaling: float = 1.0
     output_int_registers: tuple[int, ...] = field(default=(0, 0, 0))
+    digital_input_bits: int = 0  # standard 0-7, configurable 8-15, tool 16-17
+    digital_output_bits: int = 0  # same layout
+    standard_analog_input0: float = 0.0  # V or A, as the input is configured
+    standard_analog_input1: float = 0.0
+    standard_analog_output0: float = 0.0
+    standard_analog_output1: float = 0.0
     received_at: float = 0.0  # host monotonic time the sample reached fxcell, s
+
+
+RTDE_STATE_OUTPUTS: tuple[tuple[str, str], ...] = (
+    ("timestamp", "timestamp"),
+    ("robot_mode", "robot_mode"),
+    ("safety_mode", "safety_mode"),
+    ("runtime_state", "runtime_state"),
+    ("robot_status_bits", "robot_status_bits"),
+    ("safety_status_bits", "safety_status_bits"),
+    ("target_q", "target_q"),
+    ("target_qd", "target_qd"),
+    ("target_qdd", "target_qdd"),
+    ("actual_q", "actual_q"),
+    ("actual_qd", "actual_qd"),
+    ("actual_current", "actual_current"),
+    ("target_tcp_pose", "target_TCP_pose"),
+    ("actual_tcp_pose", "actual_TCP_pose"),
+    ("actual_tcp_speed", "actual_TCP_speed"),
+    ("speed_scaling", "speed_scaling"),
+    ("digital_input_bits", "actual_digital_input_bits"),
+    ("digital_output_bits", "actual_digital_output_bits"),
+    ("standard_analog_input0", "standard_analog_input0"),
+    ("standard_analog_input1", "standard_analog_input1"),
+    ("standard_analog_output0", "standard_analog_output0"),
+    ("standard_analog_output1", "standard_analog_output1"),
+)
+"""The :class:`RobotState` fields read from RTDE, with the output each comes from: the one
+list the link's reader subscribes to. ``output_int_registers`` come from the control
+script's registers and ``received_at`` from the host."""

@@ -62,6 +62,8 @@ class Summary:
     transitions: list[dict[str, Any]] = field(default_factory=list)
     errors: list[tuple[float, str]] = field(default_factory=list)
     protective_stops: list[float] = field(default_factory=list)
+    samples: dict[str, list[str]] = field(default_factory=dict)
+    """Per job sample, what happened to it (from ``/job``): one line per finished step."""
 
     @property
     def duration(self) -> float:
@@ -92,6 +94,18 @@ def commands_of(messages: Iterable[tuple[LogMessage, Any]]) -> list[CommandRecor
     return sorted(by_id.values(), key=lambda c: (c.started, c.command_id))
 
 
+def _job_event(s: Summary, t: float, m: dict[str, Any]) -> None:
+    """A job event into the per-sample story: where each object went, which steps failed."""
+    if m.get("event") != "step" or m.get("phase") != "end":
+        return
+    for move in m.get("moved") or []:
+        line = f"{_rel(t, s.start)}  {move['object']} {move['from']} → {move['to']}"
+        s.samples.setdefault(str(move["sample"]), []).append(line)
+    if m.get("outcome") not in (None, "done", "ok") and m.get("sample"):
+        line = f"{_rel(t, s.start)}  step {m.get('kind')}: {m['outcome']} {m.get('detail') or ''}"
+        s.samples.setdefault(str(m["sample"]), []).append(line.rstrip())
+
+
 def summarize(path: str | Path) -> Summary:
     """Read what ``--summary`` shows (fast: only the low-rate topics are decoded)."""
     reader = LogReader(path)
@@ -105,8 +119,14 @@ def summarize(path: str | Path) -> Summary:
     )
     command_msgs = []
     in_stop = False
-    wanted = (topics.COMMANDS, topics.TRANSITIONS, topics.ROBOT_MODES, topics.LOG, topics.RECORDER)
+    wanted = (
+        topics.COMMANDS, topics.TRANSITIONS, topics.ROBOT_MODES, topics.LOG, topics.RECORDER,
+        topics.JOB,
+    )  # fmt: skip
     for msg, m in reader.decoded(wanted):
+        if msg.topic == topics.JOB:
+            _job_event(s, msg.time, m)
+            continue
         if msg.topic == topics.COMMANDS:
             command_msgs.append((msg, m))
             if m.get("outcome") == "error":
@@ -180,6 +200,11 @@ def format_summary(s: Summary) -> str:
     lines.append(f"errors: {len(s.errors)}")
     for t0, text in s.errors:
         lines.append(f"  {_rel(t0, s.start)}  {text}")
+    if s.samples:
+        lines.append(f"job samples: {len(s.samples)}")
+        for sample, story in sorted(s.samples.items()):
+            lines.append(f"  {sample}")
+            lines.extend(f"    {line}" for line in story)
     return "\n".join(lines)
 
 

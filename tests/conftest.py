@@ -1,6 +1,16 @@
+import contextlib
+import inspect
 import os
+import subprocess
+import tempfile
+import types
+from collections.abc import Iterator
+from typing import Any
 
+import pytest
 from hypothesis import settings
+
+from fxcell.link import collector
 
 pytest_plugins = ["fxcell.testing", "pytester"]
 
@@ -9,3 +19,126 @@ pytest_plugins = ["fxcell.testing", "pytester"]
 settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
 if os.environ.get("CI") and os.environ.get("FXCELL_HYPOTHESIS") != "explore":
     settings.load_profile("ci")
+
+# Taught positions and job databases of the shipped config go to a scratch directory, never
+# to the developer's ~/.local/state/fxcell (subprocesses such as the daemon inherit it).
+os.environ["FXCELL_STATE_DIR"] = tempfile.mkdtemp(prefix="fxcell-test-state-")
+
+
+# ----------------------------------------------------------------- system tests
+# A test that starts a simulator, a daemon, a robot link or any other subprocess is a
+# *system* test (`pytest -m "not system"` leaves them out). Marked here, at collection: a
+# test is one when it, one of its fixtures, or a function or class of their module they
+# use names one of SYSTEM_NAMES (or carries @pytest.mark.system itself). The guard below
+# fails any unmarked test that starts a subprocess anyway, so the fast run stays honest.
+
+SYSTEM_NAMES = frozenset(
+    {
+        "simulator",  # fxcell.testing.simulator(): a simulator process
+        "EmbeddedSimulator",
+        "DaemonProcess",
+        "LinkClient",  # the robot-link process
+        "subprocess",
+        "create_subprocess_exec",
+        "create_subprocess_shell",
+        "runpytest_subprocess",
+    }
+)
+
+
+def _names(obj: Any, seen: set[int]) -> set[str]:
+    """Global names ``obj`` (a function, class or code object) refers to, following the
+    functions and classes of its own module that it uses."""
+    if id(obj) in seen:
+        return set()
+    seen.add(id(obj))
+    if isinstance(obj, type):
+        found: set[str] = set()
+        for member in vars(obj).values():
+            found |= _names(member, seen)
+        return found
+    func = inspect.unwrap(obj) if callable(obj) else obj
+    code = getattr(func, "__code__", None)
+    if code is None:
+        return set()
+    found = set()
+    codes = [code]
+    while codes:
+        c = codes.pop()
+        found.update(c.co_names)
+        codes.extend(k for k in c.co_consts if isinstance(k, types.CodeType))
+    module = getattr(func, "__module__", None)
+    scope = getattr(func, "__globals__", {})
+    for name in list(found):
+        target = scope.get(name)
+        if getattr(target, "__module__", None) == module and (
+            inspect.isfunction(target) or isinstance(target, type)
+        ):
+            found |= _names(target, seen)
+    return found
+
+
+def _starts_processes(item: pytest.Function) -> bool:
+    seen: set[int] = set()
+    names = _names(item.obj, seen)
+    for defs in item._fixtureinfo.name2fixturedefs.values():
+        for fixturedef in defs:
+            names |= _names(fixturedef.func, seen)
+    return not SYSTEM_NAMES.isdisjoint(names)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if (
+            isinstance(item, pytest.Function)
+            and item.get_closest_marker("system") is None
+            and _starts_processes(item)
+        ):
+            item.add_marker(pytest.mark.system)
+
+
+_popen_init = subprocess.Popen.__init__
+
+
+def _refuse_popen(self: Any, *args: Any, **kwargs: Any) -> None:
+    self._child_created = False  # so that Popen.__del__ has nothing to clean up
+    self.returncode = None
+    raise RuntimeError(
+        "this test starts a subprocess but is not marked `system`: add "
+        "@pytest.mark.system (or a name from SYSTEM_NAMES in tests/conftest.py)"
+    )
+
+
+@contextlib.contextmanager
+def _no_subprocess(item: pytest.Item) -> Iterator[None]:
+    """While an unmarked test sets up and runs, starting a subprocess fails it."""
+    if item.get_closest_marker("system") is not None:
+        yield
+        return
+    subprocess.Popen.__init__ = _refuse_popen  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        subprocess.Popen.__init__ = _popen_init  # type: ignore[method-assign]
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_setup(item: pytest.Item) -> Iterator[None]:
+    with _no_subprocess(item):
+        return (yield)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
+    with _no_subprocess(item):
+        return (yield)
+
+
+@pytest.fixture(autouse=True)
+def _collector_given_back() -> Iterator[None]:
+    """Fail a test that ends with Python's garbage collector still paused by a trajectory."""
+    yield
+    if collector.holds():
+        while collector.holds():
+            collector.release()
+        pytest.fail("a trajectory's pause of the garbage collector outlived the test")

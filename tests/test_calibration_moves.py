@@ -2,17 +2,14 @@
 0.002 rad); a Cell that knows it reaches targets as the controller reports them, one on the
 nominal model misses by millimetres.
 
-The controller reports the flange (no TCP is set on it), so the reported TCP is the reported
-flange pose composed with the configured tool.
+fxcell sets its TCP on the controller when external control starts, so the controller's
+``actual_TCP_pose`` is the tool centre point itself.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import socket
-import struct
-import threading
 from collections.abc import AsyncIterator, Awaitable, Iterator
 from pathlib import Path
 
@@ -36,7 +33,6 @@ CALIBRATION = Calibration(
     delta_alpha=(0.002, -0.0011, 0.0008, -0.0016, 0.0013, -0.0007),
 )
 NOMINAL = CellConfig.load()
-TOOL = Pose.from_ur(NOMINAL.tool.tcp)
 WORK = [0.4, -1.4, 1.6, -1.8, -1.57, 0.0]  # gripper down over the table
 POSITION_TOL = 1e-5
 ANGLE_TOL = 1e-4
@@ -71,8 +67,8 @@ def calibrated_config(source: Path | str, **robot: object) -> CellConfig:
 
 
 def reported_tcp(sample: RobotState) -> Pose:
-    """The controller's actual_TCP_pose (the flange here) with the tool."""
-    return Pose.from_ur(sample.actual_tcp_pose) @ TOOL
+    """The controller's actual_TCP_pose (fxcell set the TCP on it)."""
+    return Pose.from_ur(sample.actual_tcp_pose)
 
 
 async def settled_tcp(cell: Cell) -> Pose:
@@ -109,7 +105,7 @@ async def traced(cell: Cell, move: Awaitable[object]) -> list[Pose]:
             collector.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await collector
-    return [Pose.from_ur(p) @ TOOL for p in samples]
+    return [Pose.from_ur(p) for p in samples]
 
 
 def line_deviation(trace: list[Pose], start: Pose, end: Pose) -> float:
@@ -172,60 +168,37 @@ async def test_the_nominal_model_misses_a_calibrated_arms_targets_by_millimetres
         assert line_deviation(trace, start, target) > LINE_TOL
 
 
-@contextlib.contextmanager
-def primary_interface(host: str, package: bytes) -> Iterator[None]:
-    """Port 30001 on the simulator's address sending a robot-state message with ``package``
-    (the simulator does not serve the primary interface yet)."""
-    server = socket.create_server((host, 30001))
-    stop = threading.Event()
-    message = struct.pack(">IB", 5 + len(package), 16) + package
-
-    def serve() -> None:
-        with server:
-            server.settimeout(0.1)
-            while not stop.is_set():
-                with contextlib.suppress(TimeoutError):
-                    conn, _ = server.accept()
-                    with conn:
-                        conn.sendall(message)
-                        stop.wait(1.0)
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join(5)
-
-
 async def test_the_cell_reads_the_calibration_from_the_controller(
     calibrated_sim: SimulatorHandle,
 ) -> None:
-    with primary_interface(calibrated_sim.host, CALIBRATION.kinematics_info()):
-        async with ready_cell(calibrated_sim, calibrated_config("controller")) as cell:
-            assert cell.controller_info["calibration_source"] == f"controller {cell.host}"
-            assert cell.controller_info["calibration_checksum"] == CALIBRATION.checksum
-            target = await pose_target(cell, (0.02, 0.02, 0.03))
-            await cell.move_pose(target)
-            dp, da = errors(await settled_tcp(cell), target)
-            assert dp < POSITION_TOL, dp
-            assert da < ANGLE_TOL, da
+    # the calibrated simulator reports its deltas in the primary interface's kinematics info
+    async with ready_cell(calibrated_sim, calibrated_config("controller")) as cell:
+        assert cell.controller_info["calibration_source"] == f"controller {cell.host}"
+        assert cell.controller_info["calibration_checksum"] == CALIBRATION.checksum
+        target = await pose_target(cell, (0.02, 0.02, 0.03))
+        await cell.move_pose(target)
+        dp, da = errors(await settled_tcp(cell), target)
+        assert dp < POSITION_TOL, dp
+        assert da < ANGLE_TOL, da
 
 
 async def test_pose_moves_are_refused_when_the_calibration_cannot_be_read(
     calibrated_sim: SimulatorHandle,
 ) -> None:
-    # nothing serves 30001 on the simulator's address: the calibration is unreadable
-    async with ready_cell(calibrated_sim, calibrated_config("controller")) as cell:
-        assert cell.controller_info["calibration_source"].startswith("unreadable")
-        start = cell.robot_state.actual_q
-        target = await pose_target(cell, (0.02, 0.0, 0.0))
-        with pytest.raises(UncalibratedError, match="accept_nominal_kinematics"):
-            await cell.move_pose(target)
-        with pytest.raises(UncalibratedError):
-            await cell.move_distance([0.0, 0.0, 0.01])
-        assert cell.robot_state.actual_q == pytest.approx(start, abs=1e-9)
-    accepting = calibrated_config("controller", accept_nominal_kinematics=True)
-    async with ready_cell(calibrated_sim, accepting) as cell:
-        await cell.move_distance([0.0, 0.0, 0.01])  # nominal, as configured
+    # a controller whose primary interface sends no kinematics info: the calibration is unreadable
+    calibrated_sim.inject("hide_kinematics_info")
+    try:
+        async with ready_cell(calibrated_sim, calibrated_config("controller")) as cell:
+            assert cell.controller_info["calibration_source"].startswith("unreadable")
+            start = cell.robot_state.actual_q
+            target = await pose_target(cell, (0.02, 0.0, 0.0))
+            with pytest.raises(UncalibratedError, match="accept_nominal_kinematics"):
+                await cell.move_pose(target)
+            with pytest.raises(UncalibratedError):
+                await cell.move_distance([0.0, 0.0, 0.01])
+            assert cell.robot_state.actual_q == pytest.approx(start, abs=1e-9)
+        accepting = calibrated_config("controller", accept_nominal_kinematics=True)
+        async with ready_cell(calibrated_sim, accepting) as cell:
+            await cell.move_distance([0.0, 0.0, 0.01])  # nominal, as configured
+    finally:
+        calibrated_sim.inject("show_kinematics_info")

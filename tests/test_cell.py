@@ -479,6 +479,7 @@ async def test_record_writes_commands_transitions_and_states_to_mcap(
 # ----------------------------------------------------------------- configuration
 
 
+@pytest.mark.system  # Cell() without a host starts the embedded simulator process
 async def test_without_a_host_the_cell_runs_the_embedded_simulator(tmp_path: Any) -> None:
     config_file = tmp_path / "cell.yaml"
     config_file.write_text("robot:\n  command_timeout: 5\n")

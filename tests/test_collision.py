@@ -51,7 +51,7 @@ def test_only_links_two_joints_apart_and_scene_pairs_are_checked(checker: Collis
     assert frozenset(("upper_arm", "gripper_body")) in pairs
     assert frozenset(("shoulder_column", "forearm")) in pairs
     assert frozenset(("gripper_fingers", "table")) in pairs
-    assert frozenset(("shoulder_column", "fusion_machine")) in pairs
+    assert frozenset(("shoulder_column", "machine")) in pairs
     assert frozenset(("base", "wrist_1_link")) in pairs
 
 
@@ -81,8 +81,8 @@ def test_the_scene_margin_keeps_the_gripper_off_the_table(checker: CollisionChec
 
 
 def test_reaching_into_the_fusion_machine_collides_with_it(checker: CollisionChecker) -> None:
-    q = tcp_down_at(0.0, 0.35, 0.25, seed=np.array([-1.6, -1.5, 1.5, -1.6, -1.6, 0]))
-    assert any("fusion_machine" in pair for pair in checker.colliding_pairs(q))
+    q = tcp_down_at(0.0, 0.35, 0.12, seed=np.array([-1.6, -1.5, 1.5, -1.6, -1.6, 0]))
+    assert any("machine" in pair for pair in checker.colliding_pairs(q))
 
 
 def test_folding_the_wrist_into_the_upper_arm_is_a_self_collision(
@@ -91,7 +91,7 @@ def test_folding_the_wrist_into_the_upper_arm_is_a_self_collision(
     q = np.array([0.0, -1.57, 2.6, 0.0, 0.0, 0.0])  # elbow folded, wrist back onto the arm
     pairs = checker.colliding_pairs(q)
     assert pairs, "expected a self-collision"
-    assert all("table" not in p and "fusion_machine" not in p for p in pairs)
+    assert all("table" not in p and "machine" not in p for p in pairs)
     with pytest.raises(CollisionError, match="in collision"):
         checker.check(q)
 

@@ -122,12 +122,13 @@ def test_every_command_has_a_route_and_a_cli_subcommand() -> None:
 
 
 def _cli_args(entry: Any) -> list[str]:
-    """Values for the required arguments: a single one positional, else options."""
+    """Values for the required arguments: positional when one or all scalars, else options."""
     required = [a for a in entry.args if a.required]
+    positional = len(required) == 1 or all(a.type.length is None for a in required)
     out: list[str] = []
     for arg in required:
         values = ["0.1"] * (arg.type.length[0] if arg.type.length else 1)
-        flag = [] if len(required) == 1 else [f"--{arg.name.replace('_', '-')}"]
+        flag = [] if positional else [f"--{arg.name.replace('_', '-')}"]
         out += flag + values
     return out
 

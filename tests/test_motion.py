@@ -93,7 +93,7 @@ def test_a_pose_inside_the_table_is_refused(planner: MotionPlanner) -> None:
 
 def test_a_pose_inside_the_fusion_machine_is_refused(planner: MotionPlanner) -> None:
     with pytest.raises(CollisionError):
-        planner.plan_pose(WORK, [0.0, 0.40, 0.15, math.pi, 0.0, 0.0])
+        planner.plan_pose(WORK, [0.0, 0.40, 0.10, math.pi, 0.0, 0.0])
 
 
 @pytest.mark.parametrize(

@@ -124,7 +124,8 @@ def test_a_full_install_runs_info_and_a_daemon_from_any_directory(
     elsewhere = tmp_path_factory.mktemp("elsewhere")
     out = _run(venv, "fxcell", "info", cwd=elsewhere)
     assert out.returncode == 0, out.stderr
-    assert "scene: table, fusion_machine" in out.stdout
+    assert "scene: table" in out.stdout
+    assert "stations: rack (4x4 crucible), tray (4x4 bead)" in out.stdout
     token_file = elsewhere / "token"
     config = elsewhere / "cell.yaml"
     config.write_text(f"daemon:\n  token_file: {token_file}\n")  # everything else: defaults

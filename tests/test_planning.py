@@ -7,9 +7,11 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fxcell.config import CellConfig
-from fxcell.errors import CollisionError, SingularityError, UnreachableError
+from fxcell.errors import CollisionError, PlanningError, SingularityError, UnreachableError
 from fxcell.geometry import Pose
 from fxcell.motion.collision import CollisionChecker
 from fxcell.motion.kinematics import Kinematics
@@ -51,7 +53,7 @@ def test_a_move_blocked_by_the_machine_is_planned_around_it(
     assert not checker.in_collision(LEFT_OF_MACHINE)
     assert not checker.in_collision(RIGHT_OF_MACHINE)
     midway = 0.5 * (LEFT_OF_MACHINE + RIGHT_OF_MACHINE)
-    assert any("fusion_machine" in p for p in checker.colliding_pairs(midway))
+    assert any("machine" in p for p in checker.colliding_pairs(midway))
 
     path = planner.plan(LEFT_OF_MACHINE, RIGHT_OF_MACHINE)
     assert path.planner == "RRTConnect"
@@ -77,6 +79,41 @@ def test_a_target_in_collision_is_refused_before_planning(planner: JointPlanner)
     folded = np.array([0.0, -1.57, 2.6, 0.0, 0.0, 0.0])
     with pytest.raises(CollisionError, match="target"):
         planner.plan(HOME, folded)
+
+
+def test_the_table_and_the_folded_elbow_are_walls_of_the_free_space(
+    checker: CollisionChecker,
+) -> None:
+    walls = checker.walls()
+    # the upper arm hanging into the table (θ2 = π/2 - 2πk) and the elbow folded (θ3 = ±π)
+    assert {j for j, _ in walls} == {1, 2}
+    assert any(abs(v - math.pi / 2) < 0.05 for j, v in walls if j == 1)
+    assert any(abs(v + 3 * math.pi / 2) < 0.05 for j, v in walls if j == 1)
+    assert sorted(round(abs(v), 1) for j, v in walls if j == 2) == [3.1, 3.1]
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(
+    which=st.integers(0, 3),
+    others=st.lists(st.floats(-2 * math.pi, 2 * math.pi), min_size=6, max_size=6),
+)
+def test_every_configuration_on_a_wall_collides(
+    checker: CollisionChecker, which: int, others: list[float]
+) -> None:
+    walls = checker.walls()
+    joint, value = walls[which % len(walls)]
+    q = np.array(others)
+    q[joint] = value
+    assert checker.in_collision(q)
+
+
+def test_a_query_across_a_wall_fails_without_a_search(planner: JointPlanner) -> None:
+    # The same arm pose with the shoulder turned a full turn: joint space is not a circle
+    # (±2π limits), so the move would have to swing the upper arm through the table.
+    across = HOME + np.array([0, 2 * math.pi, 0, 0, 0, 0])
+    assert not planner.checker.in_collision(across)
+    with pytest.raises(PlanningError, match=r"joint 2 at 1\.5"):
+        planner.plan(HOME, across)
 
 
 def test_another_ompl_planner_can_be_chosen(checker: CollisionChecker) -> None:

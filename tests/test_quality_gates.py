@@ -109,3 +109,35 @@ def test_ci_fails_when_tests_fail_or_none_ran(tmp_path: Path, inner_rc: int, pas
     env = {k: v for k, v in os.environ.items() if k != "PYTEST_ADDOPTS"}
     rc = subprocess.run(["bash", str(tmp_path / ".ci" / "run")], env=env, timeout=30).returncode
     assert (rc == 0) is passes
+
+
+def test_tests_that_start_processes_are_system_tests_and_the_fast_run_has_none(
+    pytester: pytest.Pytester,
+) -> None:
+    pytester.makeconftest((ROOT / "tests" / "conftest.py").read_text())
+    pytester.makepyfile(
+        """
+        import importlib
+        import subprocess
+        import sys
+
+        def test_pure():
+            assert 1 + 1 == 2
+
+        def test_on_the_simulator_fixture(sim):
+            pass
+
+        def _helper():
+            subprocess.run([sys.executable, "-c", "pass"], check=True)
+
+        def test_through_a_helper():
+            _helper()
+
+        def test_unmarked_yet_starting_a_process():
+            runner = importlib.import_module("subprocess")
+            runner.run([sys.executable, "-c", "pass"], check=True)
+        """
+    )
+    result = pytester.runpytest("-m", "not system", "-p", "no:cacheprovider", *INNER_OPTS)
+    result.assert_outcomes(passed=1, failed=1, deselected=2)
+    result.stdout.fnmatch_lines(["*test_unmarked_yet_starting_a_process*", "*mark*system*"])

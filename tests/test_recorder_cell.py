@@ -4,6 +4,7 @@ re-executed (``fxcell replay --re-execute``)."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -98,7 +99,15 @@ def test_a_scripted_cell_session_is_recorded_completely(session: Session) -> Non
 
     # every state sample the cell published, bit for bit, and at the full rate
     states = [decode_robot_state(d) for t, d in recorded if t == topics.ROBOT_STATE]
-    assert states == [e.sample for e in published if isinstance(e, StateEvent)]
+    # IO is recorded on /robot/io whenever a digital bit changes, not in every state sample.
+    io_free = dict.fromkeys(("digital_input_bits", "digital_output_bits"), 0) | {
+        f"standard_analog_{d}{i}": 0.0 for d in ("input", "output") for i in (0, 1)
+    }
+    published_states = [e.sample for e in published if isinstance(e, StateEvent)]
+    assert states == [dataclasses.replace(s, **io_free) for s in published_states]
+    io = [json.loads(d) for t, d in recorded if t == topics.IO]
+    changes = {(s.digital_input_bits, s.digital_output_bits) for s in published_states}
+    assert {(m["digital_input_bits"], m["digital_output_bits"]) for m in io} == changes
     span = states[-1].timestamp - states[0].timestamp
     expected = span / CONTROL_PERIOD + 1
     # A simulator starved of CPU runs late cycles without streaming them (a real controller

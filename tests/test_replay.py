@@ -76,6 +76,7 @@ def test_timeline_is_chronological_and_filters_by_topic_and_time(log_file: Path)
         timeline(log_file, topic_names=["/nope"])
 
 
+@pytest.mark.system  # matplotlib runs fc-list to build its font cache on first use
 def test_plot_writes_a_png(log_file: Path, tmp_path: Path) -> None:
     out = tmp_path / "session.png"
     assert main(["replay", str(log_file), "--plot", str(out)]) == 0
@@ -227,3 +228,30 @@ def test_plot_labels_are_merged_so_that_no_two_stand_closer_than_the_gap(
     assert all(b - a >= gap for a, b in itertools.pairwise(xs))
     merged = sum(int(text.split("+")[1]) if "+" in text else 0 for _, text in labels)
     assert len(labels) + merged == len(marks)  # every mark is labelled or counted
+
+
+def test_summary_tells_each_job_samples_story(tmp_path: Path) -> None:
+    from fxcell.events import DeviceEvent
+
+    t0 = 1_790_000_000.0
+    rec = Recorder(tmp_path, chunk_duration=0.1)
+    moves = [
+        ("S01", "crucible", "rack:A1", "gripper"),
+        ("S01", "crucible", "gripper", "machine:A1"),
+        ("S02", "crucible", "rack:A2", "gripper"),
+    ]
+    for n, (sample, obj, src, dst) in enumerate(moves):
+        end = {"event": "step", "phase": "end", "seq": n, "kind": "pick", "outcome": "done",
+               "moved": [{"sample": sample, "object": obj, "from": src, "to": dst}]}  # fmt: skip
+        rec.submit(DeviceEvent(t0 + n, "job", {"t": t0 + n, "run": 1, **end}))
+    rec.close()
+    (path,) = rec.stats.files
+    s = summarize(path)
+    assert list(s.samples) == ["S01", "S02"]
+    assert ["rack:A1 → gripper" in s.samples["S01"][0], "→ machine:A1" in s.samples["S01"][1]] == [
+        True,
+        True,
+    ]
+    text = format_summary(s)
+    assert "job samples: 2" in text
+    assert "crucible rack:A2 → gripper" in text

@@ -7,13 +7,14 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from fxcell.config import CellConfig
 from fxcell.errors import FxcellError, InvalidFactorError, PlanningError
 from fxcell.motion.trajectory import (
     DT,
+    NEGLIGIBLE_MOVE,
     Limits,
     Trajectory,
     along_path,
@@ -88,17 +89,27 @@ def test_base_quarter_turn_is_time_optimal(velocity: float) -> None:
 joint_vectors = st.lists(st.floats(-3.0, 3.0), min_size=6, max_size=6).map(np.array)
 
 
-@settings(max_examples=40, deadline=None)
+TINY = HOME + np.array([3.3e-13, 0, 0, 0, 0, 0])
+JUST_MOVING = HOME + np.array([0, 0, 0, 0, 0, 2 * NEGLIGIBLE_MOVE])
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
 @given(start=joint_vectors, target=joint_vectors, vf=st.floats(0.05, 1.0), af=st.floats(0.05, 1.0))
+@example(start=HOME, target=TINY, vf=1.0, af=1.0)
+@example(start=HOME, target=JUST_MOVING, vf=1.0, af=1.0)
+@example(start=HOME, target=HOME, vf=0.5, af=0.5)
 def test_direct_move_stays_on_the_joint_line_within_limits(
     start: np.ndarray, target: np.ndarray, vf: float, af: float
 ) -> None:
     limits = Limits.from_config(CONFIG.limits, vf, af)
     traj = rest_to_rest(start, target, limits)
     delta = target - start
-    if np.max(np.abs(delta)) < 1e-9:
+    np.testing.assert_array_equal(traj.positions[-1], target)
+    if np.max(np.abs(delta)) <= NEGLIGIBLE_MOVE:
         assert traj.duration == 0.0
+        assert len(traj) == 1
         return
+    assert traj.duration > 0.0
     s = (traj.positions - start) @ delta / (delta @ delta)
     off_line = traj.positions - (start + s[:, None] * delta)
     assert np.max(np.abs(off_line)) < 1e-9
@@ -106,6 +117,22 @@ def test_direct_move_stays_on_the_joint_line_within_limits(
     assert_within_limits(traj, limits)
     # Staying on the line can only cost time against Ruckig's free (curved) optimum.
     assert traj.duration >= minimum_duration(start, target, limits) - 1e-9
+
+
+def test_a_negligible_move_has_no_trajectory() -> None:
+    traj = rest_to_rest(HOME, TINY, LIMITS)
+    assert traj.duration == 0.0
+    np.testing.assert_array_equal(traj.positions, [TINY])
+    # Ruckig alone would time it as a fraction of a millisecond.
+    assert 0.0 < minimum_duration(HOME, TINY, LIMITS) < DT
+
+
+def test_a_negligible_last_segment_is_merged_and_the_path_ends_at_the_target() -> None:
+    wp = np.array([HOME, at(0.3, 0.1, 0, 0, 0, 0), at(0.6, 0.1, 0, 0, 0, 0)])
+    wp = np.vstack([wp, wp[-1] + 0.5 * NEGLIGIBLE_MOVE])
+    traj = through_waypoints(wp, LIMITS)
+    assert traj.segments == 2
+    np.testing.assert_array_equal(traj.positions[-1], wp[-1])
 
 
 def test_waypoints_in_one_direction_are_passed_without_stopping() -> None:

@@ -16,13 +16,17 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.calibration import Calibration
+from fxcell.cell import handling
 from fxcell.cell.gripper import Gripper
+from fxcell.cell.io import CellIO
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
+from fxcell.cell.teach import TaughtStore
+from fxcell.cell.teach import check_name as check_position_name
 from fxcell.commands import CellCommands, get_command
 from fxcell.config import CellConfig
 from fxcell.errors import (
@@ -30,6 +34,7 @@ from fxcell.errors import (
     ConnectionLostError,
     EmergencyStopError,
     FxcellError,
+    InvalidArgumentError,
     MoveInProgressError,
     MoveStoppedError,
     NotInRemoteControlError,
@@ -44,6 +49,7 @@ from fxcell.errors import (
 from fxcell.events import (
     COMMAND_ORIGIN,
     CommandEvent,
+    DeviceEvent,
     EventBus,
     EventStream,
     Origin,
@@ -52,7 +58,10 @@ from fxcell.events import (
 )
 from fxcell.geometry import Pose
 from fxcell.jsonable import to_jsonable
-from fxcell.link import LinkClient, LinkStatus, StateSubscription
+from fxcell.layout import Layout, LayoutConfig, layout_data
+from fxcell.link import LinkStatus, StateSubscription
+from fxcell.link.backend import LinkBackend, LinkFactory
+from fxcell.link.client import process_link
 from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.motion.runner import (
     DistanceTarget,
@@ -104,6 +113,9 @@ class Cell(CellCommands):
     Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
     ``record`` names a directory for an MCAP flight record of the session (default:
     the configuration's ``recorder.directory`` when ``recorder.enabled``).
+    ``link_factory`` makes the robot link (default: the supervised ur_rtde process,
+    :func:`fxcell.link.client.process_link`); with one, no embedded simulator is started
+    (``fxcell.testing.FakeRobot`` gives an in-process one).
 
     The commands (``init``, ``move_joint``, ``stop``, ...) are those of
     :class:`fxcell.commands.CellCommands`, where each is documented once.
@@ -119,9 +131,15 @@ class Cell(CellCommands):
         command_timeout: float | None = None,
         origin: Origin = Origin.LIBRARY,
         simulator_options: Mapping[str, Any] | None = None,
+        link_factory: LinkFactory | None = None,
     ) -> None:
         # Without a config, the shipped one: its scene, tool and limits (never an empty scene).
-        self.config = config if config is not None else CellConfig.load()
+        config = config if config is not None else CellConfig.load()
+        self.taught = TaughtStore(config.positions_file)
+        """Taught positions and re-taught station frames (``positions_file``)."""
+        self.config = config.model_copy(update={"layout": self.taught.apply_frames(config.layout)})
+        self.layout = Layout(self.config.layout)
+        """The stations and their slots, as taught."""
         robot = self.config.robot
         self._host = host if host is not None else robot.host
         self.external_control = external_control or robot.external_control
@@ -133,7 +151,8 @@ class Cell(CellCommands):
         self._simulator_options = dict(simulator_options or {})
         self.bus = EventBus()
         self.machine = RobotStateMachine(on_transition=self._on_transition)
-        self.link: LinkClient | None = None
+        self._link_factory = link_factory
+        self.link: LinkBackend | None = None
         self._simulator: Any = None
         self._recorder: Any = None
         self.controller_info: dict[str, str] = {}
@@ -158,6 +177,10 @@ class Cell(CellCommands):
         and a running move brakes."""
         self._opened = False
         self._gripper: Gripper | None = None
+        self._io: CellIO | None = None
+        self._freedrive = False
+        self.held: str | None = None
+        """The kind of object the gripper holds after a pick (None: nothing)."""
 
     @classmethod
     def from_config(cls, config: str | Path | CellConfig | None = None, **kwargs: Any) -> Cell:
@@ -176,6 +199,13 @@ class Cell(CellCommands):
         return self._gripper
 
     @property
+    def io(self) -> CellIO:
+        """The configured IO signals by name (``cell.io.get("machine_done")``)."""
+        if self._io is None:
+            self._io = CellIO(self)
+        return self._io
+
+    @property
     def host(self) -> str | None:
         """The controller address (that of the embedded simulator once it runs)."""
         return self._host
@@ -188,7 +218,7 @@ class Cell(CellCommands):
         try:
             if self._record is not None:
                 self._recorder = _start_recorder(Path(self._record), self)
-            if self._host is None:
+            if self._host is None and self._link_factory is None:
                 simulator = EmbeddedSimulator(**self._simulator_options)
                 self._host = str(await asyncio.to_thread(simulator.start))
                 self._simulator = simulator
@@ -196,13 +226,10 @@ class Cell(CellCommands):
             # long enough to starve the loop (and trip the link watchdog) mid-move.
             await asyncio.to_thread(self._moves().warm_up)
             self._machine_task = asyncio.create_task(self.machine.run(), name="cell machine")
-            robot = self.config.robot
-            self.link = LinkClient(
+            factory = self._link_factory or process_link
+            self.link = factory(
                 self._host,
-                frequency=robot.frequency,
-                receiver=robot.receiver,
-                connect_timeout=robot.connect_timeout,
-                backoff_max=robot.reconnect_backoff_max,
+                self.config.robot,
                 on_state=self._on_sample,
                 on_status=self._on_link_status,
                 on_control=self._on_control,
@@ -383,6 +410,7 @@ class Cell(CellCommands):
                     await self._await_effect(
                         "restore_external_control", {CellState.EXTERNAL_CONTROL_READY}, None
                     )
+                    await self._send_tool()
         except FxcellError as exc:
             log.warning("could not restore external control after reconnecting: %s", exc)
 
@@ -398,6 +426,7 @@ class Cell(CellCommands):
             moving=moving,
             stopping=moving and self._runner is not None and self._runner.stopping,
             shutting_down=self._shutting_down,
+            freedrive=self._freedrive,
         )
         if target is self._observed:
             return
@@ -426,7 +455,7 @@ class Cell(CellCommands):
         return await getattr(self, name)(**args)
 
     @contextlib.asynccontextmanager
-    async def _command(self, name: str, **args: Any) -> AsyncIterator[dict[str, Any]]:
+    async def _command(self, name: str, /, **args: Any) -> AsyncIterator[dict[str, Any]]:
         command_id = self.bus.next_command_id()
         started = time.time()
         origin = COMMAND_ORIGIN.get() or self._origin
@@ -456,7 +485,7 @@ class Cell(CellCommands):
             )
         )  # fmt: skip
 
-    def _link(self) -> LinkClient:
+    def _link(self) -> LinkBackend:
         if self.link is None:
             raise ConnectionLostError("the cell is not open (use `async with Cell(...)`)")
         return self.link
@@ -578,6 +607,7 @@ class Cell(CellCommands):
             await self._await_effect(
                 "start_external_control", {CellState.EXTERNAL_CONTROL_READY}, timeout
             )
+            await self._send_tool()
 
     async def stop_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("stop_external_control"):
@@ -826,11 +856,7 @@ class Cell(CellCommands):
                     async with self._command(name, **recorded, queue=True):
                         raise MoveStoppedError(f"{name}() was waiting in the queue: stopped")
                 return await self._move(name, {**args, "queue": True}, target)
-        if not self._moving() and self.state in (CellState.MOVING, CellState.STOPPING):
-            # The previous move's end is still queued in the state machine: let it land.
-            others = [st for st in CellState if st not in (CellState.MOVING, CellState.STOPPING)]
-            with contextlib.suppress(RobotTimeoutError):
-                await self.wait_for_state(*others, timeout=1.0)
+        await self._move_landed()
 
         def make() -> MoveRunner:
             return self._moves().runner(
@@ -846,6 +872,14 @@ class Cell(CellCommands):
             name, {k: to_jsonable(v) for k, v in args.items()}, make
         )
         return result
+
+    async def _move_landed(self) -> None:
+        """Let the end of the previous move land in the state machine (it is queued there
+        when the move's caller resumes), so that a command right after a move sees ready."""
+        if not self._moving() and self.state in (CellState.MOVING, CellState.STOPPING):
+            others = [st for st in CellState if st not in (CellState.MOVING, CellState.STOPPING)]
+            with contextlib.suppress(RobotTimeoutError):
+                await self.wait_for_state(*others, timeout=1.0)
 
     async def move_joint(
         self,
@@ -935,7 +969,10 @@ class Cell(CellCommands):
 
     async def gripper_open(self, *, speed: float = 0.150) -> GripResult:
         self.machine.check("gripper")
-        return await self.gripper.open(speed=speed)
+        result = await self.gripper.open(speed=speed)
+        if not result.holding and self.held is not None:
+            await self._hold(None)
+        return result
 
     async def gripper_close(
         self, *, speed: float = 0.150, grip_force: float = 185.0, expect_object: bool = False
@@ -952,15 +989,211 @@ class Cell(CellCommands):
         expect_object: bool = False,
     ) -> GripResult:
         self.machine.check("gripper")
-        return await self.gripper.move(
+        result = await self.gripper.move(
             width, speed=speed, force=grip_force, expect_object=expect_object
         )
+        if not result.holding and self.held is not None:
+            await self._hold(None)
+        return result
 
     async def get_gripper_width(self) -> float:
         async with self._command("get_gripper_width") as outcome:
             self.machine.check("gripper")
             outcome["result"] = await self.gripper.get_width()
             return float(outcome["result"])
+
+    # ------------------------------------------------------------- tool and payload
+
+    async def _send_tool(self) -> None:
+        """Set the TCP and the payload (gripper plus what it holds) on the controller, so
+        that its ``actual_TCP_pose`` is the TCP fxcell plans for."""
+        tool = self.config.tool
+        held = self.config.layout.objects.get(self.held) if self.held else None
+        mass = tool.payload + (held.mass if held is not None else 0.0)
+        async with self._command("set_tool", tcp=list(tool.tcp), payload=mass):
+            await self._link().call(
+                "set_tool",
+                within=self.command_timeout,
+                tcp=list(tool.tcp),
+                mass=mass,
+                cog=list(tool.payload_cog),
+            )
+
+    async def declare_held(self, kind: str | None) -> None:
+        """Tell the cell what the gripper holds (an object kind of the layout, or None), e.g.
+        after a restart when a job knows it; collision checking and the payload follow."""
+        if kind is not None and kind not in self.config.layout.objects:
+            known = ", ".join(sorted(self.config.layout.objects))
+            raise InvalidArgumentError(f"no object kind {kind!r} (known: {known})")
+        await self._hold(kind)
+
+    async def _hold(self, kind: str | None) -> None:
+        """The gripper now holds an object of ``kind`` (None: nothing): collision checking
+        carries it and the controller's payload includes it."""
+        if kind == self.held:
+            return
+        self.held = kind
+        checker = self._moves().planner.checker
+        if kind is None:
+            checker.detach()
+        else:
+            checker.attach(kind)
+        self.bus.publish(DeviceEvent(time.time(), "gripper", {"event": "held", "held": kind}))
+        if self.link is not None and self.link.control_ready:
+            await self._send_tool()
+
+    # ------------------------------------------------------------- IO
+
+    async def get_io(self) -> dict[str, Any]:
+        async with self._command("get_io") as out:
+            self.machine.check("io")
+            out["result"] = values = self.io.snapshot()
+            return values
+
+    async def io_set(self, signal: str, value: bool | float) -> None:
+        self.machine.check("io")
+        await self.io.set(signal, value)
+
+    async def io_wait_for(
+        self,
+        signal: str,
+        value: bool | float = True,
+        timeout: float = 60.0,  # noqa: ASYNC109
+    ) -> float:
+        self.machine.check("io")
+        return await self.io.wait_for(signal, value, timeout)
+
+    # ------------------------------------------------------------- teach-in
+
+    async def freedrive_start(self) -> None:
+        async with self._command("freedrive_start"):
+            await self._move_landed()
+            self.machine.check("freedrive_start")
+            await self._require_remote()
+            await self._link().call("teach_mode", within=self.command_timeout, on=True)
+            self._freedrive = True
+            self._observe(self.robot_state, "freedrive")
+            await self.wait_for_state(CellState.FREEDRIVE)
+
+    async def freedrive_stop(self) -> None:
+        async with self._command("freedrive_stop"):
+            self.machine.check("freedrive_stop")
+            if not self._freedrive:
+                return
+            try:
+                await self._link().call("teach_mode", within=self.command_timeout, on=False)
+            finally:
+                self._freedrive = False
+                self._observe(self.robot_state, "freedrive ended")
+            await self.wait_for_state(*[st for st in CellState if st is not CellState.FREEDRIVE])
+
+    async def teach(self, name: str) -> dict[str, Any]:
+        async with self._command("teach", name=name) as out:
+            check_position_name(name)
+            await self._move_landed()
+            self.machine.check("teach")
+            q = self._sample().actual_q
+            pose = self._moves().planner.tcp_pose(q).as_ur()
+            self.taught.teach_position(name, q, pose)
+            out["result"] = entry = {"joints": list(q), "pose": list(pose)}
+            return entry
+
+    async def get_positions(self) -> dict[str, Any]:
+        async with self._command("get_positions") as out:
+            out["result"] = positions = {
+                name: {k: entry[k] for k in ("joints", "pose", "taught")}
+                for name, entry in sorted(self.taught.positions.items())
+            }
+            return positions
+
+    async def move_to(
+        self,
+        name: str,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        queue: bool = False,
+    ) -> MoveResult:
+        args = {"name": name, "velocity_factor": velocity_factor,
+                "acceleration_factor": acceleration_factor}  # fmt: skip
+        joints = self.config.home if name == "home" else self.taught.position(name)["joints"]
+        return await self._move("move_to", args, JointTarget(joints), queue=queue)
+
+    # ------------------------------------------------------------- layout, pick and place
+
+    async def get_layout(self) -> dict[str, Any]:
+        async with self._command("get_layout") as out:
+            out["result"] = data = layout_data(self.layout)
+            return data
+
+    async def teach_frame_point(self, station: str, point: str) -> dict[str, Any]:
+        async with self._command("teach_frame_point", station=station, point=point) as out:
+            st = self.layout.station(station)
+            await self._move_landed()
+            self.machine.check("teach")
+            if self._moving():
+                raise MoveInProgressError("teach_frame_point(): a move is running")
+            position = self._moves().planner.tcp_pose(self._sample().actual_q).position.tolist()
+            current = st.config.frame.model_dump()
+            frame = self.taught.teach_frame_point(station, point, position, current)
+            self._use_layout(self.taught.apply_frames(self.config.layout))
+            out["result"] = frame
+            return frame
+
+    def _use_layout(self, layout: LayoutConfig) -> None:
+        """Plan around a changed layout from now on (a re-taught station frame)."""
+        self.config = self.config.model_copy(update={"layout": layout})
+        self.layout = Layout(layout)
+        old = self._motion
+        if old is not None:
+            self._motion = None
+            fresh = self._moves()
+            fresh.set_velocity_factor(old.velocity_factor)
+            fresh.set_acceleration_factor(old.acceleration_factor)
+            if self.calibration is not None:
+                fresh.planner.use_calibration(self.calibration)
+            if self.held is not None:
+                fresh.planner.checker.attach(self.held)
+
+    async def pick(
+        self,
+        station: str,
+        slot: str,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> GripResult:
+        return await self._at_slot(
+            handling.pick, station, slot, velocity_factor, acceleration_factor
+        )
+
+    async def place(
+        self,
+        station: str,
+        slot: str,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+    ) -> GripResult:
+        return await self._at_slot(
+            handling.place, station, slot, velocity_factor, acceleration_factor
+        )
+
+    async def _at_slot(
+        self,
+        action: Callable[[Cell, str, str, float | None, float | None], Awaitable[GripResult]],
+        station: str,
+        slot: str,
+        velocity_factor: float | None,
+        acceleration_factor: float | None,
+    ) -> GripResult:
+        """Run ``handling.pick`` or ``handling.place`` as the recorded command of its name."""
+        name = action.__name__
+        async with self._command(name, station=station, slot=slot) as out:
+            await self._move_landed()
+            self.machine.check("move", name)
+            out["result"] = result = await action(
+                self, station, slot, velocity_factor, acceleration_factor
+            )
+            return result
 
     async def get_max_acceleration(self) -> tuple[float, ...]:
         async with self._command("get_max_acceleration") as out:

@@ -12,8 +12,12 @@ import asyncio
 import contextlib
 import math
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from transitions import Machine
+
+from fxcell.cell.statemachine import STATECHART_DIR, machine_states, read_statechart
 from fxcell.errors import (
     ConnectionLostError,
     GripperFaultError,
@@ -24,6 +28,7 @@ from fxcell.errors import (
     ObjectLostError,
     RobotTimeoutError,
 )
+from fxcell.events import DeviceEvent
 from fxcell.link.gripper import URCapGripperClient
 from fxcell.protocol import RobotMode
 from fxcell.results import GripResult
@@ -47,6 +52,41 @@ def _width(position: int) -> float:
     return STROKE * (1.0 - max(0, min(255, position)) / 255.0)
 
 
+GRIPPER_CHART = STATECHART_DIR / "gripper.yaml"
+
+
+class _Model:
+    state: str
+
+
+class GripperState:
+    """The gripper's companion state machine (``statecharts/gripper.yaml``), as fxcell knows
+    it from the commands and reads it sent; ``on_change(source, dest, trigger)``."""
+
+    def __init__(self, on_change: Callable[[str, str, str], None]) -> None:
+        chart = read_statechart(GRIPPER_CHART)
+        self._model = _Model()
+        self._machine = Machine(
+            model=self._model,
+            states=machine_states(chart.states),
+            transitions=chart.transitions,
+            initial=chart.initial,
+            auto_transitions=False,
+            ignore_invalid_triggers=True,
+        )
+        self._on_change = on_change
+
+    @property
+    def state(self) -> str:
+        return self._model.state
+
+    def fire(self, trigger: str) -> None:
+        source = self.state
+        self._model.trigger(trigger)  # type: ignore[attr-defined]
+        if self.state != source:
+            self._on_change(source, self.state, trigger)
+
+
 class Gripper:
     """The cell's Hand-E (``cell.gripper``); needs the Robotiq URCap on the controller."""
 
@@ -55,11 +95,32 @@ class Gripper:
         self._client: URCapGripperClient | None = None
         self._holding = False
         self._lock = asyncio.Lock()
+        self.last: dict[str, object] = {"state": "unknown"}
+        """The newest known state: ``state`` (of statecharts/gripper.yaml), ``width`` (m),
+        ``holding``, ``event`` (what read it)."""
+        self.machine = GripperState(self._state_changed)
 
     @property
     def holding(self) -> bool:
         """Whether the last command or read left an object between the fingers."""
         return self._holding
+
+    @property
+    def state(self) -> str:
+        """The gripper's state in ``statecharts/gripper.yaml`` (``empty``, ``holding``, ...)."""
+        return self.machine.state
+
+    def _state_changed(self, source: str, dest: str, trigger: str) -> None:
+        self.last["state"] = dest
+        data = {"event": "state", "source": source, "state": dest, "trigger": trigger}
+        self._cell.bus.publish(DeviceEvent(time.time(), "gripper", data))
+
+    def _report(self, event: str, width: float | None = None) -> None:
+        """Remember and publish (recorder topic ``/gripper``, the daemon's stream) the state."""
+        self.last.update(event=event, holding=self._holding)
+        if width is not None:
+            self.last["width"] = width
+        self._cell.bus.publish(DeviceEvent(time.time(), "gripper", dict(self.last)))
 
     def _io(self) -> URCapGripperClient:
         host = self._cell.host
@@ -73,6 +134,7 @@ class Gripper:
         sample = self._cell.robot_state
         mode = sample.robot_mode if sample is not None else RobotMode.DISCONNECTED
         if mode not in _POWERED:
+            self.machine.fire("unpowered")
             raise GripperNotPoweredError(
                 f"{command}() is refused: the robot is {mode.name} and the tool flange has no "
                 "power (power the arm on first)"
@@ -81,8 +143,10 @@ class Gripper:
     async def _check_ready(self, io: URCapGripperClient) -> None:
         fault = await io.get("FLT")
         if fault:
+            self.machine.fire("fault")
             raise GripperFaultError(fault)
         if await io.get("STA") != 3:
+            self.machine.fire("inactive")
             raise GripperNotActivatedError("the gripper is not activated: call activate() first")
 
     async def activate(self, *, timeout: float = ACTIVATION_TIMEOUT) -> None:  # noqa: ASYNC109
@@ -91,7 +155,9 @@ class Gripper:
             self._check_power("gripper_activate")
             io = self._io()
             if await io.get("STA") == 3 and await io.get("FLT") == 0:
+                self.machine.fire("activated")
                 return
+            self.machine.fire("activate")
             await io.set(ACT=0)
             await io.set(ACT=1)
             deadline = time.monotonic() + timeout
@@ -101,6 +167,8 @@ class Gripper:
                 self._check_power("gripper_activate")
                 await asyncio.sleep(POLL)
             self._holding = False
+            self.machine.fire("activated")
+            self._report("activated", _width(await io.get("POS")))
 
     async def open(
         self, *, speed: float = SPEED_RANGE[1], force: float = FORCE_RANGE[0]
@@ -135,6 +203,9 @@ class Gripper:
         width = _width(await io.get("POS"))
         obj = await io.get("OBJ")
         self._holding = obj in (1, 2)
+        if await io.get("STA") == 3:
+            self.machine.fire("stopped_holding" if self._holding else "stopped_empty")
+        self._report("read", width)
         return width
 
     async def check_holding(self) -> None:
@@ -144,6 +215,8 @@ class Gripper:
         obj = await self._io().get("OBJ")
         if obj not in (1, 2):
             self._holding = False
+            self.machine.fire("lost")
+            self._report("object lost")
             raise ObjectLostError("the gripper no longer holds its object")
 
     async def _run(
@@ -165,12 +238,15 @@ class Gripper:
             io = self._io()
             await self._check_ready(io)
             position = round(255.0 * (1.0 - width / STROKE))
+            self.machine.fire("move")
             try:
                 result = await self._go(io, name, position, speed, force)
             except asyncio.CancelledError:
                 with contextlib.suppress(Exception):
                     await asyncio.shield(io.set(GTO=0))  # stop the fingers where they are
                 raise
+            self.machine.fire("stopped_holding" if result.holding else "stopped_empty")
+            self._report(name, result.width)
             if expect_object and not result.holding:
                 raise NothingGraspedError(
                     f"the fingers closed to {result.width * 1e3:.1f} mm on nothing"
@@ -192,6 +268,8 @@ class Gripper:
             fault = await io.get("FLT")
             if fault:
                 self._holding = False
+                self.machine.fire("fault")
+                self._report(f"fault 0x{fault:02X}")
                 raise GripperFaultError(fault, f"the gripper faulted (0x{fault:02X}) mid-motion")
             if await io.get("PRE") == position:
                 obj = await io.get("OBJ")

@@ -25,7 +25,7 @@ from transitions.extensions.asyncio import HierarchicalAsyncMachine, NestedAsync
 
 from fxcell.errors import ConfigError, InvalidStateError
 from fxcell.events import TransitionEvent, now
-from fxcell.protocol import AT_REST_SPEED, RobotMode, RobotState, RuntimeState, SafetyMode
+from fxcell.protocol import AT_REST_SPEED, SAFETY_STOPS, RobotMode, RobotState, RuntimeState
 from fxcell.resources import resource_dir
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,7 @@ class CellState(enum.StrEnum):
     EXTERNAL_CONTROL_READY = "running.external_control_ready"
     MOVING = "running.moving"
     STOPPING = "running.stopping"
+    FREEDRIVE = "running.freedrive"
     PROTECTIVE_STOP = "protective_stop"
     SAFEGUARD_STOP = "safeguard_stop"
     EMERGENCY_STOP = "emergency_stop"
@@ -146,9 +147,9 @@ def _normalise_states(raw: Any, where: str) -> list[dict[str, Any]]:
     return out
 
 
-def load_statechart(path: str | Path | None = None) -> Statechart:
-    """Read and check a statechart YAML file (default: ``statecharts/robot.yaml``)."""
-    path = Path(path) if path is not None else STATECHART
+def read_statechart(path: str | Path) -> Statechart:
+    """Read any statechart YAML file (the robot's, the job's): states, transitions, commands."""
+    path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
@@ -167,6 +168,26 @@ def load_statechart(path: str | Path | None = None) -> Statechart:
         transitions=[dict(t) for t in data.get("transitions") or []],
         commands=commands,
     )
+    leaves = set(chart.leaf_states())
+    names = {
+        SEPARATOR.join(n.split(SEPARATOR)[:i])
+        for n in leaves
+        for i in range(1, 1 + n.count(SEPARATOR) + 1)
+    }
+    for t in chart.transitions:
+        sources = t["source"] if isinstance(t["source"], list) else [t["source"]]
+        for name in [*sources, t["dest"]]:
+            if name not in names:
+                raise ConfigError(
+                    f"{path}: transition {t['trigger']!r} names unknown state {name!r}"
+                )
+    return chart
+
+
+def load_statechart(path: str | Path | None = None) -> Statechart:
+    """Read and check the robot-mode statechart (default: ``statecharts/robot.yaml``)."""
+    path = Path(path) if path is not None else STATECHART
+    chart = read_statechart(path)
     leaves = set(chart.leaf_states())
     missing = {machine_name(s) for s in CellState} - leaves
     extra = leaves - {machine_name(s) for s in CellState}
@@ -234,16 +255,7 @@ _BOOTING_MODES = {
     RobotMode.BOOTING,
     RobotMode.UPDATING_FIRMWARE,
 }
-_SAFETY_STATES = {
-    SafetyMode.PROTECTIVE_STOP: CellState.PROTECTIVE_STOP,
-    SafetyMode.SAFEGUARD_STOP: CellState.SAFEGUARD_STOP,
-    SafetyMode.AUTOMATIC_MODE_SAFEGUARD_STOP: CellState.SAFEGUARD_STOP,
-    SafetyMode.SYSTEM_THREE_POSITION_ENABLING_STOP: CellState.SAFEGUARD_STOP,
-    SafetyMode.SYSTEM_EMERGENCY_STOP: CellState.EMERGENCY_STOP,
-    SafetyMode.ROBOT_EMERGENCY_STOP: CellState.EMERGENCY_STOP,
-    SafetyMode.VIOLATION: CellState.FAULT,
-    SafetyMode.FAULT: CellState.FAULT,
-}
+_SAFETY_STATES = {mode: CellState(stop) for mode, stop in SAFETY_STOPS.items()}
 _MODE_STATES = {
     RobotMode.POWER_OFF: CellState.POWER_OFF,
     RobotMode.POWER_ON: CellState.POWERING_ON,
@@ -259,13 +271,15 @@ def observed_state(
     moving: bool = False,
     stopping: bool = False,
     shutting_down: bool = False,
+    freedrive: bool = False,
 ) -> CellState:
     """The state one RTDE sample implies (``None``: no live sample, the link is down).
 
     ``control_ready``: the link holds a control interface whose script is PLAYING;
     ``moving``/``stopping``: the Cell runs / brakes a move task. An arm still in motion
     with no move task (braking after an aborted move) is ``stopping``: external control
-    is ready only once the arm is at rest.
+    is ready only once the arm is at rest. ``freedrive``: the Cell put the arm in teach mode
+    (it may move by hand).
     """
     if sample is None:
         return CellState.DISCONNECTED
@@ -282,6 +296,8 @@ def observed_state(
         return CellState.PROGRAM_STOPPED
     if stopping:
         return CellState.STOPPING
+    if freedrive:
+        return CellState.FREEDRIVE
     if moving:
         return CellState.MOVING
     if max(map(abs, sample.actual_qd)) > AT_REST_SPEED:
@@ -300,12 +316,13 @@ class _Machine(HierarchicalAsyncMachine):
     state_cls = _State
 
 
-def _without_descriptions(states: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def machine_states(states: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """A chart's states as pytransitions takes them (without ``description``/``next``)."""
     out = []
     for state in states:
         state = {k: v for k, v in state.items() if k not in ("description", "next")}
         if "children" in state:
-            state["children"] = _without_descriptions(state["children"])
+            state["children"] = machine_states(state["children"])
         out.append(state)
     return out
 
@@ -343,7 +360,7 @@ class RobotStateMachine:
         self._model = _Model()
         self._machine = _Machine(
             model=self._model,
-            states=_without_descriptions(self.chart.states),
+            states=machine_states(self.chart.states),
             transitions=self.chart.transitions,
             initial=self.chart.initial,
             auto_transitions=False,
@@ -496,22 +513,33 @@ def with_diagram(doc: str, diagram: str) -> str:
     return f"{head}{DOC_BEGIN}\n```mermaid\n{diagram}```\n{DOC_END}{tail}"
 
 
+def _chart_text(path: Path) -> str:
+    chart = load_statechart(path) if path == STATECHART else read_statechart(path)
+    return to_mermaid(chart)
+
+
 def _command(args: argparse.Namespace) -> int:
-    chart_path = Path(args.chart) if args.chart else STATECHART
-    text = to_mermaid(load_statechart(chart_path))
+    if args.chart or args.output:
+        paths = [Path(args.chart) if args.chart else STATECHART]
+    else:  # every chart shipped: the robot's first, then the others (the job's)
+        paths = [STATECHART, *sorted(p for p in STATECHART_DIR.glob("*.yaml") if p != STATECHART)]
     if args.output == "-":
-        print(text, end="")
+        for path in paths:
+            print(_chart_text(path), end="")
         return 0
-    out = Path(args.output) if args.output else diagram_path(chart_path)
-    targets = [(out, text)]
-    if args.output is None and args.chart is None and DOC.exists():
-        targets.append((DOC, with_diagram(DOC.read_text(), text)))
+    targets: list[tuple[Path, str]] = []
+    for path in paths:
+        text = _chart_text(path)
+        out = Path(args.output) if args.output else diagram_path(path)
+        targets.append((out, text))
+        if path == STATECHART and args.chart is None and args.output is None and DOC.exists():
+            targets.append((DOC, with_diagram(DOC.read_text(), text)))
     stale = [path for path, want in targets if (path.read_text() if path.exists() else "") != want]
     if args.check:
         for path in stale:
             print(f"{path} is stale: run `fxcell statechart`")
         if not stale:
-            print(f"{out} is current")
+            print(", ".join(str(diagram_path(p)) for p in paths) + " is current")
         return 1 if stale else 0
     for path, want in targets:
         if path in stale:
@@ -524,9 +552,11 @@ def register(sub: Any) -> None:
     """Add ``fxcell statechart``: draw the Mermaid diagram from the YAML definition."""
     parser = sub.add_parser(
         "statechart",
-        help="draw statecharts/robot.mmd (and its copy in docs/ARCHITECTURE.md) from the YAML",
+        help="draw statecharts/*.mmd (and the robot's copy in docs/ARCHITECTURE.md) from the YAML",
     )
-    parser.add_argument("--chart", help="statechart YAML (default statecharts/robot.yaml)")
-    parser.add_argument("-o", "--output", help="output file, '-' for stdout (default: beside it)")
+    parser.add_argument("--chart", help="one statechart YAML (default: every statecharts/*.yaml)")
+    parser.add_argument(
+        "-o", "--output", help="output file with --chart, '-' for stdout (default: beside it)"
+    )
     parser.add_argument("--check", action="store_true", help="exit 1 if the diagram is stale")
     parser.set_defaults(func=_command)

@@ -37,9 +37,11 @@ from fxcell.daemon import models
 from fxcell.daemon.control import LEASE_HEADER
 from fxcell.daemon.encoding import error_info, jsonable
 from fxcell.daemon.guard import RequestGuard
+from fxcell.daemon.jobs import JOB_COMMANDS
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import PING_PERIOD, parse_rate, parse_topics
 from fxcell.errors import FxcellError, NotAuthorizedError, RemoteError
+from fxcell.events import COMMAND_ORIGIN
 
 CLIENT_HEADER = "X-Fxcell-Client"
 STATIC = resources.files("fxcell.daemon") / "static"
@@ -244,6 +246,39 @@ def create_app(service: CellService) -> FastAPI:
             add_query(command)
         else:
             add_command(command)
+
+    # ------------------------------------------------------------- the job
+
+    @api.get("/job", summary="The fusion-machine job: state, progress, samples, questions")
+    async def job_status() -> dict[str, Any]:
+        return service.jobs.status()
+
+    optional_body = Body(None)
+
+    def add_job_command(name: str) -> None:
+        async def run(
+            request: Request, body: dict[str, Any] | None = optional_body
+        ) -> JSONResponse:
+            client = authorize(request)
+            lease = service.control.acquire(client, request.headers.get(LEASE_HEADER)).lease
+            token = COMMAND_ORIGIN.set(client)
+            try:
+                status = await service.jobs.command(name, body or {})
+            finally:
+                COMMAND_ORIGIN.reset(token)
+            return JSONResponse(jsonable(status), headers={LEASE_HEADER: lease})
+
+        api.add_api_route(
+            f"/job/{name}",
+            run,
+            methods=["POST"],
+            summary=f"Job {name} (needs the token and control); answers with the job's status",
+            name=f"job_{name}",
+            responses=op_responses,
+        )
+
+    for job_command in JOB_COMMANDS:
+        add_job_command(job_command)
 
     @api.get("/cell/state", summary="The state machine's current state")
     async def cell_state() -> dict[str, Any]:

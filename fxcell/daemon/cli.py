@@ -48,6 +48,28 @@ def register(sub: Any) -> None:
         metavar="X",
         help="embedded simulator only: scale its controller delays (e.g. 0.2 for tests)",
     )
+    p.add_argument(
+        "--sim-crucibles",
+        default="16",
+        metavar="N|A1,B2,...",
+        help="embedded simulator only: crucibles with samples in the rack at start "
+        "(default 16: a full run; 0: none)",
+    )
+    p.add_argument(
+        "--sim-fusion-time",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="embedded simulator only: the fusion machine's fusion time (default 60 s; the "
+        "real Vitriox takes about 600)",
+    )
+    p.add_argument(
+        "--sim-cooling-time",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="embedded simulator only: the fusion machine's cooling time (default 30 s)",
+    )
     p.add_argument("--no-record", action="store_true", help="do not record MCAP logs")
     p.add_argument(
         "--no-simulator",
@@ -87,9 +109,83 @@ def register(sub: Any) -> None:
     c = client_parser("cancel", "cancel an operation (a move stops)")
     c.add_argument("operation", help="operation id (op-N)")
     c.set_defaults(func=_client(_cancel))
+    job = sub.add_parser("job", help="the fusion-machine job: start, status, pause, resume, abort")
+    job_sub = job.add_subparsers(title="job commands", metavar="COMMAND", required=True)
+    j = _job_parser(job_sub, "start", "start a run from a run file (YAML or JSON)")
+    j.add_argument("file", help="the run file: samples with id, rack, machine, tray slots")
+    _job_parser(job_sub, "status", "show the job: state, progress, samples, questions")
+    _job_parser(job_sub, "pause", "pause at the next safe point")
+    j = _job_parser(job_sub, "resume", "resume (answering recovery questions)")
+    j.add_argument(
+        "--answer",
+        action="append",
+        default=[],
+        metavar="QUESTION=PLACE",
+        help="where an object is, for a recovery question (repeatable)",
+    )
+    _job_parser(job_sub, "abort", "abort the current step (the arm brakes); resumable")
+    _job_parser(job_sub, "confirm", "manual machine mode: the machine was started / is done")
+    _job_parser(job_sub, "discard", "forget a paused or faulted run")
     c = client_parser("token", "print the daemon's token (or the operator page URL with it)")
     c.add_argument("--page-url", action="store_true", help="print the page URL that logs in")
     c.set_defaults(func=_token)
+
+
+def _job_parser(sub: Any, name: str, help_text: str) -> argparse.ArgumentParser:
+    c: argparse.ArgumentParser = sub.add_parser(name, help=help_text, description=help_text)
+    c.add_argument("--url", help="daemon URL (default: $FXCELL_URL or the configured address)")
+    c.add_argument("--token", help="bearer token (default: $FXCELL_TOKEN or the token file)")
+    c.add_argument("--config", help="cell configuration file (for the default URL and token)")
+    c.add_argument("--json", action="store_true", help="print JSON")
+    c.add_argument("--force", action="store_true", help="take control over from its holder")
+    c.set_defaults(func=_client(_job_command(name)))
+    return c
+
+
+def _job_command(name: str) -> ClientCommand:
+    async def run(cell: Any, args: argparse.Namespace) -> Any:
+        if name == "status":
+            status = await cell.job_status()
+        elif name == "start":
+            status = await cell.job_start(args.file)
+        elif name == "resume":
+            answers = {}
+            for item in args.answer:
+                key, sep, value = item.partition("=")
+                if not sep:
+                    raise FxcellError(f"--answer {item!r}: give QUESTION=PLACE")
+                answers[key] = value
+            status = await cell.job_resume(answers)
+        else:
+            status = await getattr(cell, f"job_{name}")()
+        return status if args.json else format_job(status)
+
+    return run
+
+
+def format_job(status: dict[str, Any]) -> str:
+    """The job's status for a terminal."""
+    lines = [f"job:      {status.get('state')}  {status.get('message') or ''}".rstrip()]
+    progress = status.get("progress")
+    if progress:
+        eta = progress.get("eta")
+        lines.append(
+            f"progress: {progress['done']}/{progress['total']} steps"
+            + (f", about {eta / 60:.1f} min left" if eta is not None else "")
+        )
+    if status.get("step"):
+        lines.append(f"step:     {status['step']}")
+    for sample in status.get("samples") or []:
+        where = sample.get("crucible") or "?"
+        bead = f", bead {sample['bead']}" if sample.get("bead") else ""
+        lines.append(f"  {sample['id']:<10} crucible {where}{bead}")
+    for q in status.get("questions") or []:
+        lines.append(f"question {q['id']}: {q['text']} (choices: {', '.join(q['choices'])})")
+    prompt = status.get("prompt")
+    if prompt:
+        text = prompt.get("text", prompt) if isinstance(prompt, dict) else prompt
+        lines.append(f"waiting for you: {text} (fxcell job confirm)")
+    return "\n".join(lines)
 
 
 # ----------------------------------------------------------------- daemon
@@ -121,7 +217,17 @@ def _run_daemon(args: argparse.Namespace) -> int:
             "--no-simulator refuses to start the embedded simulator"
         )
     record = None if args.no_record else Path(args.log_dir or config.recorder.directory)
-    sim = {"time_scale": args.sim_time_scale} if args.sim_time_scale else None
+    extra = [
+        "--fusion-time",
+        str(args.sim_fusion_time),
+        "--cooling-time",
+        str(args.sim_cooling_time),
+    ]
+    if args.sim_crucibles not in ("", "0"):
+        extra += ["--crucibles", args.sim_crucibles]
+    sim: dict[str, Any] = {"extra_args": extra}
+    if args.sim_time_scale:
+        sim["time_scale"] = args.sim_time_scale
     return serve(config, record=record, simulator_options=sim)
 
 
@@ -194,27 +300,48 @@ async def _status(cell: Any, args: argparse.Namespace) -> Any:
 
 
 def _add_arguments(parser: argparse.ArgumentParser, command: Command) -> None:
-    """Arguments of a table command: a single required one positional, others options."""
+    """Arguments of a table command: required ones positional (when there is one, or all are
+    scalars: ``pick rack B3``), the others options."""
     required = [a for a in command.args if a.required]
+    positional = len(required) == 1 or all(a.type.length is None for a in required)
     for arg in command.args:
         kind = arg.type
         unit = f" ({kind.unit})" if kind.unit else ""
         options: dict[str, Any] = {"help": arg.doc + unit}
         if kind.scalar == "bool":
             options["action"] = "store_true"
+        elif kind.scalar == "str":
+            options["type"] = str
+        elif kind.scalar == "level":
+            options["type"] = _level
         else:
             options["type"] = float
             if kind.length is not None:
                 low, high = kind.length
                 options["nargs"] = low if low == high else "+"
                 options["metavar"] = arg.name[0].upper()
-        if arg.required and len(required) == 1:
+        if arg.required and positional:
             parser.add_argument(arg.name, **options)
             continue
         flags = [f"--{arg.name.replace('_', '-')}"]
         if arg.name in _SHORT:
             flags.insert(0, _SHORT[arg.name])
         parser.add_argument(*flags, dest=arg.name, required=arg.required, **options)
+
+
+def _level(text: str) -> bool | float:
+    """An IO value on the command line: on/off, true/false, 1/0, or a number (analog)."""
+    word = text.strip().lower()
+    if word in ("on", "true", "yes", "1"):
+        return True
+    if word in ("off", "false", "no", "0"):
+        return False
+    try:
+        return float(word)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"not an IO value: {text!r} (on/off or a number)"
+        ) from None
 
 
 def _arguments(command: Command, args: argparse.Namespace) -> dict[str, Any]:

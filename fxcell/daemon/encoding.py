@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import dataclasses
-import enum
-import math
-from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 from fxcell import errors
+from fxcell.jsonable import to_jsonable
 
 # Most specific first: the first matching class decides the HTTP status.
 _STATUS: tuple[tuple[type[BaseException], int], ...] = (
@@ -50,35 +46,5 @@ def error_info(exc: BaseException) -> dict[str, Any]:
 
 
 def jsonable(value: Any) -> Any:
-    """A JSON-compatible copy of ``value`` (string enums by value, other enums by name,
-    arrays as lists, NaN as null)."""
-    if isinstance(value, enum.Enum):
-        return str(value.value) if isinstance(value, str) else value.name
-    if value is None or isinstance(value, bool | int | str):
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, Mapping):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple | set | frozenset):
-        return [jsonable(v) for v in value]
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, Path):
-        return str(value)
-    model_dump = getattr(value, "model_dump", None)  # pydantic models (configuration)
-    if callable(model_dump):
-        return jsonable(model_dump())
-    tolist = getattr(value, "tolist", None)  # numpy arrays and scalars
-    if callable(tolist):
-        return jsonable(tolist())
-    as_dict = getattr(value, "as_dict", None)
-    if callable(as_dict):
-        return jsonable(as_dict())
-    if hasattr(value, "position") and hasattr(value, "quaternion"):  # geometry.Pose
-        return {
-            "position": jsonable(value.position),
-            "quaternion": jsonable(value.quaternion),
-            "ur": jsonable(value.as_ur()),
-        }
-    return str(value)
+    """A JSON-compatible copy of ``value`` for an HTTP answer (see :func:`to_jsonable`)."""
+    return to_jsonable(value, api=True)

@@ -22,10 +22,14 @@ Flag = bool
 
 def field_type(kind: commands.ArgType) -> Any:
     """The pydantic type of an argument type of the command table: a finite float in its
-    bounds (low exclusive, high inclusive), a list of finite floats of its lengths, or a
-    flag (JSON types only: the models are strict)."""
+    bounds (low exclusive, high inclusive), a list of finite floats of its lengths, a flag,
+    a short name, or an IO level (flag or number); JSON types only: the models are strict."""
     if kind.scalar == "bool":
         return Flag
+    if kind.scalar == "str":
+        return Annotated[str, Field(min_length=1, max_length=64)]
+    if kind.scalar == "level":
+        return Flag | Finite
     if kind.length is not None:
         low, high = kind.length
         return Annotated[list[Finite], Field(min_length=low, max_length=high)]

@@ -184,6 +184,8 @@ class Daemon:
     async def _shutdown(self, deadline: float) -> None:
         """Stop motion, then close the Cell (finishing the MCAP file)."""
         t0 = time.monotonic()
+        with contextlib.suppress(TimeoutError):  # the running step brakes; the run stays resumable
+            await asyncio.wait_for(self.service.jobs.detach(), max(0.1, deadline - t0 - 1.0))
         await self.service.operations.cancel_all(within=max(0.1, deadline - time.monotonic()))
         log.info("shutdown: operations ended after %.3f s", time.monotonic() - t0)
         cell, self._cell = self._cell, None
@@ -209,6 +211,7 @@ class Daemon:
                 self._cell = cell
                 await cell.open()
                 self.service.attach(cell)
+                await self.service.jobs.attach(cell)
                 self._announce_ready(f"cell connected: {self.service.robot_description}")
                 self.notifier.status(f"cell open: {self.service.robot_description}")
                 # The Cell reconnects its robot link itself; it is reopened only if

@@ -21,6 +21,7 @@ from fxcell.config import CellConfig
 from fxcell.daemon.auth import check_bearer
 from fxcell.daemon.control import ControlLock, Holder
 from fxcell.daemon.encoding import jsonable
+from fxcell.daemon.jobs import JobService
 from fxcell.daemon.operations import Operation, OperationRegistry
 from fxcell.daemon.stream import StreamHub
 from fxcell.errors import ConnectionLostError
@@ -57,6 +58,8 @@ class CellService:
         self.control = ControlLock(
             control_lease, keeps_alive=self._keeps_alive, on_change=self._control_changed
         )
+        self.jobs = JobService(config)
+        """The fusion-machine job on the attached Cell (the supervisor attaches it)."""
 
     # ------------------------------------------------------------- the cell
 
@@ -185,6 +188,9 @@ class CellService:
             "cell_error": self.cell_error,
             "remote_control": (None if self.cell is None else not self.cell.local_control),
             "robot": robot,
+            "gripper": None
+            if self.cell is None
+            else {**self.cell.gripper.last, "held": self.cell.held},
             "allowed": list(self.allowed_commands()),
             "control": self.control.describe(),
             "operations": [op.describe() for op in self.operations.running()],
@@ -203,6 +209,7 @@ class CellService:
             "tcp": list(cfg.tool.tcp),
             "limits": jsonable(cfg.limits),
             "scene": jsonable(cfg.scene.objects),
+            "io": dict(cfg.io.signals),
             "recorder": jsonable(cfg.recorder),
         }
 

@@ -20,6 +20,7 @@ from typing import Any
 from fxcell.daemon.encoding import jsonable
 from fxcell.events import (
     CommandEvent,
+    DeviceEvent,
     Event,
     LogEvent,
     MotionEvent,
@@ -31,7 +32,9 @@ from fxcell.protocol import RobotState
 MIN_RATE = 1.0
 MAX_RATE = 500.0
 DEFAULT_RATE = 50.0
-TOPICS = frozenset({"state", "transition", "command", "motion", "log", "operation", "control"})
+TOPICS = frozenset(
+    {"state", "transition", "command", "motion", "log", "operation", "control", "device"}
+)
 MAX_BACKLOG = 2000
 
 
@@ -48,6 +51,10 @@ def state_message(sample: RobotState, machine_state: str | None) -> dict[str, An
         "target_q": list(sample.target_q),
         "tcp": list(sample.actual_tcp_pose),
         "speed_scaling": sample.speed_scaling,
+        "digital_in": sample.digital_input_bits,
+        "digital_out": sample.digital_output_bits,
+        "analog_in": [sample.standard_analog_input0, sample.standard_analog_input1],
+        "analog_out": [sample.standard_analog_output0, sample.standard_analog_output1],
     }
 
 
@@ -59,6 +66,8 @@ def event_message(event: Event) -> dict[str, Any] | None:
         return {"type": "command", **jsonable(event)}
     if isinstance(event, LogEvent):
         return {"type": "log", **jsonable(event)}
+    if isinstance(event, DeviceEvent):
+        return {"type": "device", **jsonable(event)}
     if isinstance(event, MotionEvent) and event.kind == "result":
         return {"type": "motion", **jsonable(event)}
     return None

@@ -28,7 +28,7 @@ import sys
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -42,9 +42,12 @@ from fxcell.errors import (
     RobotLinkError,
     RobotTimeoutError,
 )
-from fxcell.link import wire
+from fxcell.link import collector, wire
 from fxcell.link.process import Guard
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
+
+if TYPE_CHECKING:
+    from fxcell.config import RobotConfig
 
 log = logging.getLogger(__name__)
 
@@ -110,10 +113,22 @@ class TrajectoryHandle:
     _replaced: asyncio.Queue[bool] = field(default_factory=asyncio.Queue)
     progress: TrajectoryProgress | None = None
     _progress_event: asyncio.Event = field(default_factory=asyncio.Event)
+    _holds_collector: bool = False
 
     @property
     def done(self) -> bool:
         return self._done.done()
+
+    def _end(self, result: TrajectoryResult | None) -> None:
+        """Settle the trajectory (``None``: it never started) and end its collector hold."""
+        if not self._done.done():
+            if result is None:
+                self._done.cancel()
+            else:
+                self._done.set_result(result)
+        if self._holds_collector:
+            self._holds_collector = False
+            collector.release()
 
     async def replace_remaining(self, samples: ArrayLike, at_index: int | None = None) -> bool:
         """Replace every sample not yet sent (e.g. by a braking profile).
@@ -179,6 +194,7 @@ _ERROR_KINDS: dict[str, type[FxcellError]] = {
     "timeout": RobotTimeoutError,
     "connection": ConnectionLostError,
     "remote": NotInRemoteControlError,
+    "argument": InvalidArgumentError,
 }
 
 
@@ -231,14 +247,19 @@ class _LinkProtocol(asyncio.Protocol):
 
 
 class StateSubscription:
-    """An async iterator over state samples with a bounded buffer (oldest dropped)."""
+    """An async iterator over state samples with a bounded buffer (oldest dropped).
 
-    def __init__(self, link: LinkClient, maxsize: int) -> None:
-        self._link = link
+    It adds itself to ``subscriptions`` (the link offers each sample to every member)
+    and leaves it on :meth:`close`."""
+
+    def __init__(self, subscriptions: set[StateSubscription], maxsize: int) -> None:
+        self._subscriptions = subscriptions
         self._queue: asyncio.Queue[RobotState] = asyncio.Queue(maxsize)
         self.dropped = 0
+        subscriptions.add(self)
 
-    def _offer(self, state: RobotState) -> None:
+    def offer(self, state: RobotState) -> None:
+        """Queue one sample (the oldest is dropped when the buffer is full)."""
         if self._queue.full():
             self._queue.get_nowait()
             self.dropped += 1
@@ -251,7 +272,7 @@ class StateSubscription:
         return await self._queue.get()
 
     def close(self) -> None:
-        self._link._subscriptions.discard(self)
+        self._subscriptions.discard(self)
 
     def __enter__(self) -> StateSubscription:
         return self
@@ -349,6 +370,7 @@ class LinkClient:
                 await self._supervisor
             self._supervisor = None
         await self._kill()
+        self._fail_all("closed")
         self._set_status(LinkStatus.CLOSED, "closed")
 
     async def __aenter__(self) -> LinkClient:
@@ -558,17 +580,16 @@ class LinkClient:
                 future.set_exception(error)
         self._pending.clear()
         for handle in list(self._trajectories.values()):
-            if not handle._done.done():
-                handle._done.set_result(
-                    TrajectoryResult(
-                        "failed",
-                        "link_lost",
-                        handle.progress.index if handle.progress else 0,
-                        handle.total,
-                        None,
-                        0.0,
-                    )
+            handle._end(
+                TrajectoryResult(
+                    "failed",
+                    "link_lost",
+                    handle.progress.index if handle.progress else 0,
+                    handle.total,
+                    None,
+                    0.0,
                 )
+            )
         self._trajectories.clear()
 
     # -- incoming
@@ -596,7 +617,7 @@ class LinkClient:
             if self._on_state is not None:
                 self._on_state(state)
             for sub in tuple(self._subscriptions):
-                sub._offer(state)
+                sub.offer(state)
         elif kind == wire.REPLY:
             _, request_id, ok, value = message
             future = self._pending.pop(request_id, None)
@@ -638,17 +659,16 @@ class LinkClient:
             handle._replaced.put_nowait(bool(data.get("ok")))
         elif kind == "end":
             self._trajectories.pop(traj_id, None)
-            if not handle._done.done():
-                handle._done.set_result(
-                    TrajectoryResult(
-                        data["status"],
-                        data["reason"],
-                        data["index"],
-                        data["total"],
-                        data["actual_q"],
-                        data["duration"],
-                    )
+            handle._end(
+                TrajectoryResult(
+                    data["status"],
+                    data["reason"],
+                    data["index"],
+                    data["total"],
+                    data["actual_q"],
+                    data["duration"],
                 )
+            )
 
     # -- outgoing
 
@@ -716,6 +736,8 @@ class LinkClient:
             traj_id, len(array), self, asyncio.get_running_loop().create_future()
         )
         self._trajectories[traj_id] = handle
+        collector.hold()  # released when the trajectory ends, whatever way it ends
+        handle._holds_collector = True
         try:
             self._send(
                 wire.TRAJ_START,
@@ -727,6 +749,7 @@ class LinkClient:
             )
         except BaseException:
             self._trajectories.pop(traj_id, None)
+            handle._end(None)
             raise
         return handle
 
@@ -738,11 +761,39 @@ class LinkClient:
 
     def subscribe(self, maxsize: int = 1024) -> StateSubscription:
         """An async iterator over every state sample (use as a context manager)."""
-        sub = StateSubscription(self, maxsize)
-        self._subscriptions.add(sub)
-        return sub
+        return StateSubscription(self._subscriptions, maxsize)
 
     async def samples(self) -> AsyncIterator[RobotState]:
         with self.subscribe() as sub:
             async for state in sub:
                 yield state
+
+
+def process_link(
+    host: str | None,
+    robot: RobotConfig,
+    *,
+    on_state: Callable[[RobotState], None],
+    on_status: Callable[[LinkStatus, str], None],
+    on_control: Callable[[bool, str], None],
+) -> LinkClient:
+    """The production :class:`~fxcell.link.backend.LinkFactory`: a :class:`LinkClient`
+    (supervised ur_rtde process) to ``host``, configured by ``robot``."""
+    if host is None:
+        raise RobotLinkError("no controller address for the robot link")
+    return LinkClient(
+        host,
+        frequency=robot.frequency,
+        receiver=robot.receiver,
+        connect_timeout=robot.connect_timeout,
+        backoff_max=robot.reconnect_backoff_max,
+        on_state=on_state,
+        on_status=on_status,
+        on_control=on_control,
+    )
+
+
+if TYPE_CHECKING:
+    from fxcell.link.backend import LinkFactory
+
+    _PROCESS_LINK_IS_A_FACTORY: LinkFactory = process_link

@@ -30,7 +30,7 @@ from fxcell.errors import InvalidArgumentError, SimulatorError
 
 SIM_MODULE = "fxcell.sim"
 CONTROL_PORT = 29990  # the simulator's control port (fault injection, state)
-PORTS = (29999, 30004, 30003, 30002, 63352, CONTROL_PORT)  # 63352: Robotiq URCap gripper
+PORTS = (29999, 30004, 30001, 30002, 30003, 63352, CONTROL_PORT)  # 63352: Robotiq URCap gripper
 FAULTS = (
     "protective_stop",
     "emergency_stop",
@@ -45,6 +45,12 @@ FAULTS = (
     "power_loss",
     "gripper_fault",  # [CODE]: the Hand-E reports FLT CODE (default 0x0E) and stops
     "gripper_drop",  # the held object slips out of the fingers
+    "machine_error",  # the fusion machine aborts its cycle (no beads) and reports error
+    "machine_reset",  # clears the fusion machine's error
+    "door_open",  # the fusion machine's door opens: error, not ready (aborts a cycle)
+    "door_close",
+    "hide_kinematics_info",  # the primary interface's robot state lacks the calibration
+    "show_kinematics_info",
 )
 BIND_FAILED = 2  # the simulator's exit code when it cannot listen
 
@@ -119,6 +125,14 @@ def stats(host: str, *, reset: bool = False, timeout: float = 5.0) -> dict[str, 
     return result
 
 
+def push(host: str, delta: Sequence[float], timeout: float = 5.0) -> None:
+    """Move the simulated arm by hand while it is in freedrive: the TCP by (dx, dy, dz) m in
+    the base frame, or the joints by six deltas (rad)."""
+    answer = _request(host, "push " + " ".join(repr(float(v)) for v in delta), timeout)
+    if not answer.startswith("ok"):
+        raise SimulatorError(f"simulator refused push: {answer}")
+
+
 def gripper_state(host: str, timeout: float = 5.0) -> dict[str, Any]:
     """The simulated Hand-E's registers, finger width (m) and the name of the held object."""
     return _json_request(host, "gripper", timeout)
@@ -146,6 +160,45 @@ def add_object(
     answer = _request(host, " ".join(words), timeout)
     if not answer.startswith("ok"):
         raise SimulatorError(f"simulator refused add_object: {answer}")
+
+
+def place_object(
+    host: str,
+    name: str,
+    kind: str,
+    station: str,
+    slot: str,
+    contents: str | None = None,
+    timeout: float = 5.0,
+) -> str:
+    """Put an object at a layout slot (grip point at the slot's grip pose), or move it there
+    (it keeps its contents); a new crucible carries a sample unless ``contents`` is ``"-"``."""
+    words = ["place_object", name, kind, station, slot] + ([contents] if contents else [])
+    answer = _request(host, " ".join(words), timeout)
+    if not answer.startswith("ok"):
+        raise SimulatorError(f"simulator refused place_object: {answer}")
+    return answer[3:].strip()
+
+
+def set_input(host: str, signal: str, value: object, timeout: float = 5.0) -> str:
+    """Set a controller input (``DI5``/``5``, ``CI2``, ``TI0``: 0 or 1; ``AI0``, ``TAI1``: a
+    number) as a wired device would; inputs the fusion machine drives are refused."""
+    answer = _request(host, f"set_input {signal} {value}", timeout)
+    if not answer.startswith("ok"):
+        raise SimulatorError(f"simulator refused set_input: {answer}")
+    return answer[3:].strip()
+
+
+def machine_state(host: str, timeout: float = 5.0) -> dict[str, Any]:
+    """The simulated fusion machine: state, time left, positions, moulds, IO bits, log."""
+    answer = _request(host, "machine", timeout)
+    if answer.startswith("error"):
+        raise SimulatorError(answer)
+    try:
+        result: dict[str, Any] = json.loads(answer)
+    except ValueError:
+        raise SimulatorError(f"simulator at {host} sent a bad machine reply: {answer!r}") from None
+    return result
 
 
 def _json_request(host: str, line: str, timeout: float) -> dict[str, Any]:

@@ -45,36 +45,17 @@ from typing import Any
 
 from fxcell.link import wire
 from fxcell.link.rtde_stream import RTDEStream
-from fxcell.protocol import (
-    CONTROL_PERIOD,
-    RobotState,
-    RuntimeState,
-    SafetyMode,
-)
+from fxcell.protocol import CONTROL_PERIOD, SAFETY_STOPS, RobotState, RuntimeState
 from fxcell.settling import ARRIVE_TOLERANCE, SETTLE_VELOCITY
 
 log = logging.getLogger("fxcell.link.process")
 
-_PROTECTIVE = {SafetyMode.PROTECTIVE_STOP}
-_SAFEGUARD = {
-    SafetyMode.SAFEGUARD_STOP,
-    SafetyMode.AUTOMATIC_MODE_SAFEGUARD_STOP,
-    SafetyMode.SYSTEM_THREE_POSITION_ENABLING_STOP,
-}
-_ESTOP = {SafetyMode.SYSTEM_EMERGENCY_STOP, SafetyMode.ROBOT_EMERGENCY_STOP}
-_FAULT = {SafetyMode.FAULT, SafetyMode.VIOLATION}
-
 
 def stop_reason(safety_mode: int, runtime_state: int) -> str | None:
     """Why a trajectory cannot continue, from one state sample (``None``: it can)."""
-    if safety_mode in _PROTECTIVE:
-        return "protective_stop"
-    if safety_mode in _ESTOP:
-        return "emergency_stop"
-    if safety_mode in _SAFEGUARD:
-        return "safeguard_stop"
-    if safety_mode in _FAULT:
-        return "fault"
+    stop = SAFETY_STOPS.get(safety_mode)
+    if stop is not None:
+        return stop
     if runtime_state != RuntimeState.PLAYING:
         return "program_stopped"
     return None
@@ -100,6 +81,7 @@ class Link:
         self.receive: Any = None
         self.stream: RTDEStream | None = None
         self.control: Any = None
+        self.io: Any = None  # ur_rtde RTDEIOInterface, opened on the first output set
         self._control_live = False
         self.latest: RobotState | None = None
         self._traj_lock = threading.Lock()
@@ -304,6 +286,12 @@ class Link:
             actual_tcp_pose=tuple(r.getActualTCPPose()),
             actual_tcp_speed=tuple(r.getActualTCPSpeed()),
             speed_scaling=r.getSpeedScaling(),
+            digital_input_bits=r.getActualDigitalInputBits(),
+            digital_output_bits=r.getActualDigitalOutputBits(),
+            standard_analog_input0=r.getStandardAnalogInput0(),
+            standard_analog_input1=r.getStandardAnalogInput1(),
+            standard_analog_output0=r.getStandardAnalogOutput0(),
+            standard_analog_output1=r.getStandardAnalogOutput1(),
         )
 
     def next_sample(self, seen: int, timeout: float) -> int:
@@ -479,6 +467,48 @@ class Link:
         if c is None:
             return False
         return bool(c.servoStop())
+
+    def call_set_output(self, group: str, index: int, value: float) -> bool:
+        """Set a digital (0/1) or analog (fraction of range) output through RTDE's IO recipe."""
+        import rtde_io
+
+        if self.io is None or not self.io.isConnected():
+            try:
+                with self.held():
+                    self.io = rtde_io.RTDEIOInterface(self.host)
+            except Exception as exc:
+                raise CallError("connection", f"cannot open the RTDE IO interface: {exc}") from None
+        io = self.io
+        if group == "standard":
+            ok = io.setStandardDigitalOut(index, bool(value))
+        elif group == "configurable":
+            ok = io.setConfigurableDigitalOut(index, bool(value))
+        elif group == "tool":
+            ok = io.setToolDigitalOut(index, bool(value))
+        elif group == "analog":
+            ok = io.setAnalogOutputVoltage(index, float(value))
+        else:
+            raise CallError("argument", f"no output group {group!r}")
+        return bool(ok)
+
+    def _require_control(self, what: str) -> Any:
+        c = self.control
+        if c is None or not c.isProgramRunning():
+            raise CallError(
+                "robot", f"{what} needs external control (the control script is not running)"
+            )
+        return c
+
+    def call_set_tool(self, tcp: list[float], mass: float, cog: list[float]) -> bool:
+        """Set the TCP (flange frame) and the payload on the controller."""
+        c = self._require_control("setting the tool")
+        return bool(c.setTcp(tcp)) and bool(c.setPayload(mass, cog))
+
+    def call_teach_mode(self, on: bool) -> bool:
+        """Enter or leave teach mode (freedrive: the arm can be moved by hand)."""
+        self._stop_trajectory("teach mode")
+        c = self._require_control("freedrive")
+        return bool(c.teachMode() if on else c.endTeachMode())
 
     # -- trajectories
 

@@ -13,31 +13,14 @@ import socket
 import struct
 from collections.abc import Iterator
 
-from fxcell.protocol import RTDE_PORT, RobotState
+from fxcell.protocol import RTDE_PORT, RTDE_STATE_OUTPUTS, RobotState
 
 HEADER = struct.Struct(">HB")
 PROTOCOL_VERSION = 2
 _V, _O, _S, _U, _M = ord("V"), ord("O"), ord("S"), ord("U"), ord("M")
 
-# Output fields, in the order RobotState takes them.
-FIELDS: tuple[str, ...] = (
-    "timestamp",
-    "robot_mode",
-    "safety_mode",
-    "runtime_state",
-    "robot_status_bits",
-    "safety_status_bits",
-    "target_q",
-    "target_qd",
-    "target_qdd",
-    "actual_q",
-    "actual_qd",
-    "actual_current",
-    "target_TCP_pose",
-    "actual_TCP_pose",
-    "actual_TCP_speed",
-    "speed_scaling",
-)
+_ATTRS: tuple[str, ...] = tuple(attr for attr, _ in RTDE_STATE_OUTPUTS)
+FIELDS: tuple[str, ...] = tuple(output for _, output in RTDE_STATE_OUTPUTS)
 _CODES = {
     "BOOL": ("?", 1),
     "UINT8": ("B", 1),
@@ -146,5 +129,5 @@ class RTDEStream:
             for w in widths:
                 values.append(flat[i] if w == 1 else flat[i : i + w])
                 i += w
-            yield RobotState(*values)  # type: ignore[arg-type]
+            yield RobotState(**dict(zip(_ATTRS, values, strict=True)))  # type: ignore[arg-type]
         raise RTDEError("RTDE connection closed by the controller")

@@ -10,6 +10,7 @@ process needs no numpy (it starts faster, which shortens a reconnect).
 from __future__ import annotations
 
 import array
+import dataclasses
 import pickle
 import struct
 from collections.abc import Sequence
@@ -76,49 +77,25 @@ def max_abs_difference(a: Sequence[float], b: Sequence[float]) -> float:
     return max(abs(x - y) for x, y in zip(a, b, strict=True))
 
 
+_FIELDS = tuple(f.name for f in dataclasses.fields(RobotState) if f.name != "received_at")
+_ENUMS = {"robot_mode": RobotMode, "safety_mode": SafetyMode, "runtime_state": RuntimeState}
+_DEFAULTS: dict[str, Any] = {
+    "robot_mode": RobotMode.NO_CONTROLLER,
+    "safety_mode": SafetyMode.UNDEFINED_SAFETY_MODE,
+    "runtime_state": RuntimeState.STOPPED,
+}
+
+
 def state_to_tuple(s: RobotState) -> tuple[Any, ...]:
-    return (
-        s.timestamp,
-        int(s.robot_mode),
-        int(s.safety_mode),
-        int(s.runtime_state),
-        s.robot_status_bits,
-        s.safety_status_bits,
-        s.target_q,
-        s.target_qd,
-        s.target_qdd,
-        s.actual_q,
-        s.actual_qd,
-        s.actual_current,
-        s.target_tcp_pose,
-        s.actual_tcp_pose,
-        s.actual_tcp_speed,
-        s.speed_scaling,
-        s.output_int_registers,
-    )
+    """A sample as a plain tuple (enums as ints), in :class:`RobotState`'s field order."""
+    return tuple(int(getattr(s, n)) if n in _ENUMS else getattr(s, n) for n in _FIELDS)
 
 
 def state_from_tuple(t: tuple[Any, ...], received_at: float) -> RobotState:
-    return RobotState(
-        timestamp=t[0],
-        robot_mode=_enum(RobotMode, t[1], RobotMode.NO_CONTROLLER),
-        safety_mode=_enum(SafetyMode, t[2], SafetyMode.UNDEFINED_SAFETY_MODE),
-        runtime_state=_enum(RuntimeState, t[3], RuntimeState.STOPPED),
-        robot_status_bits=t[4],
-        safety_status_bits=t[5],
-        target_q=t[6],
-        target_qd=t[7],
-        target_qdd=t[8],
-        actual_q=t[9],
-        actual_qd=t[10],
-        actual_current=t[11],
-        target_tcp_pose=t[12],
-        actual_tcp_pose=t[13],
-        actual_tcp_speed=t[14],
-        speed_scaling=t[15],
-        output_int_registers=t[16],
-        received_at=received_at,
-    )
+    values = dict(zip(_FIELDS, t, strict=True))
+    for name, cls in _ENUMS.items():
+        values[name] = _enum(cls, values[name], _DEFAULTS[name])
+    return RobotState(**values, received_at=received_at)
 
 
 def _enum(cls: type[_E], value: int, default: _E) -> _E:

@@ -27,7 +27,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from fxcell.config import CellConfig, SceneConfig
 from fxcell.errors import CollisionError
-from fxcell.geometry import rpy_to_matrix
+from fxcell.geometry import Pose, rpy_to_matrix
+from fxcell.layout import Layout
 from fxcell.motion.kinematics import UR3E_DH, Kinematics
 from fxcell.motion.robot_model import RobotModel
 
@@ -51,6 +52,11 @@ DEFAULT_RESOLUTION = 0.006
 LEVER_ARMS = np.array([0.65, 0.65, 0.45, 0.30, 0.25, 0.09])
 """Farthest point of the arm and gripper from each joint axis (m), rounded up: a joint
 step δ moves no point by more than lever·δ, which sets how densely motions are checked."""
+WALL_STEP = 0.02
+"""Spacing (rad) of the joint values tried as walls (see :meth:`CollisionChecker.walls`)."""
+WALL_SLACK = 0.003
+"""Penetration (m) a wall's pair must show at every sample: covers the motion between
+samples, so a wall holds for the joint values between them too."""
 
 
 @dataclass(frozen=True)
@@ -127,6 +133,8 @@ class CollisionChecker:
         model: pin.Model,
         scene: SceneConfig,
         *,
+        layout: Layout | None = None,
+        tcp: pin.SE3 | None = None,
         flange_in_joint6: pin.SE3 | None = None,
         gripper: bool = True,
         scene_margin: float = DEFAULT_SCENE_MARGIN,
@@ -161,6 +169,26 @@ class CollisionChecker:
             placement = pin.SE3(rpy_to_matrix(obj.rpy), np.asarray(obj.position, float))
             gid = self._add(gm, obj.name, 0, placement, coal.Box(*obj.size))
             self._scene.add(gid)
+        # Objects the gripper may hold (one geometry per kind, hanging from the TCP); their
+        # pairs stay inactive until attach().
+        self._held_geoms: dict[str, int] = {}
+        if layout is not None and gripper:
+            tcp_in_joint6 = flange_in_joint6 * (tcp if tcp is not None else pin.SE3.Identity())
+            for kind_name, kind in layout.config.objects.items():
+                # The grip point is at the TCP; the object hangs along the TCP's z axis
+                # (out of the flange): its bottom grip_height further, its top above.
+                centre = np.array([0.0, 0.0, kind.grip_height - kind.height / 2])
+                placement = tcp_in_joint6 * pin.SE3(np.eye(3), centre)
+                shape = coal.Cylinder(kind.width / 2, kind.height)
+                self._held_geoms[kind_name] = self._add(
+                    gm, f"held_{kind_name}", 6, placement, shape
+                )
+        for station in layout or ():
+            body = station.body_pose()
+            if body is not None:
+                pose, size = body
+                placement = pin.SE3(pose.rotation, pose.position)
+                self._scene.add(self._add(gm, station.name, 0, placement, coal.Box(*size)))
 
         for a in range(gm.ngeoms):
             for b in range(a + 1, gm.ngeoms):
@@ -172,6 +200,32 @@ class CollisionChecker:
             if pair.first in self._scene or pair.second in self._scene:
                 self.geometry_data.collisionRequests[k].security_margin = self.scene_margin
         self.names = [g.name for g in gm.geometryObjects]
+        self._walls: tuple[tuple[int, float], ...] | None = None
+        self._held_pairs: dict[str, list[int]] = {kind: [] for kind in self._held_geoms}
+        for k, pair in enumerate(gm.collisionPairs):
+            for held, gid in self._held_geoms.items():
+                if gid in (pair.first, pair.second):
+                    self._held_pairs[held].append(k)
+                    self.geometry_data.deactivateCollisionPair(k)
+        self.held: str | None = None
+        """The object kind attached to the TCP (checked against the scene), or None."""
+
+    def attach(self, kind: str) -> None:
+        """Check an object of ``kind`` (a layout object kind) held at the TCP from now on."""
+        if kind not in self._held_pairs:
+            known = ", ".join(sorted(self._held_pairs)) or "none"
+            raise ValueError(f"no held-object geometry for kind {kind!r} (known: {known})")
+        self.detach()
+        for k in self._held_pairs[kind]:
+            self.geometry_data.activateCollisionPair(k)
+        self.held = kind
+
+    def detach(self) -> None:
+        """The gripper holds nothing (from now on)."""
+        if self.held is not None:
+            for k in self._held_pairs[self.held]:
+                self.geometry_data.deactivateCollisionPair(k)
+        self.held = None
 
     def _add(self, gm: pin.GeometryModel, name: str, body: int, M: pin.SE3, shape: object) -> int:
         gid = int(gm.addGeometryObject(pin.GeometryObject(name, body, M, shape)))
@@ -188,12 +242,120 @@ class CollisionChecker:
     def for_config(cls, config: CellConfig, **options: float | bool) -> CollisionChecker:
         """The checker for a cell: the UR3e model, the gripper and the configured scene."""
         robot = RobotModel.ur3e(limits=config.limits)
+        tcp = Pose.from_ur(config.tool.tcp)
         return cls(
             robot.model,
             config.scene,
+            layout=Layout(config.layout),
+            tcp=pin.SE3(tcp.rotation, tcp.position),
             flange_in_joint6=robot.flange_in_joint6,
             **options,  # type: ignore[arg-type]
         )
+
+    # ------------------------------------------------------------ walls
+
+    def walls(self) -> tuple[tuple[int, float], ...]:
+        """Joint values no path can cross: ``(joint index, value)`` such that every
+        configuration with that joint at that value collides, whatever the other joints.
+
+        Found where a collision pair's relative placement depends on that joint and at
+        most one other: the upper arm hanging into the table (any base angle), a link
+        folded onto another. Each candidate value (every ``WALL_STEP`` within the limits)
+        is kept if the pair collides, ``WALL_SLACK`` deep, at every sample of the other
+        joint (spaced so that no point moves more than twice the slack between samples).
+        One value per blocked interval. Computed once, on first use (~0.1 s).
+        """
+        if self._walls is None:
+            self._walls = self._find_walls()
+        return self._walls
+
+    def separating_wall(self, start: ArrayLike, end: ArrayLike) -> tuple[int, float] | None:
+        """A wall strictly between ``start`` and ``end`` (then no path joins them), or None."""
+        a, b = np.asarray(start, float), np.asarray(end, float)
+        for joint, value in self.walls():
+            if min(a[joint], b[joint]) < value < max(a[joint], b[joint]):
+                return joint, value
+        return None
+
+    def _find_walls(self) -> tuple[tuple[int, float], ...]:
+        gm = self.geometry_model
+        gd = pin.GeometryData(gm)
+        for k, pair in enumerate(gm.collisionPairs):
+            margin = (
+                self.scene_margin
+                if pair.first in self._scene or pair.second in self._scene
+                else 0.0
+            )
+            gd.collisionRequests[k].security_margin = margin - WALL_SLACK
+        data = self.model.createData()
+        lo, hi = self.model.lowerPositionLimit, self.model.upperPositionLimit
+        found: list[tuple[int, float]] = []
+        # Walls of the bare gripper: a held object only adds collisions, so they stay walls
+        # whatever the gripper holds.
+        held = {k for pairs in self._held_pairs.values() for k in pairs}
+        for joint in range(6):
+            moved = joint + 1  # the body joint ``joint`` carries
+            by_free: dict[int | None, list[int]] = {}
+            for k, pair in enumerate(gm.collisionPairs):
+                if k in held:
+                    continue
+                bodies = sorted((self._body[pair.first], self._body[pair.second]))
+                if bodies[1] != moved:
+                    continue
+                # joints the pair's relative placement depends on besides ``joint``
+                free = list(range(bodies[0], joint)) if bodies[0] > 0 else list(range(joint))
+                if len(free) <= 1:
+                    by_free.setdefault(free[0] if free else None, []).append(k)
+            for free_joint, pairs in by_free.items():
+                found += self._walls_of(joint, free_joint, pairs, data, gd, lo, hi)
+        return tuple(sorted(found))
+
+    def _walls_of(
+        self,
+        joint: int,
+        free: int | None,
+        pairs: list[int],
+        data: pin.Data,
+        gd: pin.GeometryData,
+        lo: Array,
+        hi: Array,
+    ) -> list[tuple[int, float]]:
+        gm = self.geometry_model
+
+        def blocked(value: float, samples: Array) -> bool:
+            q = np.zeros(6)
+            q[joint] = value
+            for v in samples:
+                if free is not None:
+                    q[free] = v
+                pin.forwardKinematics(self.model, data, q)
+                pin.updateGeometryPlacements(self.model, data, gm, gd)
+                if not any(pin.computeCollision(gm, gd, k) for k in pairs):
+                    return False
+            return True
+
+        if free is None:
+            coarse = fine = np.zeros(1)
+        else:
+            coarse = np.linspace(lo[free], hi[free], 37)
+            step = 2 * WALL_SLACK / LEVER_ARMS[free]
+            fine = np.linspace(lo[free], hi[free], math.ceil((hi[free] - lo[free]) / step) + 1)
+        values = np.arange(lo[joint] + WALL_STEP, hi[joint], WALL_STEP)
+        hits = [blocked(float(v), coarse) for v in values]
+        out: list[tuple[int, float]] = []
+        k = 0
+        while k < len(values):
+            if not hits[k]:
+                k += 1
+                continue
+            end = k
+            while end + 1 < len(values) and hits[end + 1]:
+                end += 1
+            middle = float(values[(k + end) // 2])
+            if blocked(middle, fine):
+                out.append((joint, middle))
+            k = end + 1
+        return out
 
     # ------------------------------------------------------------ queries
 

@@ -70,7 +70,8 @@ from fxcell.results import MoveResult
 from fxcell.settling import ARRIVE_TOLERANCE, REST_VELOCITY, SETTLE_POSITION, SETTLE_VELOCITY
 
 if TYPE_CHECKING:
-    from fxcell.link import LinkClient, StateSubscription, TrajectoryHandle, TrajectoryResult
+    from fxcell.link import StateSubscription, TrajectoryResult
+    from fxcell.link.backend import LinkBackend, TrajectoryRun
     from fxcell.motion.collision import CollisionChecker
 
 Array = NDArray[np.float64]
@@ -482,7 +483,7 @@ class MoveExecution:
     def __init__(
         self,
         plan: MovePlan,
-        link: LinkClient,
+        link: LinkBackend,
         planner: MotionPlanner,
         options: ExecutionOptions | None = None,
         on_tracking: Callable[[dict[str, Any]], None] | None = None,
@@ -496,7 +497,7 @@ class MoveExecution:
         against the plan (for MotionEvent(kind="tracking"))."""
         self.max_tracking_error = 0.0
         self._stop = asyncio.Event()
-        self._handle: TrajectoryHandle | None = None
+        self._handle: TrajectoryRun | None = None
         self._sent_at = 0.0
         self._braked = False
         self.brake_duration = 0.0
@@ -509,7 +510,7 @@ class MoveExecution:
         self._spliced = False  # the braking profile replaced the remaining samples
 
     @property
-    def handle(self) -> TrajectoryHandle | None:
+    def handle(self) -> TrajectoryRun | None:
         return self._handle
 
     def request_stop(self) -> None:
@@ -522,7 +523,7 @@ class MoveExecution:
         if handle is not None and not handle.done and self._brake_task is None:
             self._brake_task = asyncio.get_running_loop().create_task(self._brake(handle))
 
-    async def _braking(self, handle: TrajectoryHandle) -> None:
+    async def _braking(self, handle: TrajectoryRun) -> None:
         """Brake now, or wait for the braking already under way."""
         if self._brake_task is None:
             self._brake_task = asyncio.get_running_loop().create_task(self._brake(handle))
@@ -589,7 +590,7 @@ class MoveExecution:
                 raise
             return self._finish(end, state)
 
-    async def _watch(self, handle: TrajectoryHandle, states: StateSubscription) -> RobotState:
+    async def _watch(self, handle: TrajectoryRun, states: StateSubscription) -> RobotState:
         """Follow the robot sample by sample until it has settled at the target (then end
         the stream), the stream ends, or a stop request brakes it to rest."""
         opts = self.options
@@ -638,7 +639,7 @@ class MoveExecution:
                         return state if state is not None else RobotState()
                     raise ConnectionLostError("no robot state for 0.25 s during a move") from None
 
-    def _track(self, handle: TrajectoryHandle, state: RobotState) -> None:
+    def _track(self, handle: TrajectoryRun, state: RobotState) -> None:
         """Compare the robot with the planned sample for now (index from the link's
         progress and the clock, so ±1 sample of timing is part of the figure)."""
         traj = self.plan.trajectory
@@ -652,18 +653,18 @@ class MoveExecution:
                  "actual": list(state.actual_q), "error": error}
             )  # fmt: skip
 
-    def _arrived(self, handle: TrajectoryHandle) -> bool:
+    def _arrived(self, handle: TrajectoryRun) -> bool:
         """Whether the stream has passed the planned samples (into the hold)."""
         return self._current_index(handle) >= len(self.plan.trajectory) - 1
 
-    def _current_index(self, handle: TrajectoryHandle) -> float:
+    def _current_index(self, handle: TrajectoryRun) -> float:
         """The link's sample index now, from its last progress report and the clock."""
         p = handle.progress
         if p is None:
             return (time.monotonic() - self._sent_at) / DT
         return p.index + max(time.time() - p.time, 0.0) / DT
 
-    async def _brake(self, handle: TrajectoryHandle) -> None:
+    async def _brake(self, handle: TrajectoryRun) -> None:
         """Replace the samples not yet sent by the jerk-limited stop."""
         if self._braked:
             return
@@ -753,7 +754,7 @@ class MoveExecution:
 
 async def execute(
     plan: MovePlan,
-    link: LinkClient,
+    link: LinkBackend,
     planner: MotionPlanner,
     options: ExecutionOptions | None = None,
 ) -> MoveResult:
@@ -873,7 +874,7 @@ class MotionController:
     def runner(
         self,
         target: MoveTarget,
-        link: LinkClient,
+        link: LinkBackend,
         start: Callable[[], ArrayLike],
         velocity_factor: float | None = None,
         acceleration_factor: float | None = None,
@@ -893,7 +894,7 @@ class MotionController:
     async def execute(
         self,
         plans: MovePlan | Sequence[MovePlan],
-        link: LinkClient,
+        link: LinkBackend,
         *,
         runner: MoveRunner | None = None,
     ) -> MoveResult:

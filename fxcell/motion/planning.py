@@ -1,7 +1,9 @@
 """Paths for moves: direct joint lines, OMPL joint-space planning, Cartesian straight lines.
 
-A joint move takes the straight joint-space line when it is free of collision; only when
-it is blocked does OMPL (RRTConnect by default, any OMPL geometric planner by name)
+A joint move takes the straight joint-space line when it is free of collision; when a
+wall of the free space (a joint value at which every configuration collides, such as the
+upper arm hanging into the table) separates start and goal, no search can succeed and the
+query fails at once; otherwise OMPL (RRTConnect by default, any OMPL geometric planner by name)
 search the joint space, and its path is shortened with OMPL's path simplifier. Cartesian
 lines (``move_distance``, ``move_pose(linear=True)``) are solved by IK at closely spaced
 points, keeping the IK branch continuous and checking collisions along the line.
@@ -135,7 +137,9 @@ class JointPlanner:
         """A collision-free path from ``start`` to ``goal`` (both must be free).
 
         Raises :class:`CollisionError` if either end collides and :class:`PlanningError`
-        if no path is found within the timeout.
+        if no path is found within the timeout, or at once if a wall (a joint value at
+        which every configuration collides, :meth:`CollisionChecker.walls`) lies between
+        start and goal.
         """
         a, b = np.asarray(start, float), np.asarray(goal, float)
         t0 = time.perf_counter()
@@ -143,6 +147,13 @@ class JointPlanner:
         self.checker.check(b, "target")
         if self.checker.motion_free(a, b):
             return JointPath(np.array([a, b]), "direct", time.perf_counter() - t0)
+        wall = self.checker.separating_wall(a, b)
+        if wall is not None:  # proven: no search could succeed
+            joint, value = wall
+            raise PlanningError(
+                f"no collision-free path exists: every configuration with joint {joint + 1} "
+                f"at {value:.2f} rad collides, and the move must pass that value"
+            )
         with self._lock:
             # First the joint box around start and goal, briefly; then the full limits.
             attempts = ((self.window, 0.25), (None, 1.0), (None, 1.0))

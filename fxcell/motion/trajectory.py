@@ -37,6 +37,11 @@ from fxcell.errors import InvalidFactorError, MoveTooLongError, PlanningError
 DT = 0.002
 """Sample period: the UR e-series control cycle (500 Hz)."""
 DOF = 6
+NEGLIGIBLE_MOVE = 1e-9
+"""rad: a move no joint of which travels farther than this is no move (zero duration).
+
+Ruckig would time a 1e-13 rad move as a 0.1 ms profile; a nanoradian is four orders of
+magnitude below the joint encoders' resolution, so such a target is already reached."""
 
 Array = NDArray[np.float64]
 Validator = Callable[[Array], int | None]
@@ -336,7 +341,7 @@ def rest_to_rest(start: ArrayLike, target: ArrayLike, limits: Limits) -> Traject
     q0 = np.asarray(start, float)
     q1 = np.asarray(target, float)
     delta = q1 - q0
-    if not np.any(np.abs(delta) > 1e-15):
+    if not np.any(np.abs(delta) > NEGLIGIBLE_MOVE):
         z = np.zeros((1, DOF))
         return Trajectory(q1[None, :].copy(), z, z.copy(), 0.0)
     t, s, sd, sdd = _profile(*_line_limits(delta, limits), limits.max_duration)
@@ -388,10 +393,13 @@ def through_waypoints(
     ``validate`` checks the sampled positions; where a blended segment fails it, that
     segment is redone from rest to rest (exactly on the checked straight segment).
     """
-    wp = np.asarray(waypoints, float)
+    given = np.asarray(waypoints, float)
     # Drop repeated waypoints: a zero-length segment has nothing to time.
-    keep = [0] + [k for k in range(1, len(wp)) if np.max(np.abs(wp[k] - wp[k - 1])) > 1e-12]
-    wp = wp[keep]
+    keep = [0] + [
+        k for k in range(1, len(given)) if np.max(np.abs(given[k] - given[k - 1])) > NEGLIGIBLE_MOVE
+    ]
+    wp = given[keep]
+    wp[-1] = given[-1]  # end exactly at the target
     if len(wp) == 1:
         return rest_to_rest(wp[0], wp[0], limits)
     if len(wp) == 2:

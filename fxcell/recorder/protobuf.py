@@ -283,7 +283,9 @@ def decode_robot_state(data: bytes) -> RobotState:
             raise ValueError
     except (ValueError, IndexError, struct.error):
         return _decode_robot_state_general(data)
-    vectors = [f[8 + 8 * i : 14 + 8 * i] for i in range(9)]
+    vectors: dict[str, Any] = {
+        name: f[8 + 8 * i : 14 + 8 * i] for i, name in enumerate(VECTOR_FIELDS)
+    }
     return RobotState(
         timestamp=f[1],
         robot_mode=_enum_or_int(RobotMode, modes[0]),
@@ -291,7 +293,7 @@ def decode_robot_state(data: bytes) -> RobotState:
         runtime_state=_enum_or_int(RuntimeState, modes[2]),
         robot_status_bits=f[3],
         safety_status_bits=f[5],
-        **dict(zip(VECTOR_FIELDS, vectors, strict=True)),
+        **vectors,
         speed_scaling=f[80],
         output_int_registers=tuple(f[84:87]),
         received_at=f[89],

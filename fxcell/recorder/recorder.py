@@ -30,6 +30,7 @@ from fxcell._version import __version__
 from fxcell.errors import InvalidArgumentError, RecorderError
 from fxcell.events import (
     CommandEvent,
+    DeviceEvent,
     Event,
     EventBus,
     LogEvent,
@@ -198,6 +199,7 @@ class Recorder:
         self._reported_dropped = 0
         self._last_report = 0.0
         self._last_modes: tuple[int, ...] | None = None
+        self._last_io: tuple[int, int] | None = None
         self._last_tf_ns = 0
         self._queue_warned = False
         self._unknown_types: set[type] = set()
@@ -395,6 +397,17 @@ class Recorder:
                 "safety_status_bits": int(s.safety_status_bits),
             }
             self._add(topics.ROBOT_MODES, t, dumps(msg), t)
+        io = (s.digital_input_bits, s.digital_output_bits)
+        if io != self._last_io:
+            self._last_io = io
+            msg = {
+                "controller_time": s.timestamp,
+                "digital_input_bits": int(s.digital_input_bits),
+                "digital_output_bits": int(s.digital_output_bits),
+                "analog_inputs": [s.standard_analog_input0, s.standard_analog_input1],
+                "analog_outputs": [s.standard_analog_output0, s.standard_analog_output1],
+            }
+            self._add(topics.IO, t, dumps(msg), t)
         if self._frames is not None and t - self._last_tf_ns >= self._tf_period_ns:
             self._last_tf_ns = t
             data = self._frames.transforms_json(s.actual_q, t // 1_000_000_000, t % 1_000_000_000)
@@ -433,6 +446,11 @@ class Recorder:
         msg = {"time": e.time, "move_id": e.move_id, "kind": e.kind, "data": to_jsonable(e.data)}
         self._add(topics.MOTION, t, dumps(msg), int(e.time * 1e9))
 
+    def _on_device(self, t: int, e: DeviceEvent) -> None:
+        msg = {"time": e.time, **to_jsonable(dict(e.data))}
+        topic = topics.GRIPPER if e.device == "gripper" else topics.JOB
+        self._add(topic, t, dumps(msg), int(e.time * 1e9))
+
     def _on_log(self, t: int, e: LogEvent) -> None:
         ns = int(e.time * 1e9)
         msg = {
@@ -456,6 +474,7 @@ class Recorder:
         CommandEvent: _on_command,
         TransitionEvent: _on_transition,
         MotionEvent: _on_motion,
+        DeviceEvent: _on_device,
         LogEvent: _on_log,
         _MetadataUpdate: _on_metadata,
     }

@@ -96,6 +96,26 @@ MOTION_SCHEMA: Final = _object(
     ["time", "move_id", "kind", "data"],
 )
 
+IO_SCHEMA: Final = _object(
+    topics.SCHEMA_IO,
+    {
+        "controller_time": _NUM,
+        "digital_input_bits": {"type": "integer"},
+        "digital_output_bits": {"type": "integer"},
+        "analog_inputs": {"type": "array", "items": _NUM},
+        "analog_outputs": {"type": "array", "items": _NUM},
+    },
+    ["digital_input_bits", "digital_output_bits"],
+)
+
+GRIPPER_SCHEMA: Final = _object(
+    topics.SCHEMA_GRIPPER,
+    {"time": _NUM, "width": _NUM, "holding": {"type": "boolean"}, "held": {}, "event": _STR},
+    ["time", "event"],
+)
+
+JOB_SCHEMA: Final = _object(topics.SCHEMA_JOB, {"time": _NUM, "event": _STR}, ["time", "event"])
+
 RECORDER_SCHEMA: Final = _object(
     topics.SCHEMA_RECORDER,
     {
@@ -196,6 +216,9 @@ def topic_schemas() -> dict[str, SchemaSpec]:
         ),
         topics.ROBOT_MODES: _json_spec(ROBOT_MODES_SCHEMA),
         topics.MOTION: _json_spec(MOTION_SCHEMA),
+        topics.IO: _json_spec(IO_SCHEMA),
+        topics.GRIPPER: _json_spec(GRIPPER_SCHEMA),
+        topics.JOB: _json_spec(JOB_SCHEMA),
         topics.TF: _json_spec(FRAME_TRANSFORMS_SCHEMA),
         topics.LOG: _json_spec(LOG_SCHEMA),
         topics.ROBOT_DESCRIPTION: _json_spec(STRING_SCHEMA),

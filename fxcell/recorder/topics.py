@@ -22,6 +22,12 @@ ROBOT_MODES: Final = "/robot/modes"
 """A message whenever robot mode, safety mode, runtime state or status bits change (JSON)."""
 MOTION: Final = "/motion"
 """Planned paths, trajectories, tracking reports and results of moves (JSON)."""
+IO: Final = "/robot/io"
+"""The controller's digital and analog IO, whenever a digital bit changes (JSON)."""
+GRIPPER: Final = "/gripper"
+"""The gripper after every command and change: width, object held, fault (JSON)."""
+JOB: Final = "/job"
+"""Fusion-machine job events: steps started and ended, sample locations (JSON)."""
 TF: Final = "/tf"
 """``foxglove.FrameTransforms`` of the robot links, for the 3D panel (JSON)."""
 LOG: Final = "/log"
@@ -37,12 +43,15 @@ ALL_TOPICS: Final = (
     ROBOT_STATE,
     ROBOT_MODES,
     MOTION,
+    IO,
+    GRIPPER,
+    JOB,
     TF,
     LOG,
     ROBOT_DESCRIPTION,
     RECORDER,
 )
-EVENT_TOPICS: Final = (COMMANDS, TRANSITIONS, ROBOT_MODES, LOG, RECORDER)
+EVENT_TOPICS: Final = (COMMANDS, TRANSITIONS, ROBOT_MODES, IO, GRIPPER, JOB, LOG, RECORDER)
 """The low-rate topics a timeline lists."""
 
 # ----------------------------------------------------------------- schema names
@@ -51,6 +60,9 @@ SCHEMA_TRANSITION: Final = "fxcell.Transition"
 SCHEMA_ROBOT_STATE: Final = "fxcell.RobotState"
 SCHEMA_ROBOT_MODES: Final = "fxcell.RobotModes"
 SCHEMA_MOTION: Final = "fxcell.Motion"
+SCHEMA_IO: Final = "fxcell.IO"
+SCHEMA_GRIPPER: Final = "fxcell.Gripper"
+SCHEMA_JOB: Final = "fxcell.JobEvent"
 SCHEMA_RECORDER: Final = "fxcell.RecorderNotice"
 SCHEMA_STRING: Final = "fxcell.String"
 SCHEMA_FRAME_TRANSFORMS: Final = "foxglove.FrameTransforms"

@@ -298,6 +298,7 @@ function onMessage(m) {
       showControl(m.snapshot.control);
       showState(m.snapshot.state);
       showRobot(m.snapshot.robot);
+      showGripper(m.snapshot.gripper);
       m.snapshot.operations.forEach(updateOperation);
       log(`connected to the daemon (state ${m.snapshot.state})`);
       break;
@@ -305,6 +306,11 @@ function onMessage(m) {
       showState(m.state);
       page.targetQ = m.target_q;
       showRobot(m);
+      showIO(m);
+      break;
+    case "device":
+      if (m.device === "gripper") showGripper(m.data);
+      if (m.device === "job") onJobEvent(m.data);
       break;
     case "transition":
       showState(m.dest);
@@ -313,6 +319,8 @@ function onMessage(m) {
     case "command":
       if (m.outcome === "error") log(`${m.name}: ${m.error_type}: ${m.error_message}`, "error");
       else if (m.outcome === "ok") log(`${m.name} done (${m.origin})`);
+      if (m.outcome === "ok" && (m.name === "teach")) loadPositions();
+      if (m.outcome === "ok" && m.name === "teach_frame_point") loadLayout();
       else log(`${m.name} started (${m.origin})`);
       break;
     case "operation":
@@ -469,7 +477,7 @@ let drawPending = false;
 function requestDraw() {
   if (drawPending) return;
   drawPending = true;
-  requestAnimationFrame(() => { drawPending = false; drawArm(); });
+  requestAnimationFrame(() => { drawPending = false; drawArm(); drawLayout(); });
 }
 
 function drawArm() {
@@ -629,6 +637,240 @@ function renderStatechart() {
   host.replaceChildren(root);
 }
 
+
+// ------------------------------------------------------------------ gripper, IO, teach, layout
+
+function showGripper(g) {
+  if (!g) return;
+  page.gripper = { ...(page.gripper || {}), ...g };
+  const s = page.gripper;
+  if (s.width !== undefined) $("#gripper-width").textContent = `${(s.width * 1000).toFixed(1)} mm`;
+  $("#gripper-held").textContent = s.held ? s.held : (s.holding ? "an object" : "nothing");
+  if (s.event) $("#gripper-event").textContent = s.event;
+}
+
+function ioValue(name, r) {
+  const address = page.info.io[name];
+  const n = Number(address.slice(2));
+  const offset = { D: 0, C: 8, T: 16 }[address[0]];
+  if (address[0] === "A") return (address[1] === "I" ? r.analog_in : r.analog_out)[n];
+  const bits = address[1] === "I" ? r.digital_in : r.digital_out;
+  return Boolean((bits / 2 ** (offset + n)) % 2 >= 1);
+}
+
+function showIO(r) {
+  if (!page.info || !page.info.io || !r || r.digital_in === undefined) return;
+  const body = $("#io tbody");
+  const names = Object.keys(page.info.io).sort();
+  if (body.children.length !== names.length) {
+    body.innerHTML = "";
+    for (const name of names) {
+      const tr = document.createElement("tr");
+      tr.dataset.signal = name;
+      const output = page.info.io[name][1] === "O";
+      tr.innerHTML = `<td title="${page.info.io[name]}">${name}</td><td class="v"></td><td></td>`;
+      if (output && page.info.io[name][0] !== "A") {
+        const b = document.createElement("button");
+        b.textContent = "toggle"; b.dataset.command = "io_set";
+        b.onclick = () => command("io_set", { signal: name, value: !ioValue(name, page.robot) });
+        tr.lastChild.append(b);
+      }
+      body.append(tr);
+    }
+    updateButtons();
+  }
+  for (const tr of body.children) {
+    const v = ioValue(tr.dataset.signal, r);
+    const cell = tr.querySelector(".v");
+    cell.textContent = typeof v === "boolean" ? (v ? "on" : "off") : v.toFixed(3);
+    cell.className = "v " + (v === true ? "on" : "off");
+  }
+}
+
+async function loadPositions() {
+  try {
+    const { result } = await api("GET", "/api/cell/get_positions");
+    const body = $("#positions tbody");
+    body.innerHTML = "";
+    for (const [name, p] of Object.entries(result)) {
+      const tr = document.createElement("tr");
+      tr.innerHTML = `<td title="taught ${p.taught}">${name}</td><td></td>`;
+      const go = document.createElement("button");
+      go.textContent = "move to"; go.dataset.command = "move_to"; go.dataset.move = "1";
+      go.onclick = () => command("move_to", { name, ...factors() });
+      const again = document.createElement("button");
+      again.textContent = "re-teach"; again.dataset.command = "teach";
+      again.onclick = async () => {
+        if (!confirm(`Re-teach ${name} at the arm's current position? (the old one is kept as 'previous')`)) return;
+        await command("teach", { name });
+      };
+      tr.lastChild.append(go, " ", again);
+      body.append(tr);
+    }
+    updateButtons();
+  } catch (e) { log(`positions: ${e.message}`, "error"); }
+}
+
+$("#form-teach").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  const f = e.target, box = f.querySelector(".error");
+  box.textContent = "";
+  if (!f.elements.name.checkValidity()) { box.textContent = "a letter, then letters, digits, _ or -"; return; }
+  await command("teach", { name: f.elements.name.value }, { errorBox: box });
+});
+
+$("#form-grip").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  const f = e.target, box = f.querySelector(".error");
+  box.textContent = "";
+  const width = Number(f.elements.width.value);
+  if (!(width >= 0 && width <= 0.05)) { box.textContent = "width: 0 to 0.050 m"; return; }
+  await command("gripper_move", { width }, { errorBox: box });
+});
+
+// The layout, seen from above (x right, y up, base at the origin).
+async function loadLayout() {
+  try { page.layout = (await api("GET", "/api/cell/get_layout")).result; drawLayout(); }
+  catch (e) { log(`layout: ${e.message}`, "error"); }
+}
+
+function layoutView(canvas) {
+  const [x0, x1, y0, y1] = [-0.45, 0.45, -0.2, 0.55];
+  const s = Math.min(canvas.width / (x1 - x0), canvas.height / (y1 - y0));
+  return { px: (x) => (x - x0) * s, py: (y) => canvas.height - (y - y0) * s, s };
+}
+
+function drawLayout() {
+  const canvas = $("#layout"), g = canvas.getContext("2d"), L = page.layout;
+  if (!L) return;
+  const v = layoutView(canvas);
+  g.clearRect(0, 0, canvas.width, canvas.height);
+  g.fillStyle = "#9aa7b6"; g.beginPath(); g.arc(v.px(0), v.py(0), 0.06 * v.s, 0, 2 * Math.PI); g.fill();
+  page.slotHits = [];
+  for (const [name, st] of Object.entries(L.stations)) {
+    if (st.body) {
+      const [cx, cy] = st.body.pose, [w, h] = st.body.size, yaw = rotZ(st.body.pose.slice(3));
+      g.save(); g.translate(v.px(cx), v.py(cy)); g.rotate(-yaw);
+      g.fillStyle = st.zone ? "#f6e7d2" : "#e8eef6"; g.strokeStyle = "#9aa7b6";
+      g.fillRect(-w * v.s / 2, -h * v.s / 2, w * v.s, h * v.s); g.strokeRect(-w * v.s / 2, -h * v.s / 2, w * v.s, h * v.s);
+      g.restore();
+    }
+    const r = L.objects[st.holds].width / 2 * v.s;
+    let lx = Infinity, ly = -Infinity;
+    for (const [slot, p] of Object.entries(st.slots)) {
+      const [x, y] = [v.px(p.seat[0]), v.py(p.seat[1])];
+      const occupant = page.occupants && page.occupants[`${name}:${slot}`];
+      g.beginPath(); g.arc(x, y, r, 0, 2 * Math.PI);
+      g.fillStyle = occupant ? (occupant.kind === "bead" ? "#7fb3f5" : "#e0a458") : "#ffffff";
+      g.fill(); g.strokeStyle = "#6b7785"; g.stroke();
+      if (occupant && occupant.label) { g.fillStyle = "#1d2733"; g.font = "9px sans-serif"; g.textAlign = "center"; g.fillText(occupant.label, x, y + 3); }
+      page.slotHits.push({ station: name, slot, x, y, r });
+      lx = Math.min(lx, x); ly = Math.max(ly, y);
+    }
+    g.fillStyle = "#1d2733"; g.font = "11px sans-serif"; g.textAlign = "left";
+    g.fillText(name, lx - r, ly + r + 12);
+  }
+  if (page.robot && page.robot.tcp) {
+    const [x, y] = page.robot.tcp;
+    g.strokeStyle = "#1f6feb"; g.lineWidth = 2;
+    g.beginPath(); g.moveTo(v.px(x) - 6, v.py(y)); g.lineTo(v.px(x) + 6, v.py(y));
+    g.moveTo(v.px(x), v.py(y) - 6); g.lineTo(v.px(x), v.py(y) + 6); g.stroke(); g.lineWidth = 1;
+  }
+}
+
+function rotZ(rotvec) {  // yaw of a rotation vector whose axis is (nearly) vertical
+  const [rx, ry, rz] = rotvec, a = Math.hypot(rx, ry, rz);
+  return a < 1e-9 ? 0 : Math.sign(rz) * a;
+}
+
+$("#layout").addEventListener("click", async (e) => {
+  const c = e.target, rect = c.getBoundingClientRect();
+  const x = (e.clientX - rect.left) * c.width / rect.width, y = (e.clientY - rect.top) * c.height / rect.height;
+  const hit = (page.slotHits || []).find((h) => Math.hypot(h.x - x, h.y - y) <= Math.max(h.r, 6));
+  if (!hit) return;
+  const holding = page.gripper && page.gripper.held;
+  const what = holding ? "place" : "pick";
+  $("#slot-info").textContent = `${hit.station} ${hit.slot}`;
+  if (!confirm(`${what} ${hit.station} ${hit.slot}?`)) return;
+  await command(what, { station: hit.station, slot: hit.slot, ...factors() });
+});
+
+
+// ------------------------------------------------------------------ the job
+
+const JOB_ALLOWED = {
+  start: ["idle", "done"], pause: ["running", "waiting_for_machine"], resume: ["paused", "fault"],
+  abort: ["running", "pausing", "waiting_for_machine"], confirm: ["waiting_for_machine"], discard: ["paused", "fault"],
+};
+const STATION_OF = { rack: "rack", machine: "machine", mould: "moulds", tray: "tray" };
+
+async function loadJob() {
+  try { showJob(await api("GET", "/api/job")); } catch (e) { log(`job: ${e.message}`, "error"); }
+}
+
+let jobReload = null;
+function onJobEvent() {  // events come in bursts: reload the status at most every 200 ms
+  if (jobReload) return;
+  jobReload = setTimeout(() => { jobReload = null; loadJob(); }, 200);
+}
+
+function showJob(st) {
+  page.job = st;
+  const box = $("#job-state");
+  box.textContent = st.state.replaceAll("_", " ");
+  box.className = "big-state " + ({ running: "moving", waiting_for_machine: "moving", done: "ready",
+    fault: "alarm", paused: "alarm" }[st.state] || "off");
+  $("#job-message").textContent = st.message || "";
+  $("#job-step").textContent = st.step ? `step: ${st.step}` : "";
+  const p = st.progress;
+  $("#job-progress").max = p ? Math.max(1, p.total) : 1;
+  $("#job-progress").value = p ? p.done : 0;
+  $("#job-eta").textContent = p ? `${p.done}/${p.total} steps, about ${Math.ceil(p.eta / 60)} min left` : "";
+  const qs = $("#job-questions");
+  qs.innerHTML = "";
+  for (const q of st.questions || []) {
+    const div = document.createElement("div");
+    div.className = "small";
+    div.innerHTML = `<b>${q.text}</b> `;
+    const sel = document.createElement("select");
+    sel.dataset.question = q.id;
+    for (const c of q.choices) sel.append(new Option(c, c));
+    div.append(sel);
+    qs.append(div);
+  }
+  const prompt = st.prompt;
+  $("#job-prompt").textContent = prompt ? `waiting for you: ${prompt.text || prompt} — press Confirm` : "";
+  for (const b of $$("button[data-job]")) b.disabled = !(JOB_ALLOWED[b.dataset.job] || []).includes(st.state);
+  page.occupants = {};
+  for (const s of st.samples || []) {
+    for (const [kind, where] of [["crucible", s.crucible], ["bead", s.bead]]) {
+      if (!where || where === "gripper") continue;
+      const [prefix, slot] = where.split(":");
+      page.occupants[`${STATION_OF[prefix] || prefix}:${slot}`] = { kind, label: s.id };
+    }
+  }
+  requestDraw();
+}
+
+for (const b of $$("button[data-job]")) {
+  b.addEventListener("click", async () => {
+    const name = b.dataset.job, err = $("#job-error");
+    err.textContent = "";
+    let body = {};
+    try {
+      if (name === "start") body = { run: JSON.parse($("#job-run").value) };
+      if (name === "resume") {
+        body = { answers: {} };
+        for (const sel of $$("#job-questions select")) body.answers[sel.dataset.question] = sel.value;
+      }
+      if (name === "abort" && !confirm("Abort the current step? The arm brakes; the run can be resumed.")) return;
+      if (name === "discard" && !confirm("Forget this run? The samples stay where the job says they are.")) return;
+    } catch (e) { err.textContent = `the run is not valid JSON: ${e.message}`; return; }
+    try { showJob(await api("POST", `/api/job/${name}`, body)); log(`job ${name} requested`); }
+    catch (e) { err.textContent = e.message; log(`job ${name} refused: ${e.message}`, "error"); }
+  });
+}
+
 // ------------------------------------------------------------------ start
 
 async function start() {
@@ -641,7 +883,11 @@ async function start() {
     page.state = "";
     showState(snap.state);
     showRobot(snap.robot);
+    showGripper(snap.gripper);
     snap.operations.forEach(updateOperation);
+    loadPositions();
+    loadLayout();
+    loadJob();
   } catch (e) {
     log(`cannot load the daemon's state: ${e.message}`, "error");
   }

@@ -1,7 +1,19 @@
 """Helpers for testing fxcell and cell scripts built on it.
 
 Use as a pytest plugin (``-p fxcell.testing`` or ``pytest_plugins = ["fxcell.testing"]``)
-to get the fixtures below. This module is test support: the runtime never imports it.
+to get these fixtures:
+
+- ``sim``: a fresh simulator process (:func:`simulator`, time scale 0.05) on its own
+  loopback address; ``cell``: a :class:`fxcell.Cell` on it, initialised. These run the
+  real robot link (ur_rtde in its process) against the simulator's sockets: system tests.
+- ``fake_robot``: a :class:`FakeRobot`, the simulator's controller model in this process
+  (no sockets, no subprocess; controller time 5x the wall clock); ``fake_cell``: a Cell
+  on it through its fake link (``Cell(link_factory=fake_robot.link_factory)``),
+  initialised. Fast unit tests of cell behaviour; no gripper (see
+  :mod:`fxcell.testing.fake`).
+- ``fxcell_no_leaked_tasks`` (automatic): fails a test that leaves asyncio tasks running.
+
+This package is test support: the runtime never imports it.
 """
 
 from __future__ import annotations
@@ -23,6 +35,16 @@ import pytest_asyncio
 
 from fxcell.link import embedded
 from fxcell.link.embedded import EmbeddedSimulator
+from fxcell.testing.fake import FakeLink, FakeRobot, FakeTrajectory
+
+__all__ = [
+    "FakeLink",
+    "FakeRobot",
+    "FakeTrajectory",
+    "SimulatorHandle",
+    "simulator",
+    "urcap_port",
+]
 
 TEST_TIME_SCALE = 0.05  # controller delays in tests: power on 0.1 s, brake release 75 ms
 
@@ -59,8 +81,9 @@ class SimulatorHandle:
     Use it with ``with`` or ``async with`` (see :func:`simulator`). ``inject`` triggers
     a fault (``protective_stop``, ``emergency_stop``, ``stall_rtde``, 2.0, ...),
     ``dashboard`` sends one raw Dashboard command, ``bring_up`` powers on and releases
-    the brakes, ``set_joints`` places the resting arm; ``add_object``, ``objects`` and
-    ``gripper`` place and report the simulated world's objects and the Hand-E.
+    the brakes, ``set_joints`` places the resting arm; ``add_object``, ``place_object``,
+    ``objects`` and ``gripper`` place and report the simulated world's objects and the
+    Hand-E; ``set_input`` plays a wired device; ``machine`` reports the fusion machine.
     """
 
     def __init__(self, time_scale: float, **options: Any) -> None:
@@ -90,6 +113,11 @@ class SimulatorHandle:
     def set_joints(self, q: Sequence[float]) -> None:
         self._sim.set_joints(q)
 
+    def push(self, delta: Sequence[float]) -> None:
+        """Guide the arm by hand while it is in freedrive: the TCP by (dx, dy, dz) m in the
+        base frame, or the joints by six deltas (rad)."""
+        embedded.push(self.host, delta)
+
     def gripper(self) -> dict[str, Any]:
         """The simulated Hand-E: registers, finger ``width`` (m), ``held`` object name."""
         return embedded.gripper_state(self.host)
@@ -112,6 +140,20 @@ class SimulatorHandle:
         embedded.add_object(
             self.host, name, kind, width=width, height=height, mass=mass, position=position
         )
+
+    def place_object(
+        self, name: str, kind: str, station: str, slot: str, contents: str | None = None
+    ) -> None:
+        """Put an object at a layout slot or move it there (see ``embedded.place_object``)."""
+        embedded.place_object(self.host, name, kind, station, slot, contents)
+
+    def set_input(self, signal: str, value: object) -> None:
+        """Set a controller input (``"DI5"``, ``"CI2"``, ``"TI0"``, ``"AI0"``, ``"TAI1"``)."""
+        embedded.set_input(self.host, signal, value)
+
+    def machine(self) -> dict[str, Any]:
+        """The simulated fusion machine's state (see ``fxcell.sim.fusion``)."""
+        return embedded.machine_state(self.host)
 
     def dashboard(self, command: str, timeout: float = 5.0) -> str:
         """Send one Dashboard command on a fresh connection; returns the reply line."""
@@ -184,6 +226,34 @@ def sim() -> Iterator[SimulatorHandle]:
     """A fresh simulator (time scale 0.05) for one test; stopped afterwards."""
     with simulator() as handle:
         yield handle
+
+
+@pytest_asyncio.fixture
+async def cell(sim: SimulatorHandle) -> AsyncIterator[Any]:
+    """A :class:`fxcell.Cell` on the ``sim`` fixture's simulator, initialised (powered on,
+    brakes released, external control running); closed afterwards."""
+    from fxcell.cell import Cell
+
+    async with Cell(host=sim.host) as c:
+        await c.init()
+        yield c
+
+
+@pytest.fixture
+def fake_robot() -> FakeRobot:
+    """An in-process simulated controller (time scale 0.05, 5x faster than real time)."""
+    return FakeRobot(time_scale=TEST_TIME_SCALE)
+
+
+@pytest_asyncio.fixture
+async def fake_cell(fake_robot: FakeRobot) -> AsyncIterator[Any]:
+    """A :class:`fxcell.Cell` on ``fake_robot`` (no simulator process), initialised (powered
+    on, brakes released, external control running); closed afterwards."""
+    from fxcell.cell import Cell
+
+    async with Cell(link_factory=fake_robot.link_factory, record=None) as c:
+        await c.init()
+        yield c
 
 
 URCAP_PORT = 50002

@@ -1,0 +1,127 @@
+"""Pick and place at the layout's slots: approach, descend straight, grip or release, rise.
+
+Everything that can be checked is checked before the arm moves: the station and slot names,
+the zone's interlock, the gripper's readiness and what it holds, and that the approach, grip
+and retreat poses have collision-free IK solutions on one arm configuration. Each step is a
+recorded command of its own (``move_pose``, ``gripper_close``, ...) inside the recorded
+``pick``/``place``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fxcell.errors import (
+    FxcellError,
+    GripperError,
+    HoldingError,
+    InterlockError,
+    NothingGraspedError,
+    UnreachableError,
+)
+from fxcell.layout import Station
+from fxcell.results import GripResult
+
+if TYPE_CHECKING:
+    from fxcell.cell.cell import Cell
+
+CLEARANCE = 0.012
+"""Finger opening beyond an object's width when approaching or releasing it (m)."""
+SAME_BRANCH = 0.6
+"""Largest joint change (rad) between the approach and grip solutions: a straight descent
+must not need a different arm configuration."""
+
+
+def check_interlock(cell: Cell, station: Station) -> None:
+    """Refuse a move into ``station`` while its zone's interlock signal is on."""
+    zone = station.config.zone
+    signal = cell.config.io.interlocks.get(zone) if zone else None
+    if signal is None:
+        return
+    if cell.io.get(signal):
+        raise InterlockError(
+            f"{station.name}: the {zone} zone is interlocked ({signal} is on); wait until it clears"
+        )
+
+
+def _precheck(cell: Cell, station: Station, slot: str) -> None:
+    """IK for approach, grip and retreat on one configuration, free of collision."""
+    planner = cell.motion.planner
+    q0 = np.asarray(cell._sample().actual_q, float)
+    what = f"{station.name} {slot}"
+    try:
+        q_above = planner.solve(station.approach_pose(slot), q0)
+        q_grip = planner.solve(station.grip_pose(slot), q_above)
+        q_retreat = planner.solve(station.retreat_pose(slot), q_grip)
+    except FxcellError as exc:
+        raise type(exc)(f"{what} cannot be reached: {exc}") from None
+    if max(np.abs(q_grip - q_above).max(), np.abs(q_retreat - q_grip).max()) > SAME_BRANCH:
+        raise UnreachableError(f"{what}: no straight descent on one arm configuration")
+
+
+async def pick(
+    cell: Cell,
+    station_name: str,
+    slot_name: str,
+    velocity_factor: float | None,
+    acceleration_factor: float | None,
+) -> GripResult:
+    station, slot = cell.layout.slot(station_name, slot_name)
+    check_interlock(cell, station)
+    if cell.held is not None:
+        raise HoldingError(
+            f"pick refused: the gripper holds a {cell.held}; place or release it first"
+        )
+    _precheck(cell, station, slot)
+    kind = station.kind
+    vf, af = velocity_factor, acceleration_factor
+    await cell.gripper_move(min(0.050, kind.width + CLEARANCE))
+    await cell.move_pose(station.approach_pose(slot), vf, af)
+    check_interlock(cell, station)
+    await cell.move_pose(station.grip_pose(slot), vf, af, linear=True)
+    try:
+        grip = await cell.gripper_close(expect_object=True)
+    except NothingGraspedError:
+        await cell.gripper_move(min(0.050, kind.width + CLEARANCE))
+        await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+        raise NothingGraspedError(
+            f"no {station.config.holds} detected in {station.name} slot {slot}"
+        ) from None
+    await cell._hold(station.config.holds)
+    await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+    try:
+        await cell.gripper.check_holding()
+    except GripperError:
+        await cell._hold(None)
+        raise
+    return grip
+
+
+async def place(
+    cell: Cell,
+    station_name: str,
+    slot_name: str,
+    velocity_factor: float | None,
+    acceleration_factor: float | None,
+) -> GripResult:
+    station, slot = cell.layout.slot(station_name, slot_name)
+    check_interlock(cell, station)
+    if cell.held is None:
+        raise HoldingError("place refused: the gripper holds nothing; pick an object first")
+    if cell.held != station.config.holds:
+        raise HoldingError(
+            f"place refused: {station.name} takes {station.config.holds}s, "
+            f"the gripper holds a {cell.held}"
+        )
+    _precheck(cell, station, slot)
+    vf, af = velocity_factor, acceleration_factor
+    await cell.move_pose(station.approach_pose(slot), vf, af)
+    check_interlock(cell, station)
+    await cell.gripper.check_holding()
+    await cell.move_pose(station.grip_pose(slot), vf, af, linear=True)
+    released = await cell.gripper_move(min(0.050, station.kind.width + CLEARANCE))
+    await cell._hold(None)
+    await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+    return released

@@ -1,0 +1,115 @@
+"""``cell.io``: the controller's IO by the names the configuration gives them.
+
+``io.signals`` in the configuration maps names to addresses (``machine_done: DI2``); task
+code uses only the names. Outputs are set through RTDE's IO recipe (ur_rtde's
+``RTDEIOInterface`` in the robot-link process) and confirmed on the state stream; inputs and
+outputs are read from the newest 500 Hz sample. Every set and wait is recorded like an arm
+command; the recorder also logs the IO bits on ``/robot/io`` whenever one changes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import TYPE_CHECKING
+
+from fxcell.errors import IOTimeoutError, RobotCommandError, UnknownSignalError
+from fxcell.signals import Signal, parse_signal
+
+if TYPE_CHECKING:
+    from fxcell.cell.cell import Cell
+
+Value = bool | float
+
+
+class CellIO:
+    """The configured IO signals of a :class:`~fxcell.cell.Cell` (``cell.io``)."""
+
+    def __init__(self, cell: Cell) -> None:
+        self._cell = cell
+        self._signals = {
+            name: parse_signal(address) for name, address in cell.config.io.signals.items()
+        }
+
+    @property
+    def names(self) -> list[str]:
+        """The configured signal names."""
+        return sorted(self._signals)
+
+    def signal(self, name: str) -> Signal:
+        """The signal called ``name``, or :class:`UnknownSignalError` listing the known ones."""
+        try:
+            return self._signals[name]
+        except (KeyError, TypeError):
+            known = ", ".join(self.names) or "none (configure io.signals)"
+            raise UnknownSignalError(f"no IO signal {name!r} (known: {known})") from None
+
+    def get(self, name: str) -> Value:
+        """The signal's value in the newest state sample (bool, or V/A for analog)."""
+        signal = self.signal(name)
+        return signal.read(self._cell._sample())
+
+    def snapshot(self) -> dict[str, Value]:
+        """Every configured signal's current value (empty while no state arrives)."""
+        sample = self._cell.robot_state
+        if sample is None:
+            return {}
+        return {name: s.read(sample) for name, s in sorted(self._signals.items())}
+
+    async def set(self, name: str, value: Value) -> None:
+        """Set output ``name`` (digital: true/false; analog: fraction 0..1 of its range);
+        returns once the controller reports a digital output changed."""
+        cell = self._cell
+        async with cell._command("io_set", signal=name, value=value):
+            signal = self.signal(name)
+            checked = signal.check_value(value)
+            cell.machine.check("io")
+            ok = await cell._link().call(
+                "set_output",
+                within=cell.command_timeout,
+                group=signal.group,
+                index=signal.index,
+                value=float(checked),
+            )
+            if not ok:
+                raise RobotCommandError(f"the controller refused to set {name} ({signal.address})")
+            if signal.digital:
+                await self._until(
+                    signal, checked, cell.command_timeout, f"{name} to become {checked}"
+                )
+
+    async def wait_for(self, name: str, value: Value, timeout: float) -> float:  # noqa: ASYNC109
+        """Wait until digital signal ``name`` reads ``value`` (or an analog one reaches at
+        least ``value``); returns the seconds waited, raises :class:`IOTimeoutError`."""
+        cell = self._cell
+        async with cell._command("io_wait_for", signal=name, value=value, timeout=timeout) as out:
+            signal = self.signal(name)
+            if not signal.digital and isinstance(value, bool):
+                raise UnknownSignalError(f"{name} ({signal.address}) is analog: wait for a number")
+            started = time.monotonic()
+            await self._until(signal, value, timeout, f"{name} to become {value}")
+            out["result"] = waited = time.monotonic() - started
+            return waited
+
+    async def _until(self, signal: Signal, value: Value, limit: float, what: str) -> None:
+        cell = self._cell
+
+        def reached() -> bool:
+            sample = cell.robot_state
+            if sample is None:
+                return False
+            got = signal.read(sample)
+            if signal.digital:
+                return got == bool(value)
+            return float(got) >= float(value)
+
+        if reached():
+            return
+        try:
+            async with asyncio.timeout(limit):
+                with cell.robot_states(maxsize=8) as states:
+                    async for _ in states:
+                        if reached():
+                            return
+        except TimeoutError:
+            raise IOTimeoutError(f"waited {limit:g} s for {what}") from None
