@@ -43,6 +43,7 @@ CONVERGED = 1e-12
 ACCEPTED = 1e-9
 """Pose error norm above which a refined branch is dropped (did not converge)."""
 _ITERATIONS = 20
+_PATIENT_ITERATIONS = 400  # Levenberg-Marquardt's, from far starts (rarely needed)
 _EDGE_STEPS = (0.005, 0.02)
 """Metres by which a target at the edge of the nominal workspace is moved to find starts."""
 _ROUNDING = 1e-11
@@ -142,10 +143,14 @@ class CalibratedKinematics(Kinematics):
 
     # ------------------------------------------------------------ inverse
 
-    def solve(self, q_nominal: ArrayLike, target: Pose) -> FloatArray | None:
+    def solve(
+        self, q_nominal: ArrayLike, target: Pose, *, patient: bool = False
+    ) -> FloatArray | None:
         """Refine a nominal solution onto the calibrated model; None if it does not converge
-        or leaves the joint limits (also after a 2π shift)."""
-        q, err = self._newton(np.array(_joints(q_nominal)), target)
+        or leaves the joint limits (also after a 2π shift). ``patient``: Levenberg-Marquardt
+        for many iterations instead of a few Newton steps (for starts far from a solution)."""
+        start = np.array(_joints(q_nominal))
+        q, err = self._marquardt(start, target) if patient else self._newton(start, target)
         if err > ACCEPTED:
             return None
         for j in range(6):
@@ -195,6 +200,16 @@ class CalibratedKinematics(Kinematics):
                 if q is not None and not any(np.max(np.abs(q - f)) < 1e-9 for f in found):
                     found.append(q)
                     yield q
+        if found:
+            return
+        # Near a wrist singularity at the edge of the workspace (e.g. the elbow folded) the
+        # nominal branches can be a tenth of a radian from the calibrated solution, where
+        # Newton's steps overshoot; damped steps get there (about 1 pose in 10^4).
+        for start in tried:
+            q = self.solve(start, target, patient=True)
+            if q is not None and not any(np.max(np.abs(q - f)) < 1e-9 for f in found):
+                found.append(q)
+                yield q
 
     def _start_groups(self, target: Pose, seed: FloatArray) -> Iterator[list[FloatArray]]:
         """Nominal solutions to start from, nearest ``seed`` first within each group: for the
@@ -341,6 +356,40 @@ class CalibratedKinematics(Kinematics):
                     break
                 lam = 1e-6 if lam == 0.0 else lam * 10.0
                 if lam > 1.0:
+                    break
+                if self.backend == "pinocchio":
+                    self._tcp_and_jacobian(q)  # keep Pinocchio's data at q
+        return q, norm
+
+    def _marquardt(self, q: FloatArray, target: Pose) -> tuple[FloatArray, float]:
+        """Levenberg-Marquardt (diagonal scaling) on the TCP pose error, for far starts."""
+        Rt, pt = target.rotation, target.position
+
+        def error(F: FloatArray) -> FloatArray:
+            return np.concatenate((pt - F[:3, 3], matrix_to_rotvec(Rt @ F[:3, :3].T)))
+
+        F, J = self._tcp_and_jacobian(q)
+        err = error(F)
+        norm = float(np.linalg.norm(err))
+        lam = 1e-4
+        for _ in range(_PATIENT_ITERATIONS):
+            if norm < CONVERGED:
+                break
+            A = J.T @ J
+            try:
+                step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), J.T @ err)
+            except np.linalg.LinAlgError:
+                break
+            trial = q + step
+            F, J_trial = self._tcp_and_jacobian(trial)
+            trial_err = error(F)
+            trial_norm = float(np.linalg.norm(trial_err))
+            if trial_norm < norm:
+                q, J, err, norm = trial, J_trial, trial_err, trial_norm
+                lam = max(lam / 3.0, 1e-12)
+            else:
+                lam *= 4.0
+                if lam > 1e8:
                     break
                 if self.backend == "pinocchio":
                     self._tcp_and_jacobian(q)  # keep Pinocchio's data at q
