@@ -206,3 +206,37 @@ async def test_a_missing_crucible_pauses_the_run_naming_the_slot(
             await cell.job_discard()
     finally:
         daemon.stop()
+
+
+SIXTEEN = {
+    "name": "sixteen samples",
+    "samples": [
+        {"id": f"S{i + 1:02d}", "rack": slot, "machine": f"A{i % 4 + 1}", "tray": slot}
+        for i, slot in enumerate(f"{row}{col}" for row in "ABCD" for col in range(1, 5))
+    ],
+}
+
+
+@pytest.mark.long
+@pytest.mark.timeout(1800)
+async def test_a_sixteen_sample_run_ends_with_every_bead_on_the_tray(tmp_path: Path) -> None:
+    # Four fusion cycles: 10-15 min of robot time, hence `long` (./dev test -m long).
+    args = ["--fusion-time", "20", "--cooling-time", "10", "--crucibles", "16"]
+    with simulator(time_scale=0.05, extra_args=args) as world:
+        config = write_config(tmp_path, world.host)
+        daemon = await asyncio.to_thread(start_daemon, config)
+        try:
+            async with RemoteCell(daemon.url, TOKEN, name="operator") as cell:
+                await cell.init()
+                await cell.gripper_activate()
+                await cell.job_start(SIXTEEN)
+                done = await job_state(cell, "done", "fault", "paused", within=1500)
+                assert done["state"] == "done", (done, daemon.output[-15:])
+            objects = await asyncio.to_thread(world.objects)
+            for sample in SIXTEEN["samples"]:
+                crucible = objects[f"crucible-{sample['rack']}"]
+                bead = objects[f"crucible-{sample['rack']}.bead"]
+                assert place_of(crucible) == location("rack", sample["rack"]), sample
+                assert place_of(bead) == location("tray", sample["tray"]), sample
+        finally:
+            daemon.stop()
