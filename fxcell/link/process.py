@@ -310,6 +310,8 @@ class Link:
                 return
             request_id, method, kwargs = item
             try:
+                if method not in ("dashboard", "ping"):
+                    self._after_trajectory()
                 value = getattr(self, f"call_{method}")(**kwargs)
             except CallError as exc:
                 self.send(wire.REPLY, request_id, False, (exc.kind, str(exc)))
@@ -512,6 +514,18 @@ class Link:
 
     # -- trajectories
 
+    def _after_trajectory(self) -> None:
+        """Wait for a trajectory that has reported its end to leave servo mode, so that a
+        call never uses the control interface at the same time as its servoStop."""
+        with self._traj_lock:
+            traj = self._traj
+        if (
+            traj is not None
+            and traj.ended.is_set()
+            and traj.thread is not threading.current_thread()
+        ):
+            traj.thread.join(5.0)
+
     def _start_trajectory(
         self,
         traj_id: int,
@@ -621,6 +635,7 @@ class _Trajectory:
         self._lock = threading.Lock()
         self._replacement: tuple[wire.Samples, int | None] | None = None
         self._stop_reason: str | None = None
+        self.ended = threading.Event()  # the end is reported; servo mode is being left
         self.thread = threading.Thread(target=self._run, name=f"trajectory-{traj_id}", daemon=True)
 
     def replace(self, samples: wire.Samples, at_index: int | None = None) -> None:
@@ -668,10 +683,12 @@ class _Trajectory:
                         why = self._abort_reason(now)
                         if why is not None:
                             velocity = _velocity(samples, u) if u < len(samples) else (0.0,) * 6
-                            duration = brake_duration(velocity, self.guard)
-                            braking = (why, now, duration)
                             if max(map(abs, velocity)) > 0:  # not a stop at the target
+                                duration = brake_duration(velocity, self.guard)
                                 link.send(wire.LOG, logging.WARNING, f"braking to rest: {why}")
+                            else:  # holding the target: nothing to brake
+                                duration = 0.0
+                            braking = (why, now, duration)
                     with self._lock:
                         replacement, self._replacement = self._replacement, None
                     if replacement is not None:
@@ -734,9 +751,10 @@ class _Trajectory:
                     seen = link.next_sample(seen, 1.5 * CONTROL_PERIOD)
             except Exception as exc:
                 status, reason = "failed", f"link_error: {exc}"
-            with contextlib.suppress(Exception):
-                c.servoStop()
         state = link.latest
+        # The end is reported before servo mode is left (a controller round trip): the
+        # setpoints have stopped, and the next call that needs the control interface
+        # waits for this thread first (Link._after_trajectory).
         link.send(
             wire.TRAJ,
             self.id,
@@ -750,6 +768,10 @@ class _Trajectory:
                 "duration": time.monotonic() - started,
             },
         )
+        self.ended.set()
+        if c is not None:
+            with contextlib.suppress(Exception):
+                c.servoStop()
         with link._traj_lock:
             if link._traj is self:
                 link._traj = None
