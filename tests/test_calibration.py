@@ -239,6 +239,27 @@ def test_a_folded_elbow_near_the_wrist_singularity_is_still_solved() -> None:
     assert da < 1e-9
 
 
+def test_a_stretched_arm_at_the_wrist_singularity_is_solved_from_the_seed() -> None:
+    # No nominal branch at all (stretched, θ5 = 0.003): damped steps from the seed reach a
+    # solution with joints beyond one turn, brought back within the limits.
+    c = Calibration(
+        (0.000267667, -0.000277023, -0.001623705, -0.000607682, 0.000486036, -0.00191338),
+        (0.00149853, 0.001416198, -0.001822783, 0.001209684, -0.001260819, 0.000782496),
+        (-0.001379999, 0.000766479, 0.001834535, 0.00193994, 0.000653181, -0.001345647),
+        (-0.000420357, -0.000888019, 0.001822679, -0.00080262, 0.000244308, -0.000370539),
+    )
+    k = CalibratedKinematics(c, (-0.00025, 0.00245, 0.14789, 0.0, 0.0, -1.5708))
+    q = np.array([1.398751247, -2.185414468, 6.227656854, -1.483628873, -6.280610688, 2.627837364])
+    target = k.forward(q)
+    solution = k.inverse(
+        target, [5.37326608, -0.584512834, 3.866616771, -2.121708, -0.53296, -2.0209]
+    )
+    dp, da = _pose_error(k, solution, target)
+    assert dp < 1e-9
+    assert da < 1e-9
+    assert np.all(np.abs(solution) <= 2 * math.pi)
+
+
 def test_nominal_inverse_on_a_calibrated_arm_misses_by_millimetres() -> None:
     c = Calibration.parse_conf(UR_CONF)
     k = CalibratedKinematics(c, TCP)

@@ -147,7 +147,7 @@ class CalibratedKinematics(Kinematics):
         self, q_nominal: ArrayLike, target: Pose, *, patient: bool = False
     ) -> FloatArray | None:
         """Refine a nominal solution onto the calibrated model; None if it does not converge
-        or leaves the joint limits (also after a 2π shift). ``patient``: Levenberg-Marquardt
+        or leaves the joint limits (also after shifts by 2π). ``patient``: Levenberg-Marquardt
         for many iterations instead of a few Newton steps (for starts far from a solution)."""
         start = np.array(_joints(q_nominal))
         q, err = self._marquardt(start, target) if patient else self._newton(start, target)
@@ -156,9 +156,9 @@ class CalibratedKinematics(Kinematics):
         for j in range(6):
             v = float(q[j])
             if v < self.lower[j]:
-                v += TWO_PI
+                v += TWO_PI * math.ceil((self.lower[j] - v) / TWO_PI)
             elif v > self.upper[j]:
-                v -= TWO_PI
+                v -= TWO_PI * math.ceil((v - self.upper[j]) / TWO_PI)
             if not self.lower[j] <= v <= self.upper[j]:
                 return None
             q[j] = v
