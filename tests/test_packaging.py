@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import sysconfig
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -112,15 +113,29 @@ def test_cell_commands_of_the_light_client_say_what_to_install(
 def test_a_full_install_runs_info_and_a_daemon_from_any_directory(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> None:
-    # config/ and statecharts/ ship inside the wheel: nothing is read from this checkout
+    # config/ and statecharts/ ship inside the wheel: nothing is read from this checkout.
+    # fxcell itself is a real (non-editable) install; its dependencies are this environment's,
+    # reached through a .pth file (copying pinocchio and the rest again took 1-2 min).
     venv = tmp_path_factory.mktemp("full") / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
+    python = str(venv / "bin" / "python")
+    site = subprocess.run(
+        [python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True, text=True, check=True, timeout=60,
+    ).stdout.strip()  # fmt: skip
+    deps = sorted({sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]})
+    # addsitedir, so that their own .pth files (cmeel's prefix for pinocchio and coal) count
+    (Path(site) / "fxcell-test-deps.pth").write_text(
+        "".join(f"import site; site.addsitedir({d!r})\n" for d in deps)
+    )
     out = subprocess.run(
-        [str(venv / "bin" / "python"), "-m", "pip", "install", "-q",
-         "--disable-pip-version-check", f"{ROOT}[cell]"],
+        [python, "-m", "pip", "install", "-q", "--no-deps", "--disable-pip-version-check",
+         str(ROOT)],
         capture_output=True, text=True, timeout=900, check=False,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr[-3000:]
+    where = _run(venv, "python", "-c", "import fxcell; print(fxcell.__file__)", cwd=venv)
+    assert where.stdout.startswith(site), where.stdout  # the wheel's copy, not this checkout
     elsewhere = tmp_path_factory.mktemp("elsewhere")
     out = _run(venv, "fxcell", "info", cwd=elsewhere)
     assert out.returncode == 0, out.stderr
