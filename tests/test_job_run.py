@@ -344,6 +344,10 @@ async def test_a_cell_fault_mid_place_faults_and_resume_asks_where_the_crucible_
     assert bench.job.message == (
         "place the crucible of sample S1 in machine position A1 failed: protective stop"
     )
+    # the fault itself asks (the operator's page shows it before anyone tries to resume)
+    (question,) = bench.job.status()["questions"]
+    assert question["id"] == "S1/crucible"
+    assert any(e["event"] == "question" for e in bench.events)
     with pytest.raises(JobAnswerError, match="answer first: The crucible of sample S1"):
         await bench.job.resume()
     await bench.job.resume({"S1/crucible": "gripper"})

@@ -643,8 +643,10 @@ class Job:
         detail: str = "",
         trigger: str | None = None,
         message: str = "",
+        fire: bool = True,
     ) -> None:
-        """Record the step's end with its changes and the state ``trigger`` leads to."""
+        """Record the step's end with its changes and the state ``trigger`` leads to (in one
+        transaction); ``fire=False`` leaves firing ``trigger`` in memory to the caller."""
         assert self.run is not None
         duration = None if started is None else time.monotonic() - started
         state = None if trigger is None else (self._dest(trigger), message)
@@ -683,7 +685,7 @@ class Job:
                 "moved": moved,
             }
         )
-        if trigger is not None:
+        if trigger is not None and fire:
             self._fire(trigger, message)
 
     async def _move(self, step: Step) -> bool:
@@ -720,14 +722,22 @@ class Job:
         except Exception as exc:
             if not isinstance(exc, FxcellError):
                 log.exception("job step %s failed", step.kind)
+            message = f"{step.describe(self.run) if self.run else step.kind} failed: {exc}"
             await self._end(
                 step_id,
                 step,
                 "interrupted",
                 detail=str(exc),
                 trigger="fail",
-                message=f"{step.describe(self.run) if self.run else step.kind} failed: {exc}",
+                message=message,
+                fire=False,
             )
+            # where is the object now? asked before the fault shows, so that it carries
+            # the question (the operator sees it before trying to resume)
+            assert self.run_id is not None
+            self._analyse(await self._db(self.store.steps, self.run_id))
+            self._fire("fail", message)
+            self._announce_questions()
             return False
         change = Change((step.idx, step.obj), step.source, step.dest)
         await self._end(step_id, step, "done", [change], started=started)
