@@ -13,10 +13,12 @@ from pathlib import Path
 import httpx
 import pytest
 
+from fxcell import errors
 from fxcell.config import CellConfig
 from fxcell.daemon.app import create_app
 from fxcell.daemon.auth import TOKEN_ENV, check_bearer, load_or_create_token, read_token
 from fxcell.daemon.control import ControlLock
+from fxcell.daemon.encoding import http_status
 from fxcell.daemon.notify import Notifier
 from fxcell.daemon.server import check_bind, is_loopback
 from fxcell.daemon.service import CellService
@@ -492,3 +494,19 @@ async def test_an_unknown_operation_is_404(http: httpx.AsyncClient) -> None:
     r = await http.post("/api/operations/op-999/wait")
     assert r.status_code == 404
     assert r.json()["error"]["type"] == "RemoteError"
+
+
+@pytest.mark.parametrize(
+    ("error", "status"),
+    [
+        (errors.JobAnswerError("answer first"), 422),
+        (errors.JobStateError("resume", "running", ("paused", "fault")), 409),
+        (errors.JobSpecError("no such slot"), 422),
+        (errors.JobError("run 3 is unfinished"), 409),
+        (errors.MachineError("the fusion machine reports an error"), 502),
+        (errors.JobStoreError("unreadable"), 500),
+    ],
+)
+def test_job_errors_answer_with_their_own_http_status(error: Exception, status: int) -> None:
+    # a wrong answer or a refused job command is the client's doing: never a 500
+    assert http_status(error) == status

@@ -23,6 +23,11 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.RobotTimeoutError, 504),
     (errors.ConnectionLostError, 503),
     (errors.RobotCommandError, 502),
+    (errors.JobStateError, 409),
+    (errors.JobAnswerError, 422),
+    (errors.MachineError, 502),
+    (errors.JobStoreError, 500),  # the job database is unreadable: the daemon's fault
+    (errors.JobError, 409),  # e.g. an unfinished run blocks a new one
     (errors.FxcellError, 500),
 )
 _DETAIL_ATTRS = ("command", "state", "allowed", "next_step", "remaining", "failures")
