@@ -207,6 +207,32 @@ async def test_abort_mid_pick_brakes_and_asks_where_the_crucible_is(bench: Bench
     assert outcomes == ["aborted", "done"]
 
 
+async def test_a_failed_home_after_an_answer_asks_again_with_the_fault(
+    bench: Bench, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    bench.cell.gate = asyncio.Event()
+    await bench.job.start(bench.run)
+    await asyncio.wait_for(bench.cell.in_step.wait(), TIMEOUT)
+    await bench.job.abort()
+    bench.cell.gate = None
+    home = bench.cell.go_home
+
+    async def stopped() -> None:
+        monkeypatch.setattr(bench.cell, "go_home", home)
+        raise ProtectiveStopError("protective stop")
+
+    monkeypatch.setattr(bench.cell, "go_home", stopped)
+    await bench.job.resume({"S1/crucible": "rack:A1"})
+    assert await bench.until("fault", "done") == "fault"
+    assert bench.job.message.startswith("going home after the interruption failed")
+    # the step is still unsettled: the fault shows the question that resume will ask
+    (question,) = bench.job.status()["questions"]
+    assert question["id"] == "S1/crucible"
+    await bench.job.resume({"S1/crucible": "rack:A1"})
+    assert await bench.until("done", "fault", "paused") == "done"
+    bench.assert_finished()
+
+
 async def test_a_machine_error_while_fusing_faults_and_resume_waits_again(store: JobStore) -> None:
     b = Bench(store, 2, fusion_time=0.3)
     await b.job.start(b.run)

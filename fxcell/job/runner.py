@@ -599,7 +599,11 @@ class Job:
 
     async def _fault_now(self, message: str) -> None:
         await self._db(self._set_state_now, self._dest("fail"), message)
+        # what resume will ask (an earlier interruption not settled yet), shown with the fault
+        assert self.run_id is not None
+        self._analyse(await self._db(self.store.steps, self.run_id))
         self._fire("fail", message)
+        self._announce_questions()
 
     async def _step(self, step: Step) -> bool:
         if not self.config.manual and self.cell.io.get(ERROR):
