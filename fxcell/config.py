@@ -61,9 +61,9 @@ class RobotConfig(_Model):
     reconnect_backoff_max: float = Field(5.0, gt=0)
     heartbeat_timeout: float = Field(0.1, ge=0.02, le=1.0)
     """The link process brakes a running move by itself when it has heard nothing from
-    the cell for this long (s): the cell beats every 10 ms while a move runs. 0.05 suits a
-    dedicated cell computer; the default leaves room for a busy one, whose event loop can
-    lag by 45 ms."""
+    the cell for this long (s): a thread of the cell process beats every 10 ms while a move
+    runs and its event loop has run within the last 0.5 s (a frozen process is caught
+    within this timeout, a stalled loop within 0.5 s, a late loop never)."""
     stall_timeout: float = Field(0.08, ge=0.01, le=0.09)
     """... and when no robot state has arrived for this long (s); below the 100 ms after
     which the cell declares the link down."""

@@ -19,6 +19,7 @@ import pytest
 import websockets
 
 from fxcell.daemon.process import DaemonProcess
+from fxcell.testing import simulator
 
 TOKEN = "e2e-test-token-0123456789abcdef"
 CONFIG = "robot:\n  host: null\ndaemon:\n  token_file: {token_file}\n"
@@ -654,3 +655,40 @@ def test_no_simulator_refuses_to_start_without_a_robot_host(tmp_path: Path) -> N
     )  # fmt: skip
     assert out.returncode == 1
     assert "no robot host configured" in out.stderr
+
+
+def test_a_frozen_daemon_leaves_no_arm_moving(tmp_path: Path) -> None:
+    # SIGSTOP freezes the cell process, the thread that beats to the link included; the
+    # link process (its own process group) brakes by itself within the beat timeout.
+    with simulator() as sim:
+        config = tmp_path / "cell.yaml"
+        config.write_text(
+            f"robot:\n  host: {sim.host}\ndaemon:\n  token_file: {tmp_path / 'token'}\n"
+        )
+        with DaemonProcess.start(config, token=TOKEN, extra_args=("--no-record",)) as daemon:
+            daemon.wait_connected()
+            with httpx.Client(base_url=daemon.url, timeout=30) as http:
+                r = http.post("/api/cell/init", headers=headers())
+                assert r.status_code == 200, r.text
+                lease = {"X-Fxcell-Lease": r.headers["X-Fxcell-Lease"]}
+                q = sim.state()["q"]
+                target = [q[0] + 2.0, *q[1:]]
+                r = http.post(
+                    "/api/cell/move_joint",
+                    json={"target": target, "velocity_factor": 0.5},
+                    headers={**headers(), **lease},
+                )
+                assert r.status_code == 202, r.text
+            deadline = time.monotonic() + 10
+            while abs(sim.state()["qd"][0]) < 0.3:
+                assert time.monotonic() < deadline, "the move did not reach speed"
+                time.sleep(0.01)
+            daemon.proc.send_signal(signal.SIGSTOP)
+            try:
+                deadline = time.monotonic() + 2.0
+                while max(map(abs, sim.state()["qd"])) > 1e-6:  # the daemon is still frozen
+                    assert time.monotonic() < deadline, "the arm went on moving"
+                    time.sleep(0.01)
+                assert abs(sim.state()["q"][0] - target[0]) > 0.3  # braked, not arrived
+            finally:
+                daemon.proc.send_signal(signal.SIGCONT)

@@ -18,7 +18,13 @@ import pytest
 from fxcell.cell import Cell
 from fxcell.cell.statemachine import CellState
 from fxcell.config import CellConfig
-from fxcell.errors import ConnectionLostError, InvalidStateError, NotInRemoteControlError
+from fxcell.errors import (
+    ConnectionLostError,
+    InvalidStateError,
+    MoveStoppedError,
+    NotInRemoteControlError,
+)
+from fxcell.link.client import LOOP_STALL_AFTER
 from fxcell.link.process import Guard, brake_duration
 from fxcell.testing import SimulatorHandle, simulator
 
@@ -100,6 +106,36 @@ async def test_a_stalled_state_stream_brakes_the_move_before_its_caller_hears(
         )
     # the hole in the state stream is on record (the recorder keeps fxcell's log records)
     assert any("state stream gap" in r.getMessage() for r in caplog.records)
+
+
+async def test_a_late_event_loop_does_not_stop_a_healthy_move(shared: SimulatorHandle) -> None:
+    # 300 ms without the loop (a busy machine, a long callback) is three beat timeouts: the
+    # beats come from a thread, so the link process keeps streaming and the move arrives.
+    async with ready_cell(shared) as cell:
+        move = asyncio.create_task(cell.move_joint(FAR))
+        await _moving(cell)
+        time.sleep(0.3)  # noqa: ASYNC251 (blocks this event loop on purpose)
+        result = await move
+        assert not result.stopped
+        assert result.joint_error < 1e-3
+
+
+async def test_an_event_loop_stalled_for_long_brakes_the_move_by_itself(
+    shared: SimulatorHandle,
+) -> None:
+    # Nothing supervises a move while the loop stands still: after LOOP_STALL_AFTER the
+    # beats stop and the link process brakes, with the cell still frozen.
+    async with ready_cell(shared) as cell:
+        move = asyncio.create_task(cell.move_joint(FAR))
+        await _moving(cell)
+        q_at_stall = np.array(shared.state()["q"])
+        time.sleep(LOOP_STALL_AFTER + 1.0)  # noqa: ASYNC251 (blocks the loop on purpose)
+        assert _sim_motion(shared, 0.05) < 1e-4  # at rest before the loop ran again
+        travelled = float(np.max(np.abs(np.array(shared.state()["q"]) - q_at_stall)))
+        assert travelled < 1.0, f"the arm went on for {travelled:.3f} rad"
+        assert abs(shared.state()["q"][0] - FAR[0]) > 0.5
+        with pytest.raises(MoveStoppedError, match="stopped"):
+            await move
 
 
 async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandle) -> None:

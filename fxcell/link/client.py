@@ -9,9 +9,13 @@ is gone), or when the process has sent nothing at all for 300 ms (it hangs). Jud
 state stream by the link process's clock keeps a busy event loop, which reads the
 samples late, from ever taking a healthy link for a dead one.
 
-While a trajectory runs, the client beats every 10 ms; the link process brakes the
-trajectory to rest by itself when the beats stop (see :mod:`fxcell.link.process`). A
-link that goes down with a trajectory running is told to brake at once.
+While a trajectory runs, a thread of this process beats every 10 ms on a channel of its
+own; the link process brakes the trajectory to rest by itself when the beats stop (see
+:mod:`fxcell.link.process`). The thread beats only while the event loop has run within
+LOOP_STALL_AFTER, so a frozen or hung process is caught within the beat timeout (100 ms)
+and a stalled loop within LOOP_STALL_AFTER, while a loop that is merely late on a busy
+machine never brakes a healthy move. A link that goes down with a trajectory running is
+told to brake at once.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import logging
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
@@ -58,6 +63,9 @@ MUTE_AFTER = 0.3
 """Seconds without any message from the link process after which the link counts as down."""
 BEAT_PERIOD = 0.01
 """Seconds between two beats to the link process while a trajectory runs."""
+LOOP_STALL_AFTER = 0.5
+"""Seconds the event loop may go without running before the beats stop (and the link
+process brakes): nothing supervises a move while the loop stands still."""
 GAP_REPORT = 0.02
 """A pause of the state stream longer than this (controller time, s) is logged as a gap."""
 HOLD_STALE_AFTER = 8.0
@@ -333,6 +341,7 @@ class LinkClient:
         self._last_message = 0.0  # time.monotonic() of the newest message of any kind
         self._link_fresh = 0.0  # time.monotonic() (system-wide) of the link's newest sample
         self._last_timestamp: float | None = None  # controller time of the newest sample
+        self._loop_ran = 0.0  # time.monotonic() when the event loop last ran the beat task
         self.gaps = 0
         """State-stream gaps seen (each logged as a warning, so recorded in the MCAP /log)."""
         self._status_changed = asyncio.Event()
@@ -436,6 +445,7 @@ class LinkClient:
 
     async def _run_once(self) -> None:
         parent, child = socket.socketpair()
+        beats, beats_child = socket.socketpair()
         try:
             # Plain Popen, reaped in _kill: the link's death is seen on the socket, so no
             # asyncio child watcher is needed. Forking from a thread keeps the loop free.
@@ -456,8 +466,10 @@ class LinkClient:
                         str(self.urcap_port),
                         "--receiver",
                         self.receiver,
+                        "--beat-fd",
+                        str(beats_child.fileno()),
                     ],
-                    pass_fds=(child.fileno(),),
+                    pass_fds=(child.fileno(), beats_child.fileno()),
                     stdin=subprocess.DEVNULL,
                     # its own process group: a Ctrl-C in the terminal reaches only the
                     # owner, which brakes the arm and then stops the link itself
@@ -478,15 +490,23 @@ class LinkClient:
             transport, _ = await loop.create_connection(lambda: protocol, sock=parent)
         except BaseException:
             parent.close()  # cancelled or failed before the transport took it over
+            beats.close()
             raise
         finally:
             child.close()
+            beats_child.close()
         self._writer = transport
         self._hold = False  # the watchdog starts with the first sample (status UP)
         self._last_sample = self._last_message = self._link_fresh = time.monotonic()
         self._last_timestamp = None
         watchdog = asyncio.create_task(self._watchdog(), name="link watchdog")
+        self._loop_ran = time.monotonic()
         beat = asyncio.create_task(self._beat(), name="link beat")
+        beating = threading.Event()
+        beater = threading.Thread(
+            target=self._beat_thread, args=(beats, beating), name="fxcell link beats", daemon=True
+        )
+        beater.start()
         try:
             try:
                 async with asyncio.timeout(self.connect_timeout):
@@ -507,6 +527,8 @@ class LinkClient:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
+            beating.set()  # the beat thread ends within BEAT_PERIOD and closes its channel
+            await asyncio.to_thread(beater.join, 1.0)
             transport.close()
             self._writer = None
 
@@ -557,11 +579,28 @@ class LinkClient:
         self._set_status(LinkStatus.DOWN, reason)
 
     async def _beat(self) -> None:
-        """Tell the link process every BEAT_PERIOD that this side lives (while moving)."""
+        """Say every BEAT_PERIOD that the event loop runs (the beat thread reads it)."""
         while True:
             await asyncio.sleep(BEAT_PERIOD)
-            if self._trajectories:
-                self._send_safety(wire.BEAT)
+            self._loop_ran = time.monotonic()
+
+    def _beat_thread(self, channel: socket.socket, done: threading.Event) -> None:
+        """Beat every BEAT_PERIOD while a trajectory runs and the loop has run lately.
+
+        A thread, not a task: a late event loop (a busy machine, a long callback) must not
+        brake a healthy move; a frozen process, or a loop stalled for LOOP_STALL_AFTER,
+        must. Only the trajectory count and a timestamp are read here, without locks.
+        """
+        channel.setblocking(False)
+        with channel:
+            while not done.wait(BEAT_PERIOD):
+                if self._trajectories and time.monotonic() - self._loop_ran < LOOP_STALL_AFTER:
+                    try:
+                        channel.send(b"b")
+                    except BlockingIOError:
+                        pass  # the link process is behind: its buffer holds beats enough
+                    except OSError:
+                        return
 
     async def _kill(self) -> None:
         process, self._process = self._process, None

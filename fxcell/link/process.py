@@ -90,6 +90,8 @@ class Link:
         self._tick = threading.Condition()
         self._samples = 0  # state samples received (the controller's clock)
         self.last_heard = time.monotonic()  # ... and of the newest message from the client
+        # the client's beat channel (one byte per beat, from a thread of the client process)
+        self.beats = socket.socket(fileno=args.beat_fd) if args.beat_fd is not None else None
 
     # -- sending
 
@@ -138,6 +140,8 @@ class Link:
             threading.Thread(target=self._reader, name="reader", daemon=True),
             threading.Thread(target=self._pulse, name="pulse", daemon=True),
         ]
+        if self.beats is not None:
+            threads.append(threading.Thread(target=self._beats, name="beats", daemon=True))
         for t in threads:
             t.start()
         self._stop.wait()
@@ -153,6 +157,18 @@ class Link:
         """Every 10 ms: this process lives, and when its newest state sample came."""
         while not self._stop.wait(PULSE_PERIOD):
             self.send(wire.PULSE, time.monotonic(), self.last_state_at)
+
+    def _beats(self) -> None:
+        """Each byte on the beat channel: the client process lives and its loop is not stalled."""
+        assert self.beats is not None
+        while not self._stop.is_set():
+            try:
+                data = self.beats.recv(64)
+            except OSError:
+                return
+            if not data:
+                return  # the client closed it (or died: its main socket says so too)
+            self.last_heard = time.monotonic()
 
     # -- reader
 
@@ -797,6 +813,7 @@ def _settled(state: RobotState, target: tuple[float, ...]) -> bool:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m fxcell.link.process")
     parser.add_argument("--fd", type=int, required=True)
+    parser.add_argument("--beat-fd", type=int, default=None)
     parser.add_argument("--host", required=True)
     parser.add_argument("--frequency", type=float, default=500.0)
     parser.add_argument("--timeout", type=float, default=2.0)

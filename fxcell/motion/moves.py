@@ -631,12 +631,15 @@ class MoveExecution:
                             self._settled_at = state.received_at
                             self._settled = True
                         return state
+                waiting_since = time.monotonic()
                 try:
                     async with asyncio.timeout(0.25):
                         state = await states.__anext__()
                 except TimeoutError:
                     if handle.done:
                         return state if state is not None else RobotState()
+                    if time.monotonic() - waiting_since > 0.3:
+                        continue  # this loop was held up, not the robot: read what came
                     raise ConnectionLostError("no robot state for 0.25 s during a move") from None
 
     def _track(self, handle: TrajectoryRun, state: RobotState) -> None:
