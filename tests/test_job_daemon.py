@@ -119,7 +119,7 @@ async def answer_and_resume(
 
 
 def _rack_slot(sample: str) -> str:
-    return next(s["rack"] for s in RUN["samples"] if s["id"] == sample)
+    return next(s["rack"] for s in RUN["samples"] + SIXTEEN["samples"] if s["id"] == sample)
 
 
 async def kill_during(daemon: DaemonProcess, step_prefix: str, nth: int = 0) -> str:
@@ -230,8 +230,17 @@ async def test_a_sixteen_sample_run_ends_with_every_bead_on_the_tray(tmp_path: P
                 await cell.init()
                 await cell.gripper_activate()
                 await cell.job_start(SIXTEEN)
-                done = await job_state(cell, "done", "fault", "paused", within=1500)
-                assert done["state"] == "done", (done, daemon.output[-15:])
+                faults = []
+                while (done := await job_state(cell, "done", "fault", "paused", within=1500))[
+                    "state"
+                ] != "done":
+                    # as in the two-sample run: a step the cell stopped (a busy machine)
+                    # is answered and resumed by the operator; nothing may be lost
+                    faults.append(done["message"])
+                    print("fault:", done["message"], *daemon.output[-8:], sep="\n  ")
+                    assert len(faults) <= 3, (faults, daemon.output[-15:])
+                    await answer_and_resume(cell, world, done)
+            print(f"steps stopped and resumed by the operator: {faults}")
             objects = await asyncio.to_thread(world.objects)
             for sample in SIXTEEN["samples"]:
                 crucible = objects[f"crucible-{sample['rack']}"]
