@@ -23,6 +23,10 @@ if os.environ.get("CI") and os.environ.get("FXCELL_HYPOTHESIS") != "explore":
 # Taught positions and job databases of the shipped config go to a scratch directory, never
 # to the developer's ~/.local/state/fxcell (subprocesses such as the daemon inherit it).
 os.environ["FXCELL_STATE_DIR"] = tempfile.mkdtemp(prefix="fxcell-test-state-")
+# Simulators keep their 2 ms cycle on a busy machine as a real controller does (SCHED_FIFO
+# where permitted, else reniced): a starved simulator pausing its state stream for 100 ms
+# made the cell declare the robot disconnected mid-test under load.
+os.environ.setdefault("FXCELL_SIM_PRIORITY", "realtime")
 
 
 # ----------------------------------------------------------------- system tests

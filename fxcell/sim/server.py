@@ -709,7 +709,9 @@ class SimServer:
 
 PRIORITY_ENV = "FXCELL_SIM_PRIORITY"
 """Set to ``normal`` to keep the simulator at its parent's priority (benchmarks comparing
-it with a peer at equal priority); anything else leaves the default (raised)."""
+it with a peer at equal priority), to ``realtime`` to ask for SCHED_FIFO as ``--realtime``
+does (the test suite: a real controller keeps its 2 ms cycle whatever the PC does);
+anything else leaves the default (reniced)."""
 
 
 def _raise_priority(realtime: bool = False, nice: int = -5) -> None:
@@ -719,9 +721,10 @@ def _raise_priority(realtime: bool = False, nice: int = -5) -> None:
     real-time tasks at 95 % of a core); else the process is reniced. Nothing is changed
     when the environment sets ``FXCELL_SIM_PRIORITY=normal``.
     """
-    if os.environ.get(PRIORITY_ENV, "").strip().lower() == "normal":
+    mode = os.environ.get(PRIORITY_ENV, "").strip().lower()
+    if mode == "normal":
         return
-    if realtime:
+    if realtime or mode == "realtime":
         with contextlib.suppress(OSError, AttributeError):
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
             return
