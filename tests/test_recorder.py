@@ -9,6 +9,7 @@ import threading
 import time
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
+from dataclasses import fields
 from pathlib import Path
 from typing import IO, Any
 
@@ -26,7 +27,12 @@ from fxcell.motion.kinematics import Kinematics
 from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.recorder import Recorder, is_finished, recover, topics
 from fxcell.recorder.frames import JOINTS, LinkFrames
-from fxcell.recorder.protobuf import decode_robot_state, encode_robot_state, robot_state_schema
+from fxcell.recorder.protobuf import (
+    _decode_robot_state_general,
+    decode_robot_state,
+    encode_robot_state,
+    robot_state_schema,
+)
 from fxcell.recorder.synthetic import SyntheticSession, play
 
 TCP = (-0.00025, 0.00245, 0.14789, 0.0, 0.0, -1.5708)
@@ -198,6 +204,29 @@ states = st.builds(
 @given(states)
 def test_robot_state_protobuf_round_trips(state: RobotState) -> None:
     assert decode_robot_state(encode_robot_state(state)) == state
+
+
+mode_values = st.one_of(
+    st.sampled_from([*RobotMode, *SafetyMode, *RuntimeState]).map(int),
+    st.integers(-(2**31), 2**31 - 1),  # values no enum knows stay plain ints
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(states, st.tuples(mode_values, mode_values, mode_values))
+def test_robot_state_fast_decode_matches_the_general_one(
+    state: RobotState, modes: tuple[int, int, int]
+) -> None:
+    state.robot_mode, state.safety_mode, state.runtime_state = modes  # type: ignore[assignment]
+    data = encode_robot_state(state)
+    general = _decode_robot_state_general(data)
+    assert general == state
+    for _ in range(2):  # the second time from the cache of enum prefixes
+        for payload in (data, memoryview(data), bytearray(data)):
+            fast = decode_robot_state(payload)  # type: ignore[arg-type]
+            assert fast == general
+            for f in fields(RobotState):  # an enum stays an enum, an int an int
+                assert type(getattr(fast, f.name)) is type(getattr(general, f.name)), f.name
 
 
 def test_robot_state_schema_parses_with_protobuf() -> None:

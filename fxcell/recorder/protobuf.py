@@ -264,40 +264,56 @@ def _enum_or_int(cls: type[enum.IntEnum], value: int) -> Any:
         return value
 
 
+_FIXED_SIZE: Final = _STATE_FIXED.size
+_MODE_TYPES: Final = (RobotMode, SafetyMode, RuntimeState)
+_modes_cache: dict[bytes, tuple[Any, Any, Any]] = {}
+"""Decoded (robot_mode, safety_mode, runtime_state) by the exact bytes of a message's enum
+prefix: a log holds a handful of distinct prefixes, so the varints and enum lookups run once
+per prefix instead of once per sample. Bounded; a miss is decoded in full."""
+_MODES_CACHE_MAX: Final = 4096
+
+
+def _decode_modes(head: bytes) -> tuple[Any, Any, Any]:
+    """The three enum fields that make up all of ``head``, in field order; ValueError if not."""
+    pos = 0
+    modes = []
+    for i, cls in enumerate(_MODE_TYPES):
+        k, pos = _read_varint(head, pos)
+        if k != (2 + i) << 3:
+            raise ValueError
+        v, pos = _read_varint(head, pos)
+        modes.append(_enum_or_int(cls, _signed32(v)))
+    if pos != len(head):
+        raise ValueError
+    out = (modes[0], modes[1], modes[2])
+    if len(_modes_cache) < _MODES_CACHE_MAX:
+        _modes_cache[head] = out
+    return out
+
+
 def decode_robot_state(data: bytes) -> RobotState:
     """Parse an ``fxcell.RobotState`` message back into a :class:`RobotState`."""
-    modes = [0, 0, 0]
-    pos = 0
+    if type(data) is not bytes:
+        data = bytes(data)
     # fast path: three enum varints followed by the fixed layout this module writes
-    try:
-        for i in range(3):
-            k, pos = _read_varint(data, pos)
-            if k != (2 + i) << 3:
-                raise ValueError
-            v, pos = _read_varint(data, pos)
-            modes[i] = _signed32(v)
-        if len(data) - pos != _STATE_FIXED.size:
-            raise ValueError
-        f = _STATE_FIXED.unpack_from(data, pos)
-        if f[0] != _K_TIME or f[6] != _VECTOR_KEYS[0] or f[87] != _K2_RECV[0]:
-            raise ValueError
-    except (ValueError, IndexError, struct.error):
+    head = len(data) - _FIXED_SIZE
+    if head < 6:  # the shortest enum prefix: three one-byte keys and one-byte values
         return _decode_robot_state_general(data)
-    vectors: dict[str, Any] = {
-        name: f[8 + 8 * i : 14 + 8 * i] for i, name in enumerate(VECTOR_FIELDS)
-    }
+    prefix = data[:head]
+    try:
+        modes = _modes_cache.get(prefix) or _decode_modes(prefix)
+    except (ValueError, IndexError):
+        return _decode_robot_state_general(data)
+    f = _STATE_FIXED.unpack_from(data, head)
+    if f[0] != _K_TIME or f[6] != _VECTOR_KEYS[0] or f[87] != _K2_RECV[0]:
+        return _decode_robot_state_general(data)
+    # every field positionally, in declaration order (keyword arguments cost more than the rest
+    # of the call); those the schema does not carry get their defaults, as in the general path
     return RobotState(
-        timestamp=f[1],
-        robot_mode=_enum_or_int(RobotMode, modes[0]),
-        safety_mode=_enum_or_int(SafetyMode, modes[1]),
-        runtime_state=_enum_or_int(RuntimeState, modes[2]),
-        robot_status_bits=f[3],
-        safety_status_bits=f[5],
-        **vectors,
-        speed_scaling=f[80],
-        output_int_registers=tuple(f[84:87]),
-        received_at=f[89],
-    )
+        f[1], modes[0], modes[1], modes[2], f[3], f[5],
+        f[8:14], f[16:22], f[24:30], f[32:38], f[40:46], f[48:54], f[56:62], f[64:70], f[72:78],
+        f[80], f[84:87], 0, 0, 0.0, 0.0, 0.0, 0.0, f[89],
+    )  # fmt: skip
 
 
 def _decode_robot_state_general(data: bytes) -> RobotState:

@@ -15,9 +15,8 @@ import os
 import struct
 from collections import Counter
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
@@ -29,7 +28,7 @@ from fxcell.recorder import topics
 from fxcell.recorder.protobuf import decode_robot_state
 from fxcell.recorder.recovery import (
     RawMessage,
-    chunk_records,
+    chunk_data,
     is_finished,
     iter_records,
     parse_message,
@@ -43,8 +42,9 @@ _OP_SCHEMA = 0x03
 _OP_CHANNEL = 0x04
 
 
-@dataclass(frozen=True, slots=True)
-class LogMessage:
+class LogMessage(NamedTuple):
+    """One message as recorded (a named tuple: built once per message, so it must be cheap)."""
+
     topic: str
     log_time: int
     """Nanoseconds since the Unix epoch, when the event reached the recorder."""
@@ -256,11 +256,25 @@ def _decompress(chunk: Chunk) -> bytes:
 def _scan_chunk(
     chunk: Chunk, ids: set[int], names: dict[int, str], start: int | None, end: int | None
 ) -> Iterator[LogMessage]:
-    for opcode, body in chunk_records(chunk):
+    """The messages of ``ids`` in one chunk: one flat loop over the decompressed records (for
+    the dense topics this is the read-back's inner loop, run once per message)."""
+    data = chunk_data(chunk)
+    if type(data) is not bytes:
+        data = bytes(data)
+    pos, size = 0, len(data)
+    unpack_record = _RECORD.unpack_from
+    unpack_header = _MESSAGE_HEADER.unpack_from
+    new = tuple.__new__  # LogMessage._make without the classmethod call
+    while pos + 9 <= size:
+        opcode, length = unpack_record(data, pos)
+        body = pos + 9
+        pos = body + length
+        if pos > size:
+            raise RecorderError("record runs past the end of its chunk")
         if opcode != _OP_MESSAGE:
             continue
-        cid, _seq, log_time, publish_time = _MESSAGE_HEADER.unpack_from(body)
-        if cid not in ids:
-            continue
-        if (start is None or log_time >= start) and (end is None or log_time < end):
-            yield LogMessage(names[cid], log_time, publish_time, bytes(body[22:]))
+        if length < 22:
+            raise RecorderError("message record shorter than its header")
+        cid, _seq, log_time, publish_time = unpack_header(data, body)
+        if cid in ids and (start is None or log_time >= start) and (end is None or log_time < end):
+            yield new(LogMessage, (names[cid], log_time, publish_time, data[body + 22 : pos]))

@@ -103,6 +103,22 @@ class RecoveryReport:
 
 def chunk_records(chunk: Chunk) -> Iterator[tuple[int, memoryview]]:
     """(opcode, body) of each record inside a chunk, after checking its CRC."""
+    data = chunk_data(chunk)
+    view = memoryview(data)
+    pos, end = 0, len(data)
+    unpack = _RECORD.unpack_from
+    while pos + 9 <= end:
+        opcode, length = unpack(view, pos)
+        body_end = pos + 9 + length
+        if body_end > end:
+            raise RecorderError("record runs past the end of its chunk")
+        yield opcode, view[pos + 9 : body_end]
+        pos = body_end
+
+
+def chunk_data(chunk: Chunk) -> bytes:
+    """The records of a chunk, decompressed, after checking its CRC."""
+    data: bytes
     if chunk.compression == "zstd":
         import zstandard
 
@@ -119,16 +135,7 @@ def chunk_records(chunk: Chunk) -> Iterator[tuple[int, memoryview]]:
         raise RecorderError(f"unsupported chunk compression {chunk.compression!r}")
     if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
         raise RecorderError("chunk CRC mismatch")
-    view = memoryview(data)
-    pos, end = 0, len(data)
-    unpack = _RECORD.unpack_from
-    while pos + 9 <= end:
-        opcode, length = unpack(view, pos)
-        body_end = pos + 9 + length
-        if body_end > end:
-            raise RecorderError("record runs past the end of its chunk")
-        yield opcode, view[pos + 9 : body_end]
-        pos = body_end
+    return data
 
 
 def parse_message(body: bytes | memoryview) -> RawMessage:
