@@ -144,6 +144,35 @@ async def kill_during(daemon: DaemonProcess, step_prefix: str, nth: int = 0) -> 
     return seen[-1]
 
 
+async def finish_resuming(
+    cell: RemoteCell,
+    sim: SimulatorHandle,
+    daemon: DaemonProcess,
+    stopped: tuple[str, ...],
+    within: float,
+) -> tuple[dict[str, Any], list[str]]:
+    """Wait for ``done``; each of the ``stopped`` states on the way (a step the cell stopped,
+    e.g. its link going down on a busy machine) the operator answers and resumes, at most three
+    times: nothing may be lost. The final status and the stop messages."""
+    faults: list[str] = []
+    while (done := await job_state(cell, "done", *stopped, within=within))["state"] != "done":
+        faults.append(done["message"])
+        print("fault:", done["message"], *daemon.output[-8:], sep="\n  ")
+        assert len(faults) <= 3, (faults, daemon.output[-15:])
+        await answer_and_resume(cell, sim, done)
+    return done, faults
+
+
+async def assert_in_place(sim: SimulatorHandle, run: dict[str, Any], why: object) -> None:
+    """Every crucible in its rack slot, every bead on its tray slot (the simulator's poses)."""
+    world = await asyncio.to_thread(sim.objects)
+    for sample in run["samples"]:
+        crucible = world[f"crucible-{sample['rack']}"]
+        bead = world[f"crucible-{sample['rack']}.bead"]
+        assert place_of(crucible) == location("rack", sample["rack"]), why
+        assert place_of(bead) == location("tray", sample["tray"]), why
+
+
 async def test_a_run_killed_five_times_ends_with_every_sample_in_place(
     sim: SimulatorHandle, tmp_path: Path
 ) -> None:
@@ -167,21 +196,10 @@ async def test_a_run_killed_five_times_ends_with_every_sample_in_place(
             interrupted.append(await kill_during(daemon, prefix, nth))
             daemon = await asyncio.to_thread(start_daemon, config)
             await resume_as_the_operator(daemon, sim)
-        faults = []
         async with RemoteCell(daemon.url, TOKEN, name="operator") as cell:
-            while (done := await job_state(cell, "done", "fault", within=240))["state"] == "fault":
-                # A step stopped by the cell (e.g. its link braking when the loop starved on
-                # a busy machine): the operator answers and resumes; nothing may be lost.
-                faults.append(done["message"])
-                assert len(faults) <= 3, (faults, daemon.output[-15:])
-                await answer_and_resume(cell, sim, done)
+            done, faults = await finish_resuming(cell, sim, daemon, ("fault",), within=240)
         assert all(s["crucible"].startswith("rack:") for s in done["samples"]), done
-        world = await asyncio.to_thread(sim.objects)
-        for sample in RUN["samples"]:
-            crucible = world[f"crucible-{sample['rack']}"]
-            bead = world[f"crucible-{sample['rack']}.bead"]
-            assert place_of(crucible) == location("rack", sample["rack"]), interrupted
-            assert place_of(bead) == location("tray", sample["tray"]), interrupted
+        await assert_in_place(sim, RUN, interrupted)
         if faults:
             print(f"steps stopped by the cell and resumed: {faults}")
     finally:
@@ -230,22 +248,9 @@ async def test_a_sixteen_sample_run_ends_with_every_bead_on_the_tray(tmp_path: P
                 await cell.init()
                 await cell.gripper_activate()
                 await cell.job_start(SIXTEEN)
-                faults = []
-                while (done := await job_state(cell, "done", "fault", "paused", within=1500))[
-                    "state"
-                ] != "done":
-                    # as in the two-sample run: a step the cell stopped (a busy machine)
-                    # is answered and resumed by the operator; nothing may be lost
-                    faults.append(done["message"])
-                    print("fault:", done["message"], *daemon.output[-8:], sep="\n  ")
-                    assert len(faults) <= 3, (faults, daemon.output[-15:])
-                    await answer_and_resume(cell, world, done)
+                stopped = ("fault", "paused")
+                _, faults = await finish_resuming(cell, world, daemon, stopped, within=1500)
             print(f"steps stopped and resumed by the operator: {faults}")
-            objects = await asyncio.to_thread(world.objects)
-            for sample in SIXTEEN["samples"]:
-                crucible = objects[f"crucible-{sample['rack']}"]
-                bead = objects[f"crucible-{sample['rack']}.bead"]
-                assert place_of(crucible) == location("rack", sample["rack"]), sample
-                assert place_of(bead) == location("tray", sample["tray"]), sample
+            await assert_in_place(world, SIXTEEN, faults)
         finally:
             daemon.stop()
