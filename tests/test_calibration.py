@@ -260,6 +260,23 @@ def test_a_stretched_arm_at_the_wrist_singularity_is_solved_from_the_seed() -> N
     assert np.all(np.abs(solution) <= 2 * math.pi)
 
 
+def test_a_nearly_stretched_elbow_keeps_the_seeds_branch() -> None:
+    # θ3 = 0.125: the deltas put this wrist centre out of the nominal arm's reach, so the
+    # nominal solutions of the target lack the seed's branch; the nearest nominal branch
+    # refined is a valid but far solution (found by an exploring Hypothesis run).
+    c = Calibration(
+        (0.0, 0.0, 0.0, 0.0, 0.0, -0.002),
+        (0.0, 0.0, 0.0, 0.0, 0.0, -0.002),
+        (0.0,) * 6,
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.002),
+    )
+    for backend in ("numpy", "pinocchio"):
+        k = CalibratedKinematics(c, TCP, backend=backend)
+        q = np.array([1.375, 0.625, 0.125, 1.5, 0.75, -1.0])
+        solution = k.inverse(k.forward(q), q + 0.01)
+        assert np.max(np.abs(solution - q)) < 1e-6
+
+
 def test_nominal_inverse_on_a_calibrated_arm_misses_by_millimetres() -> None:
     c = Calibration.parse_conf(UR_CONF)
     k = CalibratedKinematics(c, TCP)

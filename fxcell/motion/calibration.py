@@ -254,11 +254,20 @@ class CalibratedKinematics(Kinematics):
             try:
                 start = self.nominal.inverse(target, s)
                 q = self.solve(self._corrected(target, start), target)
+                # At the edge of the workspace the seed's branch can be missing from the
+                # nominal solutions of the target (the deltas move the wrist out of nominal
+                # reach); the target corrected at the seed still has it. Only when both
+                # agree is the nearest nominal branch the nearest calibrated one.
+                seed_branch = self.nominal.inverse(self.nominal_target(target, s), s)
             except UnreachableError:
                 q = None
             # the refinement must stay on the nominal branch nearest the seed (the deltas
             # are millimetres); Newton that wandered to another branch is not an answer
-            if q is not None and float(np.max(np.abs(q - start))) < BRANCH_TOLERANCE:
+            if (
+                q is not None
+                and float(np.max(np.abs(q - start))) < BRANCH_TOLERANCE
+                and float(np.max(np.abs(seed_branch - start))) < BRANCH_TOLERANCE
+            ):
                 return q
         singular: str | None = None
         rejected = 0
