@@ -48,7 +48,7 @@ from fxcell.errors import (
     RobotTimeoutError,
 )
 from fxcell.link import collector, wire
-from fxcell.link.process import Guard
+from fxcell.link.process import Guard, stop_reason
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
 if TYPE_CHECKING:
@@ -72,6 +72,14 @@ HOLD_STALE_AFTER = 8.0
 """The same while the link process runs a blocking ur_rtde constructor."""
 RESTART_AFTER = 3.0
 """Seconds of silence after which a live but mute link process is killed and restarted."""
+EXPLAIN_SAMPLES = 25
+"""State samples a trajectory that failed on the robot's side waits for the one showing why."""
+EXPLAIN_WITHIN = 0.1
+"""Seconds the same waits at most (the state stream may be down)."""
+_STATE_FAILURES = frozenset(
+    {"servoj_refused", "program_stopped", "protective_stop", "emergency_stop"}
+    | {"safeguard_stop", "fault", "violation"}
+)
 
 
 class LinkStatus(enum.StrEnum):
@@ -335,6 +343,8 @@ class LinkClient:
         self._supervisor: asyncio.Task[None] | None = None
         self._pending: dict[int, asyncio.Future[Any]] = {}
         self._trajectories: dict[int, TrajectoryHandle] = {}
+        # failed ends waiting for the state sample that explains them (see _handle_trajectory)
+        self._unexplained: list[tuple[TrajectoryHandle, TrajectoryResult, int]] = []
         self._ids = itertools.count(1)
         self._hold = False
         self._last_sample = 0.0
@@ -614,6 +624,7 @@ class LinkClient:
 
     def _fail_all(self, reason: str) -> None:
         error = ConnectionLostError(f"robot link lost: {reason}")
+        self._release_ends(True)
         for future in self._pending.values():
             if not future.done():
                 future.set_exception(error)
@@ -657,6 +668,8 @@ class LinkClient:
                 self._on_state(state)
             for sub in tuple(self._subscriptions):
                 sub.offer(state)
+            if self._unexplained:
+                self._release_ends(stop_reason(state.safety_mode, state.runtime_state) is not None)
         elif kind == wire.REPLY:
             _, request_id, ok, value = message
             future = self._pending.pop(request_id, None)
@@ -698,16 +711,36 @@ class LinkClient:
             handle._replaced.put_nowait(bool(data.get("ok")))
         elif kind == "end":
             self._trajectories.pop(traj_id, None)
-            handle._end(
-                TrajectoryResult(
-                    data["status"],
-                    data["reason"],
-                    data["index"],
-                    data["total"],
-                    data["actual_q"],
-                    data["duration"],
-                )
+            result = TrajectoryResult(
+                data["status"],
+                data["reason"],
+                data["index"],
+                data["total"],
+                data["actual_q"],
+                data["duration"],
             )
+            latest = self.latest
+            shown = latest is not None and stop_reason(latest.safety_mode, latest.runtime_state)
+            if result.status == "failed" and result.reason in _STATE_FAILURES and not shown:
+                # The robot refused the stream (a program or safety stop) and the link
+                # process told us before the sample showing the stop arrived: end the
+                # trajectory after that sample, so that its owner (the Cell) has seen
+                # the stop and aborts the move with the stop's own error.
+                self._unexplained.append((handle, result, EXPLAIN_SAMPLES))
+                asyncio.get_running_loop().call_later(EXPLAIN_WITHIN, self._release_ends, True)
+            else:
+                handle._end(result)
+
+    def _release_ends(self, explained: bool) -> None:
+        """End the held failed trajectories whose stop a sample showed or that waited long
+        enough (``explained``: all of them)."""
+        waiting = []
+        for handle, result, samples in self._unexplained:
+            if explained or samples <= 1:
+                handle._end(result)
+            else:
+                waiting.append((handle, result, samples - 1))
+        self._unexplained = waiting
 
     # -- outgoing
 

@@ -364,7 +364,11 @@ class Link:
         flags = rtde_control.RTDEControlInterface.Flags
         c = self.control
         if c is not None:
-            if c.isConnected() and c.isProgramRunning():
+            state = self.latest
+            playing = state is not None and state.runtime_state == RuntimeState.PLAYING
+            # ur_rtde's isProgramRunning() reads its own receive channel, which can still
+            # say PLAYING a few cycles after the state stream showed the program stop
+            if playing and c.isConnected() and c.isProgramRunning():
                 self._control_ready("already running")
                 return True
             if mode == "script" and c.isConnected():
