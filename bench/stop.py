@@ -7,8 +7,8 @@ than 1e-4 rad/s; distance = base travel in that time.
 
 Peer, same run, computed here in closed form (``bench/_bounds.py``, tested against Ruckig),
 not by fxcell: the jerk-limited time-optimal braking of each joint from the state the
-stream showed at the ``stop()`` call (velocity, and acceleration from the last two
-samples' velocities) under the configured braking limits; the slowest joint's time, less
+stream showed at the ``stop()`` call (velocity and acceleration from a straight-line fit
+of the last 10 samples' velocities, carried forward to the call) under the configured braking limits; the slowest joint's time, less
 the closed-form tail in which the velocity is already below the 1e-4 rad/s threshold
 (``sqrt(2·1e-4/j)``, 2.2 ms at 40 rad/s³). Nothing is taken off the measurement.
 (The seed slept v/a after MoveIt's stop.)
@@ -39,7 +39,21 @@ from fxcell.testing import simulator
 
 CONFIG = CellConfig.load()
 BRAKING = Limits.for_braking(CONFIG.limits)  # what stop() brakes with
+FIT = 10  # samples (20 ms) fitted for the state at the stop() call
 REST = 1e-4  # rad/s: a jerk-limited stop crosses 1e-3 rad/s some 14 ms before its end
+
+
+def state_at(states: list[RobotState], when: float) -> tuple[np.ndarray, np.ndarray]:
+    """Joint velocity and acceleration at ``when`` (monotonic time of the stop() call),
+    from a straight-line fit of the last ``FIT`` samples' velocities against controller
+    time: one sample's velocity difference is too noisy (a late cycle caught up shows as
+    a jump) to give the acceleration the bound starts from."""
+    window = states[-FIT:]
+    t = np.array([s.timestamp for s in window])
+    v = np.array([s.actual_qd for s in window])
+    slope, intercept = np.polyfit(t - t[-1], v, 1)
+    ahead = max(when - window[-1].received_at, 0.0)  # the stream's latest is this old
+    return intercept + slope * ahead, slope
 
 
 async def trial(cell: Cell, target: list[float], after: float) -> dict[str, float]:
@@ -73,10 +87,7 @@ async def trial(cell: Cell, target: list[float], after: float) -> dict[str, floa
     finally:
         unsubscribe()
     rest = next(s for s in states if s.received_at > called and max(map(abs, s.actual_qd)) < REST)
-    before = states[states.index(at_stop) - 1]
-    dt = at_stop.timestamp - before.timestamp
-    qd = np.array(at_stop.actual_qd)
-    qdd = (qd - np.array(before.actual_qd)) / dt if dt > 0 else np.zeros(6)
+    qd, qdd = state_at(states[: states.index(at_stop) + 1], called)
     qdd = np.clip(qdd, -BRAKING.acceleration, BRAKING.acceleration)
     bound = braking_bound(qd, qdd, BRAKING.acceleration, BRAKING.jerk)
     bound -= math.sqrt(2 * REST / float(np.max(BRAKING.jerk)))  # already below REST
