@@ -8,9 +8,10 @@ than 1e-4 rad/s; distance = base travel in that time.
 Peer, same run, computed here in closed form (``bench/_bounds.py``, tested against Ruckig),
 not by fxcell: the jerk-limited time-optimal braking of each joint from the state the
 stream showed at the ``stop()`` call (velocity and acceleration from a straight-line fit
-of the last 10 samples' velocities, carried forward to the call) under the configured braking limits; the slowest joint's time, less
-the closed-form tail in which the velocity is already below the 1e-4 rad/s threshold
-(``sqrt(2·1e-4/j)``, 2.2 ms at 40 rad/s³). Nothing is taken off the measurement.
+of the last 10 samples' velocities, carried forward to the call) under the configured
+braking limits; the slowest joint's time, less the closed-form tail in which the
+velocity is already below the 1e-4 rad/s threshold (``sqrt(2·1e-4/j)``, 2.2 ms at
+40 rad/s³). Nothing is taken off the measurement.
 (The seed slept v/a after MoveIt's stop.)
 
 Target: time to rest <= bound + 10 ms.

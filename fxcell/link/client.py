@@ -24,6 +24,7 @@ import asyncio
 import contextlib
 import dataclasses
 import enum
+import functools
 import itertools
 import logging
 import socket
@@ -66,6 +67,8 @@ BEAT_PERIOD = 0.01
 LOOP_STALL_AFTER = 0.5
 """Seconds the event loop may go without running before the beats stop (and the link
 process brakes): nothing supervises a move while the loop stands still."""
+WATCHDOG_LATE = 0.1
+"""Seconds beyond which the watchdog's wake-up counts as late (its sleeps are ≤ 50 ms)."""
 GAP_REPORT = 0.02
 """A pause of the state stream longer than this (controller time, s) is logged as a gap."""
 HOLD_STALE_AFTER = 8.0
@@ -382,6 +385,11 @@ class LinkClient:
 
     async def close(self) -> None:
         """Stop the supervisor and the link process."""
+        if self.status is LinkStatus.UP and not self._closing:
+            # the link may still hold servo mode after the last move (for a next one):
+            # leave it while the process can, not by killing it
+            with contextlib.suppress(FxcellError):
+                await self.call("leave_servo", 0.5)
         self._closing = True
         if self._supervisor is not None:
             self._supervisor.cancel()
@@ -551,8 +559,17 @@ class LinkClient:
         reads everything that arrived meanwhile before this task runs again, so it never
         mistakes its own lateness for a dead link.
         """
+        ran = time.monotonic()
         while True:
             now = time.monotonic()
+            if now - ran > WATCHDOG_LATE:
+                # This task waited behind a callback that held the loop up (it may be
+                # queued right after it, before the loop polls the socket again): read
+                # what arrived meanwhile first, then judge.
+                ran = now
+                await asyncio.sleep(0.001)
+                continue
+            ran = now
             silent = now - self._last_sample
             if self.status is not LinkStatus.UP:
                 if self.status is LinkStatus.DOWN and silent > RESTART_AFTER and not self._hold:
@@ -624,7 +641,7 @@ class LinkClient:
 
     def _fail_all(self, reason: str) -> None:
         error = ConnectionLostError(f"robot link lost: {reason}")
-        self._release_ends(True)
+        self._release_ends(force=True)
         for future in self._pending.values():
             if not future.done():
                 future.set_exception(error)
@@ -669,7 +686,7 @@ class LinkClient:
             for sub in tuple(self._subscriptions):
                 sub.offer(state)
             if self._unexplained:
-                self._release_ends(stop_reason(state.safety_mode, state.runtime_state) is not None)
+                self._release_ends(stop_reason(state.safety_mode, state.runtime_state))
         elif kind == wire.REPLY:
             _, request_id, ok, value = message
             future = self._pending.pop(request_id, None)
@@ -727,16 +744,21 @@ class LinkClient:
                 # trajectory after that sample, so that its owner (the Cell) has seen
                 # the stop and aborts the move with the stop's own error.
                 self._unexplained.append((handle, result, EXPLAIN_SAMPLES))
-                asyncio.get_running_loop().call_later(EXPLAIN_WITHIN, self._release_ends, True)
+                asyncio.get_running_loop().call_later(
+                    EXPLAIN_WITHIN, functools.partial(self._release_ends, force=True)
+                )
             else:
                 handle._end(result)
 
-    def _release_ends(self, explained: bool) -> None:
-        """End the held failed trajectories whose stop a sample showed or that waited long
-        enough (``explained``: all of them)."""
+    def _release_ends(self, why: str | None = None, *, force: bool = False) -> None:
+        """End the held failed trajectories: all of them when a sample showed the stop
+        (``why``, which then names a refused servoJ's cause) or when ``force``d, else
+        those that waited long enough."""
         waiting = []
         for handle, result, samples in self._unexplained:
-            if explained or samples <= 1:
+            if why is not None and result.reason == "servoj_refused":
+                result = dataclasses.replace(result, reason=why)
+            if why is not None or force or samples <= 1:
                 handle._end(result)
             else:
                 waiting.append((handle, result, samples - 1))

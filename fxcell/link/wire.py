@@ -28,6 +28,7 @@ CALL = "call"  # (CALL, request_id, method, kwargs)
 TRAJ_START = "traj_start"  # (TRAJ_START, traj_id, samples, lookahead_time, gain, guard)
 TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, traj_id, samples[, at_index])
 TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, traj_id[, reason]): the link brakes to rest itself
+SETTLED = "settled"  # TRAJ_STOP's reason when the robot is at the target: servo mode is kept
 BEAT = "beat"  # (BEAT,): the client is alive (sent every 10 ms while a trajectory runs)
 
 # link process -> client

@@ -35,6 +35,7 @@ from fxcell.errors import (
     MoveError,
     MoveStoppedError,
     PlanningError,
+    ProgramStoppedError,
     ProtectiveStopError,
     RobotFaultError,
     SafeguardStopError,
@@ -45,6 +46,7 @@ from fxcell.errors import (
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
 from fxcell.link.process import Guard
+from fxcell.link.wire import SETTLED
 from fxcell.motion.calibration import calibrated_kinematics, kinematics_for
 from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
 from fxcell.motion.runner import (
@@ -411,6 +413,7 @@ _FAILURES: dict[str, type[Exception]] = {
     "fault": RobotFaultError,
     "violation": RobotFaultError,
     "link_lost": ConnectionLostError,
+    "program_stopped": ProgramStoppedError,
 }
 
 
@@ -621,7 +624,7 @@ class MoveExecution:
                         self._settled_at = state.received_at
                         self._settled = True
                         if not handle.done:
-                            await handle.stop()
+                            await handle.stop(SETTLED)
                         return state
                     elif handle.done:
                         if (

@@ -1,0 +1,182 @@
+"""The link process's trajectory thread keeps servo mode briefly after a move at its target.
+
+Leaving servo mode (servoStop) and entering it again are controller round trips of several
+milliseconds each; a next move that starts while the previous one holds its target takes
+servo mode over instead. These tests drive :class:`fxcell.link.process._Trajectory` with a
+stand-in for the link (its 500 Hz sample clock) and for ur_rtde's control interface, which
+records every call: what matters here is the order of servoJ and servoStop.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from fxcell.link import wire
+from fxcell.link.process import Guard, _Trajectory
+from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
+
+pytestmark = pytest.mark.timeout(30)
+
+TARGET = (0.1, -1.2, 1.0, -1.4, -1.57, 0.0)
+
+
+class Control:
+    """ur_rtde's RTDEControlInterface as far as a trajectory uses it: records calls."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+        self.lock = threading.Lock()
+
+    def servoJ(self, *args: Any) -> bool:  # noqa: N802 (ur_rtde's name)
+        with self.lock:
+            self.calls.append("servoJ")
+        return True
+
+    def servoStop(self) -> bool:  # noqa: N802
+        with self.lock:
+            self.calls.append("servoStop")
+        return True
+
+    def count(self, name: str) -> int:
+        with self.lock:
+            return self.calls.count(name)
+
+
+class Link:
+    """The attributes of fxcell.link.process.Link a trajectory reads, with a sample clock."""
+
+    def __init__(self) -> None:
+        self.control = Control()
+        self.latest: RobotState | None = RobotState(
+            runtime_state=RuntimeState.PLAYING, actual_q=TARGET
+        )
+        self.last_heard = self.last_state_at = time.monotonic()
+        self.sent: list[tuple[Any, ...]] = []
+        self._samples = 0
+        self._tick = threading.Condition()
+        self._traj_lock = threading.Lock()
+        self._traj: _Trajectory | None = None
+        self._running = True
+        self._clock = threading.Thread(target=self._run, daemon=True)
+        self._clock.start()
+
+    def _run(self) -> None:
+        while self._running:
+            time.sleep(CONTROL_PERIOD)
+            self.last_heard = self.last_state_at = time.monotonic()
+            with self._tick:
+                self._samples += 1
+                self._tick.notify_all()
+
+    def next_sample(self, seen: int, timeout: float) -> int:
+        with self._tick:
+            self._tick.wait_for(lambda: self._samples != seen, timeout)
+            return self._samples
+
+    def send(self, *message: Any) -> None:
+        self.sent.append(message)
+
+    def ends(self) -> list[dict[str, Any]]:
+        return [m[3] for m in self.sent if m[0] == wire.TRAJ and m[2] == "end"]
+
+    def close(self) -> None:
+        self._running = False
+        self._clock.join(1.0)
+
+
+@pytest.fixture
+def link() -> Iterator[Link]:
+    stand_in = Link()
+    yield stand_in
+    stand_in.close()
+
+
+def _run(link: Link, traj_id: int = 1) -> _Trajectory:
+    samples = [tuple(v) for v in np.linspace(np.subtract(TARGET, 0.001), TARGET, 10)]
+    traj = _Trajectory(link, traj_id, samples, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
+    link._traj = traj
+    traj.thread.start()
+    return traj
+
+
+def _wait_ended(traj: _Trajectory) -> None:
+    assert traj.ended.wait(5.0)
+
+
+def test_a_completed_trajectory_hands_servo_mode_to_the_next_without_servo_stop(
+    link: Link,
+) -> None:
+    traj = _run(link)
+    _wait_ended(traj)
+    assert link.ends()[0]["status"] == "completed"
+    deadline = time.monotonic() + 1.0
+    while not traj.release(keep_servo=True):  # True once it holds the target
+        assert time.monotonic() < deadline, "the trajectory never held its target"
+        time.sleep(0.001)
+    traj.thread.join(1.0)
+    assert not traj.thread.is_alive()
+    assert traj.servo_kept
+    assert link.control.count("servoStop") == 0
+
+
+def test_a_call_after_a_move_ends_the_hold_with_servo_stop(link: Link) -> None:
+    traj = _run(link)
+    _wait_ended(traj)
+    traj.release(keep_servo=False)
+    traj.thread.join(1.0)
+    assert not traj.thread.is_alive()
+    assert not traj.servo_kept
+    assert link.control.calls[-1] == "servoStop"
+
+
+def test_an_unclaimed_hold_leaves_servo_mode_after_its_time(link: Link) -> None:
+    traj = _run(link)
+    _wait_ended(traj)
+    ended = time.monotonic()
+    traj.thread.join(5.0)
+    held = time.monotonic() - ended
+    assert not traj.thread.is_alive()
+    assert link.control.calls[-1] == "servoStop"
+    assert held >= _Trajectory.HOLD * 0.9
+    assert not traj.release(keep_servo=True)  # too late to take it over
+
+
+def test_a_move_stopped_away_from_its_target_leaves_servo_mode_at_once(link: Link) -> None:
+    traj = _run(link)
+    traj.stop("cell_silent")
+    traj.thread.join(5.0)
+    assert link.ends()[0]["status"] == "stopped"
+    assert link.control.calls[-1] == "servoStop"
+    assert not traj.release(keep_servo=True)
+
+
+def test_a_stop_for_the_settled_robot_keeps_servo_mode_for_the_next_move(link: Link) -> None:
+    samples = [TARGET] * 200  # the hold part of a move: the robot is already at the target
+    traj = _Trajectory(link, 1, samples, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
+    traj.thread.start()
+    time.sleep(0.01)
+    traj.stop(wire.SETTLED)
+    _wait_ended(traj)
+    assert link.ends()[0]["reason"] == wire.SETTLED
+    deadline = time.monotonic() + 1.0
+    while not traj.release(keep_servo=True):
+        assert time.monotonic() < deadline, "the settled trajectory never held its target"
+        time.sleep(0.001)
+    traj.thread.join(1.0)
+    assert traj.servo_kept
+    assert link.control.count("servoStop") == 0
+
+
+def test_a_stop_during_the_hold_leaves_servo_mode(link: Link) -> None:
+    traj = _run(link)
+    _wait_ended(traj)
+    traj.stop("link closing")
+    traj.thread.join(1.0)
+    assert not traj.thread.is_alive()
+    assert link.control.calls[-1] == "servoStop"
