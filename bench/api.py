@@ -16,7 +16,8 @@ so that both see the same machine load — the floor of an HTTP API in Python he
 Then two WebSocket watchers at once, at 500 Hz (every sample) and at 100 Hz, for 5 s
 each: delivered rate and the largest gap between state messages.
 
-Targets: state query p99 <= 5 ms; state stream >= 100 Hz sustained with two watchers.
+Targets: state query p99 <= the bare route's p99 + 1 ms (same run); state stream >= 100 Hz
+sustained with two watchers.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from fxcell.daemon.process import DaemonProcess, free_port
 
 TOKEN = "bench-token-0123456789abcdef0123"
 N = 2000
+STATE_MARGIN_MS = 1.0  # what the daemon may add to a bare route's p99 (ms)
 
 
 def pct(values: list[float], q: float) -> float:
@@ -168,9 +170,12 @@ def main() -> int:
             row("POST /api/control (auth + lease)", control, peer)
             row("POST /api/cell/stop (operation)", stop, peer)
             targets = Targets("api")
+            # Relative to the bare route: on this 2-core VM the bare route's own p99 is
+            # 2.6-4.8 ms from run to run, so an absolute figure judged the machine.
+            peer_p99 = pct(peer, 0.99) * 1e3
             targets.check(
-                "GET /api/state p99", pct(state, 0.99) * 1e3, "<=", 5.0, "ms",
-                peer=pct(peer, 0.99) * 1e3, peer_name="bare FastAPI",
+                "GET /api/state p99 <= bare route's p99 + 1 ms", pct(state, 0.99) * 1e3, "<=",
+                peer_p99 + STATE_MARGIN_MS, "ms", peer=peer_p99, peer_name="bare FastAPI",
             )  # fmt: skip
             print("WebSocket state stream, two watchers at once, 5 s")
             asyncio.run(streams(daemon.url, 500.0))
