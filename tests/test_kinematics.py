@@ -228,6 +228,81 @@ def test_wrist_singular_pose_is_solved_whatever_the_seed_wrist() -> None:
         assert FLANGE.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
 
 
+def _continuum_scan(kin: Kinematics, pose: Pose, q1: float, q5: float, seed: np.ndarray) -> dict:
+    """Brute force over a wrist-singular continuum (θ1 = q1, θ5 = q5 ∈ {0, ±π}): θ6 on a
+    grid of 2000, θ2..θ4 from the planar 2R problem of frame 4 (public FK and DH only), each
+    joint shifted by 2π to the equivalent nearest the seed within ±2π. The smallest distance
+    to the seed per elbow sign (+1, -1), with the configuration reaching it."""
+    d, a, alpha = UR3E_DH.d, UR3E_DH.a, UR3E_DH.alpha
+    t = np.linspace(-math.pi, math.pi, 2000, endpoint=False)
+    flange = pose.matrix @ np.linalg.inv(kin.tcp.matrix)
+    # frame 4 = flange · T56(θ6)⁻¹ · T45⁻¹, with T56 = Rz(θ6)·Tz(d6) (a6 = α6 = 0)
+    inv56 = np.zeros((t.size, 4, 4))
+    c, s = np.cos(t), np.sin(t)
+    inv56[:, 0, 0], inv56[:, 0, 1], inv56[:, 1, 0], inv56[:, 1, 1] = c, s, -s, c
+    inv56[:, 2, 2], inv56[:, 2, 3], inv56[:, 3, 3] = 1.0, -d[5], 1.0
+    inv45 = np.linalg.inv(dh_transform(q5, d[4], a[4], alpha[4]))
+    in1 = np.linalg.inv(dh_transform(q1, d[0], a[0], alpha[0])) @ flange
+    T14 = np.einsum("ij,njk,kl->nil", in1, inv56, inv45)
+    x, y = T14[:, 0, 3], T14[:, 1, 3]
+    phi = np.arctan2(T14[:, 1, 0], T14[:, 0, 0])  # θ2 + θ3 + θ4
+    c3 = (x * x + y * y - a[1] ** 2 - a[2] ** 2) / (2 * a[1] * a[2])
+    ok = np.abs(c3) <= 1.0
+    c3 = np.clip(c3, -1.0, 1.0)
+
+    def nearest(v: np.ndarray, s: float) -> np.ndarray:
+        options = v[..., None] + 2 * math.pi * np.arange(-3, 4)
+        options[np.abs(options) > 2 * math.pi] = np.inf
+        return options[np.arange(v.size), np.argmin(np.abs(options - s), axis=-1)]
+
+    best = {}
+    for elbow in (1, -1):
+        q3 = elbow * np.arccos(c3)
+        q2 = np.arctan2(y, x) - np.arctan2(a[2] * np.sin(q3), a[1] + a[2] * c3)
+        q = np.stack([np.full_like(t, q1), q2, q3, phi - q2 - q3, np.full_like(t, q5), t], 1)
+        q = np.stack([nearest(q[:, j], seed[j]) for j in range(6)], 1)
+        dist = np.where(ok, np.linalg.norm(q - seed, axis=1), np.inf)
+        i = int(np.argmin(dist))
+        if np.isfinite(dist[i]):
+            best[elbow] = (float(dist[i]), q[i])
+    return best
+
+
+singular_configurations = st.tuples(configurations, st.sampled_from([0.0, math.pi, -math.pi])).map(
+    lambda c: np.array([*c[0][:4], c[1], c[0][5]])
+)
+
+
+@pytest.mark.parametrize("kin", [FLANGE, SEED], ids=["flange", "seed_tcp"])
+@given(q=singular_configurations, seed=configurations)
+@settings(max_examples=40, deadline=None)
+def test_wrist_singular_solutions_are_no_farther_than_a_dense_scan(
+    kin: Kinematics, q: np.ndarray, seed: np.ndarray
+) -> None:
+    # θ5 = 0 or ±π exactly: per shoulder and elbow a continuum, of which the member nearest
+    # the seed must come back (no farther than the best of 2000 θ6 values, every joint
+    # shifted by 2π toward the seed)
+    pose = kin.forward(q)
+    sols = kin.inverse_all(pose, seed=seed)
+    for s in sols:
+        assert kin.forward(s).isclose(pose, position_tol=1e-10, angle_tol=1e-10)
+    singular = [s for s in sols if abs(math.sin(s[4])) < 1e-12]
+    assert singular  # q's own shoulder branch is singular
+    for q1 in {round(math.remainder(s[0], 2 * math.pi), 9) for s in singular}:
+        branch = [s for s in singular if abs(math.remainder(s[0] - q1, 2 * math.pi)) < 1e-6]
+        scan = _continuum_scan(kin, pose, branch[0][0], branch[0][4], seed)
+        for elbow, (dist, member) in scan.items():
+            assert kin.forward(member).isclose(pose, position_tol=1e-9, angle_tol=1e-9)
+            # the returned member of this elbow (at full stretch or fold: either elbow)
+            mine = [s for s in branch if elbow * math.sin(s[2]) > -1e-6]
+            assert mine
+            # (1e-7: the scan's arccos at full stretch turns rounding into ~1e-8 rad)
+            assert min(float(np.linalg.norm(s - seed)) for s in mine) <= dist + 1e-7
+    best = kin.inverse(pose, seed=seed)
+    nearest = min(float(np.linalg.norm(s - seed)) for s in sols)
+    assert float(np.linalg.norm(best - seed)) <= nearest + 1e-9
+
+
 def test_singularity_margin_skips_singular_solutions_or_raises() -> None:
     # straight up: θ1 has a single solution (shoulder), the elbow is stretched
     pose = FLANGE.forward(HOME)

@@ -21,6 +21,7 @@ No Pinocchio here: the simulator imports this module and must start fast
 
 from __future__ import annotations
 
+import cmath
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -46,8 +47,23 @@ JointValidity = Callable[[FloatArray], bool]
 TWO_PI = 2.0 * math.pi
 _INV_TWO_PI = 1.0 / TWO_PI
 
+_CUT = 1.0 - 1e-6
+"""Fraction of the way to a joint limit a Newton step of :meth:`_singular_arms` goes."""
+_TRUST = 0.5
+"""Largest Newton step (rad of θ6) in :meth:`_singular_arms`."""
+_SPOTS = 3
+"""Points at a joint limit (or a flip of θ2's or θ3's 2π shift) :meth:`_singular_arms` starts
+Newton steps from: the best few, if within _MARGIN of the best found."""
+_GRID_STEP = 0.35
+"""Largest spacing (rad of θ6) of the grid of :meth:`_singular_arms`."""
+_MARGIN = 1.0
+"""Grid minima at most this much (rad²) above the best found get Newton steps."""
+_F_TOL = 1e-13
+"""Newton steps stop when the next would lower the distance² by less than this."""
+_Ev = tuple[float, float, float, float, float, float, float, float, float, float, float]
+"""f, f', f'', Gauss-Newton f'', θ2, θ3, θ4 (shifted), their derivatives, θ6 (shifted)."""
 _WRIST_EPS = 1e-14
-"""|sin θ5| below which the wrist counts as exactly singular (θ6 free: see _singular_arm)."""
+"""|sin θ5| below which the wrist counts as exactly singular (θ6 free: see _singular_arms)."""
 _CLIP_EPS = 1e-12
 """Rounding slack on the cosines at the reach boundaries (≈ 1e-13 m of position)."""
 _NEAR_WRIST = 1e-6
@@ -335,7 +351,7 @@ class Kinematics:
         """Every closed-form solution (angles not yet shifted) reaching ``pose`` at the TCP.
 
         At an exact wrist singularity each shoulder/elbow branch is a continuum; the member
-        nearest ``seed`` is returned (see :meth:`_singular_arm`).
+        nearest ``seed`` is returned (see :meth:`_singular_arms`).
         """
         f = [*pose.rotation.ravel().tolist(), *pose.position.tolist()]
         if not self._tcp_is_identity:
@@ -374,18 +390,12 @@ class Kinematics:
                 if len(out) == n and s5a < _NEAR_WRIST:
                     # still nothing: search θ6 as at the singularity, then polish
                     for s5 in (s5a, -s5a):
-                        for elbow in (1, -1):
-                            sol = self._singular_arm(
-                                f, p5x, p5y, p5z, t1, s1, c1, s5, zz, elbow, seed
-                            )
-                            if sol is not None and (polished := self._polish(sol, pose)):
+                        for sol in self._singular_arms(f, p5x, p5y, p5z, t1, s1, c1, s5, zz, seed):
+                            if polished := self._polish(sol, pose):
                                 out.append(polished)
             else:
                 c5 = 1.0 if zz >= 0.0 else -1.0
-                for elbow in (1, -1):
-                    sol = self._singular_arm(f, p5x, p5y, p5z, t1, s1, c1, 0.0, c5, elbow, seed)
-                    if sol is not None:
-                        out.append(sol)
+                out += self._singular_arms(f, p5x, p5y, p5z, t1, s1, c1, 0.0, c5, seed)
         return out
 
     def _polish(self, sol: list[float], pose: Pose) -> list[float] | None:
@@ -458,7 +468,7 @@ class Kinematics:
             t2 = base - math.atan2(a3 * s3, a2 + a3 * c3)
             out.append([t1, t2, t3, t234 - t2 - t3, t5, t6])
 
-    def _singular_arm(
+    def _singular_arms(
         self,
         f: list[float],
         p5x: float,
@@ -469,63 +479,396 @@ class Kinematics:
         c1: float,
         s5: float,
         c5: float,
-        elbow: int,
         seed: list[float],
-    ) -> list[float] | None:
+    ) -> list[list[float]]:
         """Wrist singular (θ5 = 0 or π): axes 2, 3, 4 and 6 are parallel and θ6 is free.
 
-        θ6 turns axis 5 in the arm plane and so moves frame 4's origin on a circle of radius
-        d5 around the wrist centre; the arm reaches it for θ6 in (at most) two intervals,
-        computed here. Within them, the solution nearest ``seed``: a grid, then a
-        golden-section search around the best grid point. Runs only at singularities.
+        One solution per elbow sign (up, then down), each the member of the continuum nearest
+        ``seed`` (after the 2π shifts of :meth:`_nearest`); none if the arm cannot reach.
+
+        In the arm plane (coordinates c1·x + s1·y and z), θ6 = t turns axis 5 and so moves
+        frame 4's origin on a circle of radius d5 around the wrist centre; the arm reaches
+        it on one or two intervals of t whose ends stretch or fold the arm, or on the whole
+        circle. θ2 + θ3 + θ4 is the angle of x4, ±t plus a constant, and θ2, θ3 come from
+        the planar 2R problem, so every joint and its first two derivatives in t are in
+        closed form. The distance² to the seed, f(t) = Σ (θj - seed_j)² over j = 2, 3, 4, 6
+        (θ1 and θ5 are fixed), has several local minima (the θ4 and θ6 terms alone have two;
+        θ2, θ3 swing fast near the ends and where the circle passes near the shoulder) and
+        jumps where a joint reaches a limit and its 2π shift flips to the far equivalent.
+
+        So: f for both elbows on a grid in u, t = lo + span·sin²u (smooth in u at the ends,
+        where θ3 has an infinite slope in t), at most _GRID_STEP rad of t apart; Newton
+        steps in u from the grid's local minima (those within _MARGIN of the best found),
+        each step stopping short of a joint limit; and the points where a joint sits exactly
+        at a limit, or where the 2π shift of θ2 or θ3 flips (roots of cos(·) = const in
+        closed form), as candidates and starts. Candidates are compared on the solutions
+        :meth:`_arm` gives for them. About 10-20 grid points and 2-5 short Newton runs per
+        shoulder (the grid and golden-section search this replaces took ~130 solves). Also
+        used, with the tiny |sin θ5| of a pose next to the singularity, for the fallback of
+        :meth:`_branches`.
         """
-        r00, r01, _, r10, r11, _, r20, r21 = f[:8]
-        d1, d5 = self.dh.d[0], self.dh.d[4]
-        a2, a3 = self.dh.a[1], self.dh.a[2]
-        # wrist centre from the shoulder, in the arm plane (x1, z0 coordinates)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = f[:9]
+        d1, _, d5, _, a2, a3 = self._geom
+        # wrist centre from the shoulder, and x6, y6, z6 in the arm plane
         X5, Y5 = c1 * p5x + s1 * p5y, p5z - d1
+        ax, ay = c1 * r00 + s1 * r10, r20
+        bx, by = c1 * r01 + s1 * r11, r21
+        zx, zy = c1 * r02 + s1 * r12, r22
         D = math.hypot(X5, Y5)
         ex, ey = (X5 / D, Y5 / D) if D > 0.0 else (1.0, 0.0)
-        # z4·e = -(A s6 + B c6) = -k cos(θ6 - γ), with x6, y6 projected on e
-        A = (c1 * r00 + s1 * r10) * ex + r20 * ey
-        B = (c1 * r01 + s1 * r11) * ex + r21 * ey
+        # z4·e = -(A s6 + B c6) = -k cos(θ6 - γ)
+        A = ax * ex + ay * ey
+        B = bx * ex + by * ey
         k, gamma = math.hypot(A, B), math.atan2(A, B)
         # |frame-4 origin - shoulder|² = D² + d5² + 2 d5 D k cos(θ6 - γ) within the 2R reach
         den = 2.0 * d5 * D * k
+        # the reachable θ6: [lo, hi] with ends where the arm is stretched or folded, or the
+        # whole circle (periodic)
+        periodic = False
         if den < 1e-15:
-            intervals = [(gamma - math.pi, gamma + math.pi)]
+            periodic, intervals = True, [(gamma - math.pi, gamma + math.pi)]
         else:
             lo_c = ((a2 - a3) ** 2 - D * D - d5 * d5) / den
             hi_c = ((a2 + a3) ** 2 - D * D - d5 * d5) / den
             if lo_c > 1.0 + _CLIP_EPS or hi_c < -1.0 - _CLIP_EPS:
-                return None
+                return []
             near = math.acos(min(max(hi_c, -1.0), 1.0))
             far = math.acos(min(max(lo_c, -1.0), 1.0))
-            intervals = [(gamma + near, gamma + far), (gamma - far, gamma - near)]
+            if hi_c >= 1.0 and lo_c <= -1.0:
+                periodic, intervals = True, [(gamma - math.pi, gamma + math.pi)]
+            elif hi_c >= 1.0:
+                intervals = [(gamma - far, gamma + far)]
+            elif lo_c <= -1.0:
+                intervals = [(gamma + near, gamma + TWO_PI - near)]
+            else:
+                intervals = [(gamma + near, gamma + far), (gamma - far, gamma - near)]
 
-        def solve(t6: float) -> tuple[float, list[float]] | None:
-            found: list[list[float]] = []
-            self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t6, found, elbow)
-            return self._nearest(found[0], seed) if found else None
+        _, g2, g3, g4, _, g6 = seed
+        lims = self._lo_hi
+        (lo2, hi2), (lo3, hi3), (lo4, hi4), (lo6, hi6) = lims[1], lims[2], lims[3], lims[5]
+        sigma = ay * bx - ax * by  # dθ234/dθ6: ±1 at the singularity
+        k3 = 1.0 / (2.0 * a2 * a3)
+        l3 = a2 * a2 + a3 * a3
+        tau, inv = TWO_PI, _INV_TWO_PI
+        sin, cos, atan2, sqrt = math.sin, math.cos, math.atan2, math.sqrt
 
-        best: tuple[float, list[float]] | None = None
+        def ev(t: float, e: float) -> _Ev | None:
+            """f, f', f'' (Newton), 2 Σ θj'² (Gauss-Newton), then θ2, θ3, θ4 shifted
+            toward the seed and their derivatives; None where out of reach or limits."""
+            s, c = sin(t), cos(t)
+            u, v = c * ax - s * bx, c * ay - s * by
+            dx, dy = d5 * (s * ax + c * bx), d5 * (s * ay + c * by)
+            X, Y = X5 + dx, Y5 + dy
+            r2 = X * X + Y * Y
+            c3 = (r2 - l3) * k3
+            if c3 > 1.0 or c3 < -1.0:
+                if abs(c3) > 1.0 + _CLIP_EPS:
+                    return None
+                c3 = 1.0 if c3 > 0.0 else -1.0
+            s3 = e * sqrt(1.0 - c3 * c3)
+            t3 = atan2(s3, c3)
+            t2 = atan2(Y, X) - atan2(a3 * s3, a2 + a3 * c3)
+            t4 = atan2(c5 * v - s5 * zy, c5 * u - s5 * zx) - t2 - t3
+            w2 = t2 + tau * (((g2 - t2) * inv + 0.5) // 1.0)
+            if not lo2 <= w2 <= hi2:
+                w2 = _near(t2, g2, lo2, hi2)
+                if w2 != w2:
+                    return None
+            w3 = t3 + tau * (((g3 - t3) * inv + 0.5) // 1.0)
+            if not lo3 <= w3 <= hi3:
+                w3 = _near(t3, g3, lo3, hi3)
+                if w3 != w3:
+                    return None
+            w4 = t4 + tau * (((g4 - t4) * inv + 0.5) // 1.0)
+            if not lo4 <= w4 <= hi4:
+                w4 = _near(t4, g4, lo4, hi4)
+                if w4 != w4:
+                    return None
+            w6 = t + tau * (((g6 - t) * inv + 0.5) // 1.0)
+            if not lo6 <= w6 <= hi6:
+                w6 = _near(t, g6, lo6, hi6)
+                if w6 != w6:
+                    return None
+            e2, e3, e4, e6 = w2 - g2, w3 - g3, w4 - g4, w6 - g6
+            fv = e2 * e2 + e3 * e3 + e4 * e4 + e6 * e6
+            if s3 == 0.0:  # at an end of the interval: the derivatives are infinite
+                return fv, 0.0, 0.0, 0.0, w2, w3, w4, 0.0, 0.0, 0.0, w6
+            # derivatives: X' = d5 u, Y' = d5 v, X'' = -dx, Y'' = -dy
+            Xd, Yd = d5 * u, d5 * v
+            r2d = 2.0 * (X * Xd + Y * Yd)
+            c3d = r2d * k3
+            c3dd = 2.0 * k3 * (Xd * Xd + Yd * Yd - X * dx - Y * dy)
+            d3 = -c3d / s3
+            d3d = -(c3dd + c3 * d3 * d3) / s3
+            bd = (X * Yd - Y * Xd) / r2
+            bdd = (Y * dx - X * dy) / r2 - bd * r2d / r2
+            q = a3 * (a2 * c3 + a3)
+            betad = q * d3 / r2
+            betadd = (a3 * a2 * c3d * d3 + q * d3d) / r2 - betad * r2d / r2
+            d2 = bd - betad
+            d2d = bdd - betadd
+            d4 = sigma - d2 - d3
+            d4d = -d2d - d3d
+            hg = 2.0 * (d2 * d2 + d3 * d3 + d4 * d4 + 1.0)
+            return (
+                fv,
+                2.0 * (e2 * d2 + e3 * d3 + e4 * d4 + e6),
+                hg + 2.0 * (e2 * d2d + e3 * d3d + e4 * d4d),
+                hg,
+                w2,
+                w3,
+                w4,
+                d2,
+                d3,
+                d4,
+                w6,
+            )
+
+        def wrap(v: float, g: float, jl: float, jh: float) -> float:
+            w = v + tau * (((g - v) * inv + 0.5) // 1.0)
+            return w if jl <= w <= jh else _near(v, g, jl, jh)
+
+        def ev2(t: float) -> tuple[float, float]:
+            """f for both elbows (up, down) at t; inf where out of reach or limits."""
+            s, c = sin(t), cos(t)
+            X = X5 + d5 * (s * ax + c * bx)
+            Y = Y5 + d5 * (s * ay + c * by)
+            c3 = (X * X + Y * Y - l3) * k3
+            if c3 > 1.0 or c3 < -1.0:
+                if abs(c3) > 1.0 + _CLIP_EPS:
+                    return math.inf, math.inf
+                c3 = 1.0 if c3 > 0.0 else -1.0
+            s3 = sqrt(1.0 - c3 * c3)
+            t3 = atan2(s3, c3)
+            bb = atan2(Y, X)
+            be = atan2(a3 * s3, a2 + a3 * c3)
+            t234 = atan2(c5 * (c * ay - s * by) - s5 * zy, c5 * (c * ax - s * bx) - s5 * zx)
+            w6 = wrap(t, g6, lo6, hi6)
+            f6 = (w6 - g6) * (w6 - g6)
+            res = []
+            for t2, t3e in ((bb - be, t3), (bb + be, -t3)):
+                w2 = wrap(t2, g2, lo2, hi2)
+                w3 = wrap(t3e, g3, lo3, hi3)
+                w4 = wrap(t234 - t2 - t3e, g4, lo4, hi4)
+                fv = f6 + (w2 - g2) * (w2 - g2) + (w3 - g3) * (w3 - g3) + (w4 - g4) * (w4 - g4)
+                res.append(fv if fv == fv else math.inf)
+            return res[0], res[1]
+
+        # On an interval with ends, Newton steps in u, t = lo + span·sin²u (smooth in u at
+        # the ends, where θ3 has an infinite slope in t); on the whole circle, in t itself.
+        umin, umax = 1e-4, 0.5 * math.pi - 1e-4
+
+        def t_of(u: float, lo: float, span: float) -> float:
+            return u if periodic else lo + span * sin(u) ** 2
+
+        def u_of(t: float, lo: float, span: float) -> float:
+            if periodic:
+                return t
+            x = (t - lo) / span if span > 0.0 else 0.0
+            return min(max(math.asin(math.sqrt(min(max(x, 0.0), 1.0))), umin), umax)
+
+        def descend(u: float, cur: _Ev, e: float, lo: float, span: float) -> tuple[float, float]:
+            """Newton steps on f from u; a step stops short of a joint limit."""
+            t = t_of(u, lo, span)
+            for _ in range(20):
+                fv, g, h, hg, w2, w3, w4, d2, d3, d4, w6 = cur
+                if periodic:
+                    tu, tuu = 1.0, 0.0
+                else:
+                    tu, tuu = span * sin(2.0 * u), 2.0 * span * cos(2.0 * u)
+                hgu = hg * tu * tu
+                if hgu <= 0.0:
+                    break
+                hu = h * tu * tu + g * tuu
+                # at most _TRUST rad of θ6 per step (and 0.25 of u, where t(u) is flat)
+                lim = min(0.25, _TRUST / abs(tu))
+                if hu > 0.0:
+                    step = -g * tu / hu
+                    if g * tu * step > -_F_TOL:  # converged: f within _F_TOL
+                        break
+                    if abs(step) > lim:
+                        step = math.copysign(lim, step)
+                elif g == 0.0:
+                    break
+                else:  # concave (e.g. an end that is a maximum in u): the longest step, downhill
+                    step = -math.copysign(lim, g * tu)
+                if not periodic:
+                    step = min(max(u + step, umin), umax) - u
+                # a joint reaching its limit would jump to its far equivalent: stop short
+                for w, d, jl, jh in (
+                    (w2, d2 * tu, lo2, hi2),
+                    (w3, d3 * tu, lo3, hi3),
+                    (w4, d4 * tu, lo4, hi4),
+                    (w6, tu, lo6, hi6),
+                ):
+                    nw = w + d * step
+                    if nw > jh >= w:
+                        step = _CUT * (jh - w) / d
+                    elif nw < jl <= w:
+                        step = _CUT * (jl - w) / d
+                for _ in range(6):
+                    nu = u + step
+                    nt = t_of(nu, lo, span)
+                    new = ev(nt, e)
+                    if new is not None and new[0] <= fv:
+                        break
+                    step *= 0.25
+                else:
+                    break
+                moved = abs(nu - u)
+                u, t, cur = nu, nt, new
+                if moved < 1e-10:
+                    break
+            return cur[0], t
+
+        # Candidates besides the Newton minima: the interval ends, and the points where a
+        # joint reaches a limit (there the 2π shift jumps: f can have its minimum right at
+        # such a point). In the plane (complex numbers), o4 = W + d5·N·e^{i·t234} with
+        # N = ±i and t234 = t234(0) + σ·t, so each of these points is a root of
+        # cos(t234 + const) = const: a joint at value L is
+        #   θ6: t = L;  θ3: |o4| fixed;  θ2: |o4 - a2·e^{iL}| = |a3|;
+        #   θ4: o3 = o4 - a3·e^{i(t234 - L)} = W + (d5·N - a3·e^{-iL})·e^{i·t234}, |o3| = |a2|.
+        sg = 1.0 if sigma >= 0.0 else -1.0
+        Nc = complex(0.0, -sg * (1.0 if c5 >= 0.0 else -1.0))
+        t234_0 = atan2(c5 * ay - s5 * zy, c5 * ax - s5 * zx)
+        Wc = complex(X5, Y5)
+        roots: list[tuple[float, float]] = []  # (t234, elbow sign or 0 = both)
+
+        def circle(centre: complex, rot: complex, target: float) -> list[float]:
+            """t234 where |centre + rot·e^{i·t234}| = target (rot ≠ 0)."""
+            r, m = abs(centre), abs(rot)
+            if r * m < 1e-15:
+                return []
+            kc = (target * target - r * r - m * m) / (2.0 * r * m)
+            if not -1.0 <= kc <= 1.0:
+                return []
+            base_ = cmath.phase(centre) - cmath.phase(rot)
+            dlt = math.acos(kc)
+            return [base_ + dlt, base_ - dlt]
+
+        def elbow_of(o3: complex, o4: complex) -> float:
+            x = (o3.conjugate() * (o4 - o3)).imag
+            return 1.0 if x > 0.0 else -1.0
+
+        for jl, jh, kind in ((lo2, hi2, 2), (lo3, hi3, 3), (lo4, hi4, 4)):
+            levels: tuple[float, ...] = (
+                (jl,) if abs(math.remainder(jh - jl, tau)) < 1e-9 else (jl, jh)
+            )
+            # and where the 2π shift of θ2 or θ3 flips (minima on either side, close by)
+            flip = g2 + math.pi if kind == 2 else g3 + math.pi if kind == 3 else math.nan
+            if kind != 4:
+                levels += (flip,)
+            for L in levels:
+                sides = (-1e-6, 1e-6) if flip == L else (0.0,)
+                if kind == 2:
+                    o3 = a2 * cmath.exp(1j * L)
+                    for r in circle(Wc - o3, d5 * Nc, abs(a3)):
+                        ee = elbow_of(o3, Wc + d5 * Nc * cmath.exp(1j * r))
+                        roots += [(r + dr, ee) for dr in sides]
+                elif kind == 3:
+                    sl = math.sin(L)
+                    if abs(sl) > 1e-9:
+                        reach = math.sqrt(l3 + 2.0 * a2 * a3 * math.cos(L))
+                        for r in circle(Wc, d5 * Nc, reach):
+                            roots += [(r + dr, 1.0 if sl > 0.0 else -1.0) for dr in sides]
+                else:
+                    rot = d5 * Nc - a3 * cmath.exp(-1j * L)
+                    for r in circle(Wc, rot, abs(a2)):
+                        e4 = cmath.exp(1j * r)
+                        o4 = Wc + d5 * Nc * e4
+                        roots.append((r, elbow_of(o4 - a3 * e4 * cmath.exp(-1j * L), o4)))
+        extra = [(sg * (r - t234_0), e) for r, e in roots]
+        levels6 = (lo6,) if abs(math.remainder(hi6 - lo6, tau)) < 1e-9 else (lo6, hi6)
+        extra += [(L, 0.0) for L in levels6]
+
+        # a grid in u (in t on the whole circle), both elbows at once
+        grids = []
         for lo, hi in intervals:
-            n = 24
-            step = (hi - lo) / n
-            scored = [
-                (c[0], t6)
-                for t6 in (lo + i * step for i in range(n + 1))
-                if (c := solve(t6)) is not None
-            ]
-            if not scored:
-                continue
-            _, t_best = min(scored)
-            a_lo, a_hi = max(lo, t_best - step), min(hi, t_best + step)
-            cands = [c for c in (solve(t_best), _golden(solve, a_lo, a_hi)) if c is not None]
-            for c in cands:
-                if best is None or c[0] < best[0]:
-                    best = c
-        return None if best is None else best[1]
+            span = hi - lo
+            # about _GRID_STEP rad of θ6 apart at most (u = π/4 ± π/(4n) maps to
+            # span·sin(π/(2n)) ≤ span·π/(2n) of t)
+            n = max(4, math.ceil(math.pi * span / (2.0 * _GRID_STEP)))
+            if periodic:
+                us = [lo + i * tau / n for i in range(n)]
+            else:
+                us = [i * (0.5 * math.pi) / n for i in range(n + 1)]  # the ends exactly
+            grids.append((lo, hi, span, us, [ev2(t_of(u, lo, span)) for u in us]))
+        ends: set[float] = set()
+        if not periodic:
+            for lo, hi in intervals:
+                ends |= {lo, hi, t_of(0.5 * math.pi, lo, hi - lo)}
+        out: list[list[float]] = []
+        for ie, e in enumerate((1.0, -1.0)):
+            tried: list[tuple[float, float]] = []
+            spots: list[tuple[float, float, float, float]] = []  # f, t, lo, span
+            starts: list[tuple[float, float, float, float]] = []  # f, u, lo, span
+            for lo, hi, span, us, vals in grids:
+                for t, ee in extra:
+                    if ee != 0.0 and ee != e:
+                        continue
+                    t = lo + (t - lo) % tau
+                    if t <= hi:
+                        fs = ev2(t)[ie]
+                        if fs < math.inf:
+                            spots.append((fs, t, lo, span))
+                # Newton from the grid's local minima
+                m = len(us)
+                for i in range(m):
+                    fc = vals[i][ie]
+                    if fc == math.inf:
+                        continue
+                    fl = vals[i - 1][ie] if (periodic or i > 0) else math.inf
+                    fr = vals[(i + 1) % m][ie] if (periodic or i < m - 1) else math.inf
+                    if fl >= fc and fr >= fc:
+                        starts.append((fc, us[i], lo, span))
+            starts.sort()
+            top = math.inf
+            for fs, u, lo, span in starts:
+                tried.append((fs, t_of(u, lo, span)))
+                if not periodic:
+                    u = min(max(u, umin), umax)
+                if fs <= top + _MARGIN and (c := ev(t_of(u, lo, span), e)) is not None:
+                    res = descend(u, c, e, lo, span)
+                    tried.append(res)
+                    top = min(top, res[0])
+            # descend from the best end or limit point too
+            spots.sort()
+            for i, (fs, ts, los, spans) in enumerate(spots):
+                tried.append((fs, ts))
+                u = u_of(ts, los, spans)
+                if (
+                    i < _SPOTS
+                    and fs <= top + _MARGIN
+                    and (c := ev(t_of(u, los, spans), e)) is not None
+                ):
+                    tried.append(descend(u, c, e, los, spans))
+            # the best by f, checked on the solution itself (at an end or a limit the
+            # rounding of the closed form can land on the other side of a 2π jump)
+            tried.sort()
+            chosen: tuple[float, list[float]] | None = None
+            for fv, t in tried:
+                if chosen is not None and fv >= chosen[0] - 1e-12:
+                    break
+                found: list[list[float]] = []
+                self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t, found, int(e))
+                if found and t in ends and abs(sin(found[0][2])) < 1e-6:
+                    # at an end rounding leaves the arm ~1e-16 short of the stretch (or fold),
+                    # which is θ3 ~1e-8 off it: also θ3 on it, θ2 and θ4 turned to match
+                    q1, q2, q3, q4, q5, q6 = found[0]
+                    base = q2 + atan2(a3 * sin(q3), a2 + a3 * cos(q3))
+                    q3s = 0.0 if cos(q3) > 0.0 else math.copysign(math.pi, q3)
+                    q2s = base - atan2(0.0, a2 + a3 * cos(q3s))
+                    found.append([q1, q2s, q3s, q4 + q2 + q3 - q2s - q3s, q5, q6])
+                for sol in found:
+                    if (shifted := self._nearest(sol, seed)) is not None:
+                        # θ1, θ5 terms are the same for every t: compare the rest
+                        g = shifted[1]
+                        rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
+                        if chosen is None or rest < chosen[0]:
+                            chosen = (rest, g)
+            if chosen is not None:
+                out.append(chosen[1])
+        return out
 
     def _nearest(self, sol: list[float], seed: list[float]) -> tuple[float, list[float]] | None:
         """The 2π-equivalent of ``sol`` nearest ``seed`` within the limits, and its distance²."""
@@ -851,24 +1194,3 @@ def _default_limits() -> tuple[Sequence[float], Sequence[float]]:
 
     lim = JointLimits()
     return lim.position_min, lim.position_max
-
-
-def _golden(
-    fn: Callable[[float], tuple[float, list[float]] | None], lo: float, hi: float
-) -> tuple[float, list[float]] | None:
-    """Golden-section search for the smallest ``fn(t)[0]`` on [lo, hi] (None = infeasible)."""
-    g = (math.sqrt(5.0) - 1.0) / 2.0
-    worst: tuple[float, list[float]] = (math.inf, [])
-    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-    fa, fb = fn(a) or worst, fn(b) or worst
-    for _ in range(40):
-        if fa[0] < fb[0]:
-            hi, b, fb = b, a, fa
-            a = hi - g * (hi - lo)
-            fa = fn(a) or worst
-        else:
-            lo, a, fa = a, b, fb
-            b = lo + g * (hi - lo)
-            fb = fn(b) or worst
-    best = fa if fa[0] < fb[0] else fb
-    return best if best[1] else None
