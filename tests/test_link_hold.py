@@ -31,21 +31,27 @@ class Control:
 
     def __init__(self) -> None:
         self.calls: list[str] = []
-        self.lock = threading.Lock()
+        self.changed = threading.Condition()
+
+    def _record(self, name: str) -> bool:
+        with self.changed:
+            self.calls.append(name)
+            self.changed.notify_all()
+        return True
 
     def servoJ(self, *args: Any) -> bool:  # noqa: N802 (ur_rtde's name)
-        with self.lock:
-            self.calls.append("servoJ")
-        return True
+        return self._record("servoJ")
 
     def servoStop(self) -> bool:  # noqa: N802
-        with self.lock:
-            self.calls.append("servoStop")
-        return True
+        return self._record("servoStop")
 
     def count(self, name: str) -> int:
-        with self.lock:
+        with self.changed:
             return self.calls.count(name)
+
+    def wait_for(self, name: str, n: int, timeout: float = 1.0) -> bool:
+        with self.changed:
+            return self.changed.wait_for(lambda: self.calls.count(name) >= n, timeout)
 
 
 class Link:
@@ -115,10 +121,8 @@ def test_a_completed_trajectory_hands_servo_mode_to_the_next_without_servo_stop(
     traj = _run(link)
     _wait_ended(traj)
     assert link.ends()[0]["status"] == "completed"
-    deadline = time.monotonic() + 1.0
-    while not traj.release(keep_servo=True):  # True once it holds the target
-        assert time.monotonic() < deadline, "the trajectory never held its target"
-        time.sleep(0.001)
+    assert traj.hold_started.wait(1.0), "the trajectory never held its target"
+    assert traj.release(keep_servo=True)
     traj.thread.join(1.0)
     assert not traj.thread.is_alive()
     assert traj.servo_kept
@@ -160,14 +164,12 @@ def test_a_stop_for_the_settled_robot_keeps_servo_mode_for_the_next_move(link: L
     samples = [TARGET] * 200  # the hold part of a move: the robot is already at the target
     traj = _Trajectory(link, 1, samples, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
     traj.thread.start()
-    time.sleep(0.01)
+    assert link.control.wait_for("servoJ", 3)  # a few samples streamed
     traj.stop(wire.SETTLED)
     _wait_ended(traj)
     assert link.ends()[0]["reason"] == wire.SETTLED
-    deadline = time.monotonic() + 1.0
-    while not traj.release(keep_servo=True):
-        assert time.monotonic() < deadline, "the settled trajectory never held its target"
-        time.sleep(0.001)
+    assert traj.hold_started.wait(1.0), "the settled trajectory never held its target"
+    assert traj.release(keep_servo=True)
     traj.thread.join(1.0)
     assert traj.servo_kept
     assert link.control.count("servoStop") == 0

@@ -672,6 +672,7 @@ class _Trajectory:
         self._released = threading.Event()
         self._keep_servo = False
         self.servo_kept = False  # the hold ended handing servo mode to the next trajectory
+        self.hold_started = threading.Event()  # it ended at its target and holds it
         self.thread = threading.Thread(target=self._run, name=f"trajectory-{traj_id}", daemon=True)
 
     def replace(self, samples: wire.Samples, at_index: int | None = None) -> None:
@@ -839,6 +840,7 @@ class _Trajectory:
         with self._lock:
             self._holding = True
             self._stop_reason = None  # the stop that ended it (settled); a new one ends the hold
+        self.hold_started.set()
         try:
             while time.monotonic() < until:
                 if self._released.is_set():
