@@ -839,7 +839,8 @@ class _Trajectory:
         seen = link._samples
         with self._lock:
             self._holding = True
-            self._stop_reason = None  # the stop that ended it (settled); a new one ends the hold
+            if self._stop_reason == wire.SETTLED:
+                self._stop_reason = None  # the stop that ended it; any other ends the hold
         self.hold_started.set()
         try:
             while time.monotonic() < until:
