@@ -116,7 +116,8 @@ class RemoteOperation:
                 with contextlib.suppress(errors.FxcellError, httpx.HTTPError):
                     await self.cancel()
                 with contextlib.suppress(Exception, asyncio.CancelledError):
-                    await asyncio.wait_for(request, 5.0)
+                    async with asyncio.timeout(5.0):
+                        await request
                 raise
         return self.result()
 

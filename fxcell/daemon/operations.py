@@ -145,7 +145,8 @@ class OperationRegistry:
             await op.done.wait()
             return True
         with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(op.done.wait(), within)
+            async with asyncio.timeout(within):
+                await op.done.wait()
         return op.done.is_set()
 
     async def cancel(self, op: Operation, within: float = 5.0) -> None:

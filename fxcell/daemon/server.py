@@ -145,7 +145,8 @@ class Daemon:
             await self._shutdown(deadline)
             server.should_exit = True
             with contextlib.suppress(TimeoutError, asyncio.CancelledError):
-                await asyncio.wait_for(server_task, max(0.1, deadline - time.monotonic()))
+                async with asyncio.timeout(max(0.1, deadline - time.monotonic())):
+                    await asyncio.shield(server_task)
             server.force_exit = True
             for task in (supervisor, watchdog, server_task):
                 task.cancel()
@@ -185,7 +186,8 @@ class Daemon:
         """Stop motion, then close the Cell (finishing the MCAP file)."""
         t0 = time.monotonic()
         with contextlib.suppress(TimeoutError):  # the running step brakes; the run stays resumable
-            await asyncio.wait_for(self.service.jobs.detach(), max(0.1, deadline - t0 - 1.0))
+            async with asyncio.timeout(max(0.1, deadline - t0 - 1.0)):
+                await self.service.jobs.detach()
         await self.service.operations.cancel_all(within=max(0.1, deadline - time.monotonic()))
         log.info("shutdown: operations ended after %.3f s", time.monotonic() - t0)
         cell, self._cell = self._cell, None
@@ -227,7 +229,8 @@ class Daemon:
                 if time.monotonic() - started > 30:
                     backoff = BACKOFF_START
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self.stopping.wait(), backoff)
+                    async with asyncio.timeout(backoff):
+                        await self.stopping.wait()
                 backoff = min(backoff * 2, self.config.robot.reconnect_backoff_max)
 
     def _announce_ready(self, how: str) -> None:
@@ -247,7 +250,8 @@ class Daemon:
         cell, self._cell = self._cell, None
         if cell is not None:
             with contextlib.suppress(FxcellError, TimeoutError):
-                await asyncio.wait_for(cell.close(), 2.0)
+                async with asyncio.timeout(2.0):
+                    await cell.close()
 
     async def _watchdog(self) -> None:
         interval = self.notifier.watchdog_interval

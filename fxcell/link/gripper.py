@@ -34,16 +34,18 @@ class URCapGripperClient:
     async def _request(self, line: str) -> str:
         async with self._lock:
             try:
-                if self._writer is None:
-                    self._reader, self._writer = await asyncio.wait_for(
-                        asyncio.open_connection(self.host, self.port), self.timeout
-                    )
-                reader, writer = self._reader, self._writer
-                assert reader is not None
-                assert writer is not None
-                writer.write(line.encode("ascii") + b"\n")
-                await writer.drain()
-                raw = await asyncio.wait_for(reader.readline(), self.timeout)
+                async with asyncio.timeout(self.timeout):
+                    if self._writer is None:
+                        self._reader, self._writer = await asyncio.open_connection(
+                            self.host, self.port
+                        )
+                async with asyncio.timeout(self.timeout):
+                    reader, writer = self._reader, self._writer
+                    assert reader is not None
+                    assert writer is not None
+                    writer.write(line.encode("ascii") + b"\n")
+                    await writer.drain()
+                    raw = await reader.readline()
             except TimeoutError:
                 await self._drop()
                 raise RobotTimeoutError(

@@ -106,7 +106,8 @@ async def _read_program(reader: asyncio.StreamReader) -> str:
         if remaining <= 0:
             raise TimeoutError("no program received")
         try:
-            chunk = await asyncio.wait_for(reader.read(65536), min(remaining, 0.2))
+            async with asyncio.timeout(min(remaining, 0.2)):
+                chunk = await reader.read(65536)
         except TimeoutError:
             if text.strip():
                 return text.lstrip()  # a pause after some text: that was all of it
@@ -626,9 +627,8 @@ class SimServer:
         host = self.controller.client_host
         c = self.controller
         try:
-            reader, writer = await asyncio.wait_for(
-                asyncio.open_connection(host, self.urcap_port), URCAP_TIMEOUT
-            )
+            async with asyncio.timeout(URCAP_TIMEOUT):
+                reader, writer = await asyncio.open_connection(host, self.urcap_port)
         except (OSError, TimeoutError) as exc:
             c.stop(
                 f"ExternalControl: cannot reach the remote PC at {host}:{self.urcap_port} ({exc})"
