@@ -168,6 +168,7 @@ async def run(daemon: DaemonProcess, sim: Any) -> dict[str, Any]:
 
         # 1. moves
         completed = 0
+        failures: list[str] = []
         for k in range(MOVES):
             target = [q0[0] + (0.3 if k % 2 == 0 else 0.0), *q0[1:]]
             r = await http.post(
@@ -176,7 +177,11 @@ async def run(daemon: DaemonProcess, sim: Any) -> dict[str, Any]:
                 json={"target": target, "velocity_factor": 0.5},
             )
             completed += r.status_code == 200
+            if r.status_code != 200:
+                failures.append(f"move {k + 1}: HTTP {r.status_code}: {r.text[:300]}")
+                await http.post("/api/cell/init")  # recover (e.g. after a stop)
         out["moves_completed"] = completed
+        out["move_failures"] = failures
 
         # 2. STOP under hostile uploads
         host, port = daemon.url.removeprefix("http://").split(":")
@@ -256,6 +261,8 @@ def main() -> int:
     worst_after = max(out["motion_after_abort_ms"])
     print(f"run: {elapsed:.0f} s under 2 CPU burners and {out['state_requests']} state requests")
     print(f"  moves completed            {out['moves_completed']}/{MOVES}")
+    for failure in out["move_failures"][:5]:
+        print(f"    failed: {failure}")
     print(
         f"  STOP round trip            p50 {stop_p50:.1f} ms  p99 {stop_p99:.1f} ms "
         f"({out['uploads']} hostile 100 MB uploads tried meanwhile)"
