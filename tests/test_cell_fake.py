@@ -205,6 +205,23 @@ async def test_move_joint_reaches_its_target(fake_cell: Cell, fake_robot: FakeRo
     await fake_cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY, timeout=1.0)
 
 
+async def test_a_move_stretched_by_a_slow_controller_clock_still_arrives() -> None:
+    # The link sends one setpoint per controller cycle it sees; starved of CPU it sees
+    # fewer and the move takes longer than planned (never faster). Here the controller's
+    # clock runs at 0.2 of the wall clock: the move takes 5x its plan, longer than the
+    # plan + margins, and keeps reporting progress all along.
+    robot = FakeRobot(time_scale=0.01, speed=0.2)
+    async with Cell(link_factory=robot.link_factory, record=None) as cell:
+        await cell.init()
+        loop = asyncio.get_running_loop()
+        started = loop.time()
+        result = await cell.move_joint(list(HOME + np.array([0.1, 0, 0, 0, 0, 0])))
+        took = loop.time() - started
+    assert took > result.planned_duration + 2 * 0.5 + 1.0  # past the old fixed patience
+    assert result.joint_error < 1e-5
+    assert not result.stopped
+
+
 async def test_move_pose_reaches_the_pose_on_the_controllers_tcp(
     fake_cell: Cell, fake_robot: FakeRobot
 ) -> None:

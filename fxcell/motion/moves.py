@@ -569,8 +569,11 @@ class MoveExecution:
             except TimeoutError:
                 with contextlib.suppress(Exception):
                     await handle.stop()
+                p = handle.progress
+                where = f"; last progress: sample {p.index} of {p.total}" if p else ""
                 raise TrackingError(
                     f"the move did not end within {self.plan.duration:.2f} s planned + margins"
+                    f" after its last progress{where}"
                 ) from None
             except asyncio.CancelledError:
                 # Our task was cancelled (stop(), a safety event, a lost link, the
@@ -598,11 +601,21 @@ class MoveExecution:
         the stream), the stream ends, or a stop request brakes it to rest."""
         opts = self.options
         target = self.plan.trajectory.positions[-1].tolist()
-        patience = self.plan.duration + 2 * opts.settle_timeout + 1.0
+        # The link process sends one sample per controller cycle it sees; starved of CPU it
+        # sees fewer, and the trajectory stretches (slower, never faster). So the patience
+        # runs from the latest progress report: the samples still to send, plus margins.
+        margin = 2 * opts.settle_timeout + 1.0
+        loop = asyncio.get_running_loop()
+        reported = -1
         state = self.link.latest
         count = 0
-        async with asyncio.timeout(patience):
+        async with asyncio.timeout(self.plan.duration + margin) as patience:
             while True:
+                progress = handle.progress
+                if progress is not None and progress.index > reported:
+                    reported = progress.index
+                    left = (progress.total - progress.index) * DT + margin
+                    patience.reschedule(max(patience.when() or 0.0, loop.time() + left))
                 if self._stop.is_set() and not handle.done:
                     await self._braking(handle)
                 if state is not None:
