@@ -4,20 +4,23 @@ Leaving servo mode (servoStop) and entering it again are controller round trips 
 milliseconds each; a next move that starts while the previous one holds its target takes
 servo mode over instead. These tests drive :class:`fxcell.link.process._Trajectory` with a
 stand-in for the link (its 500 Hz sample clock) and for ur_rtde's control interface, which
-records every call: what matters here is the order of servoJ and servoStop.
+records every call: what matters here is the order of servoJ and servoStop. Last, how the
+link tells a silent cell from its own beat thread starved of the CPU.
 """
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
+import types
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
 
-from fxcell.link import wire
+from fxcell.link import process, wire
 from fxcell.link.process import Guard, _Trajectory
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
@@ -79,6 +82,9 @@ class Link:
             with self._tick:
                 self._samples += 1
                 self._tick.notify_all()
+
+    def heard_within(self, timeout: float, now: float) -> bool:
+        return now - self.last_heard <= timeout
 
     def next_sample(self, seen: int, timeout: float) -> int:
         with self._tick:
@@ -182,3 +188,20 @@ def test_a_stop_during_the_hold_leaves_servo_mode(link: Link) -> None:
     traj.thread.join(1.0)
     assert not traj.thread.is_alive()
     assert link.control.calls[-1] == "servoStop"
+
+
+def test_beats_waiting_in_the_channel_keep_a_starved_link_from_calling_the_cell_silent() -> None:
+    # The link's beat thread may not have run (CPU, GIL) while the cell beat on: the beats
+    # waiting in the channel show it alive. Once they are read, silence counts again.
+    mine, theirs = socket.socketpair()
+    with mine, theirs:
+        link = types.SimpleNamespace(last_heard=time.monotonic() - 1.0, beats=mine)
+        now = time.monotonic()
+        assert not process.Link.heard_within(link, 0.1, now)  # type: ignore[arg-type]
+        theirs.send(b"bbb")
+        assert process.Link.heard_within(link, 0.1, now)  # type: ignore[arg-type]
+        assert link.last_heard == now
+        later = now + 0.2
+        assert not process.Link.heard_within(link, 0.1, later)  # type: ignore[arg-type]
+        theirs.close()
+        assert not process.Link.heard_within(link, 0.1, later)  # type: ignore[arg-type]

@@ -174,6 +174,23 @@ class Link:
                 return  # the client closed it (or died: its main socket says so too)
             self.last_heard = time.monotonic()
 
+    def heard_within(self, timeout: float, now: float) -> bool:
+        """Whether the client was heard within ``timeout`` s of ``now``: by the beat or
+        reader thread, or by beats still waiting in the channel (those threads starved of
+        the CPU or the GIL must not make a live client look silent)."""
+        if now - self.last_heard <= timeout:
+            return True
+        if self.beats is None:
+            return False
+        try:
+            pending = self.beats.recv(64, socket.MSG_DONTWAIT)
+        except OSError:  # nothing waiting (BlockingIOError) or the channel is gone
+            return False
+        if not pending:
+            return False
+        self.last_heard = now
+        return True
+
     # -- reader
 
     def _reader(self) -> None:
@@ -707,7 +724,7 @@ class _Trajectory:
             if self._stop_reason is not None:
                 return self._stop_reason
         guard, link = self.guard, self.link
-        if guard.cell_timeout is not None and now - link.last_heard > guard.cell_timeout:
+        if guard.cell_timeout is not None and not link.heard_within(guard.cell_timeout, now):
             return "cell_silent"
         if now - link.last_state_at > guard.stall_timeout:
             return "state_stalled"
@@ -735,7 +752,9 @@ class _Trajectory:
                             velocity = _velocity(samples, u) if u < len(samples) else (0.0,) * 6
                             if max(map(abs, velocity)) > 0:  # not a stop at the target
                                 duration = brake_duration(velocity, self.guard)
-                                link.send(wire.LOG, logging.WARNING, f"braking to rest: {why}")
+                                silent = f" for {now - link.last_heard:.3f} s"
+                                said = why + (silent if why == "cell_silent" else "")
+                                link.send(wire.LOG, logging.WARNING, f"braking to rest: {said}")
                             else:  # holding the target: nothing to brake
                                 duration = 0.0
                             braking = (why, now, duration)
