@@ -7,9 +7,10 @@
 2. Daemon: ``fxcell daemon`` on its embedded simulator, the same moves over HTTP
    (``POST /api/cell/move_joint?wait=true``), 1000 of them (``--moves``); overhead as
    above from the HTTP client, and the daemon process's resident memory (VmRSS) every 50
-   moves. Warm-up: the first 100 moves. The daemon records (MCAP) by default; an idle
-   daemon's RSS grows about 0.8 MiB a minute with the recorder on and stays flat with it
-   off (measured 2026-11-23), so this figure includes that time-proportional growth.
+   moves. Warm-up: the first 100 moves. The daemon records (MCAP), as it does by default
+   (it did not here before 2026-11-23: the harness started it with --no-record). An idle
+   recording daemon's RSS went from 138.4 to 139.3 MiB between its first and sixth minute
+   (measured 2026-11-23).
 
 No peer (absolute targets). Targets: every daemon move succeeds; library and daemon
 median overhead <= 10 ms; daemon RSS after the 1000 moves within ±2 MiB of its value
@@ -84,7 +85,7 @@ def daemon(n: int) -> tuple[list[float], list[tuple[int, float]], list[str]]:
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "cell.yaml"
         config.write_text(f"robot:\n  host: null\ndaemon:\n  token_file: {tmp}/token\n")
-        with DaemonProcess.start(config, token=TOKEN) as d:
+        with DaemonProcess.start(config, token=TOKEN, log_dir=Path(tmp) / "logs") as d:
             d.wait_connected()
             pid = d.proc.pid
             headers = {"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": "bench"}
