@@ -254,10 +254,15 @@ class ServoTrack(Motion):
 
     def __init__(self, arm: Arm) -> None:
         super().__init__()
-        self.setpoint = arm.q.copy()
-        self._setpoint = self.setpoint.tolist()
+        self._setpoint: list[float] = arm.q.tolist()
         self.omega = 20.0
+        self._omega_of: tuple[float, float] | None = None  # (lookahead, gain) of omega
         self.last_command = -1.0
+
+    @property
+    def setpoint(self) -> FloatArray:
+        """The latest setpoint (kept as plain floats: an array only when asked for)."""
+        return np.array(self._setpoint)
 
     def command(
         self,
@@ -286,12 +291,13 @@ class ServoTrack(Motion):
                 )
             if abs(new) > JOINT_POSITION_LIMIT + 1e-9:
                 raise SafetyLimitError(f"servoj: joint {joint} position {new:.3f} out of ±2π")
-        self.setpoint = np.array(sp)
         self._setpoint = sp
         self.last_command = now
-        lookahead = min(max(lookahead, 0.03), 0.2)
-        gain = min(max(gain, 100.0), 2000.0)
-        self.omega = 2.0 / lookahead * (gain / 300.0) ** 0.25
+        if (lookahead, gain) != self._omega_of:  # a client keeps them from call to call
+            self._omega_of = (lookahead, gain)
+            lookahead = min(max(lookahead, 0.03), 0.2)
+            gain = min(max(gain, 100.0), 2000.0)
+            self.omega = 2.0 / lookahead * (gain / 300.0) ** 0.25
 
     def step(self, arm: Arm, dt: float) -> bool:
         # plain floats: for 6 joints this is cheaper than numpy's per-call overhead
@@ -312,9 +318,9 @@ class ServoTrack(Motion):
             new_qdd.append((nv - v) / dt)
         if settled:
             if arm.qd is not ZERO6 or q != self._setpoint:
-                arm.set_state(self.setpoint, None, None)  # converged: exactly on the setpoint
+                arm.set_state(self._setpoint, None, None)  # converged: exactly on the setpoint
             return False
-        arm.set_state(np.array(new_q), np.array(new_qd), np.array(new_qdd))
+        arm.set_state(new_q, np.array(new_qd), np.array(new_qdd))  # q: made an array there
         return False
 
     def restart(self, arm: Arm) -> Motion:
@@ -489,9 +495,15 @@ class Arm:
         self.qdd = ZERO6 if qdd is None else qdd
 
     def check_position(self, q: FloatArray, what: str) -> None:
-        if np.abs(q).max() > JOINT_POSITION_LIMIT + 1e-9:
-            joint = int(np.argmax(np.abs(q)))
-            raise SafetyLimitError(f"{what}: joint {joint} position {q[joint]:.3f} out of ±2π")
+        values = q.tolist()
+        total = sum(values)
+        if total - total == 0.0:  # all finite (the common case): plain floats, no numpy
+            if max(map(abs, values)) <= JOINT_POSITION_LIMIT + 1e-9:
+                return
+        elif not np.abs(q).max() > JOINT_POSITION_LIMIT + 1e-9:  # not finite: numpy's verdict
+            return
+        joint = int(np.argmax(np.abs(q)))
+        raise SafetyLimitError(f"{what}: joint {joint} position {q[joint]:.3f} out of ±2π")
 
     # ------------------------------------------------------------------ generators
 
@@ -584,11 +596,15 @@ class Arm:
             if self.generator is gen:
                 self.generator = None
             gen.token.finish()
-        if self.table is not None and self.moving:
+        qd = self.qd
+        if self.table is not None and qd is not ZERO6:
+            speeds = qd.tolist()
+            if not any(speeds):  # at rest (``moving`` without numpy)
+                return None
             # No point of the arm moves faster than REACH·Σ|q̇|: check the table only once
             # the arm may have covered its last clearance (and at least every 4 cycles
             # near the table, i.e. < 8 mm of travel between checks).
-            travel = LINK_REACH * float(np.abs(self.qd).sum()) * dt
+            travel = LINK_REACH * sum(map(abs, speeds)) * dt  # summed in numpy's order
             self._guard_budget -= travel
             if self._guard_budget <= 0.0:
                 hit, clearance = self.table.check(self.kinematics.joint_frames(self.q))
