@@ -63,6 +63,9 @@ class MachineState(StrEnum):
     ERROR = "error"
 
 
+_BUSY = (MachineState.FUSING, MachineState.COOLING)  # looked up once, not every cycle
+
+
 def parse_machine_io(text: str | None) -> dict[str, Signal]:
     """``"start=DO0,ready=DI0"`` over :data:`DEFAULT_SIGNALS` → every signal's :class:`Signal`.
 
@@ -203,7 +206,7 @@ class FusionMachine:
 
     @property
     def busy(self) -> bool:
-        return self.state in (MachineState.FUSING, MachineState.COOLING)
+        return self.state in _BUSY
 
     @property
     def ready(self) -> bool:
@@ -217,6 +220,9 @@ class FusionMachine:
         """Advance to controller time ``now`` (s): inputs, phases, outputs."""
         self.time = now
         level = self.io.output(self.signals["start"])
+        if level == self._start_level and now < self._next_sense and not self.busy:
+            self._write_signals()  # no edge, nothing sensed, no phase running: only outputs
+            return
         rising = level and not self._start_level
         self._start_level = level
         sense = rising or now >= self._next_sense

@@ -79,6 +79,7 @@ IDLE_PERIOD = 0.02  # s: cycle period while no client streams and nothing moves
 URCAP_TIMEOUT = 5.0
 _RATE = 1.0 / CONTROL_PERIOD  # per cycle -> per second
 _HALF_RATE = 0.5 / CONTROL_PERIOD
+_POWERED = (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
 URCAP_END_MARKER = "# NODE_CONTROL_LOOP_ENDS"
 
 
@@ -242,10 +243,7 @@ class SimServer:
         self.gripper = HandE(
             time_scale=time_scale,
             tcp_pose=lambda: Pose.from_ur(self.hub.state.actual_tcp_pose),
-            powered=lambda: (
-                self.controller.robot_mode
-                in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
-            ),
+            powered=lambda: self.controller.robot_mode in _POWERED,
         )
         self.layout = Layout(self.config.layout)
         # every slot's grip point, to tell where an object stands (the layout is fixed)
@@ -326,7 +324,7 @@ class SimServer:
         modes = (c.robot_mode, c.safety_mode, c.runtime_state)
         if modes != self._modes_published:  # what follows from the three modes alone
             self._modes_published = modes
-            powered = c.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
+            powered = c.robot_mode in _POWERED
             s.robot_mode = int(c.robot_mode)
             s.safety_mode = int(c.safety_mode)
             s.runtime_state = int(c.runtime_state)
