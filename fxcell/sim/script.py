@@ -183,7 +183,8 @@ class ControlScript:
             self._signal(2)
             self.executing = True
             return
-        cmd = self._int(0)
+        registers = self.c.registers
+        cmd = registers.in_int[self.oi]
         try:
             if cmd in REALTIME:
                 # The script re-reads the registers every cycle; only a new packet can
@@ -192,9 +193,13 @@ class ControlScript:
                 if generation != self._generation or cmd != self._last_realtime:
                     self._generation = generation
                     self._last_realtime = cmd
-                    self._process(cmd)
+                    if cmd == _SERVOJ:  # streamed at 500 Hz: the registers read in place
+                        d, of = registers.in_double, self.of
+                        self._servo(d[of : of + 6], d[of + 8], d[of + 9], d[of + 10])
+                    else:
+                        self._process(cmd)
                 if not self.terminated:
-                    self._signal(1)
+                    registers.out_int[self.oi] = 1  # ready (_signal(1))
             elif cmd == 0:
                 self.executing = False
                 self._signal(1)
@@ -263,17 +268,19 @@ class ControlScript:
             raise ScriptError(f"{what}: joint positions {q} outside ±2π")
         return q
 
+    def _servo(self, q: list[float], servo_time: float, lookahead: float, gain: float) -> None:
+        arm = self.arm
+        if self.servo is None or arm.generator is not self.servo:
+            self.servo = ServoTrack(arm)
+            arm.run(self.servo)
+            self.speed = None
+        self.servo.command(arm, q, servo_time, lookahead, gain, time.monotonic())
+
     def _process(self, cmd: int) -> None:
         arm = self.arm
         if cmd in (_SERVOJ, _SERVOL):  # streamed at 500 Hz: tested first
             q = self._floats(0) if cmd == _SERVOJ else self._ik(self._floats(0))
-            if self.servo is None or arm.generator is not self.servo:
-                self.servo = ServoTrack(arm)
-                arm.run(self.servo)
-                self.speed = None
-            self.servo.command(
-                arm, q, self._float(8), self._float(9), self._float(10), time.monotonic()
-            )
+            self._servo(q, self._float(8), self._float(9), self._float(10))
         elif cmd in (_SPEEDJ, _SPEEDL):
             if self.speed is None or arm.generator is not self.speed:
                 self.speed = SpeedTrack(arm)
