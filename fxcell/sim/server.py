@@ -293,11 +293,12 @@ class SimServer:
         version, qd = arm.version, arm.qd
         if version != self._fk_version or qd is not self._qd_published:
             self._qd_published = qd
-            s.actual_qd = s.target_qd = tuple(qd.tolist())
-            s.target_qdd = tuple(arm.qdd.tolist())
+            q, qd_list, qdd_list = arm.lists()
+            s.actual_qd = s.target_qd = tuple(qd_list)
+            s.target_qdd = tuple(qdd_list)
         if version != self._fk_version:
             self._fk_version = version
-            q = arm.q.tolist()
+            q = arm.lists()[0]
             s.actual_q = s.target_q = tuple(q)
             f = arm.kinematics.forward_rows(q)
             p = f[9:]
