@@ -228,7 +228,7 @@ class SimServer:
         self._urcap_task: asyncio.Task[None] | None = None
         self._fk_version = -1
         self._qd_published: object = None
-        self._prev_tcp: tuple[list[float], np.ndarray] | None = None
+        self._prev_tcp: tuple[list[float], list[float]] | None = None
         self._modes_published: tuple[object, ...] = ()
         self.late_cycles = 0
         self._sends = [0.0] * 16384  # wall times of cycles that sent RTDE packets
@@ -286,7 +286,7 @@ class SimServer:
         """Copy the controller's state into the RTDE stream state (FK only when q changed).
 
         Runs every cycle: plain floats throughout (FK as 12 floats, the pose's rotation
-        vector from them); numpy only for the product giving the TCP's angular speed.
+        vector and the TCP's angular speed from them).
         """
         c, arm, s = self.controller, self.arm, self.hub.state
         s.timestamp = c.time
@@ -302,13 +302,21 @@ class SimServer:
             s.actual_q = s.target_q = tuple(q)
             f = arm.kinematics.forward_rows(q)
             p = f[9:]
-            s.actual_tcp_pose = s.target_tcp_pose = (*p, *rows_to_rotvec(f[:9]))
-            R = np.array((f[0:3], f[3:6], f[6:9]))
+            R = f[:9]
+            s.actual_tcp_pose = s.target_tcp_pose = (*p, *rows_to_rotvec(R))
             # arm.moving without numpy: a velocity not the resting ZERO6 with a non-zero entry
             if self._prev_tcp is not None and qd is not ZERO6 and any(s.actual_qd):
                 p0, R0 = self._prev_tcp
-                # rotation in one cycle is tiny: its vector is the skew part of R·R0ᵀ
-                (_, d01, d02), (d10, _, d12), (d20, d21, _) = (R @ R0.T).tolist()
+                # rotation in one cycle is tiny: its vector is the skew part of D = R·R0ᵀ,
+                # of which only the six off-diagonal entries are needed
+                r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
+                o00, o01, o02, o10, o11, o12, o20, o21, o22 = R0
+                d01 = r00 * o10 + r01 * o11 + r02 * o12
+                d02 = r00 * o20 + r01 * o21 + r02 * o22
+                d10 = r10 * o00 + r11 * o01 + r12 * o02
+                d12 = r10 * o20 + r11 * o21 + r12 * o22
+                d20 = r20 * o00 + r21 * o01 + r22 * o02
+                d21 = r20 * o10 + r21 * o11 + r22 * o12
                 s.tcp_speed = (
                     (p[0] - p0[0]) * _RATE,
                     (p[1] - p0[1]) * _RATE,
