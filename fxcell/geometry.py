@@ -68,6 +68,21 @@ def matrix_to_quaternion(R: ArrayLike) -> tuple[float, float, float, float]:
     """
     m = np.asarray(R, dtype=np.float64)
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = m.tolist()
+    return _rows_quaternion(r00, r01, r02, r10, r11, r12, r20, r21, r22)
+
+
+def _rows_quaternion(
+    r00: float,
+    r01: float,
+    r02: float,
+    r10: float,
+    r11: float,
+    r12: float,
+    r20: float,
+    r21: float,
+    r22: float,
+) -> tuple[float, float, float, float]:
+    """:func:`matrix_to_quaternion` of a rotation given as nine floats, row-major."""
     tr = r00 + r11 + r22
     if tr >= r00 and tr >= r11 and tr >= r22:
         s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
@@ -109,6 +124,11 @@ def matrix_to_rotvec(R: ArrayLike) -> tuple[float, float, float]:
     dominant diagonal element, not from a vanishing sin θ).
     """
     return _quaternion_rotvec(*matrix_to_quaternion(R))
+
+
+def rows_to_rotvec(rows: Iterable[float]) -> tuple[float, float, float]:
+    """:func:`matrix_to_rotvec` of a rotation given as nine floats, row-major (no array)."""
+    return _quaternion_rotvec(*_rows_quaternion(*rows))
 
 
 def _quaternion_rotvec(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:

@@ -132,6 +132,11 @@ class CalibratedKinematics(Kinematics):
         F = self._frames(q)[7]
         return Pose._raw(F[:3, 3].copy(), F[:3, :3].copy())
 
+    def forward_rows(self, q: ArrayLike) -> list[float]:
+        F = self._frames(q)[7]
+        out: list[float] = [*F[:3, :3].ravel().tolist(), *F[:3, 3].tolist()]
+        return out
+
     def forward_flange(self, q: ArrayLike) -> Pose:
         F = self._frames(q)[6]
         return Pose._raw(F[:3, 3].copy(), F[:3, :3].copy())

@@ -239,6 +239,12 @@ class Kinematics:
             f = _compose(f, self._tcp)
         return Pose._raw(np.array(f[9:]), np.array((f[0:3], f[3:6], f[6:9])))
 
+    def forward_rows(self, q: ArrayLike) -> list[float]:
+        """:meth:`forward` as 12 plain floats, no arrays: the rotation row-major, then the
+        position (the same values)."""
+        f = self._flange(_joints(q))
+        return f if self._tcp_is_identity else _compose(f, self._tcp)
+
     def forward_flange(self, q: ArrayLike) -> Pose:
         """Flange (``tool0``) pose, whatever the TCP."""
         f = self._flange(_joints(q))

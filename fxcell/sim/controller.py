@@ -65,6 +65,9 @@ JOINT_MODE = {
 
 
 _POWERED = frozenset({RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING})
+# for the per-cycle paths: on Python 3.11 an enum attribute lookup costs ~0.25 µs
+_PLAYING = RuntimeState.PLAYING
+_RUNNING = RobotMode.RUNNING
 _POWER_ON_BIT = int(RobotStatusBits.POWER_ON)
 _PROGRAM_RUNNING_BIT = int(RobotStatusBits.PROGRAM_RUNNING)
 _B = SafetyStatusBits
@@ -265,16 +268,17 @@ class Controller:
         for _ in range(steps):
             self.ticks += 1
             self.time = self.ticks * CONTROL_PERIOD
-            self._run_timers()
-            if self.watchdog is not None and self.runtime_state == RuntimeState.PLAYING:
+            if self._timers:
+                self._run_timers()
+            if self.watchdog is not None and self.runtime_state == _PLAYING:
                 self._check_watchdog()
-            if self.runtime_state == RuntimeState.PLAYING:
+            if self.runtime_state == _PLAYING:
                 if self.script is not None:
                     self.script.step()
                 elif self.program is not None:
                     self._step_program(self.program)
             self.arm.speed_fraction = self.io.speed_slider
-            moving = self.robot_mode == RobotMode.RUNNING
+            moving = self.robot_mode == _RUNNING
             violation = self.arm.step(CONTROL_PERIOD, enabled=moving)
             if violation is not None:
                 self.protective_stop(violation)

@@ -63,6 +63,9 @@ class MachineState(StrEnum):
     ERROR = "error"
 
 
+_BUSY = (MachineState.FUSING, MachineState.COOLING)  # looked up once, not every cycle
+
+
 def parse_machine_io(text: str | None) -> dict[str, Signal]:
     """``"start=DO0,ready=DI0"`` over :data:`DEFAULT_SIGNALS` → every signal's :class:`Signal`.
 
@@ -164,6 +167,7 @@ class FusionMachine:
         self.messages: list[str] = []
         self._start_level = False
         self._written: dict[str, bool] = {}
+        self._written_from: tuple[object, ...] | None = None
         self._next_sense = 0.0
         for key, sig in self.signals.items():
             if sig.is_input:
@@ -202,7 +206,7 @@ class FusionMachine:
 
     @property
     def busy(self) -> bool:
-        return self.state in (MachineState.FUSING, MachineState.COOLING)
+        return self.state in _BUSY
 
     @property
     def ready(self) -> bool:
@@ -216,6 +220,9 @@ class FusionMachine:
         """Advance to controller time ``now`` (s): inputs, phases, outputs."""
         self.time = now
         level = self.io.output(self.signals["start"])
+        if level == self._start_level and now < self._next_sense and not self.busy:
+            self._write_signals()  # no edge, nothing sensed, no phase running: only outputs
+            return
         rising = level and not self._start_level
         self._start_level = level
         sense = rising or now >= self._next_sense
@@ -310,6 +317,11 @@ class FusionMachine:
         del self.messages[:-100]
 
     def _write_signals(self) -> None:
+        # the signals follow from these alone: nothing to work out while they stay the same
+        given = (self.state, self.fault, self.door_open)
+        if given == self._written_from:
+            return
+        self._written_from = given
         values = {
             "ready": self.ready,
             "busy": self.busy,

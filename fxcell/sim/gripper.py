@@ -213,6 +213,8 @@ class HandE:
         """Advance to controller time ``now`` (s)."""
         dt = 0.0 if self._time is None else max(0.0, now - self._time)
         self._time = now
+        if not (self.act or self.sta or self.moving or self.held is not None):
+            return  # never activated and holding nothing: no state to advance
         if not self.powered():
             if self.act or self.sta:
                 log.info("gripper: tool power lost, activation cleared")

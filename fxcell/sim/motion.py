@@ -254,10 +254,15 @@ class ServoTrack(Motion):
 
     def __init__(self, arm: Arm) -> None:
         super().__init__()
-        self.setpoint = arm.q.copy()
-        self._setpoint = self.setpoint.tolist()
+        self._setpoint: list[float] = arm.q.tolist()
         self.omega = 20.0
+        self._omega_of: tuple[float, float] | None = None  # (lookahead, gain) of omega
         self.last_command = -1.0
+
+    @property
+    def setpoint(self) -> FloatArray:
+        """The latest setpoint (kept as plain floats: an array only when asked for)."""
+        return np.array(self._setpoint)
 
     def command(
         self,
@@ -286,17 +291,17 @@ class ServoTrack(Motion):
                 )
             if abs(new) > JOINT_POSITION_LIMIT + 1e-9:
                 raise SafetyLimitError(f"servoj: joint {joint} position {new:.3f} out of ±2π")
-        self.setpoint = np.array(sp)
         self._setpoint = sp
         self.last_command = now
-        lookahead = min(max(lookahead, 0.03), 0.2)
-        gain = min(max(gain, 100.0), 2000.0)
-        self.omega = 2.0 / lookahead * (gain / 300.0) ** 0.25
+        if (lookahead, gain) != self._omega_of:  # a client keeps them from call to call
+            self._omega_of = (lookahead, gain)
+            lookahead = min(max(lookahead, 0.03), 0.2)
+            gain = min(max(gain, 100.0), 2000.0)
+            self.omega = 2.0 / lookahead * (gain / 300.0) ** 0.25
 
     def step(self, arm: Arm, dt: float) -> bool:
         # plain floats: for 6 joints this is cheaper than numpy's per-call overhead
-        q = arm.q.tolist()
-        qd = arm.qd.tolist()
+        q, qd, _ = arm.lists()
         kp = self.omega * self.omega * dt
         kd = 2.0 * self.omega * dt
         settled = True
@@ -312,9 +317,11 @@ class ServoTrack(Motion):
             new_qdd.append((nv - v) / dt)
         if settled:
             if arm.qd is not ZERO6 or q != self._setpoint:
-                arm.set_state(self.setpoint, None, None)  # converged: exactly on the setpoint
+                arm.set_state(self._setpoint, None, None)  # converged: exactly on the setpoint
             return False
-        arm.set_state(np.array(new_q), np.array(new_qd), np.array(new_qdd))
+        arm.set_state(  # q: made an array there
+            new_q, np.array(new_qd), np.array(new_qdd), lists=(new_q, new_qd, new_qdd)
+        )
         return False
 
     def restart(self, arm: Arm) -> Motion:
@@ -468,6 +475,7 @@ class Arm:
         self.version = 0  # bumped whenever q changes: lets the state cache FK
         self.speed_fraction = 1.0  # the speed slider: scales time along programmed moves
         self._guard_budget = 0.0  # m a link point may still travel before the next table check
+        self._lists: tuple[Any, ...] = ()  # (q, qd, qdd, and the three as lists): see lists()
 
     @property
     def active(self) -> bool:
@@ -479,19 +487,45 @@ class Arm:
         return self.qd is not ZERO6 and bool(self.qd.any())
 
     def set_state(
-        self, q: FloatArray | Sequence[float], qd: FloatArray | None, qdd: FloatArray | None
+        self,
+        q: FloatArray | Sequence[float],
+        qd: FloatArray | None,
+        qdd: FloatArray | None,
+        *,
+        lists: tuple[list[float], list[float], list[float]] | None = None,
     ) -> None:
-        """Set the joint state (``None`` velocities: at rest). ``q`` must not be mutated later."""
+        """Set the joint state (``None`` velocities: at rest). ``q`` must not be mutated later;
+        ``lists``: the same three as plain floats (kept for :meth:`lists`, not to be mutated)."""
         if q is not self.q:
             self.q = np.array(q, dtype=float)
             self.version += 1
         self.qd = ZERO6 if qd is None else qd
         self.qdd = ZERO6 if qdd is None else qdd
+        if lists is not None:
+            self._lists = (self.q, self.qd, self.qdd, *lists)
 
-    def check_position(self, q: FloatArray, what: str) -> None:
-        if np.abs(q).max() > JOINT_POSITION_LIMIT + 1e-9:
-            joint = int(np.argmax(np.abs(q)))
-            raise SafetyLimitError(f"{what}: joint {joint} position {q[joint]:.3f} out of ±2π")
+    def lists(self) -> tuple[list[float], list[float], list[float]]:
+        """``q``, ``qd`` and ``qdd`` as plain floats, not to be mutated: kept while the arrays
+        stay the same objects (the per-cycle readers then need no ``tolist``)."""
+        c = self._lists
+        if c and c[0] is self.q and c[1] is self.qd and c[2] is self.qdd:
+            return c[3], c[4], c[5]
+        out = (self.q.tolist(), self.qd.tolist(), self.qdd.tolist())
+        self._lists = (self.q, self.qd, self.qdd, *out)
+        return out
+
+    def check_position(self, q: FloatArray, what: str, values: list[float] | None = None) -> None:
+        """A SafetyLimitError if ``q`` leaves ±2π (``values``: ``q`` as floats, if known)."""
+        if values is None:
+            values = q.tolist()
+        total = sum(values)
+        if total - total == 0.0:  # all finite (the common case): plain floats, no numpy
+            if max(map(abs, values)) <= JOINT_POSITION_LIMIT + 1e-9:
+                return
+        elif not np.abs(q).max() > JOINT_POSITION_LIMIT + 1e-9:  # not finite: numpy's verdict
+            return
+        joint = int(np.argmax(np.abs(q)))
+        raise SafetyLimitError(f"{what}: joint {joint} position {q[joint]:.3f} out of ±2π")
 
     # ------------------------------------------------------------------ generators
 
@@ -570,7 +604,7 @@ class Arm:
             if scale != 1.0 and self.qd is not ZERO6:
                 self.qd = self.qd * scale  # path time runs slower than the clock
                 self.qdd = self.qdd * (scale * scale)
-            self.check_position(self.q, "motion")
+            self.check_position(self.q, "motion", self.lists()[0])
         except SafetyLimitError as exc:
             gen.token.finish(failed=str(exc))
             self.generator = None
@@ -584,11 +618,15 @@ class Arm:
             if self.generator is gen:
                 self.generator = None
             gen.token.finish()
-        if self.table is not None and self.moving:
+        qd = self.qd
+        if self.table is not None and qd is not ZERO6:
+            speeds = self.lists()[1]
+            if not any(speeds):  # at rest (``moving`` without numpy)
+                return None
             # No point of the arm moves faster than REACH·Σ|q̇|: check the table only once
             # the arm may have covered its last clearance (and at least every 4 cycles
             # near the table, i.e. < 8 mm of travel between checks).
-            travel = LINK_REACH * float(np.abs(self.qd).sum()) * dt
+            travel = LINK_REACH * sum(map(abs, speeds)) * dt  # summed in numpy's order
             self._guard_budget -= travel
             if self._guard_budget <= 0.0:
                 hit, clearance = self.table.check(self.kinematics.joint_frames(self.q))

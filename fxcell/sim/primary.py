@@ -67,6 +67,7 @@ _ADDITIONAL = struct.Struct(">iB???B")
 _CONFIG_BODY = struct.Struct(">12d12d5d24d4i")
 REALTIME_DOUBLES = 152
 REALTIME = struct.Struct(f">i{REALTIME_DOUBLES}d")  # 1220 bytes
+_REALTIME_PACK = REALTIME.pack
 
 _POWERED = (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
 _ESTOPS = (SafetyMode.ROBOT_EMERGENCY_STOP, SafetyMode.SYSTEM_EMERGENCY_STOP)
@@ -205,10 +206,15 @@ class StateSource:
         return _HEADER.pack(_HEADER.size + len(body), ROBOT_STATE) + body
 
     def realtime(self) -> bytes:
-        """One real-time packet (30003), the 5.11 layout of 152 doubles."""
+        """One real-time packet (30003), the 5.11 layout of 152 doubles.
+
+        One ``pack`` call on the fields as they are (struct packs the integer fields as
+        doubles, exactly): this runs every cycle.
+        """
         c, s = self.c, self.s
         z6 = s.zero6
-        values = (
+        return _REALTIME_PACK(
+            REALTIME.size,
             s.timestamp,
             *s.target_q,
             *s.target_qd,
@@ -224,13 +230,13 @@ class StateSource:
             *z6,  # TCP force
             *s.target_tcp_pose,
             *s.tcp_speed,
-            float(s.digital_input_bits),
+            s.digital_input_bits,
             *s.temperatures,
             s.execution_time / 1000.0,  # controller timer, s
             0.0,  # test value
-            float(s.robot_mode),
-            *(float(m) for m in s.joint_mode),
-            float(s.safety_mode),
+            s.robot_mode,
+            *s.joint_mode,
+            s.safety_mode,
             *z6,  # used by UR software only
             *s.accelerometer,
             *z6,  # used by UR software only
@@ -242,11 +248,11 @@ class StateSource:
             s.robot_voltage,
             s.robot_current,
             *s.joint_voltage,
-            float(s.digital_output_bits),
-            float(s.runtime_state),
+            s.digital_output_bits,
+            s.runtime_state,
             *s.elbow_position,
             *s.zero3,  # elbow velocity
-            float(s.safety_status_bits),
+            s.safety_status_bits,
             0.0,
             0.0,
             0.0,  # used by UR software only
@@ -254,7 +260,6 @@ class StateSource:
             *c.payload_cog,
             *z6,  # payload inertia
         )
-        return REALTIME.pack(REALTIME.size, *values)
 
 
 class StateConnection(asyncio.Protocol):
@@ -341,11 +346,11 @@ class ClientInterfaces:
         """Send what is due at the controller's current time (call after each advance)."""
         if self.pending:
             self._greet(self.source.c.time)
-        readers = [conn for conn in self.realtime if not conn.backlogged]
+        readers = [conn.transport for conn in self.realtime if not conn.backlogged]
         if readers:  # ur_rtde's control interface never reads 30003: no packing for it
             packet = self.source.realtime()
-            for conn in readers:
-                conn.send(packet)
+            for transport in readers:
+                transport.write(packet)  # type: ignore[union-attr]  # not backlogged: open
         if self.primary:
             slot = self.source.c.ticks // PRIMARY_PERIOD_CYCLES
             if slot != self._last_primary_slot:

@@ -230,45 +230,47 @@ def compile_output_recipe(
 
 
 class InputRecipe:
-    """One input recipe: how a ``U`` packet with its id writes into the controller."""
+    """One input recipe: how a ``U`` packet with its id writes into the controller.
+
+    Compiled like the output recipes: :meth:`apply` is generated straight-line code (a
+    streaming client sends one packet per cycle).
+    """
 
     def __init__(self, names: list[str]) -> None:
         self.names = names
         self.struct = struct.Struct(">" + "".join(TYPE_CODES[INPUTS[n]] for n in names))
-        setters: list[tuple[str, int, int]] = []  # (kind, index, width)
+        self.watched = [n for n in names if "_register_" in n]
+        lines = [
+            "def apply(controller, payload):",
+            "    values = _unpack(payload, 1)",
+            "    regs = controller.registers",
+            "    in_int, in_double = regs.in_int, regs.in_double",
+        ]
+        io: list[str] = []  # the I/O fields, collected and applied together
+        pos = 0
         for n in names:
             width = 6 if INPUTS[n] == "VECTOR6D" else 1
             if n.startswith("input_int_register_"):
-                setters.append(("i", int(n.rsplit("_", 1)[1]), width))
+                lines.append(f"    in_int[{int(n.rsplit('_', 1)[1])}] = values[{pos}]")
             elif n.startswith("input_double_register_"):
-                setters.append(("d", int(n.rsplit("_", 1)[1]), width))
+                lines.append(f"    in_double[{int(n.rsplit('_', 1)[1])}] = values[{pos}]")
             else:
-                setters.append(("io", 0, width))
-        self.setters = setters
-        self.watched = [n for n in names if "_register_" in n]
-
-    def apply(self, controller: Controller, payload: bytes) -> None:
-        values = self.struct.unpack_from(payload, 1)
-        regs = controller.registers
-        io: dict[str, Any] | None = None
-        pos = 0
-        for name, (kind, index, width) in zip(self.names, self.setters, strict=True):
-            if kind == "i":
-                regs.in_int[index] = values[pos]
-            elif kind == "d":
-                regs.in_double[index] = values[pos]
-            else:
-                if io is None:
-                    io = {}
-                io[name] = values[pos : pos + width] if width > 1 else values[pos]
+                value = f"values[{pos}:{pos + width}]" if width > 1 else f"values[{pos}]"
+                io.append(f"{n!r}: {value}")
             pos += width
-        controller.input_generation += 1
-        now = controller.time
-        updated = controller.input_updated
-        for name in self.watched:
-            updated[name] = now
-        if io is not None:
-            _apply_io(controller, io)
+        if io:
+            lines.append(f"    io = {{{', '.join(io)}}}")
+        lines += [
+            "    controller.input_generation += 1",
+            "    now = controller.time",
+            "    updated = controller.input_updated",
+            *(f"    updated[{n!r}] = now" for n in self.watched),
+        ]
+        if io:
+            lines.append("    _apply_io(controller, io)")
+        namespace: dict[str, Any] = {"_unpack": self.struct.unpack_from, "_apply_io": _apply_io}
+        exec(compile("\n".join(lines) + "\n", "<rtde input recipe>", "exec"), namespace)
+        self.apply: Callable[[Controller, bytes], None] = namespace["apply"]
 
 
 def _apply_io(controller: Controller, io: dict[str, Any]) -> None:
@@ -526,6 +528,9 @@ class RTDEConnection:
 
     def data_received(self, data: bytes) -> None:
         buf = self.buffer
+        if not buf and len(data) >= 3 and HEADER.unpack_from(data)[0] == len(data):
+            self._handle(data[2], data[3:])  # exactly one packet (a streaming client's cycle)
+            return
         buf += data
         while len(buf) >= 3:
             size, kind = HEADER.unpack_from(buf)

@@ -41,6 +41,9 @@ log = logging.getLogger(__name__)
 
 # Commands the script's main loop treats as real-time: processed, then "ready" at once.
 REALTIME = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
+# The commands a client streams, as plain ints: on Python 3.11 an enum attribute lookup
+# costs about as much as the rest of a comparison chain.
+_SERVOJ, _SERVOL, _SPEEDJ, _SPEEDL = int(C.SERVOJ), int(C.SERVOL), int(C.SPEEDJ), int(C.SPEEDL)
 # Commands that only adjust settings without effect here (gravity, dynamics queries).
 NO_OPS = frozenset({59, 67, 68, 69, 70, 71})
 # Commands the simulator cannot model (no force/torque sensing, no contact): refused with a
@@ -180,7 +183,8 @@ class ControlScript:
             self._signal(2)
             self.executing = True
             return
-        cmd = self._int(0)
+        registers = self.c.registers
+        cmd = registers.in_int[self.oi]
         try:
             if cmd in REALTIME:
                 # The script re-reads the registers every cycle; only a new packet can
@@ -189,9 +193,13 @@ class ControlScript:
                 if generation != self._generation or cmd != self._last_realtime:
                     self._generation = generation
                     self._last_realtime = cmd
-                    self._process(cmd)
+                    if cmd == _SERVOJ:  # streamed at 500 Hz: the registers read in place
+                        d, of = registers.in_double, self.of
+                        self._servo(d[of : of + 6], d[of + 8], d[of + 9], d[of + 10])
+                    else:
+                        self._process(cmd)
                 if not self.terminated:
-                    self._signal(1)
+                    registers.out_int[self.oi] = 1  # ready (_signal(1))
             elif cmd == 0:
                 self.executing = False
                 self._signal(1)
@@ -260,9 +268,29 @@ class ControlScript:
             raise ScriptError(f"{what}: joint positions {q} outside ±2π")
         return q
 
+    def _servo(self, q: list[float], servo_time: float, lookahead: float, gain: float) -> None:
+        arm = self.arm
+        if self.servo is None or arm.generator is not self.servo:
+            self.servo = ServoTrack(arm)
+            arm.run(self.servo)
+            self.speed = None
+        self.servo.command(arm, q, servo_time, lookahead, gain, time.monotonic())
+
     def _process(self, cmd: int) -> None:
         arm = self.arm
-        if cmd == C.MOVEJ or cmd == C.MOVEJ_IK:
+        if cmd in (_SERVOJ, _SERVOL):  # streamed at 500 Hz: tested first
+            q = self._floats(0) if cmd == _SERVOJ else self._ik(self._floats(0))
+            self._servo(q, self._float(8), self._float(9), self._float(10))
+        elif cmd in (_SPEEDJ, _SPEEDL):
+            if self.speed is None or arm.generator is not self.speed:
+                self.speed = SpeedTrack(arm)
+                arm.run(self.speed)
+                self.servo = None
+            if cmd == _SPEEDJ:
+                self.speed.command_joint(arm, self._floats(0), self._float(6))
+            else:
+                self.speed.command_tool(arm, self._floats(0), self._float(6))
+        elif cmd == C.MOVEJ or cmd == C.MOVEJ_IK:
             v, a, asynchronous = self._float(6), self._float(7), self._int(1) == 1
             self._check_move(v, a)
             q = self._floats(0) if cmd == C.MOVEJ else self._ik(self._floats(0))
@@ -288,24 +316,6 @@ class ControlScript:
             if not self.path:
                 raise ScriptError("move_path: no path in the uploaded script")
             self._move(self._path_motion(), asynchronous)
-        elif cmd == C.SERVOJ or cmd == C.SERVOL:
-            q = self._floats(0) if cmd == C.SERVOJ else self._ik(self._floats(0))
-            if self.servo is None or arm.generator is not self.servo:
-                self.servo = ServoTrack(arm)
-                arm.run(self.servo)
-                self.speed = None
-            self.servo.command(
-                arm, q, self._float(8), self._float(9), self._float(10), time.monotonic()
-            )
-        elif cmd == C.SPEEDJ or cmd == C.SPEEDL:
-            if self.speed is None or arm.generator is not self.speed:
-                self.speed = SpeedTrack(arm)
-                arm.run(self.speed)
-                self.servo = None
-            if cmd == C.SPEEDJ:
-                self.speed.command_joint(arm, self._floats(0), self._float(6))
-            else:
-                self.speed.command_tool(arm, self._floats(0), self._float(6))
         elif cmd == C.SPEED_STOP or cmd == C.SERVO_STOP:
             decel = self._float(0)
             self.servo = None

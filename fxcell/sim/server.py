@@ -31,7 +31,7 @@ import numpy as np
 from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
 from fxcell.errors import InvalidArgumentError
-from fxcell.geometry import Pose
+from fxcell.geometry import Pose, rows_to_rotvec
 from fxcell.layout import Layout
 from fxcell.link.embedded import CONTROL_PORT
 from fxcell.protocol import (
@@ -58,7 +58,7 @@ from fxcell.sim.fusion import (
 from fxcell.sim.fusion import FAULTS as MACHINE_FAULTS
 from fxcell.sim.fusion import OWNER as MACHINE_OWNER
 from fxcell.sim.gripper import URCAP_GRIPPER_PORT, GripperConnection, HandE, SimObject
-from fxcell.sim.motion import Arm, TableGuard
+from fxcell.sim.motion import ZERO6, Arm, TableGuard
 from fxcell.sim.primary import PRIMARY_PORT, ClientInterfaces, StateConnection, StateSource
 from fxcell.sim.rtde import RTDEHub
 from fxcell.sim.signals import Signal, parse_signal, parse_value
@@ -77,6 +77,9 @@ PORTS = (
 )
 IDLE_PERIOD = 0.02  # s: cycle period while no client streams and nothing moves
 URCAP_TIMEOUT = 5.0
+_RATE = 1.0 / CONTROL_PERIOD  # per cycle -> per second
+_HALF_RATE = 0.5 / CONTROL_PERIOD
+_POWERED = (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
 URCAP_END_MARKER = "# NODE_CONTROL_LOOP_ENDS"
 
 
@@ -225,9 +228,10 @@ class SimServer:
         self._urcap_task: asyncio.Task[None] | None = None
         self._fk_version = -1
         self._qd_published: object = None
-        self._prev_tcp: tuple[np.ndarray, np.ndarray] | None = None
+        self._prev_tcp: tuple[list[float], list[float]] | None = None
+        self._modes_published: tuple[object, ...] = ()
         self.late_cycles = 0
-        self._sends = np.zeros(16384)  # wall times of cycles that sent RTDE packets
+        self._sends = [0.0] * 16384  # wall times of cycles that sent RTDE packets
         self._send_count = 0
         self._idle = False
         self.hub.on_activity = self.wake
@@ -239,10 +243,7 @@ class SimServer:
         self.gripper = HandE(
             time_scale=time_scale,
             tcp_pose=lambda: Pose.from_ur(self.hub.state.actual_tcp_pose),
-            powered=lambda: (
-                self.controller.robot_mode
-                in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
-            ),
+            powered=lambda: self.controller.robot_mode in _POWERED,
         )
         self.layout = Layout(self.config.layout)
         # every slot's grip point, to tell where an object stands (the layout is fixed)
@@ -282,46 +283,66 @@ class SimServer:
     # ------------------------------------------------------------------ state
 
     def publish_state(self) -> None:
-        """Copy the controller's state into the RTDE stream state (FK only when q changed)."""
+        """Copy the controller's state into the RTDE stream state (FK only when q changed).
+
+        Runs every cycle: plain floats throughout (FK as 12 floats, the pose's rotation
+        vector and the TCP's angular speed from them).
+        """
         c, arm, s = self.controller, self.arm, self.hub.state
         s.timestamp = c.time
-        if arm.version != self._fk_version or arm.qd is not self._qd_published:
-            self._qd_published = arm.qd
-            s.actual_qd = s.target_qd = tuple(arm.qd.tolist())
-            s.target_qdd = tuple(arm.qdd.tolist())
-        if arm.version != self._fk_version:
-            self._fk_version = arm.version
-            s.actual_q = s.target_q = tuple(arm.q.tolist())
-            pose = arm.kinematics.forward(arm.q)
-            s.actual_tcp_pose = s.target_tcp_pose = pose.as_ur()
-            p, R = pose.position, pose.rotation
-            if self._prev_tcp is not None and arm.moving:
+        version, qd = arm.version, arm.qd
+        if version != self._fk_version or qd is not self._qd_published:
+            self._qd_published = qd
+            q, qd_list, qdd_list = arm.lists()
+            s.actual_qd = s.target_qd = tuple(qd_list)
+            s.target_qdd = tuple(qdd_list)
+        if version != self._fk_version:
+            self._fk_version = version
+            q = arm.lists()[0]
+            s.actual_q = s.target_q = tuple(q)
+            f = arm.kinematics.forward_rows(q)
+            p = f[9:]
+            R = f[:9]
+            s.actual_tcp_pose = s.target_tcp_pose = (*p, *rows_to_rotvec(R))
+            # arm.moving without numpy: a velocity not the resting ZERO6 with a non-zero entry
+            if self._prev_tcp is not None and qd is not ZERO6 and any(s.actual_qd):
                 p0, R0 = self._prev_tcp
-                v = (p - p0) * (1.0 / CONTROL_PERIOD)
-                # rotation in one cycle is tiny: its vector is the skew part of R·R0ᵀ
-                D = R @ R0.T
-                k = 0.5 / CONTROL_PERIOD
+                # rotation in one cycle is tiny: its vector is the skew part of D = R·R0ᵀ,
+                # of which only the six off-diagonal entries are needed
+                r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
+                o00, o01, o02, o10, o11, o12, o20, o21, o22 = R0
+                d01 = r00 * o10 + r01 * o11 + r02 * o12
+                d02 = r00 * o20 + r01 * o21 + r02 * o22
+                d10 = r10 * o00 + r11 * o01 + r12 * o02
+                d12 = r10 * o20 + r11 * o21 + r12 * o22
+                d20 = r20 * o00 + r21 * o01 + r22 * o02
+                d21 = r20 * o10 + r21 * o11 + r22 * o12
                 s.tcp_speed = (
-                    *v.tolist(),
-                    (D[2, 1] - D[1, 2]) * k,
-                    (D[0, 2] - D[2, 0]) * k,
-                    (D[1, 0] - D[0, 1]) * k,
+                    (p[0] - p0[0]) * _RATE,
+                    (p[1] - p0[1]) * _RATE,
+                    (p[2] - p0[2]) * _RATE,
+                    (d21 - d12) * _HALF_RATE,
+                    (d02 - d20) * _HALF_RATE,
+                    (d10 - d01) * _HALF_RATE,
                 )
             else:
                 s.tcp_speed = s.zero6
             self._prev_tcp = (p, R)
         elif s.tcp_speed is not s.zero6:
             s.tcp_speed = s.zero6
-        powered = c.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
-        s.robot_mode = int(c.robot_mode)
-        s.safety_mode = int(c.safety_mode)
-        s.runtime_state = int(c.runtime_state)
-        s.robot_status_bits = c.robot_status_bits
-        s.safety_status_bits = c.safety_status_bits
-        s.joint_mode = (c.joint_mode,) * 6
-        s.robot_voltage = 48.0 if powered else 0.0
-        s.robot_current = 0.6 if powered else 0.0
-        s.joint_voltage = (48.0,) * 6 if powered else s.zero6
+        modes = (c.robot_mode, c.safety_mode, c.runtime_state)
+        if modes != self._modes_published:  # what follows from the three modes alone
+            self._modes_published = modes
+            powered = c.robot_mode in _POWERED
+            s.robot_mode = int(c.robot_mode)
+            s.safety_mode = int(c.safety_mode)
+            s.runtime_state = int(c.runtime_state)
+            s.robot_status_bits = c.robot_status_bits
+            s.safety_status_bits = c.safety_status_bits
+            s.joint_mode = (c.joint_mode,) * 6
+            s.robot_voltage = 48.0 if powered else 0.0
+            s.robot_current = 0.6 if powered else 0.0
+            s.joint_voltage = (48.0,) * 6 if powered else s.zero6
         s.digital_output_bits = c.io.output_bits
         s.digital_input_bits = c.io.input_bits
         s.analog_in = c.io.analog_in
@@ -440,7 +461,7 @@ class SimServer:
                 self.late_cycles = 0
                 return "ok: stats reset"
             n = min(self._send_count, len(self._sends))
-            times = np.roll(self._sends, -(self._send_count % len(self._sends)))[-n:]
+            times = np.roll(np.array(self._sends), -(self._send_count % len(self._sends)))[-n:]
             periods = np.diff(times) * 1e3 if n > 2 else np.zeros(1)
             return json.dumps(
                 {
