@@ -94,7 +94,7 @@ def test_movej_reaches_the_target_on_a_trapezoid(ready: Robot) -> None:
 
 
 def test_movel_moves_the_tool_on_a_straight_line(ready: Robot) -> None:
-    start = ready.r.getActualTCPPose()
+    start = fresh(ready.r).getActualTCPPose()
     target = [start[0] + 0.08, start[1] - 0.05, start[2] + 0.04, *start[3:]]
     assert ready.c.moveL(target, 0.25, 1.0, True)
     a, b = np.asarray(start[:3]), np.asarray(target[:3])
