@@ -924,18 +924,24 @@ class Kinematics:
         p5x, p5y, p5z = px - d6 * r02, py - d6 * r12, pz - d6 * r22
         rho2 = p5x * p5x + p5y * p5y
         h2 = rho2 - d4 * d4
-        if h2 <= 1e-12:  # at or near the shoulder singularity
-            return None
+        if h2 < 0.0:  # beyond the shoulder singularity by rounding, or out of reach
+            if h2 < -_CLIP_EPS * d4 * d4:
+                return None
+            h2 = 0.0
         h = sqrt(h2)
+        # (c1, sn1) has norm √((h² + d4²) / rho2): 1 but for a clipped h2
+        unit = 1.0 / rho2 if h2 > 1e-12 else 1.0 / sqrt(rho2 * (h2 + d4 * d4))
         k3 = 1.0 / (2.0 * a2 * a3)
         l3 = a2 * a2 + a3 * a3
         best = math.inf
         best_q: list[float] | None = None
         near_miss = False
         shoulders = []
-        for hs in (h, -h):
-            c1 = (p5x * hs - p5y * d4) / rho2
-            sn1 = (p5y * hs + p5x * d4) / rho2
+        # next to the shoulder singularity θ1 carries rounding error amplified ~1/h, but
+        # the pose reached moves only to second order: the two branches nearly coincide
+        for hs in (h, -h) if h > 0.0 else (h,):
+            c1 = (p5x * hs - p5y * d4) * unit
+            sn1 = (p5y * hs + p5x * d4) * unit
             t = atan2(sn1, c1)
             v1 = t + tau * (((s0 - t) * inv + 0.5) // 1.0)
             if not lo0 <= v1 <= hi0:
