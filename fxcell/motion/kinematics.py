@@ -888,9 +888,10 @@ class Kinematics:
         Same result as ranking :meth:`_branches` with :meth:`_nearest`, with shared terms
         computed once per shoulder and wrist branch, branches pruned as soon as their
         partial distance exceeds the best, and the 2π shift toward the seed inlined
-        (``_near`` only when the shifted angle leaves the limits). Returns None, to fall
-        back on the general path, near the singularities that need its special handling or
-        when nothing fits.
+        (``_near`` only when the shifted angle leaves the limits); an exactly wrist-singular
+        shoulder goes to :meth:`_singular_arms` last, unless the others' best already beats
+        its θ1 and θ5 alone. Returns None, to fall back on the general path, next to the
+        singularities that need its special handling (polishing) or when nothing fits.
         """
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = target._R.tolist()
         px, py, pz = target._p.tolist()
@@ -948,10 +949,11 @@ class Kinematics:
                 v1 = _near(t, s0, lo0, hi0)
                 if v1 != v1:
                     continue
-            shoulders.append(((v1 - s0) * (v1 - s0), v1, c1, sn1))
+            shoulders.append(((v1 - s0) * (v1 - s0), v1, c1, sn1, t))
         if len(shoulders) == 2 and shoulders[1][0] < shoulders[0][0]:
             shoulders.reverse()  # nearest θ1 first: the pruning bites early
-        for e1, v1, c1, sn1 in shoulders:
+        singular = []
+        for e1, v1, c1, sn1, t1 in shoulders:
             if e1 >= best:
                 continue
             zx = r00 * sn1 - r10 * c1
@@ -959,7 +961,10 @@ class Kinematics:
             zz = r02 * sn1 - r12 * c1
             s5a = sqrt(zx * zx + zy * zy)
             if s5a < _NEAR_WRIST:
-                return None
+                if s5a > _WRIST_EPS:  # next to the wrist singularity: polished there
+                    return None
+                singular.append((e1, t1, c1, sn1, 1.0 if zz >= 0.0 else -1.0))
+                continue
             c6, sn6 = zx / s5a, -zy / s5a
             t6 = atan2(-zy, zx)
             t5 = atan2(s5a, zz)
@@ -1030,7 +1035,19 @@ class Kinematics:
                     if e < best:
                         best = e
                         best_q = [v1, v2, v3, v4, v5, v6]
-        return None if near_miss else best_q
+        if near_miss:
+            return None
+        # exactly wrist singular (θ5 = 0 or π, θ6 free), last: the others' best prunes it
+        for e1, t1, c1, sn1, c5 in singular:
+            v5 = _near(0.0 if c5 > 0.0 else math.pi, s4, lo4, hi4)
+            if v5 != v5 or e1 + (v5 - s4) * (v5 - s4) >= best:
+                continue
+            f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
+            for sol in self._singular_arms(f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed):
+                ranked = self._nearest(sol, seed)
+                if ranked is not None and ranked[0] < best:
+                    best, best_q = ranked
+        return best_q
 
     def inverse(
         self,
