@@ -480,11 +480,14 @@ class Kinematics:
         s5: float,
         c5: float,
         seed: list[float],
+        bound: float = math.inf,
     ) -> list[list[float]]:
         """Wrist singular (θ5 = 0 or π): axes 2, 3, 4 and 6 are parallel and θ6 is free.
 
         One solution per elbow sign (up, then down), each the member of the continuum nearest
-        ``seed`` (after the 2π shifts of :meth:`_nearest`); none if the arm cannot reach.
+        ``seed`` (after the 2π shifts of :meth:`_nearest`); none if the arm cannot reach, or
+        (the search cut short) if no member is nearer than ``bound`` in Σ (θj - seed_j)²
+        over j = 2, 3, 4, 6.
 
         In the arm plane (coordinates c1·x + s1·y and z), θ6 = t turns axis 5 and so moves
         frame 4's origin on a circle of radius d5 around the wrist centre; the arm reaches
@@ -624,10 +627,6 @@ class Kinematics:
                 w6,
             )
 
-        def wrap(v: float, g: float, jl: float, jh: float) -> float:
-            w = v + tau * (((g - v) * inv + 0.5) // 1.0)
-            return w if jl <= w <= jh else _near(v, g, jl, jh)
-
         def ev2(t: float) -> tuple[float, float]:
             """f for both elbows (up, down) at t; inf where out of reach or limits."""
             s, c = sin(t), cos(t)
@@ -643,16 +642,33 @@ class Kinematics:
             bb = atan2(Y, X)
             be = atan2(a3 * s3, a2 + a3 * c3)
             t234 = atan2(c5 * (c * ay - s * by) - s5 * zy, c5 * (c * ax - s * bx) - s5 * zx)
-            w6 = wrap(t, g6, lo6, hi6)
-            f6 = (w6 - g6) * (w6 - g6)
-            res = []
-            for t2, t3e in ((bb - be, t3), (bb + be, -t3)):
-                w2 = wrap(t2, g2, lo2, hi2)
-                w3 = wrap(t3e, g3, lo3, hi3)
-                w4 = wrap(t234 - t2 - t3e, g4, lo4, hi4)
-                fv = f6 + (w2 - g2) * (w2 - g2) + (w3 - g3) * (w3 - g3) + (w4 - g4) * (w4 - g4)
-                res.append(fv if fv == fv else math.inf)
-            return res[0], res[1]
+            # the 2π shifts toward the seed written out (_near only beyond a limit)
+            w = t + tau * (((g6 - t) * inv + 0.5) // 1.0)
+            if not lo6 <= w <= hi6:
+                w = _near(t, g6, lo6, hi6)
+            f6 = (w - g6) * (w - g6)
+            up = down = math.inf
+            for sign in (1.0, -1.0):
+                t2, t3e = bb - sign * be, sign * t3
+                t4 = t234 - t2 - t3e
+                w = t2 + tau * (((g2 - t2) * inv + 0.5) // 1.0)
+                if not lo2 <= w <= hi2:
+                    w = _near(t2, g2, lo2, hi2)
+                fv = f6 + (w - g2) * (w - g2)
+                w = t3e + tau * (((g3 - t3e) * inv + 0.5) // 1.0)
+                if not lo3 <= w <= hi3:
+                    w = _near(t3e, g3, lo3, hi3)
+                fv += (w - g3) * (w - g3)
+                w = t4 + tau * (((g4 - t4) * inv + 0.5) // 1.0)
+                if not lo4 <= w <= hi4:
+                    w = _near(t4, g4, lo4, hi4)
+                fv += (w - g4) * (w - g4)
+                if fv == fv:
+                    if sign > 0.0:
+                        up = fv
+                    else:
+                        down = fv
+            return up, down
 
         # On an interval with ends, Newton steps in u, t = lo + span·sin²u (smooth in u at
         # the ends, where θ3 has an infinite slope in t); on the whole circle, in t itself.
@@ -750,14 +766,12 @@ class Kinematics:
             x = (o3.conjugate() * (o4 - o3)).imag
             return 1.0 if x > 0.0 else -1.0
 
-        for jl, jh, kind in ((lo2, hi2, 2), (lo3, hi3, 3), (lo4, hi4, 4)):
-            levels: tuple[float, ...] = (
-                (jl,) if abs(math.remainder(jh - jl, tau)) < 1e-9 else (jl, jh)
-            )
-            # and where the 2π shift of θ2 or θ3 flips (minima on either side, close by)
+        for levels, kind in (
+            (_jumps(g2, lo2, hi2, True), 2),
+            (_jumps(g3, lo3, hi3, True), 3),
+            (_jumps(g4, lo4, hi4, False), 4),
+        ):
             flip = g2 + math.pi if kind == 2 else g3 + math.pi if kind == 3 else math.nan
-            if kind != 4:
-                levels += (flip,)
             for L in levels:
                 sides = (-1e-6, 1e-6) if flip == L else (0.0,)
                 if kind == 2:
@@ -778,8 +792,7 @@ class Kinematics:
                         o4 = Wc + d5 * Nc * e4
                         roots.append((r, elbow_of(o4 - a3 * e4 * cmath.exp(-1j * L), o4)))
         extra = [(sg * (r - t234_0), e) for r, e in roots]
-        levels6 = (lo6,) if abs(math.remainder(hi6 - lo6, tau)) < 1e-9 else (lo6, hi6)
-        extra += [(L, 0.0) for L in levels6]
+        extra += [(L, 0.0) for L in _jumps(g6, lo6, hi6, False)]
 
         # a grid in u (in t on the whole circle), both elbows at once
         grids = []
@@ -787,12 +800,20 @@ class Kinematics:
             span = hi - lo
             # about _GRID_STEP rad of θ6 apart at most (u = π/4 ± π/(4n) maps to
             # span·sin(π/(2n)) ≤ span·π/(2n) of t)
-            n = max(4, math.ceil(math.pi * span / (2.0 * _GRID_STEP)))
             if periodic:
+                n = math.ceil(span / _GRID_STEP)
                 us = [lo + i * tau / n for i in range(n)]
             else:
+                n = max(4, math.ceil(math.pi * span / (2.0 * _GRID_STEP)))
                 us = [i * (0.5 * math.pi) / n for i in range(n + 1)]  # the ends exactly
             grids.append((lo, hi, span, us, [ev2(t_of(u, lo, span)) for u in us]))
+        # f at the limit points, each in its interval
+        spotted = []
+        for t, ee in extra:
+            for lo, hi in intervals:
+                ts = lo + (t - lo) % tau
+                if ts <= hi:
+                    spotted.append((ee, ts, ev2(ts), lo, hi - lo))
         ends: set[float] = set()
         if not periodic:
             for lo, hi in intervals:
@@ -802,15 +823,10 @@ class Kinematics:
             tried: list[tuple[float, float]] = []
             spots: list[tuple[float, float, float, float]] = []  # f, t, lo, span
             starts: list[tuple[float, float, float, float]] = []  # f, u, lo, span
-            for lo, hi, span, us, vals in grids:
-                for t, ee in extra:
-                    if ee != 0.0 and ee != e:
-                        continue
-                    t = lo + (t - lo) % tau
-                    if t <= hi:
-                        fs = ev2(t)[ie]
-                        if fs < math.inf:
-                            spots.append((fs, t, lo, span))
+            for ee, ts, fs2, lo, span in spotted:
+                if (ee == 0.0 or ee == e) and fs2[ie] < math.inf:
+                    spots.append((fs2[ie], ts, lo, span))
+            for lo, _, span, us, vals in grids:
                 # Newton from the grid's local minima
                 m = len(us)
                 for i in range(m):
@@ -822,7 +838,7 @@ class Kinematics:
                     if fl >= fc and fr >= fc:
                         starts.append((fc, us[i], lo, span))
             starts.sort()
-            top = math.inf
+            top = bound  # the best found so far
             for fs, u, lo, span in starts:
                 tried.append((fs, t_of(u, lo, span)))
                 if not periodic:
@@ -847,7 +863,7 @@ class Kinematics:
             tried.sort()
             chosen: tuple[float, list[float]] | None = None
             for fv, t in tried:
-                if chosen is not None and fv >= chosen[0] - 1e-12:
+                if fv > bound or (chosen is not None and fv >= chosen[0] - 1e-12):
                     break
                 found: list[list[float]] = []
                 self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t, found, int(e))
@@ -1040,10 +1056,14 @@ class Kinematics:
         # exactly wrist singular (θ5 = 0 or π, θ6 free), last: the others' best prunes it
         for e1, t1, c1, sn1, c5 in singular:
             v5 = _near(0.0 if c5 > 0.0 else math.pi, s4, lo4, hi4)
-            if v5 != v5 or e1 + (v5 - s4) * (v5 - s4) >= best:
+            if v5 != v5:
+                continue
+            e5 = e1 + (v5 - s4) * (v5 - s4)
+            if e5 >= best:
                 continue
             f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
-            for sol in self._singular_arms(f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed):
+            sols = self._singular_arms(f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, best - e5)
+            for sol in sols:
                 ranked = self._nearest(sol, seed)
                 if ranked is not None and ranked[0] < best:
                     best, best_q = ranked
@@ -1165,6 +1185,16 @@ def _near(v: float, s: float, lo: float, hi: float) -> float:
         if v > hi:
             return math.nan
     return v
+
+
+def _jumps(g: float, lo: float, hi: float, flip: bool) -> list[float]:
+    """Where the equivalent of an angle nearest ``g`` within [lo, hi] changes (mod 2π): the
+    limits where it jumps to the far side, if the half-turn window around ``g`` crosses
+    them; else, if ``flip``, g + π, where two equivalents are equally near."""
+    out = [lo] if lo > g - math.pi else []
+    if hi < g + math.pi and not (out and abs(math.remainder(hi - lo, TWO_PI)) < 1e-9):
+        out.append(hi)
+    return out if out or not flip else [g + math.pi]
 
 
 def _pose_error(current: Pose, target: Pose) -> FloatArray:
