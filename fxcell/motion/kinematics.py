@@ -481,13 +481,15 @@ class Kinematics:
         c5: float,
         seed: list[float],
         bound: float = math.inf,
+        nearest_only: bool = False,
     ) -> list[list[float]]:
         """Wrist singular (θ5 = 0 or π): axes 2, 3, 4 and 6 are parallel and θ6 is free.
 
         One solution per elbow sign (up, then down), each the member of the continuum nearest
         ``seed`` (after the 2π shifts of :meth:`_nearest`); none if the arm cannot reach, or
         (the search cut short) if no member is nearer than ``bound`` in Σ (θj - seed_j)²
-        over j = 2, 3, 4, 6.
+        over j = 2, 3, 4, 6. ``nearest_only``: the elbow that looks nearer first, and the
+        other only if it beats that one (so the nearest of the two, possibly alone, last).
 
         In the arm plane (coordinates c1·x + s1·y and z), θ6 = t turns axis 5 and so moves
         frame 4's origin on a circle of radius d5 around the wrist centre; the arm reaches
@@ -550,6 +552,8 @@ class Kinematics:
         lims = self._lo_hi
         (lo2, hi2), (lo3, hi3), (lo4, hi4), (lo6, hi6) = lims[1], lims[2], lims[3], lims[5]
         sigma = ay * bx - ax * by  # dθ234/dθ6: ±1 at the singularity
+        sg = 1.0 if sigma >= 0.0 else -1.0
+        t234_0 = math.atan2(c5 * ay - s5 * zy, c5 * ax - s5 * zx)
         k3 = 1.0 / (2.0 * a2 * a3)
         l3 = a2 * a2 + a3 * a3
         tau, inv = TWO_PI, _INV_TWO_PI
@@ -627,49 +631,6 @@ class Kinematics:
                 w6,
             )
 
-        def ev2(t: float) -> tuple[float, float]:
-            """f for both elbows (up, down) at t; inf where out of reach or limits."""
-            s, c = sin(t), cos(t)
-            X = X5 + d5 * (s * ax + c * bx)
-            Y = Y5 + d5 * (s * ay + c * by)
-            c3 = (X * X + Y * Y - l3) * k3
-            if c3 > 1.0 or c3 < -1.0:
-                if abs(c3) > 1.0 + _CLIP_EPS:
-                    return math.inf, math.inf
-                c3 = 1.0 if c3 > 0.0 else -1.0
-            s3 = sqrt(1.0 - c3 * c3)
-            t3 = atan2(s3, c3)
-            bb = atan2(Y, X)
-            be = atan2(a3 * s3, a2 + a3 * c3)
-            t234 = atan2(c5 * (c * ay - s * by) - s5 * zy, c5 * (c * ax - s * bx) - s5 * zx)
-            # the 2π shifts toward the seed written out (_near only beyond a limit)
-            w = t + tau * (((g6 - t) * inv + 0.5) // 1.0)
-            if not lo6 <= w <= hi6:
-                w = _near(t, g6, lo6, hi6)
-            f6 = (w - g6) * (w - g6)
-            up = down = math.inf
-            for sign in (1.0, -1.0):
-                t2, t3e = bb - sign * be, sign * t3
-                t4 = t234 - t2 - t3e
-                w = t2 + tau * (((g2 - t2) * inv + 0.5) // 1.0)
-                if not lo2 <= w <= hi2:
-                    w = _near(t2, g2, lo2, hi2)
-                fv = f6 + (w - g2) * (w - g2)
-                w = t3e + tau * (((g3 - t3e) * inv + 0.5) // 1.0)
-                if not lo3 <= w <= hi3:
-                    w = _near(t3e, g3, lo3, hi3)
-                fv += (w - g3) * (w - g3)
-                w = t4 + tau * (((g4 - t4) * inv + 0.5) // 1.0)
-                if not lo4 <= w <= hi4:
-                    w = _near(t4, g4, lo4, hi4)
-                fv += (w - g4) * (w - g4)
-                if fv == fv:
-                    if sign > 0.0:
-                        up = fv
-                    else:
-                        down = fv
-            return up, down
-
         # On an interval with ends, Newton steps in u, t = lo + span·sin²u (smooth in u at
         # the ends, where θ3 has an infinite slope in t); on the whole circle, in t itself.
         umin, umax = 1e-4, 0.5 * math.pi - 1e-4
@@ -744,9 +705,7 @@ class Kinematics:
         # cos(t234 + const) = const: a joint at value L is
         #   θ6: t = L;  θ3: |o4| fixed;  θ2: |o4 - a2·e^{iL}| = |a3|;
         #   θ4: o3 = o4 - a3·e^{i(t234 - L)} = W + (d5·N - a3·e^{-iL})·e^{i·t234}, |o3| = |a2|.
-        sg = 1.0 if sigma >= 0.0 else -1.0
         Nc = complex(0.0, -sg * (1.0 if c5 >= 0.0 else -1.0))
-        t234_0 = atan2(c5 * ay - s5 * zy, c5 * ax - s5 * zx)
         Wc = complex(X5, Y5)
         roots: list[tuple[float, float]] = []  # (t234, elbow sign or 0 = both)
 
@@ -794,7 +753,12 @@ class Kinematics:
         extra = [(sg * (r - t234_0), e) for r, e in roots]
         extra += [(L, 0.0) for L in _jumps(g6, lo6, hi6, False)]
 
-        # a grid in u (in t on the whole circle), both elbows at once
+        # f on a grid in u (in t on the whole circle) and at the limit points, both elbows
+        # at once (t234 = t234(0) + σ·t: exact at the singularity, off by ~|s5| next to it,
+        # where the candidates are only a guide, checked on :meth:`_arm`'s solutions)
+        consts = (X5, Y5, d5 * ax, d5 * bx, d5 * ay, d5 * by, l3, k3, a2, a3, t234_0, sg)
+        goals = (g2, g3, g4, g6)
+        bounds = (lo2, hi2, lo3, hi3, lo4, hi4, lo6, hi6)
         grids = []
         for lo, hi in intervals:
             span = hi - lo
@@ -802,42 +766,53 @@ class Kinematics:
             # span·sin(π/(2n)) ≤ span·π/(2n) of t)
             if periodic:
                 n = math.ceil(span / _GRID_STEP)
-                us = [lo + i * tau / n for i in range(n)]
+                us = tgrid = [lo + i * tau / n for i in range(n)]
             else:
                 n = max(4, math.ceil(math.pi * span / (2.0 * _GRID_STEP)))
                 us = [i * (0.5 * math.pi) / n for i in range(n + 1)]  # the ends exactly
-            grids.append((lo, hi, span, us, [ev2(t_of(u, lo, span)) for u in us]))
-        # f at the limit points, each in its interval
-        spotted = []
-        for t, ee in extra:
-            for lo, hi in intervals:
-                ts = lo + (t - lo) % tau
-                if ts <= hi:
-                    spotted.append((ee, ts, ev2(ts), lo, hi - lo))
+                tgrid = [lo + span * q for q in _sin2(n)]
+            grids.append((lo, span, us, *_continuum_f(tgrid, consts, goals, bounds)))
+        at = [
+            (ee, tt, lo, hi - lo)
+            for t, ee in extra
+            for lo, hi in intervals
+            if (tt := lo + (t - lo) % tau) <= hi
+        ]
+        fat = _continuum_f([a[1] for a in at], consts, goals, bounds)
         ends: set[float] = set()
         if not periodic:
             for lo, hi in intervals:
                 ends |= {lo, hi, t_of(0.5 * math.pi, lo, hi - lo)}
-        out: list[list[float]] = []
+        elbows = []
+        inf = math.inf
         for ie, e in enumerate((1.0, -1.0)):
-            tried: list[tuple[float, float]] = []
-            spots: list[tuple[float, float, float, float]] = []  # f, t, lo, span
+            spots = [
+                (fs, ts, lo, span)
+                for (ee, ts, lo, span), fs in zip(at, fat[ie], strict=True)
+                if (ee == 0.0 or ee == e) and fs < inf
+            ]
             starts: list[tuple[float, float, float, float]] = []  # f, u, lo, span
-            for ee, ts, fs2, lo, span in spotted:
-                if (ee == 0.0 or ee == e) and fs2[ie] < math.inf:
-                    spots.append((fs2[ie], ts, lo, span))
-            for lo, _, span, us, vals in grids:
+            for lo, span, us, *vals2 in grids:
                 # Newton from the grid's local minima
-                m = len(us)
-                for i in range(m):
-                    fc = vals[i][ie]
-                    if fc == math.inf:
-                        continue
-                    fl = vals[i - 1][ie] if (periodic or i > 0) else math.inf
-                    fr = vals[(i + 1) % m][ie] if (periodic or i < m - 1) else math.inf
-                    if fl >= fc and fr >= fc:
-                        starts.append((fc, us[i], lo, span))
+                vals = vals2[ie]
+                if periodic:
+                    left, right = vals[-1:] + vals[:-1], vals[1:] + vals[:1]
+                else:
+                    left, right = [inf, *vals[:-1]], [*vals[1:], inf]
+                starts += [
+                    (fc, u, lo, span)
+                    for fc, fl, fr, u in zip(vals, left, right, us, strict=True)
+                    if fc <= fl and fc <= fr and fc < inf
+                ]
             starts.sort()
+            spots.sort()
+            lowest = min(starts[0][0] if starts else math.inf, spots[0][0] if spots else math.inf)
+            elbows.append((lowest, e, starts, spots))
+        if nearest_only:
+            elbows.sort()
+        out: list[list[float]] = []
+        for _, e, starts, spots in elbows:
+            tried: list[tuple[float, float]] = []
             top = bound  # the best found so far
             for fs, u, lo, span in starts:
                 tried.append((fs, t_of(u, lo, span)))
@@ -884,6 +859,8 @@ class Kinematics:
                             chosen = (rest, g)
             if chosen is not None:
                 out.append(chosen[1])
+                if nearest_only:
+                    bound = min(bound, chosen[0])
         return out
 
     def _nearest(self, sol: list[float], seed: list[float]) -> tuple[float, list[float]] | None:
@@ -1062,7 +1039,9 @@ class Kinematics:
             if e5 >= best:
                 continue
             f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
-            sols = self._singular_arms(f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, best - e5)
+            sols = self._singular_arms(
+                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, best - e5, nearest_only=True
+            )
             for sol in sols:
                 ranked = self._nearest(sol, seed)
                 if ranked is not None and ranked[0] < best:
@@ -1185,6 +1164,71 @@ def _near(v: float, s: float, lo: float, hi: float) -> float:
         if v > hi:
             return math.nan
     return v
+
+
+_SIN2_TABLES: dict[int, list[float]] = {}
+
+
+def _sin2(n: int) -> list[float]:
+    """sin²(i·π/(2n)) for i = 0..n (the u grid of :meth:`Kinematics._singular_arms`)."""
+    table = _SIN2_TABLES.get(n)
+    if table is None:
+        table = _SIN2_TABLES[n] = [math.sin(i * (0.5 * math.pi) / n) ** 2 for i in range(n + 1)]
+    return table
+
+
+def _continuum_f(
+    ts: list[float],
+    consts: tuple[float, ...],
+    goals: tuple[float, float, float, float],
+    bounds: tuple[float, ...],
+) -> tuple[list[float], list[float]]:
+    """The distance² f of :meth:`Kinematics._singular_arms` at each θ6 in ``ts``, for the
+    elbow up and down (inf out of reach or beyond a limit), in one loop of plain floats."""
+    X5, Y5, ax, bx, ay, by, l3, k3, a2, a3, t0, sg = consts
+    g2, g3, g4, g6 = goals
+    lo2, hi2, lo3, hi3, lo4, hi4, lo6, hi6 = bounds
+    sin, cos, atan2, sqrt = math.sin, math.cos, math.atan2, math.sqrt
+    tau, inv, inf = TWO_PI, _INV_TWO_PI, math.inf
+    ups: list[float] = []
+    downs: list[float] = []
+    for t in ts:
+        s, c = sin(t), cos(t)
+        X = X5 + s * ax + c * bx
+        Y = Y5 + s * ay + c * by
+        c3 = (X * X + Y * Y - l3) * k3
+        if c3 > 1.0 or c3 < -1.0:
+            if abs(c3) > 1.0 + _CLIP_EPS:
+                ups.append(inf)
+                downs.append(inf)
+                continue
+            c3 = 1.0 if c3 > 0.0 else -1.0
+        s3 = sqrt(1.0 - c3 * c3)
+        t3 = atan2(s3, c3)
+        bb = atan2(Y, X)
+        be = atan2(a3 * s3, a2 + a3 * c3)
+        t234 = t0 + sg * t
+        # the 2π shifts toward the seed written out (_near only beyond a limit)
+        w = t + tau * (((g6 - t) * inv + 0.5) // 1.0)
+        if not lo6 <= w <= hi6:
+            w = _near(t, g6, lo6, hi6)
+        f6 = (w - g6) * (w - g6)
+        for t2, t3e, out in ((bb - be, t3, ups), (bb + be, -t3, downs)):
+            t4 = t234 - t2 - t3e
+            w = t2 + tau * (((g2 - t2) * inv + 0.5) // 1.0)
+            if not lo2 <= w <= hi2:
+                w = _near(t2, g2, lo2, hi2)
+            fv = f6 + (w - g2) * (w - g2)
+            w = t3e + tau * (((g3 - t3e) * inv + 0.5) // 1.0)
+            if not lo3 <= w <= hi3:
+                w = _near(t3e, g3, lo3, hi3)
+            fv += (w - g3) * (w - g3)
+            w = t4 + tau * (((g4 - t4) * inv + 0.5) // 1.0)
+            if not lo4 <= w <= hi4:
+                w = _near(t4, g4, lo4, hi4)
+            fv += (w - g4) * (w - g4)
+            out.append(fv if fv == fv else inf)
+    return ups, downs
 
 
 def _jumps(g: float, lo: float, hi: float, flip: bool) -> list[float]:
