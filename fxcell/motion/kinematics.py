@@ -924,7 +924,7 @@ class Kinematics:
             h2 = 0.0
         h = sqrt(h2)
         # (c1, sn1) has norm √((h² + d4²) / rho2): 1 but for a clipped h2
-        unit = 1.0 / rho2 if h2 > 1e-12 else 1.0 / sqrt(rho2 * (h2 + d4 * d4))
+        norm = rho2 if h2 > 1e-12 else sqrt(rho2 * (h2 + d4 * d4))
         k3 = 1.0 / (2.0 * a2 * a3)
         l3 = a2 * a2 + a3 * a3
         best = math.inf
@@ -934,8 +934,8 @@ class Kinematics:
         # next to the shoulder singularity θ1 carries rounding error amplified ~1/h, but
         # the pose reached moves only to second order: the two branches nearly coincide
         for hs in (h, -h) if h > 0.0 else (h,):
-            c1 = (p5x * hs - p5y * d4) * unit
-            sn1 = (p5y * hs + p5x * d4) * unit
+            c1 = (p5x * hs - p5y * d4) / norm
+            sn1 = (p5y * hs + p5x * d4) / norm
             t = atan2(sn1, c1)
             v1 = t + tau * (((s0 - t) * inv + 0.5) // 1.0)
             if not lo0 <= v1 <= hi0:
