@@ -52,8 +52,8 @@ _CUT = 1.0 - 1e-6
 _TRUST = 0.5
 """Largest Newton step (rad of θ6) in :meth:`_singular_arms`."""
 _SPOTS = 3
-"""Points at a joint limit (or a flip of θ2's or θ3's 2π shift) :meth:`_singular_arms` starts
-Newton steps from: the best few, if within _MARGIN of the best found."""
+"""Points where a 2π shift jumps at a limit (or θ2's or θ3's flips) :meth:`_singular_arms`
+starts Newton steps from: the best few, if within _MARGIN of the best found."""
 _GRID_STEP = 0.35
 """Largest spacing (rad of θ6) of the grid of :meth:`_singular_arms`."""
 _MARGIN = 1.0
@@ -504,12 +504,13 @@ class Kinematics:
         So: f for both elbows on a grid in u, t = lo + span·sin²u (smooth in u at the ends,
         where θ3 has an infinite slope in t), at most _GRID_STEP rad of t apart; Newton
         steps in u from the grid's local minima (those within _MARGIN of the best found),
-        each step stopping short of a joint limit; and the points where a joint sits exactly
-        at a limit, or where the 2π shift of θ2 or θ3 flips (roots of cos(·) = const in
-        closed form), as candidates and starts. Candidates are compared on the solutions
-        :meth:`_arm` gives for them. About 10-20 grid points and 2-5 short Newton runs per
-        shoulder (the grid and golden-section search this replaces took ~130 solves). Also
-        used, with the tiny |sin θ5| of a pose next to the singularity, for the fallback of
+        each step stopping short of a joint limit; and the points where a joint's 2π shift
+        toward the seed jumps at a limit, or else (θ2, θ3) flips half a turn from the seed
+        (roots of cos(·) = const in closed form), as candidates and starts. Candidates are
+        compared on the solutions :meth:`_arm` gives for them. About 10-30 grid points (one
+        loop of plain floats, :func:`_continuum_f`) and 1-5 short Newton runs per shoulder
+        (the grid and golden-section search this replaced took ~130 solves). Also used, with
+        the tiny |sin θ5| of a pose next to the singularity, for the fallback of
         :meth:`_branches`.
         """
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = f[:9]
