@@ -764,12 +764,12 @@ class Kinematics:
         for lo, hi in intervals:
             span = hi - lo
             # about _GRID_STEP rad of θ6 apart at most (u = π/4 ± π/(4n) maps to
-            # span·sin(π/(2n)) ≤ span·π/(2n) of t)
+            # span·sin(π/(2n)) ≤ span·π/(2n) of t); as dense on the whole circle (spaced
+            # by _GRID_STEP it misses minima)
+            n = max(4, math.ceil(math.pi * span / (2.0 * _GRID_STEP)))
             if periodic:
-                n = math.ceil(span / _GRID_STEP)
                 us = tgrid = [lo + i * tau / n for i in range(n)]
             else:
-                n = max(4, math.ceil(math.pi * span / (2.0 * _GRID_STEP)))
                 us = [i * (0.5 * math.pi) / n for i in range(n + 1)]  # the ends exactly
                 tgrid = [lo + span * q for q in _sin2(n)]
             grids.append((lo, span, us, *_continuum_f(tgrid, consts, goals, bounds)))
