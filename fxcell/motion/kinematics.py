@@ -52,8 +52,8 @@ _CUT = 1.0 - 1e-6
 _TRUST = 0.5
 """Largest Newton step (rad of θ6) in :meth:`_singular_arms`."""
 _SPOTS = 3
-"""Points at a joint limit (or a flip of θ2's or θ3's 2π shift) :meth:`_singular_arms` starts
-Newton steps from: the best few, if within _MARGIN of the best found."""
+"""Points where a 2π shift jumps at a limit (or θ2's or θ3's flips) :meth:`_singular_arms`
+starts Newton steps from: the best few, if within _MARGIN of the best found."""
 _GRID_STEP = 0.35
 """Largest spacing (rad of θ6) of the grid of :meth:`_singular_arms`."""
 _MARGIN = 1.0
@@ -486,11 +486,16 @@ class Kinematics:
         s5: float,
         c5: float,
         seed: list[float],
+        bound: float = math.inf,
+        nearest_only: bool = False,
     ) -> list[list[float]]:
         """Wrist singular (θ5 = 0 or π): axes 2, 3, 4 and 6 are parallel and θ6 is free.
 
         One solution per elbow sign (up, then down), each the member of the continuum nearest
-        ``seed`` (after the 2π shifts of :meth:`_nearest`); none if the arm cannot reach.
+        ``seed`` (after the 2π shifts of :meth:`_nearest`); none if the arm cannot reach, or
+        (the search cut short) if no member is nearer than ``bound`` in Σ (θj - seed_j)²
+        over j = 2, 3, 4, 6. ``nearest_only``: the elbow that looks nearer first, and the
+        other only if it beats that one (so the nearest of the two, possibly alone, last).
 
         In the arm plane (coordinates c1·x + s1·y and z), θ6 = t turns axis 5 and so moves
         frame 4's origin on a circle of radius d5 around the wrist centre; the arm reaches
@@ -505,12 +510,13 @@ class Kinematics:
         So: f for both elbows on a grid in u, t = lo + span·sin²u (smooth in u at the ends,
         where θ3 has an infinite slope in t), at most _GRID_STEP rad of t apart; Newton
         steps in u from the grid's local minima (those within _MARGIN of the best found),
-        each step stopping short of a joint limit; and the points where a joint sits exactly
-        at a limit, or where the 2π shift of θ2 or θ3 flips (roots of cos(·) = const in
-        closed form), as candidates and starts. Candidates are compared on the solutions
-        :meth:`_arm` gives for them. About 10-20 grid points and 2-5 short Newton runs per
-        shoulder (the grid and golden-section search this replaces took ~130 solves). Also
-        used, with the tiny |sin θ5| of a pose next to the singularity, for the fallback of
+        each step stopping short of a joint limit; and the points where a joint's 2π shift
+        toward the seed jumps at a limit, or else (θ2, θ3) flips half a turn from the seed
+        (roots of cos(·) = const in closed form), as candidates and starts. Candidates are
+        compared on the solutions :meth:`_arm` gives for them. About 10-30 grid points (one
+        loop of plain floats, :func:`_continuum_f`) and 1-5 short Newton runs per shoulder
+        (the grid and golden-section search this replaced took ~130 solves). Also used, with
+        the tiny |sin θ5| of a pose next to the singularity, for the fallback of
         :meth:`_branches`.
         """
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = f[:9]
@@ -553,6 +559,8 @@ class Kinematics:
         lims = self._lo_hi
         (lo2, hi2), (lo3, hi3), (lo4, hi4), (lo6, hi6) = lims[1], lims[2], lims[3], lims[5]
         sigma = ay * bx - ax * by  # dθ234/dθ6: ±1 at the singularity
+        sg = 1.0 if sigma >= 0.0 else -1.0
+        t234_0 = math.atan2(c5 * ay - s5 * zy, c5 * ax - s5 * zx)
         k3 = 1.0 / (2.0 * a2 * a3)
         l3 = a2 * a2 + a3 * a3
         tau, inv = TWO_PI, _INV_TWO_PI
@@ -630,36 +638,6 @@ class Kinematics:
                 w6,
             )
 
-        def wrap(v: float, g: float, jl: float, jh: float) -> float:
-            w = v + tau * (((g - v) * inv + 0.5) // 1.0)
-            return w if jl <= w <= jh else _near(v, g, jl, jh)
-
-        def ev2(t: float) -> tuple[float, float]:
-            """f for both elbows (up, down) at t; inf where out of reach or limits."""
-            s, c = sin(t), cos(t)
-            X = X5 + d5 * (s * ax + c * bx)
-            Y = Y5 + d5 * (s * ay + c * by)
-            c3 = (X * X + Y * Y - l3) * k3
-            if c3 > 1.0 or c3 < -1.0:
-                if abs(c3) > 1.0 + _CLIP_EPS:
-                    return math.inf, math.inf
-                c3 = 1.0 if c3 > 0.0 else -1.0
-            s3 = sqrt(1.0 - c3 * c3)
-            t3 = atan2(s3, c3)
-            bb = atan2(Y, X)
-            be = atan2(a3 * s3, a2 + a3 * c3)
-            t234 = atan2(c5 * (c * ay - s * by) - s5 * zy, c5 * (c * ax - s * bx) - s5 * zx)
-            w6 = wrap(t, g6, lo6, hi6)
-            f6 = (w6 - g6) * (w6 - g6)
-            res = []
-            for t2, t3e in ((bb - be, t3), (bb + be, -t3)):
-                w2 = wrap(t2, g2, lo2, hi2)
-                w3 = wrap(t3e, g3, lo3, hi3)
-                w4 = wrap(t234 - t2 - t3e, g4, lo4, hi4)
-                fv = f6 + (w2 - g2) * (w2 - g2) + (w3 - g3) * (w3 - g3) + (w4 - g4) * (w4 - g4)
-                res.append(fv if fv == fv else math.inf)
-            return res[0], res[1]
-
         # On an interval with ends, Newton steps in u, t = lo + span·sin²u (smooth in u at
         # the ends, where θ3 has an infinite slope in t); on the whole circle, in t itself.
         umin, umax = 1e-4, 0.5 * math.pi - 1e-4
@@ -734,9 +712,7 @@ class Kinematics:
         # cos(t234 + const) = const: a joint at value L is
         #   θ6: t = L;  θ3: |o4| fixed;  θ2: |o4 - a2·e^{iL}| = |a3|;
         #   θ4: o3 = o4 - a3·e^{i(t234 - L)} = W + (d5·N - a3·e^{-iL})·e^{i·t234}, |o3| = |a2|.
-        sg = 1.0 if sigma >= 0.0 else -1.0
         Nc = complex(0.0, -sg * (1.0 if c5 >= 0.0 else -1.0))
-        t234_0 = atan2(c5 * ay - s5 * zy, c5 * ax - s5 * zx)
         Wc = complex(X5, Y5)
         roots: list[tuple[float, float]] = []  # (t234, elbow sign or 0 = both)
 
@@ -756,14 +732,12 @@ class Kinematics:
             x = (o3.conjugate() * (o4 - o3)).imag
             return 1.0 if x > 0.0 else -1.0
 
-        for jl, jh, kind in ((lo2, hi2, 2), (lo3, hi3, 3), (lo4, hi4, 4)):
-            levels: tuple[float, ...] = (
-                (jl,) if abs(math.remainder(jh - jl, tau)) < 1e-9 else (jl, jh)
-            )
-            # and where the 2π shift of θ2 or θ3 flips (minima on either side, close by)
+        for levels, kind in (
+            (_jumps(g2, lo2, hi2, True), 2),
+            (_jumps(g3, lo3, hi3, True), 3),
+            (_jumps(g4, lo4, hi4, False), 4),
+        ):
             flip = g2 + math.pi if kind == 2 else g3 + math.pi if kind == 3 else math.nan
-            if kind != 4:
-                levels += (flip,)
             for L in levels:
                 sides = (-1e-6, 1e-6) if flip == L else (0.0,)
                 if kind == 2:
@@ -784,51 +758,69 @@ class Kinematics:
                         o4 = Wc + d5 * Nc * e4
                         roots.append((r, elbow_of(o4 - a3 * e4 * cmath.exp(-1j * L), o4)))
         extra = [(sg * (r - t234_0), e) for r, e in roots]
-        levels6 = (lo6,) if abs(math.remainder(hi6 - lo6, tau)) < 1e-9 else (lo6, hi6)
-        extra += [(L, 0.0) for L in levels6]
+        extra += [(L, 0.0) for L in _jumps(g6, lo6, hi6, False)]
 
-        # a grid in u (in t on the whole circle), both elbows at once
+        # f on a grid in u (in t on the whole circle) and at the limit points, both elbows
+        # at once (t234 = t234(0) + σ·t: exact at the singularity, off by ~|s5| next to it,
+        # where the candidates are only a guide, checked on :meth:`_arm`'s solutions)
+        consts = (X5, Y5, d5 * ax, d5 * bx, d5 * ay, d5 * by, l3, k3, a2, a3, t234_0, sg)
+        goals = (g2, g3, g4, g6)
+        bounds = (lo2, hi2, lo3, hi3, lo4, hi4, lo6, hi6)
         grids = []
         for lo, hi in intervals:
             span = hi - lo
             # about _GRID_STEP rad of θ6 apart at most (u = π/4 ± π/(4n) maps to
-            # span·sin(π/(2n)) ≤ span·π/(2n) of t)
+            # span·sin(π/(2n)) ≤ span·π/(2n) of t); as dense on the whole circle (spaced
+            # by _GRID_STEP it misses minima)
             n = max(4, math.ceil(math.pi * span / (2.0 * _GRID_STEP)))
             if periodic:
-                us = [lo + i * tau / n for i in range(n)]
+                us = tgrid = [lo + i * tau / n for i in range(n)]
             else:
                 us = [i * (0.5 * math.pi) / n for i in range(n + 1)]  # the ends exactly
-            grids.append((lo, hi, span, us, [ev2(t_of(u, lo, span)) for u in us]))
+                tgrid = [lo + span * q for q in _sin2(n)]
+            grids.append((lo, span, us, *_continuum_f(tgrid, consts, goals, bounds)))
+        at = [
+            (ee, tt, lo, hi - lo)
+            for t, ee in extra
+            for lo, hi in intervals
+            if (tt := lo + (t - lo) % tau) <= hi
+        ]
+        fat = _continuum_f([a[1] for a in at], consts, goals, bounds)
         ends: set[float] = set()
         if not periodic:
             for lo, hi in intervals:
                 ends |= {lo, hi, t_of(0.5 * math.pi, lo, hi - lo)}
-        out: list[list[float]] = []
+        elbows = []
+        inf = math.inf
         for ie, e in enumerate((1.0, -1.0)):
-            tried: list[tuple[float, float]] = []
-            spots: list[tuple[float, float, float, float]] = []  # f, t, lo, span
+            spots = [
+                (fs, ts, lo, span)
+                for (ee, ts, lo, span), fs in zip(at, fat[ie], strict=True)
+                if (ee == 0.0 or ee == e) and fs < inf
+            ]
             starts: list[tuple[float, float, float, float]] = []  # f, u, lo, span
-            for lo, hi, span, us, vals in grids:
-                for t, ee in extra:
-                    if ee != 0.0 and ee != e:
-                        continue
-                    t = lo + (t - lo) % tau
-                    if t <= hi:
-                        fs = ev2(t)[ie]
-                        if fs < math.inf:
-                            spots.append((fs, t, lo, span))
+            for lo, span, us, *vals2 in grids:
                 # Newton from the grid's local minima
-                m = len(us)
-                for i in range(m):
-                    fc = vals[i][ie]
-                    if fc == math.inf:
-                        continue
-                    fl = vals[i - 1][ie] if (periodic or i > 0) else math.inf
-                    fr = vals[(i + 1) % m][ie] if (periodic or i < m - 1) else math.inf
-                    if fl >= fc and fr >= fc:
-                        starts.append((fc, us[i], lo, span))
+                vals = vals2[ie]
+                if periodic:
+                    left, right = vals[-1:] + vals[:-1], vals[1:] + vals[:1]
+                else:
+                    left, right = [inf, *vals[:-1]], [*vals[1:], inf]
+                starts += [
+                    (fc, u, lo, span)
+                    for fc, fl, fr, u in zip(vals, left, right, us, strict=True)
+                    if fc <= fl and fc <= fr and fc < inf
+                ]
             starts.sort()
-            top = math.inf
+            spots.sort()
+            lowest = min(starts[0][0] if starts else math.inf, spots[0][0] if spots else math.inf)
+            elbows.append((lowest, e, starts, spots))
+        if nearest_only:
+            elbows.sort()
+        out: list[list[float]] = []
+        for _, e, starts, spots in elbows:
+            tried: list[tuple[float, float]] = []
+            top = bound  # the best found so far
             for fs, u, lo, span in starts:
                 tried.append((fs, t_of(u, lo, span)))
                 if not periodic:
@@ -853,7 +845,7 @@ class Kinematics:
             tried.sort()
             chosen: tuple[float, list[float]] | None = None
             for fv, t in tried:
-                if chosen is not None and fv >= chosen[0] - 1e-12:
+                if fv > bound or (chosen is not None and fv >= chosen[0] - 1e-12):
                     break
                 found: list[list[float]] = []
                 self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t, found, int(e))
@@ -874,6 +866,8 @@ class Kinematics:
                             chosen = (rest, g)
             if chosen is not None:
                 out.append(chosen[1])
+                if nearest_only:
+                    bound = min(bound, chosen[0])
         return out
 
     def _nearest(self, sol: list[float], seed: list[float]) -> tuple[float, list[float]] | None:
@@ -894,9 +888,10 @@ class Kinematics:
         Same result as ranking :meth:`_branches` with :meth:`_nearest`, with shared terms
         computed once per shoulder and wrist branch, branches pruned as soon as their
         partial distance exceeds the best, and the 2π shift toward the seed inlined
-        (``_near`` only when the shifted angle leaves the limits). Returns None, to fall
-        back on the general path, near the singularities that need its special handling or
-        when nothing fits.
+        (``_near`` only when the shifted angle leaves the limits); an exactly wrist-singular
+        shoulder goes to :meth:`_singular_arms` last, unless the others' best already beats
+        its θ1 and θ5 alone. Returns None, to fall back on the general path, next to the
+        singularities that need its special handling (polishing) or when nothing fits.
         """
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = target._R.tolist()
         px, py, pz = target._p.tolist()
@@ -930,28 +925,35 @@ class Kinematics:
         p5x, p5y, p5z = px - d6 * r02, py - d6 * r12, pz - d6 * r22
         rho2 = p5x * p5x + p5y * p5y
         h2 = rho2 - d4 * d4
-        if h2 <= 1e-12:  # at or near the shoulder singularity
-            return None
+        if h2 < 0.0:  # beyond the shoulder singularity by rounding, or out of reach
+            if h2 < -_CLIP_EPS * d4 * d4:
+                return None
+            h2 = 0.0
         h = sqrt(h2)
+        # (c1, sn1) has norm √((h² + d4²) / rho2): 1 but for a clipped h2
+        norm = rho2 if h2 > 1e-12 else sqrt(rho2 * (h2 + d4 * d4))
         k3 = 1.0 / (2.0 * a2 * a3)
         l3 = a2 * a2 + a3 * a3
         best = math.inf
         best_q: list[float] | None = None
         near_miss = False
         shoulders = []
-        for hs in (h, -h):
-            c1 = (p5x * hs - p5y * d4) / rho2
-            sn1 = (p5y * hs + p5x * d4) / rho2
+        # next to the shoulder singularity θ1 carries rounding error amplified ~1/h, but
+        # the pose reached moves only to second order: the two branches nearly coincide
+        for hs in (h, -h) if h > 0.0 else (h,):
+            c1 = (p5x * hs - p5y * d4) / norm
+            sn1 = (p5y * hs + p5x * d4) / norm
             t = atan2(sn1, c1)
             v1 = t + tau * (((s0 - t) * inv + 0.5) // 1.0)
             if not lo0 <= v1 <= hi0:
                 v1 = _near(t, s0, lo0, hi0)
                 if v1 != v1:
                     continue
-            shoulders.append(((v1 - s0) * (v1 - s0), v1, c1, sn1))
+            shoulders.append(((v1 - s0) * (v1 - s0), v1, c1, sn1, t))
         if len(shoulders) == 2 and shoulders[1][0] < shoulders[0][0]:
             shoulders.reverse()  # nearest θ1 first: the pruning bites early
-        for e1, v1, c1, sn1 in shoulders:
+        singular = []
+        for e1, v1, c1, sn1, t1 in shoulders:
             if e1 >= best:
                 continue
             zx = r00 * sn1 - r10 * c1
@@ -959,7 +961,10 @@ class Kinematics:
             zz = r02 * sn1 - r12 * c1
             s5a = sqrt(zx * zx + zy * zy)
             if s5a < _NEAR_WRIST:
-                return None
+                if s5a > _WRIST_EPS:  # next to the wrist singularity: polished there
+                    return None
+                singular.append((e1, t1, c1, sn1, 1.0 if zz >= 0.0 else -1.0))
+                continue
             c6, sn6 = zx / s5a, -zy / s5a
             t6 = atan2(-zy, zx)
             t5 = atan2(s5a, zz)
@@ -1030,7 +1035,25 @@ class Kinematics:
                     if e < best:
                         best = e
                         best_q = [v1, v2, v3, v4, v5, v6]
-        return None if near_miss else best_q
+        if near_miss:
+            return None
+        # exactly wrist singular (θ5 = 0 or π, θ6 free), last: the others' best prunes it
+        for e1, t1, c1, sn1, c5 in singular:
+            v5 = _near(0.0 if c5 > 0.0 else math.pi, s4, lo4, hi4)
+            if v5 != v5:
+                continue
+            e5 = e1 + (v5 - s4) * (v5 - s4)
+            if e5 >= best:
+                continue
+            f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
+            sols = self._singular_arms(
+                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, best - e5, nearest_only=True
+            )
+            for sol in sols:
+                ranked = self._nearest(sol, seed)
+                if ranked is not None and ranked[0] < best:
+                    best, best_q = ranked
+        return best_q
 
     def inverse(
         self,
@@ -1148,6 +1171,81 @@ def _near(v: float, s: float, lo: float, hi: float) -> float:
         if v > hi:
             return math.nan
     return v
+
+
+_SIN2_TABLES: dict[int, list[float]] = {}
+
+
+def _sin2(n: int) -> list[float]:
+    """sin²(i·π/(2n)) for i = 0..n (the u grid of :meth:`Kinematics._singular_arms`)."""
+    table = _SIN2_TABLES.get(n)
+    if table is None:
+        table = _SIN2_TABLES[n] = [math.sin(i * (0.5 * math.pi) / n) ** 2 for i in range(n + 1)]
+    return table
+
+
+def _continuum_f(
+    ts: list[float],
+    consts: tuple[float, ...],
+    goals: tuple[float, float, float, float],
+    bounds: tuple[float, ...],
+) -> tuple[list[float], list[float]]:
+    """The distance² f of :meth:`Kinematics._singular_arms` at each θ6 in ``ts``, for the
+    elbow up and down (inf out of reach or beyond a limit), in one loop of plain floats."""
+    X5, Y5, ax, bx, ay, by, l3, k3, a2, a3, t0, sg = consts
+    g2, g3, g4, g6 = goals
+    lo2, hi2, lo3, hi3, lo4, hi4, lo6, hi6 = bounds
+    sin, cos, atan2, sqrt = math.sin, math.cos, math.atan2, math.sqrt
+    tau, inv, inf = TWO_PI, _INV_TWO_PI, math.inf
+    ups: list[float] = []
+    downs: list[float] = []
+    for t in ts:
+        s, c = sin(t), cos(t)
+        X = X5 + s * ax + c * bx
+        Y = Y5 + s * ay + c * by
+        c3 = (X * X + Y * Y - l3) * k3
+        if c3 > 1.0 or c3 < -1.0:
+            if abs(c3) > 1.0 + _CLIP_EPS:
+                ups.append(inf)
+                downs.append(inf)
+                continue
+            c3 = 1.0 if c3 > 0.0 else -1.0
+        s3 = sqrt(1.0 - c3 * c3)
+        t3 = atan2(s3, c3)
+        bb = atan2(Y, X)
+        be = atan2(a3 * s3, a2 + a3 * c3)
+        t234 = t0 + sg * t
+        # the 2π shifts toward the seed written out (_near only beyond a limit)
+        w = t + tau * (((g6 - t) * inv + 0.5) // 1.0)
+        if not lo6 <= w <= hi6:
+            w = _near(t, g6, lo6, hi6)
+        f6 = (w - g6) * (w - g6)
+        for t2, t3e, out in ((bb - be, t3, ups), (bb + be, -t3, downs)):
+            t4 = t234 - t2 - t3e
+            w = t2 + tau * (((g2 - t2) * inv + 0.5) // 1.0)
+            if not lo2 <= w <= hi2:
+                w = _near(t2, g2, lo2, hi2)
+            fv = f6 + (w - g2) * (w - g2)
+            w = t3e + tau * (((g3 - t3e) * inv + 0.5) // 1.0)
+            if not lo3 <= w <= hi3:
+                w = _near(t3e, g3, lo3, hi3)
+            fv += (w - g3) * (w - g3)
+            w = t4 + tau * (((g4 - t4) * inv + 0.5) // 1.0)
+            if not lo4 <= w <= hi4:
+                w = _near(t4, g4, lo4, hi4)
+            fv += (w - g4) * (w - g4)
+            out.append(fv if fv == fv else inf)
+    return ups, downs
+
+
+def _jumps(g: float, lo: float, hi: float, flip: bool) -> list[float]:
+    """Where the equivalent of an angle nearest ``g`` within [lo, hi] changes (mod 2π): the
+    limits where it jumps to the far side, if the half-turn window around ``g`` crosses
+    them; else, if ``flip``, g + π, where two equivalents are equally near."""
+    out = [lo] if lo > g - math.pi else []
+    if hi < g + math.pi and not (out and abs(math.remainder(hi - lo, TWO_PI)) < 1e-9):
+        out.append(hi)
+    return out if out or not flip else [g + math.pi]
 
 
 def _pose_error(current: Pose, target: Pose) -> FloatArray:
