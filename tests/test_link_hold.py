@@ -10,11 +10,12 @@ link tells a silent cell from its own beat thread starved of the CPU.
 
 from __future__ import annotations
 
+import dataclasses
 import socket
 import threading
 import time
 import types
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,9 @@ class Control:
 
     def __init__(self) -> None:
         self.calls: list[str] = []
+        self.targets: list[tuple[float, ...]] = []
+        self.stamps: list[float] = []  # the controller time of each servoJ
+        self.clock: Callable[[], float] = lambda: 0.0
         self.changed = threading.Condition()
 
     def _record(self, name: str) -> bool:
@@ -43,6 +47,8 @@ class Control:
         return True
 
     def servoJ(self, *args: Any) -> bool:  # noqa: N802 (ur_rtde's name)
+        self.targets.append(tuple(args[0]))
+        self.stamps.append(self.clock())
         return self._record("servoJ")
 
     def servoStop(self) -> bool:  # noqa: N802
@@ -58,10 +64,13 @@ class Control:
 
 
 class Link:
-    """The attributes of fxcell.link.process.Link a trajectory reads, with a sample clock."""
+    """The attributes of fxcell.link.process.Link a trajectory reads, with a sample clock:
+    a sample every 2 ms, ``cycles`` controller cycles after the one before."""
 
-    def __init__(self) -> None:
+    def __init__(self, cycles: int = 1) -> None:
+        self.cycles = cycles
         self.control = Control()
+        self.control.clock = lambda: self.latest.timestamp if self.latest else 0.0
         self.latest: RobotState | None = RobotState(
             runtime_state=RuntimeState.PLAYING, actual_q=TARGET
         )
@@ -80,16 +89,19 @@ class Link:
             time.sleep(CONTROL_PERIOD)
             self.last_heard = self.last_state_at = time.monotonic()
             with self._tick:
+                if self.latest is not None:
+                    stamp = self.latest.timestamp + self.cycles * CONTROL_PERIOD
+                    self.latest = dataclasses.replace(self.latest, timestamp=stamp)
                 self._samples += 1
                 self._tick.notify_all()
 
     def heard_within(self, timeout: float, now: float) -> bool:
         return now - self.last_heard <= timeout
 
-    def next_sample(self, seen: int, timeout: float) -> int:
+    def next_sample(self, seen: int, timeout: float) -> tuple[int, RobotState | None]:
         with self._tick:
             self._tick.wait_for(lambda: self._samples != seen, timeout)
-            return self._samples
+            return self._samples, self.latest
 
     def send(self, *message: Any) -> None:
         self.sent.append(message)
@@ -188,6 +200,48 @@ def test_a_stop_during_the_hold_leaves_servo_mode(link: Link) -> None:
     traj.thread.join(1.0)
     assert not traj.thread.is_alive()
     assert link.control.calls[-1] == "servoStop"
+
+
+RAMP = [tuple(np.add(TARGET, (k * 1e-4,) * 6)) for k in range(-200, 1)]
+
+
+@pytest.mark.parametrize("cycles", [1, 2, 3])
+def test_a_controller_skipping_cycles_keeps_the_path_on_its_clock(cycles: int) -> None:
+    # A busy simulator (or lost samples) shows cycles without a sample of their own: each
+    # setpoint advances the path by the cycles since the last, so the move keeps its time.
+    link = Link(cycles)
+    try:
+        traj = _Trajectory(link, 1, RAMP, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
+        traj.thread.start()
+        _wait_ended(traj)
+        traj.stop("test over")
+        traj.thread.join(1.0)
+    finally:
+        link.close()
+    assert link.ends()[0]["status"] == "completed"
+    end = link.control.targets.index(RAMP[-1])
+    path = link.control.targets[: end + 1]
+    steps = np.round(np.diff(np.array(path)[:, 0]) / 1e-4).astype(int)
+    assert np.median(steps) == cycles
+    assert len(path) <= len(RAMP) / cycles + 5
+    # never ahead of the controller's clock (but for a few samples the 3 ms timer may
+    # pace when the sample clock's thread is starved)
+    elapsed = link.control.stamps[end] - link.control.stamps[0]
+    assert elapsed >= (len(RAMP) - 1 - 5) * CONTROL_PERIOD
+
+
+def test_a_long_controller_gap_stretches_the_path_rather_than_jumping() -> None:
+    link = Link(cycles=20)  # 40 ms of controller time per sample
+    try:
+        traj = _Trajectory(link, 1, RAMP, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
+        traj.thread.start()
+        _wait_ended(traj)
+        traj.stop("test over")
+        traj.thread.join(1.0)
+    finally:
+        link.close()
+    path = np.array(link.control.targets[: link.control.targets.index(RAMP[-1]) + 1])
+    assert np.abs(np.diff(path[:, 0])).max() <= _Trajectory.CATCH_UP * 1e-4 + 1e-12
 
 
 def test_beats_waiting_in_the_channel_keep_a_starved_link_from_calling_the_cell_silent() -> None:

@@ -22,7 +22,10 @@ mode, without needing anything from the client or the state stream.
 
 The trajectory thread sends one setpoint per state sample, as each sample arrives: locked
 to the controller's clock rather than to a timer of its own (two free-running 2 ms clocks
-beat, so that some controller cycles got two setpoints and some none). It never uses
+beat, so that some controller cycles got two setpoints and some none); a sample a few
+cycles after the previous one (cycles the controller skipped, or samples lost) advances the
+path by those cycles, up to ``_Trajectory.CATCH_UP``, so the path keeps the controller's
+time. It never uses
 ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which starved
 the state pump for up to 20 ms per period.
 """
@@ -255,9 +258,9 @@ class Link:
             self._pump_ur_rtde()
 
     def _publish(self, state: RobotState) -> None:
-        self.latest = state
         self.last_state_at = time.monotonic()
-        with self._tick:
+        with self._tick:  # the sample and its number together (see next_sample)
+            self.latest = state
             self._samples += 1
             self._tick.notify_all()
         self.send(wire.STATE, wire.state_to_tuple(state))
@@ -331,12 +334,12 @@ class Link:
             standard_analog_output1=r.getStandardAnalogOutput1(),
         )
 
-    def next_sample(self, seen: int, timeout: float) -> int:
+    def next_sample(self, seen: int, timeout: float) -> tuple[int, RobotState | None]:
         """Wait until a state sample newer than number ``seen`` arrives (at most
-        ``timeout`` s); returns the newest sample's number."""
+        ``timeout`` s); returns the newest sample's number and the sample."""
         with self._tick:
             self._tick.wait_for(lambda: self._samples != seen, timeout)
-            return self._samples
+            return self._samples, self.latest
 
     # -- calls
 
@@ -663,6 +666,12 @@ class _Trajectory:
     """Streams one (N, 6) joint trajectory with servoJ at 500 Hz; brakes by itself."""
 
     PROGRESS_EVERY = 10  # samples (20 ms)
+    CATCH_UP = 4
+    """Most samples one setpoint advances: a state sample ``k`` controller cycles after the
+    previous one (the controller skipped cycles, or their samples were lost) advances the
+    path by ``min(k, CATCH_UP)`` samples, so the path keeps the controller's time instead
+    of stretching by the missed cycles. Longer gaps stretch it: catching up a longer lag in
+    one setpoint would be a jump the servo loop turns into an acceleration spike."""
     HOLD = 0.1  # s a completed trajectory keeps servo mode for a next one
     SETTLE_MAX = 0.3  # s, beyond twice the lookahead time, to settle on the last sample
 
@@ -739,6 +748,9 @@ class _Trajectory:
         braking: tuple[str, float, float] | None = None  # reason, started, duration
         settle_until: float | None = None
         seen = link._samples
+        clock = link.latest.timestamp if link.latest is not None else None
+        next_progress = 0
+        paced = 0  # setpoints the 3 ms timer sent since the last sample
         status, reason = "completed", ""
         if c is None:
             status, reason = "failed", "no_external_control"
@@ -808,16 +820,32 @@ class _Trajectory:
                         break
                     if u < len(samples):
                         i = int(u)
-                        if braking is None and i % self.PROGRESS_EVERY == 0 and i == u:
+                        if braking is None and i >= next_progress:
                             self._progress(i, len(samples), samples[i])
-                        u = min(u + rate, float(len(samples)))
+                            next_progress = (i // self.PROGRESS_EVERY + 1) * self.PROGRESS_EVERY
                     # One setpoint per controller cycle, sent when the cycle's state sample
                     # arrives: locked to the controller's clock, the setpoints never meet
                     # its cycle in pairs or not at all (two free-running 2 ms clocks beat,
                     # which made acceleration spikes). Without samples, a 3 ms timer paces
                     # the stream until the stall brakes it. Late (a busy machine): never a
-                    # burst of setpoints; the trajectory stretches instead.
-                    seen = link.next_sample(seen, 1.5 * CONTROL_PERIOD)
+                    # burst of setpoints; a sample a few cycles on advances the path by
+                    # those cycles (CATCH_UP), a longer gap stretches it.
+                    before = seen
+                    seen, latest = link.next_sample(seen, 1.5 * CONTROL_PERIOD)
+                    if seen == before or latest is None:  # no sample for 3 ms: the timer
+                        steps = 1
+                        paced += 1
+                    elif clock is not None and latest.timestamp > clock:
+                        # the controller cycles since the last sample, less those the timer
+                        # already paced
+                        cycles = round((latest.timestamp - clock) / CONTROL_PERIOD)
+                        steps = max(min(cycles, self.CATCH_UP) - paced, 0)
+                        clock, paced = latest.timestamp, 0
+                    else:  # no earlier time to count from (or the clock went back)
+                        steps = 1
+                        clock, paced = latest.timestamp, 0
+                    if u < len(samples):
+                        u = min(u + rate * steps, float(len(samples)))
             except Exception as exc:
                 status, reason = "failed", f"link_error: {exc}"
         state = link.latest
