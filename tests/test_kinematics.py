@@ -219,6 +219,26 @@ def test_wrist_singular_pose_gets_a_valid_solution(kin: Kinematics, seed_q6: flo
         kin.check_singularity(sol)
 
 
+@pytest.mark.parametrize("q5", [1e-13, 1e-9, -1e-7, math.pi - 1e-8])
+@pytest.mark.parametrize("q3", [1.2, 1e-3])
+def test_a_pose_next_to_the_wrist_singularity_is_solved_in_closed_form(
+    q5: float, q3: float
+) -> None:
+    # θ6 then carries rounding error ~1e-16/|sin θ5|, but every joint is solved consistently
+    # with it: the closed form reaches the pose, on the hot path (no polishing search), and
+    # as near the seed as the general path (up to that rounding)
+    q = np.array([0.4, -1.3, q3, -1.0, q5, 0.7])
+    pose = FLANGE.forward(q)
+    seed = q + np.array([0.3, -0.2, 0.1, 0.4, 0.2, -0.5])
+    fast = FLANGE._fast_nearest(pose, seed.tolist())
+    assert fast is not None
+    sol = np.array(fast)
+    assert FLANGE.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
+    general = FLANGE.inverse(pose, seed=seed, valid=lambda _: True)
+    rounding = 1e-14 / abs(math.sin(q5))
+    assert np.linalg.norm(sol - seed) == pytest.approx(np.linalg.norm(general - seed), abs=rounding)
+
+
 def test_wrist_singular_pose_is_solved_whatever_the_seed_wrist() -> None:
     # stretched far out: only a range of θ6 lets the arm reach, the seed's is outside it
     q = np.array([0.0, -0.2, 0.15, 0.0, 0.0, 0.0])

@@ -68,6 +68,9 @@ _CLIP_EPS = 1e-12
 """Rounding slack on the cosines at the reach boundaries (≈ 1e-13 m of position)."""
 _NEAR_WRIST = 1e-6
 """|sin θ5| below which a failed closed form is retried as a wrist singularity."""
+_WRIST_SLACK = 1e-14
+"""Next to the wrist singularity, a branch this much over ``1/|sin θ5|`` beyond the reach (in
+cos θ3) may be a rounding error of θ6 (~1e-16/|sin θ5| rad, moving frame 4 by d5 times that)."""
 _NEAR_MISS = 1e-6
 """How far beyond full stretch (in cos θ3) a branch is still polished rather than dropped."""
 _POLISH_TOL = 1e-10
@@ -960,11 +963,13 @@ class Kinematics:
             zy = r01 * sn1 - r11 * c1
             zz = r02 * sn1 - r12 * c1
             s5a = sqrt(zx * zx + zy * zy)
-            if s5a < _NEAR_WRIST:
-                if s5a > _WRIST_EPS:  # next to the wrist singularity: polished there
-                    return None
+            if s5a <= _WRIST_EPS:
                 singular.append((e1, t1, c1, sn1, 1.0 if zz >= 0.0 else -1.0))
                 continue
+            # next to the wrist singularity θ6 carries rounding error amplified ~1/|s5|: a
+            # stretched arm can then miss its reach, which the general path polishes
+            fragile = s5a < _NEAR_WRIST
+            slack = _WRIST_SLACK / s5a  # how far out of reach (in cos θ3) that can throw it
             c6, sn6 = zx / s5a, -zy / s5a
             t6 = atan2(-zy, zx)
             t5 = atan2(s5a, zz)
@@ -1004,7 +1009,8 @@ class Kinematics:
                 c3 = (X * X + Y * Y - l3) * k3
                 if c3 > 1.0 or c3 < -1.0:
                     if abs(c3) > 1.0 + _CLIP_EPS:
-                        near_miss = near_miss or abs(c3) <= 1.0 + _NEAR_MISS
+                        miss = abs(c3) - 1.0
+                        near_miss = near_miss or miss <= _NEAR_MISS or (fragile and miss <= slack)
                         continue
                     c3 = 1.0 if c3 > 0.0 else -1.0
                 s3a = sqrt(1.0 - c3 * c3)
