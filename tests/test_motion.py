@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -197,3 +199,28 @@ async def test_the_planner_for_blocked_moves_can_be_chosen() -> None:
     assert plan.planner == "BKPIECE1"
     with pytest.raises(InvalidArgumentError):
         controller.use_planner("NoSuchPlanner")
+
+
+async def test_a_short_free_joint_move_is_planned_without_a_worker_thread(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the hand-offs to and from a thread cost more than planning a short free line
+    controller = MotionController(CONFIG)
+    threaded: list[object] = []
+    real = asyncio.to_thread
+
+    async def to_thread(func: Any, /, *args: Any) -> Any:
+        threaded.append(func)
+        return await real(func, *args)
+
+    monkeypatch.setattr("fxcell.motion.moves.asyncio.to_thread", to_thread)
+    short = HOME + np.array([0, 0, 0, 0, 0, 0.01])
+    (plan,) = await controller.plan(JointTarget(short.tolist()), HOME, 1.0, 1.0)
+    assert plan.planner == "direct"
+    assert not threaded
+    far = HOME + np.array([0.6, 0, 0, 0, 0, 0])
+    (plan,) = await controller.plan(JointTarget(far.tolist()), HOME, 1.0, 1.0)
+    assert plan.planner == "direct"
+    assert len(threaded) == 1
+    with pytest.raises(InvalidArgumentError):  # bad input: the same typed error inline
+        await controller.plan(JointTarget([0.0] * 5), HOME, 1.0, 1.0)

@@ -43,7 +43,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -334,11 +334,17 @@ class Link:
             standard_analog_output1=r.getStandardAnalogOutput1(),
         )
 
-    def next_sample(self, seen: int, timeout: float) -> tuple[int, RobotState | None]:
+    def next_sample(
+        self, seen: int, timeout: float, woken: Callable[[], bool] | None = None
+    ) -> tuple[int, RobotState | None]:
         """Wait until a state sample newer than number ``seen`` arrives (at most
-        ``timeout`` s); returns the newest sample's number and the sample."""
+        ``timeout`` s, or until ``woken()`` after a notify of ``_tick``); returns the
+        newest sample's number and the sample."""
         with self._tick:
-            self._tick.wait_for(lambda: self._samples != seen, timeout)
+            if woken is None:
+                self._tick.wait_for(lambda: self._samples != seen, timeout)
+            else:
+                self._tick.wait_for(lambda: self._samples != seen or woken(), timeout)
             return self._samples, self.latest
 
     # -- calls
@@ -693,6 +699,7 @@ class _Trajectory:
         self._lock = threading.Lock()
         self._replacement: tuple[wire.Samples, int | None] | None = None
         self._stop_reason: str | None = None
+        self._poked = False  # stop() wants the thread awake now
         self.ended = threading.Event()  # the end is reported; servo mode is being left
         self._holding = False
         self._released = threading.Event()
@@ -709,10 +716,17 @@ class _Trajectory:
             self._replacement = (samples, at_index)
 
     def stop(self, reason: str) -> None:
-        """Brake to rest along the path (from the next control cycle on)."""
+        """Brake to rest along the path (now: the thread is woken, not left to wait for
+        the next state sample)."""
         with self._lock:
             if self._stop_reason is None:
                 self._stop_reason = reason
+        with self.link._tick:
+            self._poked = True
+            self.link._tick.notify_all()
+
+    def _is_poked(self) -> bool:
+        return self._poked
 
     def release(self, *, keep_servo: bool) -> bool:
         """End the hold after a completed trajectory: for the next trajectory
@@ -831,8 +845,12 @@ class _Trajectory:
                     # burst of setpoints; a sample a few cycles on advances the path by
                     # those cycles (CATCH_UP), a longer gap stretches it.
                     before = seen
-                    seen, latest = link.next_sample(seen, 1.5 * CONTROL_PERIOD)
-                    if seen == before or latest is None:  # no sample for 3 ms: the timer
+                    seen, latest = link.next_sample(seen, 1.5 * CONTROL_PERIOD, self._is_poked)
+                    # (a poke lost to a stop() between these two lines waits for the sample)
+                    poked, self._poked = self._poked, False
+                    if seen == before and poked:
+                        steps = 0  # woken by stop(): brake from here at once
+                    elif seen == before or latest is None:  # no sample for 3 ms: the timer
                         steps = 1
                         paced += 1
                     elif clock is not None and latest.timestamp > clock:
