@@ -179,6 +179,10 @@ async def run(daemon: DaemonProcess, sim: Any) -> dict[str, Any]:
             completed += r.status_code == 200
             if r.status_code != 200:
                 failures.append(f"move {k + 1}: HTTP {r.status_code}: {r.text[:300]}")
+                said = [
+                    line for line in daemon.output[-40:] if "WARNING" in line or "ERROR" in line
+                ]
+                failures += [f"    daemon: {line[:300]}" for line in said[-8:]]
                 await http.post("/api/cell/init")  # recover (e.g. after a stop)
         out["moves_completed"] = completed
         out["move_failures"] = failures

@@ -3,6 +3,7 @@ read with a plain socket parser written from UR's documentation and with ``urx``
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import socket
@@ -178,6 +179,24 @@ def test_real_time_interface_streams_1220_byte_packets_at_500_hz(
     assert np.allclose(ur_pose_matrix(list(last[55:61])), pose_of(q), atol=1e-9)  # tool vector
     assert last[94] == 7  # robot mode RUNNING
     assert last[131] == 1  # program state (runtime state) STOPPED
+
+
+def test_a_real_time_client_that_never_reads_is_soon_sent_nothing(
+    running: SimulatorHandle,
+) -> None:
+    # ur_rtde's control interface keeps 30003 open for its script and never reads it: the
+    # simulator drops its packets once a few hundred kB wait for it, not megabytes
+    m = Messages(running.host, 30003)
+    try:
+        time.sleep(1.5)  # 750 packets, 0.9 MB, if every one were queued
+        queued = 0  # what the kernel holds for this client, both ends
+        m.sock.setblocking(False)
+        with contextlib.suppress(BlockingIOError):
+            while queued < 10_000_000 and (chunk := m.sock.recv(1 << 20)):
+                queued += len(chunk)
+    finally:
+        m.close()
+    assert 0 < queued < 400_000
 
 
 URX_CLIENT = """
