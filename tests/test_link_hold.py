@@ -202,11 +202,8 @@ def test_a_stop_during_the_hold_leaves_servo_mode(link: Link) -> None:
 RAMP = [tuple(np.add(TARGET, (k * 1e-4,) * 6)) for k in range(-200, 1)]
 
 
-@pytest.mark.parametrize("cycles", [1, 2, 3])
-def test_a_controller_skipping_cycles_keeps_the_path_on_its_clock(cycles: int) -> None:
-    # A busy simulator (or lost samples) shows cycles without a sample of their own: each
-    # setpoint advances the path by the cycles since the last, so the move keeps its time.
-    link = Link(cycles)
+def _ramp_on(link: Link) -> Link:
+    """Stream RAMP on ``link`` to its end (then close the stand-in)."""
     try:
         traj = _Trajectory(link, 1, RAMP, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
         traj.thread.start()
@@ -215,6 +212,14 @@ def test_a_controller_skipping_cycles_keeps_the_path_on_its_clock(cycles: int) -
         traj.thread.join(1.0)
     finally:
         link.close()
+    return link
+
+
+@pytest.mark.parametrize("cycles", [1, 2, 3])
+def test_a_controller_skipping_cycles_keeps_the_path_on_its_clock(cycles: int) -> None:
+    # A busy simulator (or lost samples) shows cycles without a sample of their own: each
+    # setpoint advances the path by the cycles since the last, so the move keeps its time.
+    link = _ramp_on(Link(cycles))
     assert link.ends()[0]["status"] == "completed"
     end = link.control.targets.index(RAMP[-1])
     path = link.control.targets[: end + 1]
@@ -228,15 +233,7 @@ def test_a_controller_skipping_cycles_keeps_the_path_on_its_clock(cycles: int) -
 
 
 def test_a_long_controller_gap_stretches_the_path_rather_than_jumping() -> None:
-    link = Link(cycles=20)  # 40 ms of controller time per sample
-    try:
-        traj = _Trajectory(link, 1, RAMP, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
-        traj.thread.start()
-        _wait_ended(traj)
-        traj.stop("test over")
-        traj.thread.join(1.0)
-    finally:
-        link.close()
+    link = _ramp_on(Link(cycles=20))  # 40 ms of controller time per sample
     path = np.array(link.control.targets[: link.control.targets.index(RAMP[-1]) + 1])
     assert np.abs(np.diff(path[:, 0])).max() <= _Trajectory.CATCH_UP * 1e-4 + 1e-12
 
