@@ -188,7 +188,10 @@ def test_a_real_time_client_that_never_reads_is_soon_sent_nothing(
     # simulator drops its packets once a few hundred kB wait for it, not megabytes
     m = Messages(running.host, 30003)
     try:
-        time.sleep(1.5)  # 750 packets, 0.9 MB, if every one were queued
+        # 1.5 s of controller time: 750 packets, 0.9 MB, if every one were queued
+        start = running.state()["time"]
+        while running.state()["time"] < start + 1.5:
+            time.sleep(0.05)
         queued = 0  # what the kernel holds for this client, both ends
         m.sock.setblocking(False)
         with contextlib.suppress(BlockingIOError):
