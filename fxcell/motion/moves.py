@@ -264,14 +264,16 @@ class MotionPlanner:
         acceleration_factor: float = 1.0,
         *,
         kind: MoveKind = "joint",
+        search: bool = True,
     ) -> MovePlan:
-        """Plan a joint-space move: the straight line if free, else OMPL, then Ruckig."""
+        """Plan a joint-space move: the straight line if free, else OMPL (``search=False``:
+        PlanningError instead), then Ruckig."""
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
         q1 = self.check_joints(target)
         q0 = _vector(start, 6, "start joints")
         for attempt in range(3):
-            path = self.joint_planner.plan(q0, q1)
+            path = self.joint_planner.plan(q0, q1, search=search)
             if len(path.waypoints) == 2:
                 traj = rest_to_rest(q0, q1, limits)  # exactly on the checked straight line
                 break
@@ -878,45 +880,35 @@ class MotionController:
         the end, and the planner's Pinocchio data must not be shared with the next one.
         """
 
-        def planned() -> list[MovePlan]:  # under the lock
-            joint = self.planner.joint_planner
-            if joint.planner_name != self._planner_name:
-                self.planner.joint_planner = JointPlanner(
-                    self.planner.checker,
-                    self.config.limits.position_min,
-                    self.config.limits.position_max,
-                    planner=self._planner_name,
-                    timeout=joint.timeout,
-                )
-            return self.planner.plan(target, start, velocity_factor, acceleration_factor)
-
         def locked() -> list[MovePlan]:
             with self._plan_lock:
-                return planned()
+                joint = self.planner.joint_planner
+                if joint.planner_name != self._planner_name:
+                    self.planner.joint_planner = JointPlanner(
+                        self.planner.checker,
+                        self.config.limits.position_min,
+                        self.config.limits.position_max,
+                        planner=self._planner_name,
+                        timeout=joint.timeout,
+                    )
+                return self.planner.plan(target, start, velocity_factor, acceleration_factor)
 
-        # A short joint move on a free straight line plans in well under 2 ms: here, not
-        # through a worker thread, whose hand-offs cost more than the planning (~1 ms).
-        if isinstance(target, JointTarget) and self._plan_lock.acquire(blocking=False):
+        # A short joint move on a free straight line plans in ~0.5-1.2 ms: here, not
+        # through a worker thread, whose hand-offs cost more than the planning; a blocked
+        # line goes to the thread for the search.
+        if (
+            isinstance(target, JointTarget)
+            and _within(start, target.joints, INLINE_SPAN)
+            and self._plan_lock.acquire(blocking=False)
+        ):
             try:
-                if self._short_free_line(start, target.joints):
-                    return planned()
+                vf, af = velocity_factor, acceleration_factor
+                return [self.planner.plan_joint(start, target.joints, vf, af, search=False)]
+            except PlanningError:
+                pass
             finally:
                 self._plan_lock.release()
         return await asyncio.to_thread(locked)
-
-    def _short_free_line(self, start: ArrayLike, joints: object) -> bool:
-        """Whether ``joints`` is within INLINE_SPAN of ``start`` on every joint and the
-        straight line between them is free (False for anything malformed)."""
-        try:
-            a = np.asarray(start, dtype=float)
-            b = np.asarray(joints, dtype=float)
-            if a.shape != (6,) or b.shape != (6,) or not np.all(np.isfinite(b)):
-                return False
-            if float(np.max(np.abs(b - a))) > INLINE_SPAN:
-                return False
-        except (TypeError, ValueError):
-            return False
-        return bool(self.planner.checker.motion_free(a, b))
 
     def runner(
         self,
@@ -1014,3 +1006,16 @@ def _trajectory_data(plan: MovePlan) -> dict[str, Any]:
         "stops": traj.stops,
         "preview": traj.positions[::step].tolist(),
     }
+
+
+def _within(start: ArrayLike, joints: object, span: float) -> bool:
+    """Whether ``joints`` (6 finite numbers) is within ``span`` rad of ``start`` on every
+    joint (False for anything malformed: the thread's planning reports it)."""
+    try:
+        a = np.asarray(start, dtype=float)
+        b = np.asarray(joints, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    if a.shape != (6,) or b.shape != (6,) or not np.all(np.isfinite(b)):
+        return False
+    return float(np.max(np.abs(b - a))) <= span

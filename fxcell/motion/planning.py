@@ -133,13 +133,14 @@ class JointPlanner:
         ss.setStartAndGoalStates(start, goal)
         return ss, (space, start, goal)
 
-    def plan(self, start: ArrayLike, goal: ArrayLike) -> JointPath:
+    def plan(self, start: ArrayLike, goal: ArrayLike, *, search: bool = True) -> JointPath:
         """A collision-free path from ``start`` to ``goal`` (both must be free).
 
         Raises :class:`CollisionError` if either end collides and :class:`PlanningError`
         if no path is found within the timeout, or at once if a wall (a joint value at
         which every configuration collides, :meth:`CollisionChecker.walls`) lies between
-        start and goal.
+        start and goal. ``search=False``: the straight line only (PlanningError if it is
+        not free), never the planner's search.
         """
         a, b = np.asarray(start, float), np.asarray(goal, float)
         t0 = time.perf_counter()
@@ -147,6 +148,8 @@ class JointPlanner:
         self.checker.check(b, "target")
         if self.checker.motion_free(a, b):
             return JointPath(np.array([a, b]), "direct", time.perf_counter() - t0)
+        if not search:
+            raise PlanningError("the straight line is not collision free")
         wall = self.checker.separating_wall(a, b)
         if wall is not None:  # proven: no search could succeed
             joint, value = wall
