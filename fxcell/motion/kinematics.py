@@ -769,6 +769,8 @@ class Kinematics:
         consts = (X5, Y5, d5 * ax, d5 * bx, d5 * ay, d5 * by, l3, k3, a2, a3, t234_0, sg)
         goals = (g2, g3, g4, g6)
         bounds = (lo2, hi2, lo3, hi3, lo4, hi4, lo6, hi6)
+        # no start or candidate above the bound + _MARGIN is ever used: the grid skips them
+        cap = bound + _MARGIN
         grids = []
         for lo, hi in intervals:
             span = hi - lo
@@ -781,14 +783,14 @@ class Kinematics:
             else:
                 us = [i * (0.5 * math.pi) / n for i in range(n + 1)]  # the ends exactly
                 tgrid = [lo + span * q for q in _sin2(n)]
-            grids.append((lo, span, us, *_continuum_f(tgrid, consts, goals, bounds)))
+            grids.append((lo, span, us, *_continuum_f(tgrid, consts, goals, bounds, cap)))
         at = [
             (ee, tt, lo, hi - lo)
             for t, ee in extra
             for lo, hi in intervals
             if (tt := lo + (t - lo) % tau) <= hi
         ]
-        fat = _continuum_f([a[1] for a in at], consts, goals, bounds)
+        fat = _continuum_f([a[1] for a in at], consts, goals, bounds, cap)
         ends: set[float] = set()
         if not periodic:
             for lo, hi in intervals:
@@ -1195,9 +1197,11 @@ def _continuum_f(
     consts: tuple[float, ...],
     goals: tuple[float, float, float, float],
     bounds: tuple[float, ...],
+    cap: float = math.inf,
 ) -> tuple[list[float], list[float]]:
     """The distance² f of :meth:`Kinematics._singular_arms` at each θ6 in ``ts``, for the
-    elbow up and down (inf out of reach or beyond a limit), in one loop of plain floats."""
+    elbow up and down (inf out of reach, beyond a limit or, as soon as a partial sum
+    shows it, above ``cap``), in one loop of plain floats."""
     X5, Y5, ax, bx, ay, by, l3, k3, a2, a3, t0, sg = consts
     g2, g3, g4, g6 = goals
     lo2, hi2, lo3, hi3, lo4, hi4, lo6, hi6 = bounds
@@ -1206,6 +1210,15 @@ def _continuum_f(
     ups: list[float] = []
     downs: list[float] = []
     for t in ts:
+        # the 2π shifts toward the seed written out (_near only beyond a limit)
+        w = t + tau * (((g6 - t) * inv + 0.5) // 1.0)
+        if not lo6 <= w <= hi6:
+            w = _near(t, g6, lo6, hi6)
+        f6 = (w - g6) * (w - g6)
+        if f6 > cap:
+            ups.append(inf)
+            downs.append(inf)
+            continue
         s, c = sin(t), cos(t)
         X = X5 + s * ax + c * bx
         Y = Y5 + s * ay + c * by
@@ -1221,17 +1234,15 @@ def _continuum_f(
         bb = atan2(Y, X)
         be = atan2(a3 * s3, a2 + a3 * c3)
         t234 = t0 + sg * t
-        # the 2π shifts toward the seed written out (_near only beyond a limit)
-        w = t + tau * (((g6 - t) * inv + 0.5) // 1.0)
-        if not lo6 <= w <= hi6:
-            w = _near(t, g6, lo6, hi6)
-        f6 = (w - g6) * (w - g6)
         for t2, t3e, out in ((bb - be, t3, ups), (bb + be, -t3, downs)):
-            t4 = t234 - t2 - t3e
             w = t2 + tau * (((g2 - t2) * inv + 0.5) // 1.0)
             if not lo2 <= w <= hi2:
                 w = _near(t2, g2, lo2, hi2)
             fv = f6 + (w - g2) * (w - g2)
+            if fv > cap:
+                out.append(inf)
+                continue
+            t4 = t234 - t2 - t3e
             w = t3e + tau * (((g3 - t3e) * inv + 0.5) // 1.0)
             if not lo3 <= w <= hi3:
                 w = _near(t3e, g3, lo3, hi3)
