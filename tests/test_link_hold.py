@@ -11,6 +11,7 @@ link tells a silent cell from its own beat thread starved of the CPU.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import socket
 import threading
 import time
@@ -188,6 +189,23 @@ def test_a_stop_for_the_settled_robot_keeps_servo_mode_for_the_next_move(link: L
     traj.thread.join(1.0)
     assert traj.servo_kept
     assert link.control.count("servoStop") == 0
+
+
+@pytest.mark.parametrize(
+    ("reason", "level"), [(wire.SETTLED, logging.DEBUG), ("state_stalled", logging.WARNING)]
+)
+def test_only_a_stop_away_from_the_target_warns_that_the_link_brakes(
+    link: Link, reason: str, level: int
+) -> None:
+    # a slow tail still in motion: the cell may see the robot settled before it streams
+    tail = np.linspace(np.subtract(TARGET, 1e-5), TARGET, 400)
+    traj = _Trajectory(link, 1, [tuple(v) for v in tail], 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
+    traj.thread.start()
+    assert link.control.wait_for("servoJ", 3)
+    traj.stop(reason)
+    _wait_ended(traj)
+    said = [(m[1], m[2]) for m in link.sent if m[0] == wire.LOG]
+    assert said == [(level, f"braking to rest: {reason}")]
 
 
 def test_a_stop_during_the_hold_leaves_servo_mode(link: Link) -> None:

@@ -780,7 +780,11 @@ class _Trajectory:
                                 duration = brake_duration(velocity, self.guard)
                                 silent = f" for {now - link.last_heard:.3f} s"
                                 said = why + (silent if why == "cell_silent" else "")
-                                link.send(wire.LOG, logging.WARNING, f"braking to rest: {said}")
+                                # settled: the cell saw the robot at the target, stopped and
+                                # past the plan by its clock, a few samples of the slow tail
+                                # before this stream: a normal end, not worth a warning
+                                level = logging.DEBUG if why == wire.SETTLED else logging.WARNING
+                                link.send(wire.LOG, level, f"braking to rest: {said}")
                             else:  # holding the target: nothing to brake
                                 duration = 0.0
                             braking = (why, now, duration)
