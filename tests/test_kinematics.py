@@ -362,6 +362,50 @@ def test_elbow_stretched_and_shoulder_singular_poses_are_solved() -> None:
     FLANGE.check_singularity([0.3, -1.2, 1.1, -0.7, 1.0, 0.4])  # no error
 
 
+tiny = st.floats(1e-12, 1e-5).flatmap(lambda v: st.sampled_from([v, -v]))
+
+
+@pytest.mark.parametrize("kin", [FLANGE, SEED], ids=["flange", "seed_tcp"])
+@given(q=configurations, stretch=tiny, wrist=tiny, seed=configurations)
+@settings(max_examples=60, deadline=None)
+def test_a_stretched_arm_next_to_the_wrist_singularity_is_reached_without_newton_steps(
+    kin: Kinematics,
+    q: np.ndarray,
+    stretch: float,
+    wrist: float,
+    seed: np.ndarray,
+) -> None:
+    # elbow at full stretch and wrist next to θ5 = 0 (both to ~1e-12): θ6's amplified
+    # rounding can leave a branch just out of reach; θ6 brings it back, with no Newton steps
+    q = np.array([q[0], q[1], stretch, q[3], wrist, q[5]])
+    pose = kin.forward(q)
+
+    def polish(*args: object) -> None:
+        raise AssertionError("Newton steps taken")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Kinematics, "_polish", polish)
+        sol = kin.inverse(pose, seed=seed)
+    assert kin.forward(sol).isclose(pose, position_tol=1e-10, angle_tol=1e-10)
+
+
+def test_a_branch_just_beyond_the_reach_away_from_the_singularities_is_not_polished(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the other shoulder's elbow-stretched branch misses its reach by ~1e-9: out of reach
+    # (rounding is ~1e-15 here); Newton steps on it could only fail, after milliseconds
+    q = np.array(
+        [3.0751233148, -6.2831853072, -6.2831853043, 6.2831853054, 1.7355780336, -3.1375813934]
+    )
+    calls: list[object] = []
+    monkeypatch.setattr(Kinematics, "_polish", lambda *args: calls.append(args))
+    pose = FLANGE.forward(q)
+    sol = FLANGE.inverse(pose, seed=[5.7676, -5.322, 1.0555, -6.0843, -0.6619, -1.5954])
+    assert FLANGE.forward(sol).isclose(pose, position_tol=1e-10, angle_tol=1e-10)
+    assert len(FLANGE.inverse_all(pose, seed=q)) == 2
+    assert calls == []
+
+
 @given(configurations)
 @settings(max_examples=30)
 def test_jacobian_matches_finite_differences(q: np.ndarray) -> None:

@@ -72,7 +72,8 @@ _WRIST_SLACK = 1e-14
 """Next to the wrist singularity, a branch this much over ``1/|sin θ5|`` beyond the reach (in
 cos θ3) may be a rounding error of θ6 (~1e-16/|sin θ5| rad, moving frame 4 by d5 times that)."""
 _NEAR_MISS = 1e-6
-"""How far beyond full stretch (in cos θ3) a branch is still polished rather than dropped."""
+"""How far beyond full stretch (in cos θ3) a branch is ever polished rather than dropped; see
+:func:`_rounding_slack` for how far it is near which singularity."""
 _POLISH_TOL = 1e-10
 """Pose error (m, rad) accepted from a solution polished by Newton steps."""
 _LIMIT_EPS = 1e-12
@@ -392,20 +393,82 @@ class Kinematics:
                 # error, which can throw a stretched arm just out of reach: such branches
                 # come back in ``rough`` (stretch clipped) and are polished by Newton steps.
                 rough: list[list[float]] = []
+                slack = min(_rounding_slack(s5a, h), _NEAR_MISS)
                 t6a, t6b = math.atan2(-zy, zx), math.atan2(zy, -zx)
-                self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5a, zz, t6a, out, 0, rough=rough)
-                self._arm(f, p5x, p5y, p5z, t1, s1, c1, -s5a, zz, t6b, out, 0, rough=rough)
-                out.extend(p for sol in rough if (p := self._polish(sol, pose)))
+                self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5a, zz, t6a, out, 0, rough, slack)
+                self._arm(f, p5x, p5y, p5z, t1, s1, c1, -s5a, zz, t6b, out, 0, rough, slack)
+                for sol in rough:
+                    fixed = self._reach_by_wrist(f, p5x, p5y, p5z, s1, c1, sol, pose)
+                    out.extend(fixed or [p for p in (self._polish(sol, pose),) if p])
                 if len(out) == n and s5a < _NEAR_WRIST:
                     # still nothing: search θ6 as at the singularity, then polish
                     for s5 in (s5a, -s5a):
                         for sol in self._singular_arms(f, p5x, p5y, p5z, t1, s1, c1, s5, zz, seed):
-                            if polished := self._polish(sol, pose):
+                            if self._reaches(sol, pose):
+                                out.append(sol)
+                            elif polished := self._polish(sol, pose):
                                 out.append(polished)
             else:
                 c5 = 1.0 if zz >= 0.0 else -1.0
                 out += self._singular_arms(f, p5x, p5y, p5z, t1, s1, c1, 0.0, c5, seed)
         return out
+
+    def _reach_by_wrist(
+        self,
+        f: list[float],
+        p5x: float,
+        p5y: float,
+        p5z: float,
+        s1: float,
+        c1: float,
+        sol: list[float],
+        pose: Pose,
+    ) -> list[list[float]]:
+        """A stretched (or folded) arm just out of reach next to the wrist singularity,
+        brought into reach by θ6; [] if that does not reach ``pose`` within 1e-10.
+
+        There θ6 carries rounding error amplified ~1/|sin θ5|, which moves frame 4's origin
+        on its circle around the wrist centre and can leave the arm ~1e-8 short of it. Turning
+        θ6 by the few 1e-8 rad that bring cos θ3 back to ±1 costs only ~|sin θ5| times that
+        in orientation. Newton's method on the pose error (:meth:`_polish`) converges slowly
+        there (at the stretch the arm cannot move radially to first order): this is a
+        1-D Newton on cos θ3(θ6) instead, then :meth:`_arm`.
+        """
+        d1, _, d5, _, a2, a3 = self._geom
+        r00, r01, _, r10, r11, _, r20, r21 = f[:8]
+        k3, l3 = 1.0 / (2.0 * a2 * a3), a2 * a2 + a3 * a3
+        sin, cos = math.sin, math.cos
+
+        def c3_of(t6: float) -> float:
+            s6, c6 = sin(t6), cos(t6)
+            ox = p5x + d5 * (s6 * r00 + c6 * r01)
+            oy = p5y + d5 * (s6 * r10 + c6 * r11)
+            X = c1 * ox + s1 * oy
+            Y = p5z + d5 * (s6 * r20 + c6 * r21) - d1
+            return (X * X + Y * Y - l3) * k3
+
+        t1, t5, t6 = sol[0], sol[4], sol[5]
+        c3 = c3_of(t6)
+        goal = 1.0 if c3 > 0.0 else -1.0
+        for _ in range(4):
+            if abs(c3) <= 1.0 + _CLIP_EPS:
+                break
+            h = 1e-6
+            slope = (c3_of(t6 + h) - c3_of(t6 - h)) / (2.0 * h)
+            if abs(slope) < 1e-9:  # the circle is tangent to the reach: no first-order fix
+                return []
+            t6 -= (c3 - goal) / slope
+            c3 = c3_of(t6)
+        else:
+            return []
+        found: list[list[float]] = []
+        self._arm(f, p5x, p5y, p5z, t1, s1, c1, sin(t5), cos(t5), t6, found, 0)
+        return [q for q in found if self._reaches(q, pose)]
+
+    def _reaches(self, q: list[float], pose: Pose) -> bool:
+        """Whether ``q`` reaches ``pose`` within 1e-10 (m and rad)."""
+        reached = self.forward(q)
+        return reached.distance(pose) <= _POLISH_TOL and reached.angle_to(pose) <= _POLISH_TOL
 
     def _polish(self, sol: list[float], pose: Pose) -> list[float] | None:
         """``sol`` after Newton steps, or None if it still misses ``pose`` by over 1e-10.
@@ -413,12 +476,8 @@ class Kinematics:
         Only near two singularities at once, where the pose pins some joints down to no
         better than ~1e-10 m of pose error (far below the robot's 3e-5 m repeatability).
         """
-        q = self.refine(np.array(sol), pose, iterations=60)
-        reached = self.forward(q)
-        if reached.distance(pose) > _POLISH_TOL or reached.angle_to(pose) > _POLISH_TOL:
-            return None
-        out: list[float] = q.tolist()
-        return out
+        out: list[float] = self.refine(np.array(sol), pose, iterations=60).tolist()
+        return out if self._reaches(out, pose) else None
 
     def _arm(
         self,
@@ -434,14 +493,15 @@ class Kinematics:
         t6: float,
         out: list[list[float]],
         elbow: int,
-        clip: float = _CLIP_EPS,
         rough: list[list[float]] | None = None,
+        slack: float = _NEAR_MISS,
+        clip: float = _CLIP_EPS,
     ) -> None:
         """Append the solutions for given θ1, θ5 (as sine, cosine) and θ6 to ``out``.
 
         ``elbow`` 0 appends both elbow branches, +1 / -1 only that sign of sin θ3; ``clip``
         is the rounding slack accepted beyond full stretch or fold. Solutions that miss the
-        stretch by less than ``_NEAR_MISS`` go to ``rough`` if given.
+        stretch by less than ``slack`` go to ``rough`` if given.
         """
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = f[:9]
         d1, d5 = self.dh.d[0], self.dh.d[4]
@@ -463,7 +523,7 @@ class Kinematics:
         c3 = (X * X + Y * Y - a2 * a2 - a3 * a3) / (2.0 * a2 * a3)
         if c3 > 1.0 or c3 < -1.0:
             if abs(c3) > 1.0 + clip:
-                if rough is None or abs(c3) > 1.0 + _NEAR_MISS:
+                if rough is None or abs(c3) > 1.0 + slack:
                     return
                 out = rough
             c3 = 1.0 if c3 > 0.0 else -1.0
@@ -968,10 +1028,9 @@ class Kinematics:
             if s5a <= _WRIST_EPS:
                 singular.append((e1, t1, c1, sn1, 1.0 if zz >= 0.0 else -1.0))
                 continue
-            # next to the wrist singularity θ6 carries rounding error amplified ~1/|s5|: a
-            # stretched arm can then miss its reach, which the general path polishes
-            fragile = s5a < _NEAR_WRIST
-            slack = _WRIST_SLACK / s5a  # how far out of reach (in cos θ3) that can throw it
+            # next to the wrist or shoulder singularity θ6 or θ1 carries amplified rounding
+            # error: a stretched arm can then miss its reach, which the general path fixes
+            slack = _rounding_slack(s5a, h)
             c6, sn6 = zx / s5a, -zy / s5a
             t6 = atan2(-zy, zx)
             t5 = atan2(s5a, zz)
@@ -1012,7 +1071,7 @@ class Kinematics:
                 if c3 > 1.0 or c3 < -1.0:
                     if abs(c3) > 1.0 + _CLIP_EPS:
                         miss = abs(c3) - 1.0
-                        near_miss = near_miss or miss <= _NEAR_MISS or (fragile and miss <= slack)
+                        near_miss = near_miss or miss <= slack
                         continue
                     c3 = 1.0 if c3 > 0.0 else -1.0
                 s3a = sqrt(1.0 - c3 * c3)
@@ -1165,6 +1224,21 @@ class Kinematics:
         return qq
 
 
+def _rounding_slack(s5: float, h: float) -> float:
+    """How far beyond the reach (in cos θ3) rounding can throw a branch that does reach.
+
+    θ6 carries rounding error ~1e-16/|sin θ5| rad next to the wrist singularity and θ1
+    ~4e-17/h next to the shoulder's (h: the wrist centre's distance from it, m); either
+    moves the arm's target point and so cos θ3 by about as much again. _WRIST_SLACK leaves
+    a factor 100 over that. Elsewhere a branch beyond
+    the reach by more than the clip (_CLIP_EPS) is out of reach: polishing it only burns
+    time (up to milliseconds of Newton steps that cannot converge).
+    """
+    if s5 <= 0.0 or h <= 0.0:
+        return math.inf
+    return _WRIST_SLACK / s5 + _WRIST_SLACK / h
+
+
 def _near(v: float, s: float, lo: float, hi: float) -> float:
     """The 2π-equivalent of angle ``v`` nearest ``s`` within [lo, hi], or NaN if none."""
     v += TWO_PI * round((s - v) * _INV_TWO_PI)
@@ -1295,10 +1369,22 @@ def _compose(a: list[float], b: Sequence[float]) -> list[float]:
 def _joints(q: ArrayLike) -> list[float]:
     """Six finite joint values as floats (a list of six floats is returned as is, not
     copied: callers must not modify it), or InvalidTargetError."""
+    if isinstance(q, list) and len(q) == 6:
+        a, b, c, d, e, f = q  # unrolled: this runs for every inverse-kinematics call
+        if (
+            type(a) is float
+            and type(b) is float
+            and type(c) is float
+            and type(d) is float
+            and type(e) is float
+            and type(f) is float
+        ):
+            total = a + b + c + d + e + f
+            if total - total != 0.0:  # NaN or inf somewhere (or a sum beyond 1e308)
+                raise InvalidTargetError(f"joint positions must be 6 finite numbers, got {q!r}")
+            return q
     if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == (6,):
         out: list[float] = q.tolist()
-    elif isinstance(q, list) and len(q) == 6 and all(type(v) is float for v in q):
-        out = q
     else:
         arr = np.asarray(q) if not isinstance(q, str | bytes) else np.asarray(None)
         if arr.dtype.kind not in "iuf" or arr.shape != (6,):
