@@ -260,7 +260,8 @@ class CellService:
         return self.hub.watches(holder.lease) or bool(self.operations.running(holder.lease))
 
     def _operation_changed(self, op: Operation) -> None:
-        self.hub.broadcast({"type": "operation", **op.describe()})
+        if self.hub.watchers:  # no description (nor its JSON) when nobody watches
+            self.hub.broadcast({"type": "operation", **op.describe()})
 
     def _control_changed(self, holder: Holder | None) -> None:
         self.hub.broadcast({"type": "control", "holder": self.control.describe()})

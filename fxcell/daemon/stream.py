@@ -185,6 +185,8 @@ class StreamHub:
 
     def broadcast(self, message: dict[str, Any]) -> None:
         """Send a daemon message (operation, control, ...) to the watchers of its type."""
+        if not self._watchers:
+            return
         text = json.dumps(message)
         topic = message["type"]
         for watcher in tuple(self._watchers):

@@ -839,7 +839,10 @@ class _Trajectory:
                     if u < len(samples):
                         i = int(u)
                         if braking is None and i >= next_progress:
-                            self._progress(i, len(samples), samples[i])
+                            # the controller time this setpoint answers: the sample's, plus
+                            # the cycles the timer paced since (None before any sample)
+                            answered = None if clock is None else clock + paced * CONTROL_PERIOD
+                            self._progress(i, len(samples), samples[i], answered)
                             next_progress = (i // self.PROGRESS_EVERY + 1) * self.PROGRESS_EVERY
                     # One setpoint per controller cycle, sent when the cycle's state sample
                     # arrives: locked to the controller's clock, the setpoints never meet
@@ -946,7 +949,12 @@ class _Trajectory:
             link._tick.wait_for(ready, 1.5 * CONTROL_PERIOD)
             return link._samples
 
-    def _progress(self, index: int, total: int, commanded: tuple[float, ...]) -> None:
+    def _progress(
+        self, index: int, total: int, commanded: tuple[float, ...], timestamp: float | None
+    ) -> None:
+        """Report that setpoint ``index`` went out for the state sample of controller time
+        ``timestamp``: the client counts the link's index at any later sample in controller
+        cycles from there, not by its own clock."""
         state = self.link.latest
         actual = state.actual_q if state is not None else None
         error = wire.max_abs_difference(commanded, actual) if actual else float("nan")
@@ -954,8 +962,9 @@ class _Trajectory:
             wire.TRAJ,
             self.id,
             "progress",
-            {"index": index, "total": total, "actual_q": actual, "tracking_error": error},
-        )
+            {"index": index, "total": total, "actual_q": actual, "tracking_error": error,
+             "timestamp": timestamp},
+        )  # fmt: skip
 
 
 def _settled(state: RobotState, target: tuple[float, ...]) -> bool:

@@ -9,16 +9,13 @@ process needs no numpy (it starts faster, which shortens a reconnect).
 
 from __future__ import annotations
 
-import array
 import dataclasses
 import pickle
 import struct
 from collections.abc import Sequence
-from typing import Any, TypeVar
+from typing import Any
 
 from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
-
-_E = TypeVar("_E", RobotMode, SafetyMode, RuntimeState)
 
 HEADER = struct.Struct(">I")
 MAX_FRAME = 64 * 1024 * 1024
@@ -65,13 +62,14 @@ def pack_samples(samples: Any) -> tuple[int, bytes]:
     return len(samples), samples.tobytes()
 
 
+_SAMPLE = struct.Struct("=6d")  # one sample as pack_samples writes it (native float64)
+
+
 def unpack_samples(packed: tuple[int, bytes]) -> Samples:
     n, data = packed
-    flat = array.array("d")
-    flat.frombytes(data)
-    if len(flat) != 6 * n:
-        raise ValueError(f"trajectory of {n} samples carries {len(flat)} numbers")
-    return [tuple(flat[6 * k : 6 * k + 6]) for k in range(n)]
+    if len(data) != _SAMPLE.size * n:
+        raise ValueError(f"trajectory of {n} samples carries {len(data) / 8:g} numbers")
+    return list(_SAMPLE.iter_unpack(data))
 
 
 def max_abs_difference(a: Sequence[float], b: Sequence[float]) -> float:
@@ -92,15 +90,25 @@ def state_to_tuple(s: RobotState) -> tuple[Any, ...]:
     return tuple(int(getattr(s, n)) if n in _ENUMS else getattr(s, n) for n in _FIELDS)
 
 
+# state_from_tuple builds a RobotState positionally: the tuple's fields, then received_at
+if tuple(f.name for f in dataclasses.fields(RobotState)) != (*_FIELDS, "received_at"):
+    raise ImportError("RobotState's last field must be received_at (see state_from_tuple)")
+# (position in the tuple, the enum's members by value, default) of each enum field
+_ENUM_SLOTS = tuple(
+    (_FIELDS.index(name), {int(m.value): m for m in cls}, _DEFAULTS[name])
+    for name, cls in _ENUMS.items()
+)
+
+
 def state_from_tuple(t: tuple[Any, ...], received_at: float) -> RobotState:
-    values = dict(zip(_FIELDS, t, strict=True))
-    for name, cls in _ENUMS.items():
-        values[name] = _enum(cls, values[name], _DEFAULTS[name])
-    return RobotState(**values, received_at=received_at)
-
-
-def _enum(cls: type[_E], value: int, default: _E) -> _E:
-    try:
-        return cls(value)
-    except ValueError:
-        return default
+    # positional, enums by table: this runs for every 500 Hz sample
+    if len(t) != len(_FIELDS):
+        raise ValueError(f"a state tuple has {len(_FIELDS)} fields, got {len(t)}")
+    values = list(t)
+    for i, members, default in _ENUM_SLOTS:
+        try:
+            values[i] = members.get(values[i], default)
+        except TypeError:  # unhashable: not a member
+            values[i] = default
+    values.append(received_at)
+    return RobotState(*values)

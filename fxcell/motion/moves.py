@@ -18,7 +18,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
@@ -456,6 +456,8 @@ INLINE_SPAN = 0.25
 straight line then costs ~0.5-1.2 ms: collision checks along it and Ruckig)."""
 TRACKING_EVERY = 25
 """State samples (50 ms) between two tracking reports of a running move."""
+STATE_PATIENCE = 0.25
+"""Seconds without a state sample after which a running move counts the link as lost."""
 
 
 def lead_setpoints(traj: Trajectory, lag: float) -> Array:
@@ -634,10 +636,10 @@ class MoveExecution:
                             self._settled_at = state.received_at
                             return state
                     elif (
-                        max(abs(a - b) for a, b in zip(state.actual_q, target, strict=True))
+                        moving < opts.settle_velocity
+                        and max(abs(a - b) for a, b in zip(state.actual_q, target, strict=True))
                         <= opts.settle_position
-                        and moving < opts.settle_velocity
-                        and self._arrived(handle)
+                        and self._arrived(handle, state)
                     ):
                         self._settled_at = state.received_at
                         self._settled = True
@@ -654,14 +656,15 @@ class MoveExecution:
                         return state
                 waiting_since = time.monotonic()
                 try:
-                    async with asyncio.timeout(0.25):
-                        state = await states.__anext__()
+                    state = await states.next_within(STATE_PATIENCE)
                 except TimeoutError:
                     if handle.done:
                         return state if state is not None else RobotState()
                     if time.monotonic() - waiting_since > 0.3:
                         continue  # this loop was held up, not the robot: read what came
-                    raise ConnectionLostError("no robot state for 0.25 s during a move") from None
+                    raise ConnectionLostError(
+                        f"no robot state for {STATE_PATIENCE:g} s during a move"
+                    ) from None
 
     def _track(self, handle: TrajectoryRun, state: RobotState) -> None:
         """Compare the robot with the planned sample for now (index from the link's
@@ -677,9 +680,18 @@ class MoveExecution:
                  "actual": list(state.actual_q), "error": error}
             )  # fmt: skip
 
-    def _arrived(self, handle: TrajectoryRun) -> bool:
-        """Whether the stream has passed the planned samples (into the hold)."""
-        return self._current_index(handle) >= len(self.plan.trajectory) - 1
+    def _arrived(self, handle: TrajectoryRun, state: RobotState) -> bool:
+        """Whether the stream has passed the planned samples (into the hold) at ``state``."""
+        return self._index_at(handle, state) >= len(self.plan.trajectory) - 1
+
+    def _index_at(self, handle: TrajectoryRun, state: RobotState) -> float:
+        """The link's sample index when it had ``state``: counted in controller cycles from
+        its last progress report when that names the controller time it answered (exact,
+        whatever the delays of the report and of this loop), else :meth:`_current_index`."""
+        p = handle.progress
+        if p is None or p.timestamp is None:
+            return self._current_index(handle)
+        return p.index + round((state.timestamp - p.timestamp) / DT)
 
     def _current_index(self, handle: TrajectoryRun) -> float:
         """The link's sample index now, from its last progress report and the clock."""
@@ -962,13 +974,13 @@ class MotionController:
             except MoveStoppedError as exc:
                 stopped = getattr(exc, "result", None)
                 if stopped is not None:
-                    self._event(move_id, "result", asdict(stopped))
+                    self._event(move_id, "result", _result_data(stopped))
                 raise
             finally:
                 self.execution = None
                 if runner is not None:
                     runner.execution = None
-            self._event(move_id, "result", asdict(result))
+            self._event(move_id, "result", _result_data(result))
         assert result is not None
         return result
 
@@ -994,6 +1006,12 @@ def _path_data(plan: MovePlan) -> dict[str, Any]:
         "velocity_factor": plan.velocity_factor,
         "acceleration_factor": plan.acceleration_factor,
     }
+
+
+def _result_data(result: MoveResult) -> dict[str, Any]:
+    """The result's fields (``dataclasses.asdict`` without its deep copy: they are
+    immutable numbers, strings and tuples of numbers)."""
+    return {f.name: getattr(result, f.name) for f in fields(result)}
 
 
 def _trajectory_data(plan: MovePlan) -> dict[str, Any]:

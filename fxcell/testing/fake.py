@@ -782,9 +782,13 @@ class FakeTrajectory:
     def _report_progress(self, index: int, total: int, commanded: tuple[float, ...]) -> None:
         if self._detached:
             return
-        actual = tuple(self.link.robot.arm.q.tolist())
+        robot = self.link.robot
+        actual = tuple(robot.arm.q.tolist())
         error = max(abs(a - b) for a, b in zip(commanded, actual, strict=True))
-        self.progress = TrajectoryProgress(index, total, actual, error, time.time())
+        # as the link process: the setpoint answers the newest state sample
+        self.progress = TrajectoryProgress(
+            index, total, actual, error, time.time(), robot.last_published
+        )
         self._progress_event.set()
 
 
