@@ -191,6 +191,66 @@ def test_a_stop_for_the_settled_robot_keeps_servo_mode_for_the_next_move(link: L
     assert link.control.count("servoStop") == 0
 
 
+class EndHeld(Link):
+    """A link whose sending of a trajectory's end report waits until it is let go: the
+    moment between the report and the hold, in which the cell may start the next move."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.end_sent = threading.Event()
+        self.let_go = threading.Event()
+
+    def send(self, *message: Any) -> None:
+        super().send(*message)
+        if message[0] == wire.TRAJ and message[2] == "end":
+            self.end_sent.set()
+            assert self.let_go.wait(5.0)
+
+
+@pytest.mark.parametrize("end", ["completed", wire.SETTLED])
+def test_a_next_move_right_after_the_end_report_takes_servo_mode_over_at_once(end: str) -> None:
+    link = EndHeld()
+    try:
+        if end == "completed":
+            traj = _run(link)
+        else:
+            traj = _Trajectory(link, 1, [TARGET] * 200, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
+            traj.thread.start()
+            assert link.control.wait_for("servoJ", 3)
+            traj.stop(wire.SETTLED)
+        assert link.end_sent.wait(5.0)
+        assert not traj.hold_started.is_set()  # reported, not yet holding
+        assert traj.release(keep_servo=True)  # what the next trajectory does
+        link.let_go.set()
+        released = time.monotonic()
+        traj.thread.join(5.0)
+        assert time.monotonic() - released < _Trajectory.HOLD / 2  # not after the hold
+        assert traj.servo_kept
+        assert link.control.count("servoStop") == 0
+    finally:
+        link.let_go.set()
+        link.close()
+
+
+def test_a_move_that_ends_away_from_its_target_is_not_taken_over_after_its_report() -> None:
+    link = EndHeld()
+    try:
+        path = [tuple(v) for v in np.linspace(np.subtract(TARGET, 0.1), TARGET, 400)]
+        traj = _Trajectory(link, 1, path, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
+        traj.thread.start()
+        assert link.control.wait_for("servoJ", 3)
+        traj.stop("cell_silent")
+        assert link.end_sent.wait(5.0)
+        assert not traj.release(keep_servo=True)  # it leaves servo mode: the next enters it
+        link.let_go.set()
+        traj.thread.join(5.0)
+        assert not traj.servo_kept
+        assert link.control.calls[-1] == "servoStop"
+    finally:
+        link.let_go.set()
+        link.close()
+
+
 @pytest.mark.parametrize(
     ("reason", "level"), [(wire.SETTLED, logging.DEBUG), ("state_stalled", logging.WARNING)]
 )

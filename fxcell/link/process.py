@@ -702,6 +702,7 @@ class _Trajectory:
         self._poked = False  # stop() wants the thread awake now
         self.ended = threading.Event()  # the end is reported; servo mode is being left
         self._holding = False
+        self._will_hold = False  # it ended at its target and is about to hold it
         self._released = threading.Event()
         self._keep_servo = False
         self.servo_kept = False  # the hold ended handing servo mode to the next trajectory
@@ -731,9 +732,12 @@ class _Trajectory:
     def release(self, *, keep_servo: bool) -> bool:
         """End the hold after a completed trajectory: for the next trajectory
         (``keep_servo``: no servoStop in between) or for a call; True if it was not
-        yet past its hold (the next trajectory can take servo mode over)."""
+        yet past its hold (the next trajectory can take servo mode over). That includes
+        the moment between its end report and the start of its hold: the cell may start
+        the next move at once, and the hold hands servo mode on as soon as it starts
+        instead of holding the target for all of HOLD while the next move waits."""
         with self._lock:
-            if self._released.is_set() or (keep_servo and not self._holding):
+            if self._released.is_set() or (keep_servo and not (self._holding or self._will_hold)):
                 return False
             self._keep_servo = keep_servo
             self._released.set()
@@ -874,6 +878,9 @@ class _Trajectory:
             except Exception as exc:
                 status, reason = "failed", f"link_error: {exc}"
         state = link.latest
+        at_target = status == "completed" or (status == "stopped" and reason == wire.SETTLED)
+        with self._lock:  # before the end report: the next trajectory may follow at once
+            self._will_hold = c is not None and at_target
         # The end is reported before servo mode is left (a controller round trip): the
         # setpoints have stopped, and the next call that needs the control interface
         # waits for this thread first (Link._after_trajectory).
@@ -891,7 +898,6 @@ class _Trajectory:
             },
         )
         self.ended.set()
-        at_target = status == "completed" or (status == "stopped" and reason == wire.SETTLED)
         if c is not None and at_target and self._hold(c, samples[-1]):
             self.servo_kept = True
         elif c is not None:
@@ -931,7 +937,7 @@ class _Trajectory:
             return False
         finally:
             with self._lock:
-                self._holding = False
+                self._holding = self._will_hold = False
                 self._released.set()  # too late to take over now
         return False
 
