@@ -25,7 +25,10 @@ to the controller's clock rather than to a timer of its own (two free-running 2 
 beat, so that some controller cycles got two setpoints and some none); a sample a few
 cycles after the previous one (cycles the controller skipped, or samples lost) advances the
 path by those cycles, up to ``_Trajectory.CATCH_UP``, so the path keeps the controller's
-time. It never uses
+time. The advance is also bounded by the link's own clock: samples that queued up while
+the process was starved arrive in a burst, and a setpoint for each would move the target
+by the whole backlog within one controller cycle (the controller reads only the newest
+setpoint per cycle, and refuses such a jump with a protective stop). It never uses
 ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which starved
 the state pump for up to 20 ms per period.
 """
@@ -677,7 +680,8 @@ class _Trajectory:
     previous one (the controller skipped cycles, or their samples were lost) advances the
     path by ``min(k, CATCH_UP)`` samples, so the path keeps the controller's time instead
     of stretching by the missed cycles. Longer gaps stretch it: catching up a longer lag in
-    one setpoint would be a jump the servo loop turns into an acceleration spike."""
+    one setpoint would be a jump the servo loop turns into an acceleration spike. It is also
+    the most the path may run ahead of the link's own clock (a burst of queued samples)."""
     HOLD = 0.1  # s a completed trajectory keeps servo mode for a next one
     SETTLE_MAX = 0.3  # s, beyond twice the lookahead time, to settle on the last sample
 
@@ -769,6 +773,8 @@ class _Trajectory:
         clock = link.latest.timestamp if link.latest is not None else None
         next_progress = 0
         paced = 0  # setpoints the 3 ms timer sent since the last sample
+        # samples of path the wall clock allows now (one per CONTROL_PERIOD, at most CATCH_UP)
+        budget, budget_at = float(self.CATCH_UP), started
         status, reason = "completed", ""
         if c is None:
             status, reason = "failed", "no_external_control"
@@ -873,6 +879,14 @@ class _Trajectory:
                     else:  # no earlier time to count from (or the clock went back)
                         steps = 1
                         clock, paced = latest.timestamp, 0
+                    # never faster than the wall clock (a burst of queued samples): the
+                    # path may run at most CATCH_UP samples ahead of it, then waits
+                    t = time.monotonic()
+                    budget = min(budget + (t - budget_at) / CONTROL_PERIOD, self.CATCH_UP)
+                    budget_at = t
+                    if steps > budget:
+                        steps = max(int(budget), 0)
+                    budget -= steps
                     if u < len(samples):
                         u = min(u + rate * steps, float(len(samples)))
             except Exception as exc:
