@@ -76,12 +76,86 @@ class CallError(Exception):
         super().__init__(message)
 
 
+class _Outbox:
+    """The link's messages to the client, written by a thread of their own.
+
+    A client that does not read (its event loop stalled, its process frozen) fills the
+    socket's buffer, and a blocking write would then hold the thread that sent it: the
+    trajectory thread would stop braking, and go on along its path once the client reads
+    again. Sending therefore only queues. While more than ``MAX_BACKLOG`` bytes wait, state
+    samples are dropped (the client sees a gap in controller time), never other messages.
+    """
+
+    MAX_BACKLOG = 1 << 20  # bytes: ~5 s of state samples
+
+    def __init__(self, sock: socket.socket, failed: threading.Event) -> None:
+        self.sock = sock
+        self.failed = failed  # set when the socket is gone
+        self._cond = threading.Condition()
+        self._queue: list[bytes] = []
+        self._bytes = 0
+        self._busy = False  # the writer holds a batch
+        self._closed = False
+        self.dropped = 0  # state samples dropped since the last report
+        self._thread = threading.Thread(target=self._write, name="outbox", daemon=True)
+        self._thread.start()
+
+    def put(self, kind: str, data: bytes) -> None:
+        """Queue one encoded message (never blocks on the socket)."""
+        with self._cond:
+            if self._closed:
+                return
+            if kind == wire.STATE and self._bytes > self.MAX_BACKLOG:
+                self.dropped += 1
+                return
+            self._queue.append(data)
+            self._bytes += len(data)
+            if len(self._queue) == 1:
+                self._cond.notify_all()
+
+    def _write(self) -> None:
+        while True:
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()  # for flush()
+                while not self._queue and not self._closed:
+                    self._cond.wait()
+                if not self._queue:
+                    return
+                batch, self._queue, self._bytes = self._queue, [], 0
+                dropped, self.dropped = self.dropped, 0
+                self._busy = True
+            if dropped:
+                text = f"{dropped} state samples dropped: the client did not read"
+                batch.append(wire.encode((wire.LOG, logging.WARNING, text)))
+            try:
+                self.sock.sendall(b"".join(batch))
+            except OSError:
+                self.failed.set()
+                with self._cond:
+                    self._closed, self._queue, self._busy = True, [], False
+                    self._cond.notify_all()
+                return
+
+    def flush(self, timeout: float) -> bool:
+        """Wait until everything queued is written (at most ``timeout`` s)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: not self._queue and not self._busy, timeout)
+
+    def close(self, timeout: float) -> None:
+        """Write what is queued (at most ``timeout`` s), then end the writer."""
+        self.flush(timeout)
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self._thread.join(timeout)
+
+
 class Link:
     def __init__(self, sock: socket.socket, args: argparse.Namespace) -> None:
         self.sock = sock
         self.args = args
         self.host: str = args.host
-        self._send_lock = threading.Lock()
         self._calls: queue.Queue[tuple[int, str, dict[str, Any]] | None] = queue.Queue()
         self._stop = threading.Event()
         self.dashboard: Any = None
@@ -99,16 +173,13 @@ class Link:
         self.last_heard = time.monotonic()  # ... and of the newest message from the client
         # the client's beat channel (one byte per beat, from a thread of the client process)
         self.beats = socket.socket(fileno=args.beat_fd) if args.beat_fd is not None else None
+        self.outbox = _Outbox(sock, self._stop)
 
     # -- sending
 
     def send(self, *message: Any) -> None:
-        data = wire.encode(message)
-        with self._send_lock:
-            try:
-                self.sock.sendall(data)
-            except OSError:
-                self._stop.set()
+        """Send a message to the client (queued: never blocks, see :class:`_Outbox`)."""
+        self.outbox.put(message[0], wire.encode(message))
 
     # -- life cycle
 
@@ -1012,6 +1083,7 @@ def main(argv: list[str] | None = None) -> int:
     sock = socket.socket(fileno=args.fd)
     link = Link(sock, args)
     code = link.run()
+    link.outbox.close(1.0)  # the last messages (a FATAL, a trajectory's end) still go out
     with contextlib.suppress(OSError):
         sock.shutdown(socket.SHUT_RDWR)
     # ur_rtde's destructors can block or crash on a broken link: leave without them.

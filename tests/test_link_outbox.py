@@ -1,0 +1,103 @@
+"""The link process's messages to the client never block the thread that sends them.
+
+A client whose event loop stalls stops reading its socket; once the socket's buffer is
+full, a blocking write held the sending thread, and the trajectory thread among them
+stopped braking, then went on along its path when the client read again.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from fxcell.link import wire
+from fxcell.link.process import _Outbox
+
+pytestmark = pytest.mark.timeout(30)
+
+STATE = (wire.STATE, tuple(range(40)))
+
+
+@pytest.fixture
+def pair() -> Iterator[tuple[socket.socket, socket.socket]]:
+    mine, theirs = socket.socketpair()
+    with mine, theirs:
+        yield mine, theirs
+
+
+def _read_all(sock: socket.socket, until: float = 0.5) -> list[tuple[object, ...]]:
+    """Decode every message the client side receives until it is quiet for ``until`` s."""
+    sock.settimeout(until)
+    buf = bytearray()
+    try:
+        while chunk := sock.recv(1 << 16):
+            buf += chunk
+    except TimeoutError:
+        pass
+    messages = []
+    while buf:
+        (size,) = wire.HEADER.unpack_from(buf)
+        end = wire.HEADER.size + size
+        messages.append(tuple(wire.decode(bytes(buf[wire.HEADER.size : end]))))
+        del buf[:end]
+    return messages
+
+
+def test_a_client_that_does_not_read_never_blocks_the_sender(
+    pair: tuple[socket.socket, socket.socket],
+) -> None:
+    mine, theirs = pair
+    outbox = _Outbox(mine, threading.Event())
+    data = wire.encode(STATE)
+    started = time.monotonic()
+    for _ in range(3 * _Outbox.MAX_BACKLOG // len(data)):  # far beyond any socket buffer
+        outbox.put(wire.STATE, data)
+    outbox.put(wire.TRAJ, wire.encode((wire.TRAJ, 7, "end", {"status": "stopped"})))
+    assert time.monotonic() - started < 5.0  # a blocked put would hang until the timeout
+    assert outbox.dropped > 0
+    got = _read_all(theirs)
+    assert got[-2][:3] == (wire.TRAJ, 7, "end")  # every message but states arrives
+    assert got[-1][:2] == (wire.LOG, logging.WARNING)
+    assert outbox.dropped == 0  # reported, and counted from zero again
+    assert "state samples dropped" in str(got[-1][2])
+    states = [m for m in got if m[0] == wire.STATE]
+    assert 0 < len(states) < 3 * _Outbox.MAX_BACKLOG // len(data)
+    assert all(m == STATE for m in states)
+    outbox.close(1.0)
+
+
+def test_messages_arrive_whole_and_in_order(pair: tuple[socket.socket, socket.socket]) -> None:
+    mine, theirs = pair
+    outbox = _Outbox(mine, threading.Event())
+    for k in range(500):
+        outbox.put(wire.PULSE, wire.encode((wire.PULSE, k, 0.0)))
+    outbox.close(1.0)
+    assert [m[1] for m in _read_all(theirs)] == list(range(500))
+
+
+def test_what_is_queued_at_close_still_goes_out(pair: tuple[socket.socket, socket.socket]) -> None:
+    mine, theirs = pair
+    outbox = _Outbox(mine, threading.Event())
+    outbox.put(wire.FATAL, wire.encode((wire.FATAL, "cannot connect", {})))
+    outbox.close(1.0)
+    assert _read_all(theirs) == [(wire.FATAL, "cannot connect", {})]
+
+
+def test_a_closed_client_socket_sets_the_failure_event(
+    pair: tuple[socket.socket, socket.socket],
+) -> None:
+    mine, theirs = pair
+    failed = threading.Event()
+    outbox = _Outbox(mine, failed)
+    theirs.close()
+    for _ in range(100):
+        outbox.put(wire.STATE, wire.encode(STATE))
+        if failed.wait(0.01):
+            break
+    assert failed.is_set()
+    outbox.close(1.0)
