@@ -248,6 +248,21 @@ def test_wrist_singular_pose_is_solved_whatever_the_seed_wrist() -> None:
         assert FLANGE.forward(sol).isclose(pose, position_tol=1e-12, angle_tol=1e-12)
 
 
+def test_a_wrist_at_two_pi_with_the_arm_stretched_gets_the_solution_nearest_the_seed() -> None:
+    # θ5 = ±2π is wrist-singular too, but its forward kinematics leaves |sin θ5| at ~1e-14
+    # of rounding (θ1 at full stretch carries ~3e-14): taken for a regular wrist, θ6 then
+    # came from that noise, a valid solution up to 3.6 rad farther from the seed than q
+    rng = np.random.default_rng(3)
+    for _ in range(3000):
+        q = rng.uniform(-2 * math.pi, 2 * math.pi, 6)
+        q[2], q[4] = 0.0, rng.choice((-1.0, 1.0)) * 2 * math.pi
+        seed = q + rng.normal(0.0, 0.05, 6)
+        pose = FLANGE.forward(q)
+        sol = FLANGE.inverse(pose, seed)
+        assert FLANGE.forward(sol).isclose(pose, position_tol=1e-10, angle_tol=1e-10)
+        assert np.linalg.norm(sol - seed) <= np.linalg.norm(q - seed) + 1e-9, (q, seed)
+
+
 def _continuum_scan(kin: Kinematics, pose: Pose, q1: float, q5: float, seed: np.ndarray) -> dict:
     """Brute force over a wrist-singular continuum (θ1 = q1, θ5 = q5 ∈ {0, ±π}): θ6 on a
     grid of 2000, θ2..θ4 from the planar 2R problem of frame 4 (public FK and DH only), each

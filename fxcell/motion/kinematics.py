@@ -62,8 +62,11 @@ _F_TOL = 1e-13
 """Newton steps stop when the next would lower the distance² by less than this."""
 _Ev = tuple[float, float, float, float, float, float, float, float, float, float, float]
 """f, f', f'', Gauss-Newton f'', θ2, θ3, θ4 (shifted), their derivatives, θ6 (shifted)."""
-_WRIST_EPS = 1e-14
-"""|sin θ5| below which the wrist counts as exactly singular (θ6 free: see _singular_arms)."""
+_WRIST_EPS = 1e-12
+"""|sin θ5| below which the wrist counts as exactly singular (θ6 free: see _singular_arms).
+Rounding alone leaves ~1e-14 (θ5 = ±2π with the arm stretched: θ1 carries ~3e-14), and a θ6
+taken from that noise is valid but arbitrary; treating the wrist as singular up to 1e-12
+costs at most ~1e-12 m or rad of pose error."""
 _CLIP_EPS = 1e-12
 """Rounding slack on the cosines at the reach boundaries (≈ 1e-13 m of position)."""
 _NEAR_WRIST = 1e-6
