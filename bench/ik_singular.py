@@ -26,7 +26,7 @@ import numpy as np
 
 from fxcell.config import SEED_TCP, JointLimits
 from fxcell.geometry import Pose
-from fxcell.motion.kinematics import _CLIP_EPS, TWO_PI, Kinematics, _compose
+from fxcell.motion.kinematics import _CLIP_EPS, _WRIST_EPS, TWO_PI, Kinematics, _compose
 
 Branches = dict[tuple[float, float, int], float]
 
@@ -159,7 +159,7 @@ def scan(kin: Kinematics, pose: Pose, seed: list[float], n: int = 4000) -> Branc
     for hs in (h, -h) if h > 0 else (h,):
         t1 = phi + math.atan2(d4, hs)
         s1, c1 = math.sin(t1), math.cos(t1)
-        if math.hypot(r00 * s1 - r10 * c1, r01 * s1 - r11 * c1) > 1e-14:
+        if math.hypot(r00 * s1 - r10 * c1, r01 * s1 - r11 * c1) > _WRIST_EPS:
             continue  # not singular in this shoulder branch
         c5 = 1.0 if r02 * s1 - r12 * c1 >= 0 else -1.0
         z4x, z4y, z4z = -(s6 * r00 + c6 * r01), -(s6 * r10 + c6 * r11), -(s6 * r20 + c6 * r21)
