@@ -879,6 +879,13 @@ class Kinematics:
                     for fc, fl, fr, u in zip(vals, left, right, us, strict=True)
                     if fc <= fl and fc <= fr and fc < inf
                 ]
+                if not periodic:
+                    # an end is a critical point of f in u: a minimum in the end's first
+                    # cell, past a rise, is reached from the cell's middle, not from the end
+                    last = len(us) - 1
+                    for i, j in ((0, 1), (last, last - 1)):
+                        if vals[i] < inf and vals[i] <= vals[j]:
+                            starts.append((vals[i], 0.5 * (us[i] + us[j]), lo, span))
             starts.sort()
             spots.sort()
             lowest = min(starts[0][0] if starts else math.inf, spots[0][0] if spots else math.inf)
