@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
+import signal
 import time
 from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 
@@ -136,6 +138,31 @@ async def test_an_event_loop_stalled_for_long_brakes_the_move_by_itself(
         assert abs(shared.state()["q"][0] - FAR[0]) > 0.5
         with pytest.raises(MoveStoppedError, match="stopped"):
             await move
+
+
+async def test_a_link_process_frozen_mid_move_resumes_without_a_setpoint_jump(
+    shared: SimulatorHandle,
+) -> None:
+    # Frozen for 60 ms at ~1 rad/s (SIGSTOP: a swap storm, a debugger), the link process
+    # finds 30 state samples queued. Catching up all of that time at once would move the
+    # target ~66 mrad within one controller cycle, which the controller refuses with a
+    # protective stop (without CATCH_UP and the clock bound: 1 of 2 runs); the path waits
+    # the backlog out instead. A burst answered sample by sample: test_link_hold.
+    async with ready_cell(shared) as cell:
+        await cell.set_velocity_factor(1.0)
+        move = asyncio.create_task(cell.move_joint(FAR))
+        await _moving(cell, speed=0.9)
+        pid = cell._link().pid
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            time.sleep(0.06)  # noqa: ASYNC251 (the cell waits as long: nothing to hear)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        result = await move
+        assert result.joint_error < 1e-3
+        assert str(shared.state()["safety_mode"]) == "NORMAL"
+        assert await asyncio.to_thread(_sim_motion, shared, 0.05) < 1e-4
 
 
 async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandle) -> None:
