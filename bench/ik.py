@@ -24,6 +24,9 @@ the pose is built beforehand in each solver's own input type (fxcell ``Pose``, 4
 A second figure, the mean per call over the least disturbed of 20 passes of 1000 poses, is
 less sensitive to other processes on a busy machine than the per-call median.
 
+fxcell's figures are those of the module in use, which the first line of output names:
+compiled with mypyc (``./dev`` builds it, see ``hatch_build.py``) or interpreted.
+
 Targets: 100 % solved and p99 ≤ 100 µs in every family (ur_analytic_ik's figures beside);
 on the uniform family, fxcell median ≤ 1.5 × ur_analytic_ik's (issue 5).
 
@@ -45,6 +48,7 @@ import math
 import statistics
 import time
 from collections.abc import Callable
+from importlib.machinery import EXTENSION_SUFFIXES
 
 import numpy as np
 import pinocchio as pin
@@ -55,6 +59,7 @@ from fxcell.calibration import Calibration
 from fxcell.config import SEED_TCP, JointLimits
 from fxcell.errors import UnreachableError
 from fxcell.geometry import Pose
+from fxcell.motion import kinematics
 from fxcell.motion.calibration import CalibratedKinematics
 from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.robot_model import RobotModel
@@ -382,6 +387,11 @@ def main() -> int:
     )
     args = parser.parse_args()
     names = ("flange", "seed") if args.tcp == "both" else (args.tcp,)
+    compiled = str(kinematics.__file__).endswith(tuple(EXTENSION_SUFFIXES))
+    print(
+        "fxcell.motion.kinematics: "
+        + ("compiled with mypyc" if compiled else "interpreted (./dev compiles it: hatch_build.py)")
+    )
     targets = Targets("ik")
     for name in names:
         for family in args.family:

@@ -136,6 +136,9 @@ def test_a_full_install_runs_info_and_a_daemon_from_any_directory(
     assert out.returncode == 0, out.stderr[-3000:]
     where = _run(venv, "python", "-c", "import fxcell; print(fxcell.__file__)", cwd=venv)
     assert where.stdout.startswith(site), where.stdout  # the wheel's copy, not this checkout
+    # hatch_build.py put the mypyc-compiled inverse kinematics in the wheel
+    kin = _run(venv, "python", "-c", "import fxcell.motion.kinematics as k; print(k.__file__)")
+    assert kin.stdout.strip().endswith(sysconfig.get_config_var("EXT_SUFFIX")), kin
     elsewhere = tmp_path_factory.mktemp("elsewhere")
     out = _run(venv, "fxcell", "info", cwd=elsewhere)
     assert out.returncode == 0, out.stderr

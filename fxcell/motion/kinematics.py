@@ -17,6 +17,8 @@ polished by Newton steps (to ≤ 1e-10 m/rad; generic poses are exact to ~1e-15)
 
 No Pinocchio here: the simulator imports this module and must start fast
 (:mod:`fxcell.motion.robot_model` holds the Pinocchio model and is checked against this one).
+``./dev`` and wheel builds compile this module with mypyc (``hatch_build.py``): same source,
+same results, ~2.4x faster at the wrist singularity.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike, NDArray
 
 from fxcell.errors import (
@@ -140,6 +143,7 @@ def _as_tcp(tcp: Sequence[float] | Pose | None) -> Pose:
     return Pose.from_ur(tcp)
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # CalibratedKinematics; see hatch_build.py
 class Kinematics:
     """Forward and inverse kinematics of a UR arm with a TCP.
 
