@@ -312,6 +312,8 @@ singular_configurations = st.tuples(configurations, st.sampled_from([0.0, math.p
 @given(q=singular_configurations, seed=configurations)
 # a minimum 0.18 rad of θ3 from the stretch, past a rise of f from it (found by Hypothesis)
 @example(q=np.array([0.0, 0.0, 1.0, -2.5, 0.0, 0.0]), seed=np.zeros(6))
+# the other shoulder's nearest branch at full stretch, θ3 = 0 or ±3e-8 by rounding (Hypothesis)
+@example(q=np.array([-0.375, 0.0, 0.0, 0.0, math.pi, 0.0]), seed=np.array([0, 1.0, 0, 3.0, 0, 0]))
 @settings(max_examples=40, deadline=None)
 def test_wrist_singular_solutions_are_no_farther_than_a_dense_scan(
     kin: Kinematics, q: np.ndarray, seed: np.ndarray
@@ -336,8 +338,13 @@ def test_wrist_singular_solutions_are_no_farther_than_a_dense_scan(
             # (1e-7: the scan's arccos at full stretch turns rounding into ~1e-8 rad)
             assert min(float(np.linalg.norm(s - seed)) for s in mine) <= dist + 1e-7
     best = kin.inverse(pose, seed=seed)
-    nearest = min(float(np.linalg.norm(s - seed)) for s in sols)
-    assert float(np.linalg.norm(best - seed)) <= nearest + 1e-9
+    nearest = min(sols, key=lambda s: float(np.linalg.norm(s - seed)))
+    # at full stretch or fold the pose fixes θ2, θ3 and θ4 to ~1e-8 rad only (second order:
+    # every θ3 within ~3e-8 of 0 reaches it to 1e-16), so which of these rounding gives
+    # inverse() and inverse_all() may differ by as much
+    stretched = min(abs(math.sin(best[2])), abs(math.sin(nearest[2]))) < 1e-6
+    slack = 1e-7 if stretched else 1e-9
+    assert np.linalg.norm(best - seed) <= np.linalg.norm(nearest - seed) + slack
 
 
 def test_singularity_margin_skips_singular_solutions_or_raises() -> None:
