@@ -10,7 +10,9 @@
    moves. Warm-up: the first 100 moves. The daemon records (MCAP), as it does by default
    (it did not here before 2026-11-23: the harness started it with --no-record). An idle
    recording daemon's RSS went from 138.4 to 139.3 MiB between its first and sixth minute
-   (measured 2026-11-23).
+   (measured 2026-11-23); glibc's malloc fragmenting its heap with the recorder's chunk
+   buffers, fixed since 2026-11-25 (``fxcell.daemon.server.fix_mmap_threshold``: +1.8 MiB
+   idle over 4.5 minutes before, +0.3 MiB after).
 
 No peer (absolute targets). Targets: every daemon move succeeds; library and daemon
 median overhead <= 10 ms; daemon RSS after the 1000 moves within ±2 MiB of its value

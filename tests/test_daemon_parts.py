@@ -4,6 +4,7 @@ decimation, and the HTTP layer's refusals (which happen before any robot is invo
 from __future__ import annotations
 
 import os
+import platform
 import socket
 import stat
 import time
@@ -20,7 +21,7 @@ from fxcell.daemon.auth import TOKEN_ENV, check_bearer, load_or_create_token, re
 from fxcell.daemon.control import ControlLock
 from fxcell.daemon.encoding import http_status
 from fxcell.daemon.notify import Notifier
-from fxcell.daemon.server import check_bind, is_loopback
+from fxcell.daemon.server import check_bind, fix_mmap_threshold, is_loopback
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import Watcher, parse_rate, parse_topics
 from fxcell.errors import ConfigError, ControlHeldError
@@ -510,3 +511,11 @@ async def test_an_unknown_operation_is_404(http: httpx.AsyncClient) -> None:
 def test_job_errors_answer_with_their_own_http_status(error: Exception, status: int) -> None:
     # a wrong answer or a refused job command is the client's doing: never a 500
     assert http_status(error) == status
+
+
+@pytest.mark.skipif(
+    platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc only"
+)
+def test_the_daemon_can_fix_glibcs_mmap_threshold() -> None:
+    # serve() calls it first; a threshold set explicitly is one glibc never raises
+    assert fix_mmap_threshold()

@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import faulthandler
 import ipaddress
 import logging
 import os
+import platform
 import signal
 import socket
 import threading
@@ -279,6 +281,30 @@ def open_cell(config: CellConfig, record: Path | None, simulator_options: Mappin
     )
 
 
+MMAP_THRESHOLD = 128 * 1024
+"""Bytes from which glibc's malloc maps each block of its own (glibc's initial value)."""
+
+
+def fix_mmap_threshold() -> bool:
+    """Keep glibc's malloc from letting the daemon's resident memory creep (True if set).
+
+    glibc raises its mmap threshold each time a mapped block is freed, up to 32 MiB; after
+    that the recorder's chunk-sized buffers (an MCAP chunk and its compressed copy, every
+    second or so) come from the heap, which they fragment. An idle recording daemon grew
+    1.8 MiB in 4.5 minutes that way, and 0.26 MiB with the threshold fixed (measured
+    2026-11-25). A threshold set explicitly is never raised.
+    """
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    mallopt.restype = ctypes.c_int
+    return bool(mallopt(-3, MMAP_THRESHOLD))  # -3: M_MMAP_THRESHOLD (malloc.h)
+
+
 def serve(
     config: CellConfig,
     *,
@@ -286,6 +312,7 @@ def serve(
     simulator_options: Mapping[str, Any] | None = None,
 ) -> int:
     """Run the daemon until SIGTERM/SIGINT; the exit code (0 after a clean stop)."""
+    fix_mmap_threshold()
 
     async def main() -> int:
         daemon = Daemon(config, record=record, simulator_options=simulator_options)
