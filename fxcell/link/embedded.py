@@ -234,6 +234,7 @@ class EmbeddedSimulator:
         startup_timeout: float = 30.0,
         python: str | None = None,
         extra_args: Sequence[str] = (),
+        programs: str | Path | None = None,
     ) -> None:
         if not time_scale > 0:
             raise InvalidArgumentError(f"time_scale must be > 0, got {time_scale!r}")
@@ -245,6 +246,7 @@ class EmbeddedSimulator:
         self.startup_timeout = startup_timeout
         self.python = python or sys.executable
         self.extra_args = list(extra_args)
+        self.programs = programs  # the controller's program directory (default: shipped)
         self.process: subprocess.Popen[bytes] | None = None
         self._lines: queue.Queue[bytes] = queue.Queue()
         self._drainer: threading.Thread | None = None
@@ -264,6 +266,8 @@ class EmbeddedSimulator:
             cmd += ["--config", str(self.config)]
         if self.joints is not None:
             cmd += ["--joints", ",".join(repr(v) for v in self.joints)]
+        if self.programs is not None:
+            cmd += ["--programs", str(self.programs)]
         return cmd + self.extra_args
 
     def start(self) -> str:

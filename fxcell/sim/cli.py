@@ -69,6 +69,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="port the ExternalControl URCap requests its program from",
     )
     p.add_argument(
+        "--programs",
+        metavar="DIR",
+        help="the controller's program directory (/programs: .urp programs with the .script "
+        "PolyScope saves next to them, .installation files); default: the shipped store "
+        "(external_control.urp, fxcell.urp, default.urp, default.installation)",
+    )
+    p.add_argument(
         "--realtime",
         action="store_true",
         help="run the control cycle with SCHED_FIFO priority (if permitted; else reniced)",
@@ -246,6 +253,9 @@ def run(args: argparse.Namespace) -> int:
     from fxcell.calibration import Calibration
     from fxcell.errors import CalibrationError
 
+    if args.programs is not None and not os.path.isdir(args.programs):
+        print(f"fxcell sim: --programs {args.programs}: not a directory", file=sys.stderr)
+        return 2
     config = CellConfig.load(args.config)
     try:
         calibration = Calibration.load(args.calibration) if args.calibration else None
@@ -265,6 +275,7 @@ def run(args: argparse.Namespace) -> int:
         fusion_time=args.fusion_time,
         cooling_time=args.cooling_time,
         crucibles=args.crucibles,
+        programs=args.programs,
     )
 
 

@@ -11,6 +11,7 @@ and so does the 5 s protective-stop unlock rule.
 
 from __future__ import annotations
 
+import datetime
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ from fxcell.protocol import (
     SafetyMode,
     SafetyStatusBits,
 )
+from fxcell.sim.program_store import URCAP_PROGRAM, ProgramStore
 from fxcell.sim.signals import Signal
 
 if TYPE_CHECKING:
@@ -45,12 +47,15 @@ DELAYS = {
 }
 UNLOCK_DELAY = 5.0  # protective stop: unlock refused until this long after the stop
 
-POLYSCOPE_VERSION = (5, 11, 1, 108318)
+# The PolyScope the simulator presents, the same everywhere: Dashboard ``PolyscopeVersion``
+# and ``version``, the primary/secondary version message, RTDE's controller version. The
+# RTDE outputs are those of this version's RTDE guide (``actual_current_as_torque`` and the
+# other fields of the 5.2x releases included). Its build number and date are the
+# simulator's own.
+POLYSCOPE_VERSION = (5, 25, 1, 1)
+POLYSCOPE_BUILD_DATE = datetime.datetime(2025, 9, 3)
 SERIAL_NUMBER = "20235500001"
 ROBOT_MODEL = "UR3"
-PROGRAM_DIR = "/programs"
-URCAP_PROGRAM = "external_control.urp"
-KNOWN_PROGRAMS = frozenset({URCAP_PROGRAM, "fxcell.urp", "default.urp"})
 
 REGISTER_COUNT = 48
 
@@ -171,8 +176,11 @@ def program_name(path: str | None) -> str:
 class Controller:
     """The state of the simulated robot and its controller."""
 
-    def __init__(self, arm: Arm, *, time_scale: float = 1.0) -> None:
+    def __init__(
+        self, arm: Arm, *, time_scale: float = 1.0, programs: ProgramStore | None = None
+    ) -> None:
         self.arm = arm
+        self.programs = programs or ProgramStore()
         self.time_scale = time_scale
         self.time = 0.0  # controller time, s (ticks x 2 ms)
         self.ticks = 0
@@ -189,7 +197,10 @@ class Controller:
         self.payload_mass = 0.0
         self.payload_cog = (0.0, 0.0, 0.0)
         self.tcp: tuple[float, ...] = (0.0,) * 6  # set by the program (set_tcp)
+        self.gravity: tuple[float, ...] = (0.0, 0.0, 9.82)  # set_gravity: opposing gravity
         self.teach_mode = False  # freedrive: the arm follows a hand (`push` on the control port)
+        self.free_axes: tuple[int, ...] = (1,) * 6  # freedrive_mode's freeAxes (x y z rx ry rz)
+        self.freedrive_feature: tuple[float, ...] = (0.0,) * 6  # the frame those axes are in
         self.script: ControlScript | None = None  # ur_rtde's control script, emulated
         self.program: Program | None = None  # any other URScript program, interpreted
         self.kinematics_info_hidden = False  # fault: no calibration on the primary interface
@@ -197,6 +208,7 @@ class Controller:
         self.last_stop_reason = ""
         self.log_messages: list[str] = []
         self.watchdog: tuple[str, float] | None = None  # (input variable, min frequency)
+        self.watchdog_action = "stop"  # what a starved watchdog does: "stop" or "pause"
         self.watchdog_armed_at = 0.0
         self.input_updated: dict[str, float] = {}  # input variable -> last update time
         self.input_generation = 0  # bumped by every RTDE input packet
@@ -371,17 +383,24 @@ class Controller:
 
     # ------------------------------------------------------------------ programs
 
-    def load_program(self, path: str) -> tuple[bool, str]:
-        """Load a ``.urp``; returns (ok, full path)."""
-        full = path if path.startswith("/") else f"{PROGRAM_DIR}/{path}"
-        name = program_name(full)
-        if not name.endswith(".urp") or self.runtime_state != RuntimeState.STOPPED:
-            return False, full
-        if name not in KNOWN_PROGRAMS:
-            return False, full
+    def load_program(self, path: str) -> tuple[str, str]:
+        """Load a ``.urp`` from the program store: ("loaded" | "missing" | "refused", the
+        controller's path). Refused: not a program, or one is running."""
+        full, file = self.programs.find(path)
+        if not full.endswith(".urp") or self.runtime_state != RuntimeState.STOPPED:
+            return "refused", full
+        if file is None:
+            return "missing", full
         self.loaded_program = full
         self.program_saved = True
-        return True, full
+        return "loaded", full
+
+    def load_installation(self, path: str) -> str:
+        """Load an ``.installation`` from the store: "loaded" | "missing" | "refused"."""
+        full, file = self.programs.find(path)
+        if not full.endswith(".installation") or self.runtime_state != RuntimeState.STOPPED:
+            return "refused"
+        return "loaded" if file is not None else "missing"
 
     def play(self) -> bool:
         if self.runtime_state in (RuntimeState.PAUSED, RuntimeState.PAUSING):
@@ -394,9 +413,23 @@ class Controller:
             return False
         if self.runtime_state != RuntimeState.STOPPED:
             return False
+        program = None
+        if program_name(self.loaded_program) != URCAP_PROGRAM:
+            text = self.programs.script(self.loaded_program)
+            if text is not None:  # the URScript PolyScope saved with the program
+                from fxcell.sim.urscript import Program, URScriptError
+
+                try:
+                    program = Program(self, text)
+                except URScriptError as exc:
+                    self.runtime_error(exc.message, exc.line, exc.column)
+                    return False
         self.program_kind = "urp"
         self.runtime_state = RuntimeState.PLAYING  # PolyScope reports PLAYING at once
-        if program_name(self.loaded_program) == URCAP_PROGRAM:
+        if program is not None:
+            self.program = program
+            log.info("program %s started", self.loaded_program)
+        elif program_name(self.loaded_program) == URCAP_PROGRAM:
             self.after(self.delay("program_start"), self.request_urcap_program, name="program")
         return True
 
@@ -524,6 +557,20 @@ class Controller:
         self.log_messages.append(f"textmsg: {text}")
         self.on_robot_message(text_message(text, self.time))
 
+    def enter_freedrive(
+        self, axes: tuple[int, ...] = (1,) * 6, feature: list[float] | None = None
+    ) -> None:
+        """``teach_mode()`` / ``freedrive_mode(freeAxes, feature)``: the arm gives way to a
+        hand along the free axes of ``feature`` (a pose in the base frame)."""
+        self.teach_mode = True
+        self.free_axes = axes
+        self.freedrive_feature = tuple(feature) if feature is not None else (0.0,) * 6
+
+    def end_freedrive(self) -> None:
+        self.teach_mode = False
+        self.free_axes = (1,) * 6
+        self.freedrive_feature = (0.0,) * 6
+
     def set_digital_output(self, bit: int, value: bool) -> None:
         """Standard outputs are bits 0-7, configurable 8-15, tool 16-17."""
         io = self.io
@@ -542,7 +589,7 @@ class Controller:
 
     def _stop_program(self, reason: str) -> None:
         self.cancel("program")
-        self.teach_mode = False  # teach mode ends with the program, as on the controller
+        self.end_freedrive()  # teach mode ends with the program, as on the controller
         if self.program is not None:
             self.program.terminate()
             self.program = None
@@ -562,13 +609,19 @@ class Controller:
         name, frequency = self.watchdog
         last = self.input_updated.get(name, self.watchdog_armed_at)
         if self.time - max(last, self.watchdog_armed_at) > 1.0 / frequency:
-            log.warning("RTDE watchdog on %s starved: stopping the program", name)
-            self.stop("RTDE watchdog timeout")
+            log.warning("RTDE watchdog on %s starved: %s the program", name, self.watchdog_action)
+            if self.watchdog_action == "pause":
+                self.log_messages.append("RTDE watchdog timeout: program paused")
+                self.watchdog_armed_at = self.time  # armed again when the program resumes
+                self.pause()
+            else:
+                self.stop("RTDE watchdog timeout")
 
-    def set_watchdog(self, variable: str, frequency: float) -> None:
-        """``rtde_set_watchdog(variable, frequency, "stop")``: stop the program when the
-        input ``variable`` gets no update for ``1/frequency`` s (while the program runs)."""
+    def set_watchdog(self, variable: str, frequency: float, action: str = "stop") -> None:
+        """``rtde_set_watchdog(variable, frequency, action)``: stop (or pause) the program
+        when the input ``variable`` gets no update for ``1/frequency`` s while it runs."""
         self.watchdog = (variable, max(frequency, 1e-6))
+        self.watchdog_action = action
         self.watchdog_armed_at = self.time
 
     # ------------------------------------------------------------------ safety and faults

@@ -23,8 +23,9 @@ import selectors
 import signal
 import sys
 import time
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -60,8 +61,12 @@ from fxcell.sim.fusion import OWNER as MACHINE_OWNER
 from fxcell.sim.gripper import URCAP_GRIPPER_PORT, GripperConnection, HandE, SimObject
 from fxcell.sim.motion import ZERO6, Arm, TableGuard
 from fxcell.sim.primary import PRIMARY_PORT, ClientInterfaces, StateConnection, StateSource
+from fxcell.sim.program_store import ProgramStore
 from fxcell.sim.rtde import RTDEHub
 from fxcell.sim.signals import Signal, parse_signal, parse_value
+
+if TYPE_CHECKING:
+    from fxcell.sim.dynamics import ArmDynamics
 
 log = logging.getLogger(__name__)
 
@@ -191,6 +196,7 @@ class SimServer:
         fusion_time: float = FUSION_TIME,
         cooling_time: float = COOLING_TIME,
         crucibles: str | None = None,
+        programs: str | Path | None = None,
     ) -> None:
         from fxcell.motion.calibration import CalibratedKinematics
         from fxcell.motion.kinematics import Kinematics
@@ -213,7 +219,8 @@ class SimServer:
         guard = TableGuard(table.position, table.size) if table is not None else None
         start = joints if joints is not None else self.config.home
         self.arm = Arm(make_kinematics(None), start, table=guard, make_kinematics=make_kinematics)
-        self.controller = Controller(self.arm, time_scale=time_scale)
+        store = ProgramStore(programs) if programs is not None else ProgramStore()
+        self.controller = Controller(self.arm, time_scale=time_scale, programs=store)
         self.controller.client_host = "127.0.0.1"
         self.hub = RTDEHub(self.controller)
         self.dashboard = Dashboard(self.controller)
@@ -230,11 +237,13 @@ class SimServer:
         self._qd_published: object = None
         self._prev_tcp: tuple[list[float], list[float]] | None = None
         self._modes_published: tuple[object, ...] = ()
+        self._dynamics: ArmDynamics | None = None
         self.late_cycles = 0
         self._sends = [0.0] * 16384  # wall times of cycles that sent RTDE packets
         self._send_count = 0
         self._idle = False
         self.hub.on_activity = self.wake
+        self.hub.on_dynamics = lambda: self._publish_dynamics(0)
         # 30001/30002/30003: primary/secondary state at 10 Hz, real-time packets at 500 Hz
         self.clients = ClientInterfaces(StateSource(self.controller, self.hub.state, cal))
         self.clients.on_activity = self.wake
@@ -343,6 +352,13 @@ class SimServer:
             s.robot_voltage = 48.0 if powered else 0.0
             s.robot_current = 0.6 if powered else 0.0
             s.joint_voltage = (48.0,) * 6 if powered else s.zero6
+            # the energy meter (actual_robot_energy_consumed) runs while the arm is powered
+            if powered and s.powered_since is None:
+                s.powered_since = c.ticks
+                s.power = s.robot_voltage * s.robot_current
+            elif not powered and s.powered_since is not None:
+                s.powered_ticks += c.ticks - s.powered_since
+                s.powered_since = None
         s.digital_output_bits = c.io.output_bits
         s.digital_input_bits = c.io.input_bits
         s.analog_in = c.io.analog_in
@@ -352,6 +368,18 @@ class SimServer:
         s.payload = c.payload_mass
         s.payload_cog = c.payload_cog
         s.tcp_offset = c.tcp
+
+    def _publish_dynamics(self, steps: int) -> None:
+        """The outputs computed from the arm's dynamic model (only while a recipe asks)."""
+        if self._dynamics is None:
+            from fxcell.sim.dynamics import ArmDynamics
+
+            self._dynamics = ArmDynamics()
+        dyn, c, s = self._dynamics, self.controller, self.hub.state
+        dyn.set_payload(c.payload_mass, c.payload_cog)
+        dyn.set_gravity(c.gravity)
+        s.joint_torque, s.base_wrench = dyn.torques(s.actual_q, s.actual_qd, s.target_qdd)
+        s.tcp_acceleration = dyn.tcp_acceleration(s.tcp_speed, steps)
 
     # ------------------------------------------------------------------ cycle
 
@@ -385,6 +413,8 @@ class SimServer:
             if self.machine is not None:
                 self.machine.tick(self.controller.time)
             self.publish_state()
+            if self.hub.dynamics:
+                self._publish_dynamics(steps)
             self.gripper.tick(self.controller.time)
             self.clients.stream()
         # Nobody streaming and nothing moving: wake at 50 Hz (the controller clock catches
@@ -510,11 +540,18 @@ class SimServer:
         if self.arm.moving:
             return "error: the arm is moving"
         q = np.asarray(self.arm.q, float)
+        free = self.controller.free_axes
         if len(delta) == 6:
+            if not all(free):
+                return "error: push: freedrive constrains axes, push the TCP (DX DY DZ)"
             target = q + np.asarray(delta)
         else:
+            # freedrive_mode's constraint: only the free translations of its feature frame
+            # follow the hand; the orientation is kept
+            R = Pose.from_ur(self.controller.freedrive_feature).rotation
+            moved = R @ (np.asarray(free[:3], float) * (R.T @ np.asarray(delta)))
             pose = self.arm.kinematics.forward(q)
-            goal = Pose(pose.position + np.asarray(delta), pose.rotation)
+            goal = Pose(pose.position + moved, pose.rotation)
             solutions = self.arm.kinematics.inverse_all(goal)
             if not solutions:
                 return "error: push: the arm cannot reach there"
@@ -678,7 +715,16 @@ class SimServer:
         if self._stopping is not None:
             self._stopping.set()
 
-    async def serve(self, *, boot_delay: float = 0.0, announce: bool = True) -> None:
+    async def serve(
+        self,
+        *,
+        boot_delay: float = 0.0,
+        announce: bool = True,
+        handle_signals: bool = True,
+        on_listening: Callable[[], None] | None = None,
+    ) -> None:
+        """Serve until :meth:`request_stop` (SIGINT/SIGTERM with ``handle_signals``, which
+        only the main thread can have); ``on_listening`` is called once every port listens."""
         loop = asyncio.get_running_loop()
         self._loop = loop
         self._stopping = asyncio.Event()
@@ -702,7 +748,8 @@ class SimServer:
             for srv in self._servers:
                 srv.close()
             raise
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        signals = (signal.SIGINT, signal.SIGTERM) if handle_signals else ()
+        for sig in signals:
             loop.add_signal_handler(sig, self.request_stop)
         self._deadline = loop.time() + CONTROL_PERIOD
         self._handle = loop.call_at(self._deadline, self._cycle)
@@ -714,6 +761,8 @@ class SimServer:
                 f"gripper {URCAP_GRIPPER_PORT}, control {CONTROL_PORT}",
                 flush=True,
             )
+        if on_listening is not None:
+            on_listening()
         try:
             await self._stopping.wait()
         finally:
@@ -725,7 +774,7 @@ class SimServer:
             self.clients.close()
             for srv in self._servers:
                 srv.close()
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in signals:
                 loop.remove_signal_handler(sig)
 
 
@@ -773,7 +822,8 @@ def run(
     """Run the simulator until SIGINT/SIGTERM or a dashboard ``shutdown``; exit code.
 
     ``world``: the fusion machine and objects (:class:`SimServer`'s ``machine``,
-    ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``).
+    ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``) and the program
+    store (``programs``).
     """
     from fxcell.sim.controller import DELAYS
 

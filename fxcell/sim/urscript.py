@@ -1222,6 +1222,23 @@ def _read_bool(p: Program, address: Any) -> bool:
     return _bit(p.c.registers.in_bits_high, address, 64, "read_input_boolean_register")
 
 
+@builtin("rtde_set_watchdog", "variable_name", "min_frequency", "action", action="pause")
+def _rtde_set_watchdog(p: Program, variable_name: Any, min_frequency: Any, action: Any) -> None:
+    what = "rtde_set_watchdog"
+    if not isinstance(variable_name, str) or not variable_name.startswith("input_"):
+        raise URScriptError(f"{what}: {variable_name!r} is not an RTDE input variable")
+    frequency = _number(min_frequency, what)
+    if not (math.isfinite(frequency) and frequency >= 0):
+        raise URScriptError(f"{what}: invalid frequency {frequency}")
+    kind = str(action).lower()
+    if kind not in ("ignore", "pause", "stop"):
+        raise URScriptError(f'{what}: action must be "ignore", "pause" or "stop"')
+    if frequency == 0 or kind == "ignore":
+        p.c.watchdog = None  # a zero frequency turns the watchdog off
+        return
+    p.c.set_watchdog(variable_name, frequency, action=kind)
+
+
 @builtin("to_str", "val")
 def _to_str(p: Program, val: Any) -> str:
     return _fmt(val)

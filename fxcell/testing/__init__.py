@@ -211,14 +211,18 @@ def simulator(
     *,
     config: str | Path | None = None,
     joints: Sequence[float] | None = None,
+    programs: str | Path | None = None,
     **options: Any,
 ) -> SimulatorHandle:
     """A simulator on a free loopback address, for ``with`` and ``async with``.
 
+    ``programs``: the controller's program directory (``/programs``, see
+    :mod:`fxcell.sim.program_store`); by default the shipped store.
+
     >>> with simulator() as sim:  # doctest: +SKIP
     ...     DashboardClient(sim.host)
     """
-    return SimulatorHandle(time_scale, config=config, joints=joints, **options)
+    return SimulatorHandle(time_scale, config=config, joints=joints, programs=programs, **options)
 
 
 @pytest.fixture
