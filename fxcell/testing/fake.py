@@ -405,7 +405,10 @@ class FakeLink:
             await self._stop_trajectory("teach mode")
             self._require_control("freedrive")
             robot.servo_stop()
-            c.teach_mode = bool(kwargs["on"])
+            if kwargs["on"]:
+                c.enter_freedrive()
+            else:
+                c.end_freedrive()
             return True
         raise RobotCommandError(f"the fake link has no call {method!r}")
 
