@@ -381,11 +381,16 @@ class RTDEHub:
         self.state = StreamState()
         self.state.clock = controller
         self.dynamics = False  # some recipe holds an output of DYNAMICS
+        self.dynamics_fields: frozenset[str] = frozenset()  # which ones
         self.connections: set[RTDEConnection] = set()
         self.owners: dict[str, RTDEConnection] = {}
         self.packets_sent = 0
         self.on_activity: Callable[[], None] = lambda: None
         self.on_dynamics: Callable[[], None] = lambda: None  # DYNAMICS outputs wanted from now
+        # The server loads the dynamic model (Pinocchio) off the loop the first time a recipe
+        # asks for DYNAMICS, then calls back; that connection's setup is answered after it.
+        self.dynamics_ready = False
+        self.load_dynamics: Callable[[Callable[[], None]], None] = lambda done: done()
         self.loop: asyncio.AbstractEventLoop | None = None
         self.listener: socket.socket | None = None
 
@@ -468,13 +473,12 @@ class RTDEHub:
     def recipes_changed(self) -> None:
         """Recompute whether the server must compute the DYNAMICS outputs each cycle (and
         compute them now when they were not kept up to date: the next packet has them)."""
-        was = self.dynamics
-        self.dynamics = any(
-            not DYNAMICS.isdisjoint(recipe.names)
-            for conn in self.connections
-            for recipe in conn.outputs
-        )
-        if self.dynamics and not was:
+        was = self.dynamics_fields
+        self.dynamics_fields = frozenset(
+            name for conn in self.connections for recipe in conn.outputs for name in recipe.names
+        ).intersection(DYNAMICS)
+        self.dynamics = bool(self.dynamics_fields)
+        if self.dynamics_fields - was:
             self.on_dynamics()
 
 
@@ -493,6 +497,7 @@ class RTDEConnection:
         self.quiet = 0  # cycles without input while started
         self.watched = False  # started but read by the event loop (a silent client)
         self.protocol = 2  # the version the client negotiated (1 or 2)
+        self.deferred: list[tuple[int, bytes]] | None = None  # requests held for a setup
 
     def poll(self) -> None:
         """The cycle's read. A client silent for a while (a receive-only client) is handed
@@ -608,6 +613,9 @@ class RTDEConnection:
                 return
 
     def _handle(self, kind: int, payload: bytes) -> None:
+        if self.deferred is not None:  # a setup waits for the dynamic model: in order after it
+            self.deferred.append((kind, payload))
+            return
         if kind == 85:  # 'U' data from the client
             recipe = self.inputs.get(payload[0]) if payload else None
             if recipe is None:
@@ -707,6 +715,10 @@ class RTDEConnection:
             self._send(79, (b"" if v1 else b"\x00") + ",".join(types).encode())
             return
         frequency = min(frequency, 500.0)
+        if not self.hub.dynamics_ready and not DYNAMICS.isdisjoint(names):
+            self.deferred = []  # answered once the model is loaded, without stalling the cycle
+            self.hub.load_dynamics(lambda: self._resume(79, payload))
+            return
         if v1:
             self.outputs = [OutputRecipe(names, 0, frequency, with_id=False)]
             self.hub.recipes_changed()
@@ -719,6 +731,14 @@ class RTDEConnection:
         self.outputs.append(OutputRecipe(names, recipe_id, frequency))
         self.hub.recipes_changed()
         self._send(79, bytes([recipe_id]) + ",".join(types).encode())
+
+    def _resume(self, kind: int, payload: bytes) -> None:
+        """Handle the held setup request, then whatever the client sent meanwhile."""
+        held, self.deferred = self.deferred or [], None
+        for k, p in [(kind, payload), *held]:
+            if self.sock is None:
+                return
+            self._handle(k, p)
 
     def _setup_inputs(self, payload: bytes) -> None:
         if self._too_long(73, payload):

@@ -22,6 +22,7 @@ import os
 import selectors
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -238,12 +239,16 @@ class SimServer:
         self._prev_tcp: tuple[list[float], list[float]] | None = None
         self._modes_published: tuple[object, ...] = ()
         self._dynamics: ArmDynamics | None = None
+        self._dynamics_key: tuple[object, ...] = ()
         self.late_cycles = 0
         self._sends = [0.0] * 16384  # wall times of cycles that sent RTDE packets
         self._send_count = 0
         self._idle = False
         self.hub.on_activity = self.wake
         self.hub.on_dynamics = lambda: self._publish_dynamics(0)
+        self.hub.load_dynamics = self._load_dynamics
+        self._dynamics_waiting: list[Callable[[], None]] = []
+        self._dynamics_loader: threading.Thread | None = None
         # 30001/30002/30003: primary/secondary state at 10 Hz, real-time packets at 500 Hz
         self.clients = ClientInterfaces(StateSource(self.controller, self.hub.state, cal))
         self.clients.on_activity = self.wake
@@ -369,17 +374,67 @@ class SimServer:
         s.payload_cog = c.payload_cog
         s.tcp_offset = c.tcp
 
+    def _load_dynamics(self, done: Callable[[], None]) -> None:
+        """Load the dynamic model in a thread (importing Pinocchio takes a few hundred ms:
+        the control cycle must not wait for it), then call ``done`` on the loop."""
+        self._dynamics_waiting.append(done)
+        if self._dynamics_loader is not None:
+            return
+        loop = self._loop
+        assert loop is not None
+
+        def load() -> None:
+            try:
+                from fxcell.sim.dynamics import ArmDynamics
+
+                model: ArmDynamics | None = ArmDynamics()
+            except Exception:
+                log.exception("the arm's dynamic model could not be built: its outputs stay 0")
+                model = None
+            loop.call_soon_threadsafe(self._dynamics_loaded, model)
+
+        self._dynamics_loader = threading.Thread(target=load, name="sim-dynamics", daemon=True)
+        self._dynamics_loader.start()
+
+    def _dynamics_loaded(self, model: ArmDynamics | None) -> None:
+        self._dynamics = model
+        self.hub.dynamics_ready = True
+        waiting, self._dynamics_waiting = self._dynamics_waiting, []
+        for done in waiting:
+            done()
+
     def _publish_dynamics(self, steps: int) -> None:
         """The outputs computed from the arm's dynamic model (only while a recipe asks)."""
         if self._dynamics is None:
-            from fxcell.sim.dynamics import ArmDynamics
-
-            self._dynamics = ArmDynamics()
-        dyn, c, s = self._dynamics, self.controller, self.hub.state
-        dyn.set_payload(c.payload_mass, c.payload_cog)
-        dyn.set_gravity(c.gravity)
-        s.joint_torque, s.base_wrench = dyn.torques(s.actual_q, s.actual_qd, s.target_qdd)
-        s.tcp_acceleration = dyn.tcp_acceleration(s.tcp_speed, steps)
+            return
+        dyn, c, s, arm, wanted = (
+            self._dynamics,
+            self.controller,
+            self.hub.state,
+            self.arm,
+            self.hub.dynamics_fields,
+        )
+        # the torques change only with the joint state, the payload and gravity: at rest
+        # nothing is computed
+        # (the arrays are replaced, never changed in place: compared by identity)
+        key = (arm.q, arm.qd, arm.qdd, c.payload_mass, c.payload_cog, c.gravity)
+        last = self._dynamics_key
+        if (
+            steps == 0
+            or not last
+            or key[0] is not last[0]
+            or key[1] is not last[1]
+            or key[2] is not last[2]
+            or key[3:] != last[3:]
+        ):
+            self._dynamics_key = key
+            dyn.set_payload(c.payload_mass, c.payload_cog)
+            dyn.set_gravity(c.gravity)
+            s.joint_torque = dyn.torques(arm.q, arm.qd, arm.qdd)
+            if "target_base_wrench" in wanted:
+                s.base_wrench = dyn.base_wrench()
+        if "actual_TCP_acceleration" in wanted or "target_TCP_acceleration" in wanted:
+            s.tcp_acceleration = dyn.tcp_acceleration(s.tcp_speed, steps)
 
     # ------------------------------------------------------------------ cycle
 
@@ -728,6 +783,9 @@ class SimServer:
         loop = asyncio.get_running_loop()
         self._loop = loop
         self._stopping = asyncio.Event()
+        # ur_rtde's default receive recipe asks for actual_current_as_torque: load the
+        # dynamic model now, while booting, rather than when the first client asks
+        self._load_dynamics(lambda: None)
         if boot_delay > 0:
             await asyncio.sleep(boot_delay)
         factories: list[tuple[int, Any]] = [
