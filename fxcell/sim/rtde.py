@@ -390,7 +390,12 @@ class RTDEHub:
         # The server loads the dynamic model (Pinocchio) off the loop the first time a recipe
         # asks for DYNAMICS, then calls back; that connection's setup is answered after it.
         self.dynamics_ready = False
-        self.load_dynamics: Callable[[Callable[[], None]], None] = lambda done: done()
+        self.load_dynamics: Callable[[Callable[[], None]], None] = self._no_model
+
+    def _no_model(self, done: Callable[[], None]) -> None:
+        """Without a server to load the model, the outputs answer with their initial values."""
+        self.dynamics_ready = True
+        done()
         self.loop: asyncio.AbstractEventLoop | None = None
         self.listener: socket.socket | None = None
 
