@@ -428,8 +428,9 @@ class SimServer:
             or key[3:] != last[3:]
         ):
             self._dynamics_key = key
-            dyn.set_payload(c.payload_mass, c.payload_cog)
-            dyn.set_gravity(c.gravity)
+            if not last or key[3:] != last[3:]:
+                dyn.set_payload(c.payload_mass, c.payload_cog)
+                dyn.set_gravity(c.gravity)
             s.joint_torque = dyn.torques(arm.q, arm.qd, arm.qdd)
             if "target_base_wrench" in wanted:
                 s.base_wrench = dyn.base_wrench()
