@@ -285,6 +285,7 @@ class ControlScript:
             q = self._floats(0) if cmd == _SERVOJ else self._ik(self._floats(0))
             self._servo(q, self._float(8), self._float(9), self._float(10))
         elif cmd in (_SPEEDJ, _SPEEDL):
+            self.jog_frame = None  # a speed command ends jogging (its thread is replaced)
             if self.speed is None or arm.generator is not self.speed:
                 self.speed = SpeedTrack(arm)
                 arm.run(self.speed)
