@@ -12,8 +12,11 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
+import math
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fxcell.link import wire
 from fxcell.link.follower import (
@@ -24,12 +27,15 @@ from fxcell.link.follower import (
     Guard,
     brake_duration,
     path_velocity,
+    servo_omega,
 )
 from fxcell.protocol import CONTROL_PERIOD, RobotMode, RobotState, RuntimeState, SafetyMode
 
 DT = CONTROL_PERIOD
 START = (0.1, -1.2, 1.0, -1.4, -1.57, 0.0)
 STEP = 0.002  # rad per sample on every joint: 1 rad/s
+LOOKAHEAD, GAIN = 0.1, 300.0
+OMEGA = servo_omega(LOOKAHEAD, GAIN)
 
 
 def ramp(n: int, step: float = STEP) -> list[tuple[float, ...]]:
@@ -42,6 +48,7 @@ def state(t: float, q: tuple[float, ...] = START, **changes: object) -> RobotSta
         robot_mode=RobotMode.RUNNING,
         safety_mode=SafetyMode.NORMAL,
         runtime_state=RuntimeState.PLAYING,
+        target_q=q,
         actual_q=q,
         actual_qd=(1.0,) * 6,
     )
@@ -49,16 +56,34 @@ def state(t: float, q: tuple[float, ...] = START, **changes: object) -> RobotSta
 
 
 class Run:
-    """A follower driven at one state sample per controller cycle, on a clock of its own."""
+    """A follower driven at one state sample per controller cycle, on a clock of its own,
+    with servoJ's tracker (as the simulator has it) turning its setpoints into the target
+    joint velocities the state reports. It starts tracking the path's first samples in
+    steady state (lagging a ramp by 2v/ω)."""
 
-    def __init__(self, samples: list[tuple[float, ...]], guard: Guard | None = None) -> None:
+    def __init__(
+        self,
+        samples: list[tuple[float, ...]],
+        guard: Guard | None = None,
+        *,
+        lookahead: float = LOOKAHEAD,
+        gain: float = GAIN,
+    ) -> None:
         self.t = 0.0
         self.guard = guard or Guard()
-        self.follower = Follower(samples, self.guard, 0.1, now=0.0, clock=0.0)
+        self.omega = servo_omega(lookahead, gain)
+        self.follower = Follower(samples, self.guard, lookahead, gain=gain, now=0.0, clock=0.0)
         self.sent: list[tuple[float, ...]] = []
         self.heard_at = 0.0
         self.state_at = 0.0
-        self.state: RobotState | None = state(0.0)
+        v = [
+            (b - a) / DT for a, b in zip(samples[0], samples[min(1, len(samples) - 1)], strict=True)
+        ]
+        self.q = [a - 2 * x / self.omega for a, x in zip(samples[0], v, strict=True)]
+        self.qd = v
+        self.accelerations: list[tuple[float, ...]] = []
+        """servoJ's acceleration in each cycle that had a fresh setpoint."""
+        self.state: RobotState | None = state(0.0, target_q=tuple(self.q), target_qd=tuple(v))
 
     def cycle(self) -> Cycle:
         out = self.follower.cycle(
@@ -68,13 +93,30 @@ class Run:
             self.sent.append(out.target)
         return out
 
+    def track(self, cycles: int) -> None:
+        """servoJ's tracker runs ``cycles`` control cycles on the newest setpoint."""
+        w = self.omega
+        for k in range(cycles):
+            a = [
+                w * w * (s - x) - 2 * w * v
+                for s, x, v in zip(self.sent[-1], self.q, self.qd, strict=True)
+            ]
+            if k == 0:
+                self.accelerations.append(tuple(a))
+            self.qd = [v + x * DT for v, x in zip(self.qd, a, strict=True)]
+            self.q = [x + v * DT for x, v in zip(self.q, self.qd, strict=True)]
+
     def advance(self, cycles: int = 1, *, sample: bool = True) -> None:
+        if self.sent:
+            self.track(cycles)
         self.t += cycles * DT
         if sample:
             self.state_at = self.t
             self.heard_at = self.t
             if self.state is not None:
-                self.state = dataclasses.replace(self.state, timestamp=self.t)
+                self.state = dataclasses.replace(
+                    self.state, timestamp=self.t, target_q=tuple(self.q), target_qd=tuple(self.qd)
+                )
         self.follower.advance(self.t, self.t if sample else None)
 
     def run(self, limit: int = 100_000, **advance: object) -> Cycle:
@@ -85,6 +127,15 @@ class Run:
                 return out
             self.advance(**advance)  # type: ignore[arg-type]
         raise AssertionError("the follower never ended")
+
+    def worst(self) -> float:
+        """servoJ's largest acceleration over the braking limit, in the cycles with a
+        fresh setpoint."""
+        limits = self.guard.brake_acceleration
+        return max(
+            (abs(a) / m for row in self.accelerations for a, m in zip(row, limits, strict=True)),
+            default=0.0,
+        )
 
 
 def joint0(sent: list[tuple[float, ...]]) -> list[float]:
@@ -99,21 +150,24 @@ def test_one_sample_of_path_per_controller_cycle() -> None:
     for _ in range(20):
         run.cycle()
         run.advance()
-    assert run.follower.index == 20
     assert run.sent == ramp(50)[:20]
+    assert run.follower.limited == []
 
 
 def test_a_sample_a_few_cycles_late_keeps_the_path_on_the_controller_clock() -> None:
     run = Run(ramp(50))
     run.cycle()
     run.advance(3)  # the controller ran three cycles before this sample
+    run.cycle()
     assert run.follower.u == 3
+    assert run.sent[-1] == ramp(50)[3]
 
 
 def test_a_gap_longer_than_the_catch_up_stretches_the_path() -> None:
     run = Run(ramp(50))
     run.cycle()
     run.advance(20)
+    run.cycle()
     assert run.follower.u <= Follower.CATCH_UP
 
 
@@ -130,9 +184,10 @@ def test_without_samples_a_timer_paces_the_stream_and_the_next_sample_counts_it(
     run = Run(ramp(50))
     run.cycle()
     run.advance(sample=False)  # the 3 ms timer: one step
-    assert run.follower.u == 1
     run.cycle()
+    assert run.follower.u == 1
     run.advance(1)  # the sample of the second cycle: the timer already paced one
+    run.cycle()
     assert run.follower.u == 2
 
 
@@ -283,26 +338,50 @@ def test_a_splice_at_an_index_still_sends_the_samples_before_it() -> None:
     for _ in range(10):
         run.cycle()
         run.advance()
-    new = [tuple(q + 1.0 for q in START)] * 5
-    run.follower.replace(new, at_index=15)
+    slower = [tuple(q + k * STEP / 2 for q in path[15]) for k in range(50)]
+    run.follower.replace(slower, at_index=15)
     for _ in range(7):
         run.cycle()
         run.advance()
     assert run.sent[10:15] == path[10:15]
-    assert run.sent[15:17] == new[:2]
+    assert run.sent[15:17] == slower[:2]
     assert [n.data for n in run.follower.notices] == [{"ok": True, "late": False}]
+    assert run.follower.limited == []
 
 
 def test_a_late_splice_joins_the_new_samples_where_the_path_is() -> None:
+    path = ramp(300)
+    run = Run(path)
+    for _ in range(20):
+        run.cycle()
+        run.advance()
+    new = path[15:]
+    run.follower.replace(new, at_index=15)
+    run.cycle()
+    assert run.sent[-1] == new[5] == path[20]
+    assert [n.data for n in run.follower.notices] == [{"ok": True, "late": True}]
+    assert run.follower.limited == []
+
+
+def test_a_splice_that_jumps_is_limited_and_recorded() -> None:
+    # the check on the setpoint stream: a replacement 0.5 rad away would be a step far
+    # beyond the braking acceleration; servoJ gets the setpoint at the limit instead
     run = Run(ramp(300))
     for _ in range(20):
         run.cycle()
         run.advance()
-    new = ramp(100, step=0.001)
-    run.follower.replace(new, at_index=15)
-    run.cycle()
-    assert run.sent[-1] == new[5]
-    assert [n.data for n in run.follower.notices] == [{"ok": True, "late": True}]
+    away = [tuple(q + 0.5 for q in START)] * 100
+    run.follower.replace(away, at_index=None)
+    for _ in range(5):
+        run.cycle()
+        run.advance()
+    assert run.worst() <= 1.0 + 1e-9
+    events = run.follower.limited
+    assert {e.joint for e in events} == set(range(6))
+    assert all(abs(e.acceleration) > e.limit for e in events)
+    warnings = [n.text for n in run.follower.notices if n.kind == "log"]
+    assert len(warnings) == 1  # one warning per LIMIT_REPORT_EVERY, with a count
+    assert warnings[0].startswith("setpoint limited (6 since the last report): joint ")
 
 
 def test_a_splice_while_braking_by_itself_is_refused() -> None:
@@ -354,3 +433,123 @@ def test_the_hold_after_the_end_ends_on_a_stop_but_not_on_the_settled_stop() -> 
     assert f.hold_target(state(0.0, safety_mode=SafetyMode.PROTECTIVE_STOP)) is None
     f.stop("link closing")
     assert f.hold_target(state(0.0)) is None
+
+
+# ----------------------------------------------------------------- every cycle within limits
+
+
+def smooth_path(distances: list[float], lag: float) -> list[tuple[float, ...]]:
+    """A rest-to-rest move of ``distances`` (rad per joint) within the move limits
+    (0.7 rad/s², ``q = D (t/T - sin(2πt/T)/2π)``), as the motion layer streams it: led by
+    servoJ's lag (``q + lag·q̇ + lag²/4·q̈``)."""
+    peak = max(map(abs, distances))
+    duration = max(math.sqrt(2 * math.pi * peak / 0.7), 4 * DT)
+    n = round(duration / DT)
+    out = []
+    for k in range(n + 1):
+        t = k * DT / duration
+        c, s = math.cos(2 * math.pi * t), math.sin(2 * math.pi * t)
+        row = []
+        for q0, d in zip(START, distances, strict=True):
+            q = q0 + d * (t - s / (2 * math.pi))
+            qd = d / duration * (1 - c)
+            qdd = 2 * math.pi * d / duration**2 * s
+            row.append(q + lag * qd + lag * lag / 4 * qdd)
+        out.append(tuple(row))
+    return out
+
+
+distances = st.lists(st.floats(-1.5, 1.5), min_size=6, max_size=6)
+# per controller sample, how many cycles the controller ran since the last one
+gaps = st.lists(st.sampled_from([1] * 12 + [2, 3, 4, 6]), min_size=1, max_size=64)
+
+
+@settings(max_examples=40, deadline=None)
+@given(distances, gaps, st.one_of(st.none(), st.floats(0.05, 0.95)))
+def test_every_cycle_stays_within_the_limits_across_late_samples_and_stops(
+    move: list[float], pattern: list[int], stop_at: float | None
+) -> None:
+    path = smooth_path(move, 2 / OMEGA)
+    run = Run(path)
+    stop_index = None if stop_at is None else stop_at * len(path)
+    for k in range(100_000):
+        if stop_index is not None and run.follower.u >= stop_index:
+            run.follower.stop("stop requested")
+        out = run.cycle()
+        if out.target is None:
+            break
+        run.advance(pattern[k % len(pattern)])
+    assert out.status == ("completed" if stop_index is None else "stopped")
+    assert run.follower.limited == []
+    assert run.worst() <= 1.05
+
+
+@settings(max_examples=20, deadline=None)
+@given(distances, distances)
+def test_a_next_move_taking_over_at_the_target_stays_within_the_limits(
+    first: list[float], second: list[float]
+) -> None:
+    path = smooth_path(first, 2 / OMEGA)
+    run = Run(path)
+    assert run.run().status == "completed"
+    # the hand-over: a next trajectory from where the first ended, servoJ's state as is
+    start = path[-1]
+    follow = [
+        tuple(a + b - c for a, b, c in zip(start, q, START, strict=True))
+        for q in smooth_path(second, 2 / OMEGA)
+    ]
+    run.follower = Follower(follow, run.guard, LOOKAHEAD, gain=GAIN, now=run.t, clock=run.t)
+    assert run.run().status == "completed"
+    assert run.follower.limited == []
+    assert run.worst() <= 1.05
+
+
+def test_a_link_brake_from_a_path_still_accelerating_stays_within_the_braking_limit() -> None:
+    # the stop starts where the path accelerates hardest: the time rate's fall adds to it
+    path = smooth_path([1.5] * 6, 2 / OMEGA)
+    run = Run(path, Guard(cell_timeout=None))
+    for _ in range(len(path) // 8):
+        run.cycle()
+        run.advance()
+    run.follower.stop("stop requested")
+    assert run.run().status == "stopped"
+    assert run.follower.limited == []
+    assert run.worst() <= 1.0 + 1e-6
+
+
+def test_a_stiff_servo_missing_a_cycle_is_caught_by_the_check() -> None:
+    # lookahead 0.03 s, gain 2000: one cycle without a fresh setpoint at 1 rad/s already
+    # costs ω²·q̇·Δt ≈ 23 rad/s² of servoJ's acceleration, more than the follower can take
+    # back within the limits: the check holds servoJ at the limit and records it
+    run = Run(ramp(400), lookahead=0.03, gain=2000.0)
+    for _ in range(50):
+        run.cycle()
+        run.advance()
+    assert run.follower.limited == []
+    run.cycle()
+    run.advance(2)  # the controller ran a cycle on the previous setpoint
+    for _ in range(10):
+        run.cycle()
+        run.advance()
+    assert run.follower.limited
+    assert run.worst() <= 1.0 + 1e-6
+
+
+@pytest.mark.parametrize("gap", [2, 3, 4])
+def test_a_late_sample_at_full_speed_is_caught_up_gently(gap: int) -> None:
+    # at 3 rad/s: servoJ held the previous setpoint for the missed cycles; the follower
+    # catches up only as far as servoJ's response stays within CATCH_UP_SHARE
+    run = Run(ramp(3000, step=0.006))
+    for _ in range(50):
+        run.cycle()
+        run.advance()
+    run.cycle()
+    run.advance(gap)
+    for _ in range(50):
+        run.cycle()
+        run.advance()
+    assert run.follower.limited == []
+    assert run.worst() <= Follower.CATCH_UP_SHARE + 1e-9
+    # the path lost at most the missed cycles (it stretched rather than jumped)
+    elapsed = round(run.t / DT)
+    assert elapsed - gap < run.follower.u <= elapsed

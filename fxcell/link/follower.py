@@ -59,6 +59,11 @@ class Guard:
     """Brake when the client has sent nothing for this long (s; None: never)."""
     stall_timeout: float = 0.08
     """Brake when no state sample has arrived for this long (s)."""
+    velocity: tuple[float, ...] = (math.pi,) * 3 + (2 * math.pi,) * 3
+    """Per-joint speed limit of every setpoint (rad/s)."""
+    path_acceleration: tuple[float, ...] = (0.7, 0.7, 0.7, 1.4, 1.4, 1.4)
+    """The most the path itself accelerates (the moves' limits, rad/s²): a stop along the
+    path leaves room for it under ``brake_acceleration``."""
 
 
 def stop_reason(safety_mode: int, runtime_state: int) -> str | None:
@@ -75,19 +80,36 @@ def brake_duration(velocity: Sequence[float], guard: Guard) -> float:
     """How long the path-preserving stop from ``velocity`` (rad/s per joint) takes.
 
     The path's time rate falls as ``(1 + cos(π t / T)) / 2``: a joint at speed v then
-    decelerates at most at ``π v / (2 T)`` with jerk at most ``π² v / (2 T²)``; ``T`` is
-    the shortest time that keeps every joint within the braking limits.
+    decelerates at most at ``π v / (2 T)`` with jerk at most ``π² v / (2 T²)``, on top of
+    what the path itself accelerates (at most ``guard.path_acceleration``, slowed by the
+    rate's square); ``T`` is the shortest time that keeps every joint within the braking
+    limits.
     """
     duration = 2 * CONTROL_PERIOD
-    for v, a in zip(velocity, guard.brake_acceleration, strict=False):
+    for v, a, own in zip(velocity, guard.brake_acceleration, guard.path_acceleration, strict=False):
         speed = abs(v)
         if speed > 0:
+            room = max(a - own, 0.25 * a)
             duration = max(
                 duration,
-                math.pi * speed / (2 * a),
+                math.pi * speed / (2 * room),
                 math.pi * math.sqrt(speed / (2 * guard.brake_jerk)),
             )
     return duration
+
+
+def servo_omega(lookahead: float, gain: float) -> float:
+    """The natural frequency (1/s) of servoJ's tracker for ``lookahead`` and ``gain``.
+
+    servoJ follows its setpoint like a critically damped second-order system with lag
+    ``2/ω = lookahead·(300/gain)^¼`` (URCL issue #86; the motion layer's lag compensation
+    and the simulator assume the same): each cycle its target joint velocity changes by
+    ``(ω²(s − q) − 2ω q̇)·Δt`` for setpoint ``s``, target position ``q`` and velocity
+    ``q̇``. A setpoint one cycle late therefore costs ``ω²·q̇·Δt`` of acceleration.
+    """
+    lookahead = min(max(lookahead, 0.03), 0.2)
+    gain = min(max(gain, 100.0), 2000.0)
+    return float(2.0 / (lookahead * (300.0 / gain) ** 0.25))
 
 
 def path_at(samples: Samples, u: float) -> tuple[float, ...]:
@@ -141,6 +163,18 @@ class Cycle:
     reason: str = ""
 
 
+@dataclass
+class LimitEvent:
+    """A setpoint the limit check changed: it would have stepped beyond the limits."""
+
+    timestamp: float | None
+    """Controller time of the state sample the setpoint answered."""
+    joint: int
+    acceleration: float
+    """The acceleration servoJ would have made of the setpoint (rad/s²)."""
+    limit: float
+
+
 class Follower:
     """Follows one (N, 6) joint trajectory at one setpoint per controller cycle."""
 
@@ -148,9 +182,17 @@ class Follower:
     CATCH_UP = 4
     """Most samples one setpoint advances: a state sample ``k`` controller cycles after the
     previous one (the controller skipped cycles, or their samples were lost) advances the
-    path by ``min(k, CATCH_UP)`` samples, so the path keeps the controller's time instead
-    of stretching by the missed cycles. Longer gaps stretch it. It is also the most the
-    path may run ahead of the follower's own clock (a burst of queued samples)."""
+    path by up to ``min(k, CATCH_UP)`` samples, so the path keeps the controller's time
+    instead of stretching by the missed cycles. Longer gaps stretch it. It is also the most
+    the path may run ahead of the follower's own clock (a burst of queued samples)."""
+    CATCH_UP_SHARE = 0.5
+    """The samples beyond one per cycle are caught up only as far as servoJ's response
+    stays within this share of the braking acceleration: the controller held the previous
+    setpoint for the missed cycles, and a jump by all of them would snap the velocity back
+    (a step of ``ω²·q̇·Δt`` per cycle caught up)."""
+    LIMIT_TOLERANCE = 1.05
+    """The limit check changes a setpoint only beyond this factor of the limits."""
+    LIMIT_REPORT_EVERY = 0.5  # s between two warnings about limited setpoints
     HOLD = 0.1  # s a completed trajectory keeps servo mode for a next one
     SETTLE_MAX = 0.3  # s, beyond twice the lookahead time, to settle on the last sample
 
@@ -160,6 +202,7 @@ class Follower:
         guard: Guard,
         lookahead: float,
         *,
+        gain: float = 300.0,
         now: float,
         clock: float | None = None,
     ) -> None:
@@ -172,15 +215,32 @@ class Follower:
         self.braking: tuple[str, float, float] | None = None  # reason, started, duration
         self.notices: list[Notice] = []
         """Messages for the client since the caller last emptied the list."""
+        self.limited: list[LimitEvent] = []
+        """Every setpoint the limit check changed (a regression shows here and in the log)."""
         self._stop_reason: str | None = None
         self._replacement: tuple[Samples, int | None] | None = None
         self._settle_until: float | None = None
         self._next_progress = 0
         self._rate = 1.0
+        self._want = 0.0  # samples the next cycle advances, by the controller's clock
         self._clock = clock
         self._paced = 0  # setpoints the timer sent since the last sample
         # samples of path the follower's clock allows now (one per cycle, at most CATCH_UP)
         self._budget, self._budget_at = float(self.CATCH_UP), now
+        # servoJ's response, per joint: acceleration = w2 * (s - q) - w1 * qd
+        omega = servo_omega(lookahead, gain)
+        self._w2, self._w1 = omega * omega, 2.0 * omega
+        self._accel = tuple(guard.brake_acceleration)
+        self._speed = tuple(guard.velocity)
+        self._reported_at: float | None = None
+        self._unreported = 0
+        self._cycle_events = 0
+        # servoJ's target as the follower expects it now: from the newest state sample,
+        # run on by the setpoints sent since when no newer sample came (the 3 ms timer)
+        self._model_stamp: float | None = None
+        self._model: tuple[list[float], list[float]] | None = None
+        self._last_sent: tuple[float, ...] | None = None
+        self._latency: float | None = None  # the least (now - controller time) seen
 
     # -- requests (between cycles)
 
@@ -224,7 +284,8 @@ class Follower:
         """This cycle's setpoint, or the end: ``now`` is the follower's clock, ``state``
         the newest state sample, ``heard_at`` when the client was last heard (None: not
         watched), ``state_at`` when the newest state sample arrived."""
-        samples = self.samples
+        model = self._servo(state, now)
+        self._move(model)
         if self.braking is None:
             why = self.abort_reason(now, heard_at, state_at)
             if why is not None:
@@ -232,8 +293,7 @@ class Follower:
         replacement, self._replacement = self._replacement, None
         if replacement is not None:
             self._splice(*replacement)
-            samples = self.samples
-        u = self.u
+        samples, u = self.samples, self.u
         self._rate = 1.0
         if self.braking is not None:
             reason, began, duration = self.braking
@@ -252,7 +312,11 @@ class Follower:
             why = stop_reason(state.safety_mode, state.runtime_state)
             if why is not None:
                 return Cycle(status="failed", reason=why)
-        out = Cycle(target=path_at(samples, u))
+        target = path_at(samples, u)
+        if model is not None:
+            target = self._check(target, model, now, state)
+        self._last_sent = target
+        out = Cycle(target=target)
         if u < len(samples):
             i = int(u)
             if self.braking is None and i >= self._next_progress:
@@ -297,9 +361,11 @@ class Follower:
         self.notices.append(Notice("replaced", data={"ok": True, "late": late}))
 
     def advance(self, now: float, timestamp: float | None, *, poked: bool = False) -> None:
-        """Move along the path for the next setpoint: ``timestamp`` is the controller time
-        of a new state sample (None: none came within the timeout, the timer paces the
-        stream), ``poked`` that a stop request woke the caller instead (brake from here)."""
+        """Count the controller cycles the next setpoint answers: ``timestamp`` is the
+        controller time of a new state sample (None: none came within the timeout, the
+        timer paces the stream), ``poked`` that a stop request woke the caller instead
+        (brake from here). The path moves at the next :meth:`cycle`, which sees the
+        state servoJ is in."""
         if poked and timestamp is None:
             steps = 0
         elif timestamp is None:  # no sample for 3 ms: the timer
@@ -320,8 +386,124 @@ class Follower:
         if steps > self._budget:
             steps = max(int(self._budget), 0)
         self._budget -= steps
-        if self.u < len(self.samples):
-            self.u = min(self.u + self._rate * steps, float(len(self.samples)))
+        self._want += steps
+
+    def _move(self, model: tuple[list[float], list[float]] | None) -> None:
+        """Move along the path by the cycles counted since the last setpoint: the first at
+        the path's rate, the ones the controller ran without a fresh setpoint only as far
+        as servoJ's response stays gentle (see ``CATCH_UP_SHARE``); the rest is lost (the
+        path stretches), and given back by the budget as the follower's clock runs on."""
+        want, self._want = self._want, 0.0
+        end = float(len(self.samples))
+        if want <= 0 or self.u >= end:
+            return
+        rate = self._rate
+        first = min(want, 1.0)
+        extra = want - first
+        if extra > 0:
+            # without a current state sample (servoJ's state unknown) nothing is caught up
+            while extra > 0 and (
+                model is None
+                or not self._gentle(
+                    path_at(self.samples, min(self.u + rate * (first + extra), end)), model
+                )
+            ):
+                extra -= 1.0
+            extra = max(extra, 0.0)
+            if extra < want - first:  # catch-up refused: the budget gets it back
+                self._budget = min(self._budget + (want - first - extra), self.CATCH_UP)
+        self.u = min(self.u + rate * (first + extra), end)
+
+    def _servo(
+        self, state: RobotState | None, now: float
+    ) -> tuple[list[float], list[float]] | None:
+        """servoJ's target position and velocity for this cycle's setpoint: the newest
+        state sample's, or (no new sample since the last cycle) the expected one, one
+        cycle on towards the last setpoint. None before any state sample, and for a
+        sample that is not current (one of a burst that queued while the caller was
+        starved: servoJ has moved on since, and judging a setpoint by it would be wrong)."""
+        if state is None:
+            return None
+        w2, w1, dt = self._w2, self._w1, CONTROL_PERIOD
+        latency = now - state.timestamp
+        if self._latency is None or latency < self._latency:
+            self._latency = latency
+        elif latency - self._latency > 1.5 * dt and state.timestamp != self._model_stamp:
+            self._model = None
+            return None
+        if state.timestamp != self._model_stamp or self._model is None:
+            self._model_stamp = state.timestamp
+            self._model = (list(state.target_q), list(state.target_qd))
+        elif self._last_sent is not None:
+            x, v = self._model
+            for j, s in enumerate(self._last_sent):
+                v[j] += (w2 * (s - x[j]) - w1 * v[j]) * dt
+                x[j] += v[j] * dt
+        return self._model
+
+    def _gentle(self, target: tuple[float, ...], model: tuple[list[float], list[float]]) -> bool:
+        """Whether servoJ's response to ``target`` stays within CATCH_UP_SHARE of the
+        braking acceleration on every joint."""
+        w2, w1, share = self._w2, self._w1, self.CATCH_UP_SHARE
+        for s, q, qd, limit in zip(target, model[0], model[1], self._accel, strict=True):
+            if abs(w2 * (s - q) - w1 * qd) > share * limit:
+                return False
+        return True
+
+    def _check(
+        self,
+        target: tuple[float, ...],
+        model: tuple[list[float], list[float]],
+        now: float,
+        state: RobotState | None,
+    ) -> tuple[float, ...]:
+        """The limit check on the setpoint stream: the acceleration servoJ makes of
+        ``target`` from the state it is in, per joint, against the braking acceleration
+        and the speed limit. A setpoint beyond them (by LIMIT_TOLERANCE) is moved to the
+        limit and recorded (:attr:`limited`, and a warning to the client)."""
+        w2, w1, dt = self._w2, self._w1, CONTROL_PERIOD
+        tolerance = self.LIMIT_TOLERANCE
+        changed: list[float] | None = None
+        self._cycle_events = 0
+        for j, (s, q, qd, amax, vmax) in enumerate(
+            zip(target, model[0], model[1], self._accel, self._speed, strict=True)
+        ):
+            a = w2 * (s - q) - w1 * qd
+            bound: float | None = None
+            if a > amax * tolerance:
+                bound = amax
+            elif a < -amax * tolerance:
+                bound = -amax
+            speed = qd + (a if bound is None else bound) * dt
+            if speed > vmax * tolerance:
+                bound = (vmax - qd) / dt
+            elif speed < -vmax * tolerance:
+                bound = (-vmax - qd) / dt
+            if bound is None:
+                continue
+            if changed is None:
+                changed = list(target)
+            changed[j] = q + (bound + w1 * qd) / w2
+            stamp = state.timestamp if state is not None else None
+            self.limited.append(LimitEvent(stamp, j, a, amax))
+            self._unreported += 1
+            self._cycle_events += 1
+        if changed is None:
+            return target
+        if self._reported_at is None or now - self._reported_at >= self.LIMIT_REPORT_EVERY:
+            now_limited = self.limited[-self._cycle_events :]
+            event = max(now_limited, key=lambda e: abs(e.acceleration) / e.limit)
+            self.notices.append(
+                Notice(
+                    "log",
+                    logging.WARNING,
+                    f"setpoint limited ({self._unreported} since the last report): joint "
+                    f"{event.joint + 1} would accelerate at {event.acceleration:+.1f} rad/s² "
+                    f"(limit {event.limit:g}) at controller time {event.timestamp} s",
+                )
+            )
+            self._reported_at, self._unreported = now, 0
+        return tuple(changed)
 
     # -- after the end
 

@@ -768,7 +768,9 @@ class _Trajectory:
         c = link.control
         seen = link._samples
         clock = link.latest.timestamp if link.latest is not None else None
-        follower = Follower(self.samples, self.guard, self.lookahead, now=started, clock=clock)
+        follower = Follower(
+            self.samples, self.guard, self.lookahead, gain=self.gain, now=started, clock=clock
+        )
         status: str = "completed"
         reason = ""
         if c is None:

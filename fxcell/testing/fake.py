@@ -31,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import logging
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, Literal
@@ -58,6 +59,8 @@ from fxcell.sim.controller import Controller
 from fxcell.sim.dashboard import Dashboard
 from fxcell.sim.motion import Arm, SafetyLimitError, ServoTrack, TableGuard
 from fxcell.sim.script import SCRIPT_MARKER
+
+log = logging.getLogger("fxcell.testing.fake")
 
 CONTROL_SCRIPT = f"def rtde_control():\n  {SCRIPT_MARKER}\n  end\nend\n"
 """What the fake uploads: the simulator runs it as ur_rtde's control script."""
@@ -641,7 +644,7 @@ class FakeTrajectory:
         self._replaced: asyncio.Future[bool] | None = None
         robot = link.robot
         now = robot.controller.time
-        self._follower = Follower(self.samples, guard, lookahead, now=now, clock=now)
+        self._follower = Follower(self.samples, guard, lookahead, gain=gain, now=now, clock=now)
         self._started = time.monotonic()
         self._detached = False  # the client was told it ended; the arm still brakes
 
@@ -734,7 +737,9 @@ class FakeTrajectory:
         out = follower.cycle(now, robot.servo_state(), state_at=robot.last_published)
         for notice in follower.notices:
             replaced = self._replaced
-            if notice.kind == "replaced" and replaced is not None and not replaced.done():
+            if notice.kind == "log":
+                log.log(notice.level, "link: %s", notice.text)  # as the link client logs it
+            elif replaced is not None and not replaced.done():
                 replaced.set_result(bool(notice.data["ok"]))
         follower.notices.clear()
         if out.target is None:
