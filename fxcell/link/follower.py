@@ -190,6 +190,11 @@ class Follower:
     stays within this share of the braking acceleration: the controller held the previous
     setpoint for the missed cycles, and a jump by all of them would snap the velocity back
     (a step of ``ω²·q̇·Δt`` per cycle caught up)."""
+    CATCH_UP_LEAST = 1 / 16
+    """The smallest part of the owed cycles paid back in one cycle (samples)."""
+    MAX_HELD = 50
+    """Most controller cycles on one setpoint the follower's model of servoJ runs (a longer
+    gap in the samples is a stall: it brakes)."""
     LIMIT_TOLERANCE = 1.05
     """The limit check changes a setpoint only beyond this factor of the limits."""
     LIMIT_REPORT_EVERY = 0.5  # s between two warnings about limited setpoints
@@ -223,6 +228,7 @@ class Follower:
         self._next_progress = 0
         self._rate = 1.0
         self._want = 0.0  # samples the next cycle advances, by the controller's clock
+        self._owed = 0.0  # controller cycles the path is behind (late or skipped cycles)
         self._clock = clock
         self._paced = 0  # setpoints the timer sent since the last sample
         # samples of path the follower's clock allows now (one per cycle, at most CATCH_UP)
@@ -235,12 +241,14 @@ class Follower:
         self._reported_at: float | None = None
         self._unreported = 0
         self._cycle_events = 0
-        # servoJ's target as the follower expects it now: from the newest state sample,
-        # run on by the setpoints sent since when no newer sample came (the 3 ms timer)
-        self._model_stamp: float | None = None
+        # servoJ's target as this setpoint stream makes it, one control cycle per setpoint
+        # (from servoJ's state at the first cycle): what the arm does when every setpoint
+        # is on time. It is not corrected by later samples: a setpoint the controller got
+        # a cycle late is the machine's doing, and judging the stream by such a sample
+        # (one cycle off by ω²·q̇·Δt) would make the check fight the timing.
         self._model: tuple[list[float], list[float]] | None = None
         self._last_sent: tuple[float, ...] | None = None
-        self._latency: float | None = None  # the least (now - controller time) seen
+        self._held = 0  # cycles the controller ran the last setpoint beyond its first
 
     # -- requests (between cycles)
 
@@ -284,7 +292,12 @@ class Follower:
         """This cycle's setpoint, or the end: ``now`` is the follower's clock, ``state``
         the newest state sample, ``heard_at`` when the client was last heard (None: not
         watched), ``state_at`` when the newest state sample arrived."""
-        model = self._servo(state, now)
+        if self._model is None and state is not None:
+            self._model = (list(state.target_q), list(state.target_qd))
+        model = self._model
+        if model is not None and self._held and self._last_sent is not None:
+            self._hold_model(model, self._last_sent, self._held)
+        self._held = 0
         self._move(model)
         if self.braking is None:
             why = self.abort_reason(now, heard_at, state_at)
@@ -375,6 +388,8 @@ class Follower:
             # the controller cycles since the last sample, less those the timer paced
             cycles = round((timestamp - self._clock) / CONTROL_PERIOD)
             steps = max(min(cycles, self.CATCH_UP) - self._paced, 0)
+            # the controller ran the last setpoint for the cycles beyond the first
+            self._held = min(max(cycles - self._paced - 1, 0), self.MAX_HELD)
             self._clock, self._paced = timestamp, 0
         else:  # no earlier time to count from (or the clock went back)
             steps = 1
@@ -390,63 +405,52 @@ class Follower:
 
     def _move(self, model: tuple[list[float], list[float]] | None) -> None:
         """Move along the path by the cycles counted since the last setpoint: the first at
-        the path's rate, the ones the controller ran without a fresh setpoint only as far
-        as servoJ's response stays gentle (see ``CATCH_UP_SHARE``); the rest is lost (the
-        path stretches), and given back by the budget as the follower's clock runs on."""
+        the path's rate; the ones the controller ran without a fresh setpoint (a late or
+        skipped cycle) are owed, and paid back as fast as servoJ's response stays gentle
+        (see ``CATCH_UP_SHARE``): at once after a short gap at low speed, else in parts
+        over the next cycles. Never a jump."""
         want, self._want = self._want, 0.0
         end = float(len(self.samples))
-        if want <= 0 or self.u >= end:
+        if self.u >= end:
+            self._owed = 0.0
+            return
+        if want <= 0 and self._owed <= 0:
             return
         rate = self._rate
         first = min(want, 1.0)
-        extra = want - first
-        if extra > 0:
-            # without a current state sample (servoJ's state unknown) nothing is caught up
-            while extra > 0 and (
-                model is None
-                or not self._gentle(
-                    path_at(self.samples, min(self.u + rate * (first + extra), end)), model
-                )
-            ):
-                extra -= 1.0
-            extra = max(extra, 0.0)
-            if extra < want - first:  # catch-up refused: the budget gets it back
-                self._budget = min(self._budget + (want - first - extra), self.CATCH_UP)
+        self._owed = min(self._owed + want - first, float(self.CATCH_UP))
+        extra = 0.0
+        if self._owed > 0 and model is not None and self.braking is None:
+            # the whole debt if that is gentle, else the largest half, quarter... of it
+            part = self._owed
+            while part >= self.CATCH_UP_LEAST:
+                if self._gentle(path_at(self.samples, min(self.u + first + part, end)), model):
+                    extra = part
+                    break
+                part /= 2
+        self._owed -= extra
         self.u = min(self.u + rate * (first + extra), end)
 
-    def _servo(
-        self, state: RobotState | None, now: float
-    ) -> tuple[list[float], list[float]] | None:
-        """servoJ's target position and velocity for this cycle's setpoint: the newest
-        state sample's, or (no new sample since the last cycle) the expected one, one
-        cycle on towards the last setpoint. None before any state sample, and for a
-        sample that is not current (one of a burst that queued while the caller was
-        starved: servoJ has moved on since, and judging a setpoint by it would be wrong)."""
-        if state is None:
-            return None
+    def _hold_model(
+        self, model: tuple[list[float], list[float]], setpoint: tuple[float, ...], cycles: int
+    ) -> None:
+        """Run the model of servoJ ``cycles`` control cycles on ``setpoint``."""
         w2, w1, dt = self._w2, self._w1, CONTROL_PERIOD
-        latency = now - state.timestamp
-        if self._latency is None or latency < self._latency:
-            self._latency = latency
-        elif latency - self._latency > 1.5 * dt and state.timestamp != self._model_stamp:
-            self._model = None
-            return None
-        if state.timestamp != self._model_stamp or self._model is None:
-            self._model_stamp = state.timestamp
-            self._model = (list(state.target_q), list(state.target_qd))
-        elif self._last_sent is not None:
-            x, v = self._model
-            for j, s in enumerate(self._last_sent):
+        x, v = model
+        for _ in range(cycles):
+            for j, s in enumerate(setpoint):
                 v[j] += (w2 * (s - x[j]) - w1 * v[j]) * dt
                 x[j] += v[j] * dt
-        return self._model
 
     def _gentle(self, target: tuple[float, ...], model: tuple[list[float], list[float]]) -> bool:
         """Whether servoJ's response to ``target`` stays within CATCH_UP_SHARE of the
-        braking acceleration on every joint."""
-        w2, w1, share = self._w2, self._w1, self.CATCH_UP_SHARE
-        for s, q, qd, limit in zip(target, model[0], model[1], self._accel, strict=True):
-            if abs(w2 * (s - q) - w1 * qd) > share * limit:
+        braking acceleration, and within the speed limit, on every joint."""
+        w2, w1, share, dt = self._w2, self._w1, self.CATCH_UP_SHARE, CONTROL_PERIOD
+        for s, q, qd, limit, vmax in zip(
+            target, model[0], model[1], self._accel, self._speed, strict=True
+        ):
+            a = w2 * (s - q) - w1 * qd
+            if abs(a) > share * limit or abs(qd + a * dt) > vmax:
                 return False
         return True
 
@@ -458,15 +462,17 @@ class Follower:
         state: RobotState | None,
     ) -> tuple[float, ...]:
         """The limit check on the setpoint stream: the acceleration servoJ makes of
-        ``target`` from the state it is in, per joint, against the braking acceleration
-        and the speed limit. A setpoint beyond them (by LIMIT_TOLERANCE) is moved to the
-        limit and recorded (:attr:`limited`, and a warning to the client)."""
+        ``target`` in the next cycle (``model``: its state after the setpoints so far),
+        per joint, against the braking acceleration and the speed limit. A setpoint
+        beyond them (by LIMIT_TOLERANCE) is moved to the limit and recorded
+        (:attr:`limited`, and a warning to the client); ``model`` moves on one cycle."""
         w2, w1, dt = self._w2, self._w1, CONTROL_PERIOD
         tolerance = self.LIMIT_TOLERANCE
         changed: list[float] | None = None
         self._cycle_events = 0
+        x, v = model
         for j, (s, q, qd, amax, vmax) in enumerate(
-            zip(target, model[0], model[1], self._accel, self._speed, strict=True)
+            zip(target, x, v, self._accel, self._speed, strict=True)
         ):
             a = w2 * (s - q) - w1 * qd
             bound: float | None = None
@@ -480,7 +486,11 @@ class Follower:
             elif speed < -vmax * tolerance:
                 bound = (-vmax - qd) / dt
             if bound is None:
+                v[j] = qd = qd + a * dt  # servoJ's cycle on this setpoint
+                x[j] = q + qd * dt
                 continue
+            v[j] = qd + bound * dt
+            x[j] = q + v[j] * dt
             if changed is None:
                 changed = list(target)
             changed[j] = q + (bound + w1 * qd) / w2
