@@ -11,14 +11,22 @@ One controller cycle is :meth:`Follower.cycle` (what to send now, or why it ende
 sample, or its timeout, is known):
 
 - **Advance.** One sample of path per controller cycle, by the state samples' controller
-  time: a sample ``k`` cycles after the previous one advances the path by up to
-  ``CATCH_UP`` samples, and never more than the follower's own clock allows (a burst of
-  queued samples after a stall is not a jump).
+  time. Cycles the controller ran on the previous setpoint (a late link, skipped or lost
+  samples; a sample ``k`` cycles after the previous one) are owed, up to ``CATCH_UP``, and
+  paid back only as fast as servoJ's response stays gentle: never a jump. The path never
+  runs more than ``CATCH_UP`` samples ahead of the follower's own clock either (a burst of
+  queued samples after a stall).
+- **The limit check.** The follower models servoJ as the critically damped tracker the
+  lag compensation assumes (:func:`servo_omega`), run on the setpoints it sends: a
+  setpoint that would make servoJ accelerate beyond the braking acceleration (by
+  ``LIMIT_TOLERANCE``) or exceed the speed limits is moved to the limit and recorded
+  (:attr:`Follower.limited`, a warning for the client's log).
 - **Braking.** The trajectory brakes to rest by itself when the client asks (:meth:`stop`,
   also when its socket closes), when the client has been silent for the guard's
   ``cell_timeout`` and when the state stream has been silent for ``stall_timeout``: the
   path's time rate falls from 1 to 0 as ``(1 + cos(πt/T))/2``, ``T`` from the braking
-  acceleration and jerk (:func:`brake_duration`).
+  acceleration and jerk, leaving room for the path's own acceleration
+  (:func:`brake_duration`).
 - **Stops in the state.** A safety stop or a stopped program in the newest state sample
   ends it at once (``failed``): the controller has stopped the arm.
 - **Splicing.** :meth:`replace` swaps the samples not yet sent (optionally from a given

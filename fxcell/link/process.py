@@ -22,15 +22,11 @@ mode, without needing anything from the client or the state stream.
 
 The trajectory thread sends one setpoint per state sample, as each sample arrives: locked
 to the controller's clock rather than to a timer of its own (two free-running 2 ms clocks
-beat, so that some controller cycles got two setpoints and some none); a sample a few
-cycles after the previous one (cycles the controller skipped, or samples lost) advances the
-path by those cycles, up to ``_Trajectory.CATCH_UP``, so the path keeps the controller's
-time. The advance is also bounded by the link's own clock: samples that queued up while
-the process was starved arrive in a burst, and a setpoint for each would move the target
-by the whole backlog within one controller cycle (the controller reads only the newest
-setpoint per cycle, and refuses such a jump with a protective stop). It never uses
-ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which starved
-the state pump for up to 20 ms per period.
+beat, so that some controller cycles got two setpoints and some none). Which setpoint, and
+when to brake or end, is the pure :class:`~fxcell.link.follower.Follower`'s (path advance
+and catch-up, braking, splicing, the limit check); this module adds only the I/O. It never
+uses ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which
+starved the state pump for up to 20 ms per period.
 """
 
 from __future__ import annotations

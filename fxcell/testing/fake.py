@@ -14,8 +14,10 @@ Dashboard commands get the simulator's replies and effects (power on, brake rele
 play/stop, Local control); robot and safety modes, protective stops (including the 5 s
 unlock rule and the arm entering the table) and program stops are the simulator's.
 External control runs the simulator's control-script program; trajectories are streamed
-with its servoJ tracker one setpoint per control cycle, brake along the path on stop and
-end as the link process's do (``completed``, ``stopped``, ``failed`` with the reason).
+with its servoJ tracker one setpoint per control cycle by the link process's own
+trajectory follower (:mod:`fxcell.link.follower`): they advance, splice, brake along the
+path and end as the link process's do (``completed``, ``stopped``, ``failed`` with the
+reason).
 
 Differences from the simulator process: no sockets and no ur_rtde (so no GIL stalls and
 no link process to kill); controller time runs ``speed`` times faster than the wall clock
