@@ -188,11 +188,12 @@ class Follower:
 
     PROGRESS_EVERY = 10  # samples (20 ms)
     CATCH_UP = 4
-    """Most samples one setpoint advances: a state sample ``k`` controller cycles after the
-    previous one (the controller skipped cycles, or their samples were lost) advances the
-    path by up to ``min(k, CATCH_UP)`` samples, so the path keeps the controller's time
-    instead of stretching by the missed cycles. Longer gaps stretch it. It is also the most
-    the path may run ahead of the follower's own clock (a burst of queued samples)."""
+    """Most controller cycles the path may owe: a state sample ``k`` cycles after the
+    previous one (the controller skipped cycles, or their samples were lost) owes up to
+    ``min(k, CATCH_UP) - 1`` samples, paid back over the next setpoints so the path keeps
+    the controller's time instead of stretching by the missed cycles. Longer gaps stretch
+    it. It is also the most the path may run ahead of the follower's own clock (a burst of
+    queued samples)."""
     CATCH_UP_SHARE = 0.5
     """The samples beyond one per cycle are caught up only as far as servoJ's response
     stays within this share of the braking acceleration: the controller held the previous
