@@ -423,10 +423,14 @@ _FAILURES: dict[str, type[Exception]] = {
 class ExecutionOptions:
     """How a plan is streamed."""
 
-    lookahead_time: float = 0.03
-    """servoJ lookahead (s): the smallest the controller takes, for the least lag."""
-    gain: float = 2000.0
-    """servoJ gain: the stiffest; the samples are already smooth and jerk-limited."""
+    lookahead_time: float = 0.1
+    """servoJ lookahead (s), with ``gain`` UR's defaults: the lag is compensated (below),
+    and a soft tracker turns a setpoint that comes a cycle late (a busy link process) into
+    ``ω²·q̇·Δt`` of acceleration, 0.8 rad/s² per rad/s here, where the stiffest setting
+    (0.03 s, 2000; ω ≈ 107/s) made it 23 rad/s² per rad/s, several times the braking
+    limit (see fxcell.link.follower.servo_omega)."""
+    gain: float = 300.0
+    """servoJ gain (see ``lookahead_time``)."""
     compensate_lag: bool = True
     """Lead the setpoints by servoJ's lag (≈ lookahead·(300/gain)^¼, URCL issue #86),
     so the executed motion equals the planned one; the last sample is unchanged."""
@@ -736,6 +740,8 @@ class MoveExecution:
             brake_jerk=min(limits.braking_jerk),
             cell_timeout=robot.heartbeat_timeout,
             stall_timeout=robot.stall_timeout,
+            velocity=tuple(limits.velocity),
+            path_acceleration=tuple(limits.acceleration),
         )
 
     async def _wait_rest(self, states: StateSubscription) -> None:
