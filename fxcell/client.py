@@ -218,19 +218,19 @@ class RemoteCell(CellCommands):
     async def _query(self, name: str) -> Any:
         return (await self._request("GET", f"/api/cell/{name}"))["result"]
 
-    async def start(self, name: str, **args: Any) -> RemoteOperation:
-        """Start command ``name`` as an operation and return at once."""
+    async def start(self, command: str, /, **args: Any) -> RemoteOperation:
+        """Start ``command`` as an operation and return at once."""
         record = await self._request(
             "POST",
-            f"/api/cell/{name}",
+            f"/api/cell/{command}",
             json_body=args,
             params={"wait": "false"},
             auth=True,
         )
         return RemoteOperation(self, record)
 
-    async def _command(self, name: str, **args: Any) -> Any:
-        op = await self.start(name, **args)
+    async def _command(self, command: str, /, **args: Any) -> Any:
+        op = await self.start(command, **args)
         return await op.wait()
 
     # ------------------------------------------------------------- daemon
@@ -360,16 +360,16 @@ class RemoteCell(CellCommands):
     # whose default bodies call run_command: the command table says how each goes over
     # HTTP and how its answer decodes.
 
-    async def run_command(self, name: str, **args: Any) -> Any:
-        """Run command ``name`` of :data:`fxcell.commands.COMMANDS` in the daemon; its
+    async def run_command(self, command: str, /, **args: Any) -> Any:
+        """Run ``command`` of :data:`fxcell.commands.COMMANDS` in the daemon; its
         result decoded into the type the Cell returns."""
-        entry = get_command(name)
+        entry = get_command(command)
         entry.check_args(args)
         if entry.kind == "query":
-            value = await self._query(name)
+            value = await self._query(command)
         else:
             value = await self._command(
-                name, **{k: _plain(v) for k, v in args.items() if v is not None}
+                command, **{k: _plain(v) for k, v in args.items() if v is not None}
             )
         return entry.result.decode(value)
 

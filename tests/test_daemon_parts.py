@@ -3,6 +3,7 @@ decimation, and the HTTP layer's refusals (which happen before any robot is invo
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import socket
@@ -519,3 +520,68 @@ def test_job_errors_answer_with_their_own_http_status(error: Exception, status: 
 def test_the_daemon_can_fix_glibcs_mmap_threshold() -> None:
     # serve() calls it first; a threshold set explicitly is one glibc never raises
     assert fix_mmap_threshold()
+
+
+# ----------------------------------------------------------------- the framework's own errors
+
+
+@pytest.mark.parametrize(
+    ("body", "fragment"),
+    [
+        (b'{"target": [0, 0, 0, 0, 0, "\xff\xfe"]}', "not UTF-8"),
+        (b'{"value": ' + b"9" * 5000 + b"}", "too many digits"),
+        (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
+        (b'{"target": [0, 0, 0', "json"),
+    ],
+    ids=["invalid-utf8", "5000-digit-integer", "100000-deep-nesting", "truncated"],
+)
+async def test_bodies_that_do_not_parse_get_a_typed_422(
+    http: httpx.AsyncClient, body: bytes, fragment: str
+) -> None:
+    r = await http.post(
+        "/api/cell/move_joint",
+        content=body,
+        headers={**auth(), "Content-Type": "application/json"},
+    )
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["type"] == "InvalidArgumentError"
+    assert error["status"] == 422
+    assert fragment.lower() in error["message"].lower()
+
+
+async def test_unknown_paths_and_wrong_methods_get_typed_errors(http: httpx.AsyncClient) -> None:
+    r = await http.get("/api/no/such/thing")
+    assert r.status_code == 404
+    assert r.json()["error"] == {
+        "type": "RemoteError",
+        "message": "no such path: GET /api/no/such/thing",
+        "status": 404,
+        "detail": {},
+    }
+    r = await http.delete("/api/state")
+    assert r.status_code == 405
+    assert r.json()["error"]["type"] == "RemoteError"
+    assert r.json()["error"]["status"] == 405
+    assert "GET" in r.headers["Allow"]
+
+
+@pytest.mark.parametrize(
+    ("path", "body"),
+    [
+        ("/api/cell/move_distance", {"distance": [1e400, 0, 0]}),  # inf once parsed
+        ("/api/cell/move_joint", {"target": [0, 0, 0, 0, 0, 10**400]}),
+        ("/api/cell/gripper_move", {"width": 0.2}),
+        ("/api/cell/gripper_move", {"width": 0.02, "grip_force": -1e300}),
+        ("/api/cell/io_wait_for", {"signal": "x", "timeout": 1e300}),
+    ],
+)
+async def test_numbers_out_of_their_range_are_refused_before_a_cell_is_needed(
+    http: httpx.AsyncClient, path: str, body: dict[str, object]
+) -> None:
+    content = json.dumps(body).replace("Infinity", "1e400").encode()
+    r = await http.post(
+        path, content=content, headers={**auth(), "Content-Type": "application/json"}
+    )
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["type"] == "InvalidArgumentError"

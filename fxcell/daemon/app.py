@@ -30,6 +30,7 @@ from fastapi import APIRouter, Body, FastAPI, Query, Request, WebSocket, WebSock
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fxcell._version import __version__
 from fxcell.commands import COMMANDS, Command
@@ -53,6 +54,21 @@ def _validation_message(exc: RequestValidationError) -> str:
         loc = ".".join(str(p) for p in err.get("loc", ()) if p != "body") or "body"
         parts.append(f"{loc}: {err.get('msg', 'invalid')}")
     return "invalid request: " + "; ".join(parts)
+
+
+def _unparsable(cause: BaseException | None) -> str:
+    """Why a request body could not be decoded (FastAPI's parse error names no cause)."""
+    if isinstance(cause, UnicodeDecodeError):
+        return f"the body is not UTF-8 (byte 0x{cause.object[cause.start]:02x} at {cause.start})"
+    if isinstance(cause, RecursionError):
+        return "the body is nested too deeply"
+    if isinstance(cause, ValueError) and "digits" in str(cause):
+        return "a number in the body has too many digits"
+    return "the body is not valid JSON"
+
+
+def _error_body(kind: str, message: str, status: int) -> dict[str, Any]:
+    return {"error": {"type": kind, "message": message, "status": status, "detail": {}}}
 
 
 def _arguments(body: Any) -> dict[str, Any]:
@@ -92,8 +108,30 @@ def create_app(service: CellService) -> FastAPI:
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         message = _validation_message(exc)
-        body = {"type": "InvalidArgumentError", "message": message, "status": 422, "detail": {}}
-        return JSONResponse({"error": body}, status_code=422)
+        return JSONResponse(_error_body("InvalidArgumentError", message, 422), status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _framework(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        # The framework's own refusals, in the same typed form as every other error.
+        if exc.status_code == 400:  # a body FastAPI could not decode (bad UTF-8, ...)
+            message = "invalid request: " + _unparsable(exc.__cause__)
+            return JSONResponse(_error_body("InvalidArgumentError", message, 422), status_code=422)
+        if exc.status_code == 404:
+            message = f"no such path: {request.method} {request.url.path}"
+        elif exc.status_code == 405:
+            message = f"{request.url.path} does not take {request.method}"
+        else:
+            message = str(exc.detail)
+        return JSONResponse(
+            _error_body("RemoteError", message, exc.status_code),
+            status_code=exc.status_code,
+            headers=exc.headers,
+        )
+
+    @app.exception_handler(Exception)
+    async def _bug(request: Request, exc: Exception) -> JSONResponse:
+        info = error_info(exc)  # a bug: typed too, with the exception named
+        return JSONResponse({"error": info}, status_code=500)
 
     def client_of(request: Request) -> str:
         name = request.headers.get(CLIENT_HEADER, "").strip()
@@ -132,9 +170,15 @@ def create_app(service: CellService) -> FastAPI:
         lease = None
         if needs_control:  # refuse a second client before anything else
             lease = service.control.acquire(client, request.headers.get(LEASE_HEADER)).lease
-        await service.wait_cell()
-        op = service.start_operation(name, args, client, call, lease=lease)
         headers = {LEASE_HEADER: lease} if lease else None
+        try:
+            # Everything knowable before the operation exists is the answer (409/422),
+            # whatever ``wait`` is: arguments, guard, Local control, factors, reach.
+            await service.check(name, args, client)
+            op = service.start_operation(name, args, client, call, lease=lease)
+        except FxcellError as exc:  # refused: the client still learns its lease
+            info = error_info(exc)
+            return JSONResponse({"error": info}, status_code=info["status"], headers=headers)
         if not wait:
             return JSONResponse(op.describe(), status_code=202, headers=headers)
         # The operation is its own task: a client that hangs up does not cancel it.
