@@ -9,6 +9,7 @@ import platform
 import socket
 import stat
 import time
+import urllib.parse
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -16,11 +17,13 @@ import httpx
 import pytest
 
 from fxcell import errors
+from fxcell.client import decode_client_name, encode_client_name
 from fxcell.config import CellConfig
 from fxcell.daemon.app import create_app
 from fxcell.daemon.auth import TOKEN_ENV, check_bearer, load_or_create_token, read_token
 from fxcell.daemon.control import ControlLock
 from fxcell.daemon.encoding import http_status
+from fxcell.daemon.guard import same_origin
 from fxcell.daemon.notify import Notifier
 from fxcell.daemon.server import check_bind, fix_mmap_threshold, is_loopback
 from fxcell.daemon.service import CellService
@@ -585,3 +588,55 @@ async def test_numbers_out_of_their_range_are_refused_before_a_cell_is_needed(
     )
     assert r.status_code == 422, r.text
     assert r.json()["error"]["type"] == "InvalidArgumentError"
+
+
+# ----------------------------------------------------------------- client names, origins
+
+
+NAME = "bétà-☺"
+
+
+@pytest.mark.parametrize(
+    "header",
+    [NAME.encode(), b"UTF-8''" + urllib.parse.quote(NAME).encode(), encode_client_name(NAME)],
+    ids=["raw-utf8", "rfc8187", "as-remotecell-sends-it"],
+)
+async def test_client_names_are_utf8_end_to_end(http: httpx.AsyncClient, header: object) -> None:
+    r = await http.post(
+        "/api/control",
+        headers={"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": header},  # type: ignore[arg-type]
+    )
+    assert r.status_code == 200, r.text
+    assert r.json()["client"] == NAME
+    assert (await http.get("/api/control")).json()["client"] == NAME
+
+
+def test_client_names_round_trip_through_the_header() -> None:
+    for name in (NAME, "plain@host (RemoteCell, pid 7)", "utf-8''x", "tab\there", "日本語"):
+        value = encode_client_name(name)
+        assert value.isascii()
+        assert decode_client_name(value.encode()) == name.replace("\t", "")
+    assert decode_client_name(b"caf\xe9") == "café"  # not UTF-8: read as Latin-1
+
+
+@pytest.mark.parametrize(
+    ("origin", "scheme", "host", "same"),
+    [
+        ("http://127.0.0.1:8040", "ws", "127.0.0.1:8040", True),
+        ("https://127.0.0.1:8040", "ws", "127.0.0.1:8040", False),  # another scheme
+        ("http://127.0.0.1:8040", "wss", "127.0.0.1:8040", False),
+        ("https://cell.lab", "wss", "cell.lab", True),
+        ("https://cell.lab:443", "wss", "cell.lab", True),
+        ("http://cell.lab", "ws", "cell.lab:80", True),
+        ("http://CELL.lab", "ws", "cell.LAB", True),
+        ("http://127.0.0.1:8041", "ws", "127.0.0.1:8040", False),
+        ("http://evil.example", "ws", "127.0.0.1:8040", False),
+        ("null", "ws", "127.0.0.1:8040", False),
+        ("http://127.0.0.1:99999", "ws", "127.0.0.1:8040", False),
+        ("http://127.0.0.1:8040", "ws", None, False),
+    ],
+)
+def test_the_stream_is_open_only_to_pages_of_the_same_origin(
+    origin: str, scheme: str, host: str | None, same: bool
+) -> None:
+    assert same_origin(origin, scheme, host) is same

@@ -21,7 +21,6 @@ import asyncio
 import contextlib
 import json
 import time
-import urllib.parse
 from collections.abc import Awaitable, Callable
 from importlib import resources
 from typing import Any
@@ -33,18 +32,19 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fxcell._version import __version__
+from fxcell.client import CLIENT_HEADER, decode_client_name
 from fxcell.commands import COMMANDS, Command
 from fxcell.daemon import models
 from fxcell.daemon.control import LEASE_HEADER
 from fxcell.daemon.encoding import error_info, jsonable
-from fxcell.daemon.guard import RequestGuard
+from fxcell.daemon.guard import RequestGuard, same_origin
 from fxcell.daemon.jobs import JOB_COMMANDS
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import PING_PERIOD, parse_rate, parse_topics
 from fxcell.errors import FxcellError, NotAuthorizedError, RemoteError
 from fxcell.events import COMMAND_ORIGIN
 
-CLIENT_HEADER = "X-Fxcell-Client"
+CLIENT_KEY = CLIENT_HEADER.lower().encode()
 STATIC = resources.files("fxcell.daemon") / "static"
 
 
@@ -134,7 +134,9 @@ def create_app(service: CellService) -> FastAPI:
         return JSONResponse({"error": info}, status_code=500)
 
     def client_of(request: Request) -> str:
-        name = request.headers.get(CLIENT_HEADER, "").strip()
+        # From the raw bytes: Starlette reads header values as Latin-1, which garbles UTF-8.
+        raw = next((v for k, v in request.scope["headers"] if k.lower() == CLIENT_KEY), b"")
+        name = decode_client_name(raw)
         if name:
             return name[:200]
         host = request.client.host if request.client else "unknown"
@@ -401,8 +403,9 @@ def create_app(service: CellService) -> FastAPI:
     async def stream(websocket: WebSocket) -> None:
         params = websocket.query_params
         origin = websocket.headers.get("origin")
-        if origin and urllib.parse.urlsplit(origin).netloc != websocket.headers.get("host"):
-            # Browsers send Origin: another site's page must not watch the robot.
+        if origin and not same_origin(origin, websocket.url.scheme, websocket.headers.get("host")):
+            # Browsers send Origin: another site's page (or the same host and port under
+            # another scheme) must not watch the robot.
             await websocket.close(code=1008, reason="cross-origin stream refused")
             return
         try:
