@@ -95,7 +95,10 @@ _FAILURE_STATES: dict[CellState, type[FxcellError]] = {
     CellState.FAULT: RobotFaultError,
 }
 REMOTE_POLL = 0.25
-"""Seconds between two queries of the pendant's Local/Remote switch."""
+"""Seconds between two queries of the pendant's Local/Remote switch while no move runs."""
+REMOTE_POLL_MOVING = 0.02
+"""... and while a move runs: a switch to Local brakes it within this plus a dashboard
+round trip (neither RTDE nor the primary interface streams the switch)."""
 _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
     **_FAILURE_STATES,
     CellState.PROGRAM_STOPPED: ProgramStoppedError,
@@ -172,8 +175,11 @@ class Cell(CellCommands):
         """The arm's calibration the planner uses (None: not read, or unreadable)."""
         self._restore: asyncio.Task[None] | None = None
         self._remote_watch: asyncio.Task[None] | None = None
+        self._move_started = asyncio.Event()
+        """Set when a move starts: the remote watch polls fast from then on."""
         self.local_control = False
-        """The teach pendant is in Local control (polled every 0.25 s): moves are refused
+        """The teach pendant is in Local control (polled every 0.25 s, 0.02 s while a move
+        runs): moves are refused
         and a running move brakes."""
         self._opened = False
         self._gripper: Gripper | None = None
@@ -600,7 +606,11 @@ class Cell(CellCommands):
     async def _watch_remote(self) -> None:
         """Follow the pendant's Local/Remote switch: Local brakes a running move."""
         while True:
-            await asyncio.sleep(REMOTE_POLL)
+            period = REMOTE_POLL_MOVING if self._moving() else REMOTE_POLL
+            with contextlib.suppress(TimeoutError):  # a move starting ends the wait
+                async with asyncio.timeout(period):
+                    await self._move_started.wait()
+            self._move_started.clear()
             link = self.link
             if link is None or not link.up:
                 continue
@@ -877,6 +887,7 @@ class Cell(CellCommands):
             runner = make()
             self._runner = runner
             task = runner.start()
+            self._move_started.set()
             self._observe(self.robot_state, name)
             try:
                 out["result"] = result = await asyncio.shield(task)
