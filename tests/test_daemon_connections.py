@@ -130,3 +130,20 @@ async def test_the_deadlines_end_with_a_websocket_upgrade(server: tuple[str, int
         await asyncio.sleep(2 * BODY_TIMEOUT)  # past both deadlines
         async with asyncio.timeout(5):
             await (await ws.ping())  # still open: the server answers
+
+
+async def test_a_stream_ignores_messages_it_cannot_read(server: tuple[str, int]) -> None:
+    host, port = server
+    async with websockets.connect(f"ws://{host}:{port}/api/stream?topics=control") as ws:
+        assert json.loads(await ws.recv())["type"] == "hello"
+        for text in (
+            "[" * 100_000 + "]" * 100_000,  # deeper than the JSON parser goes
+            '{"rate": ' + "9" * 5000 + "}",
+            '{"rate": 1' + "0" * 400 + "}",  # a number no float holds
+            '{"rate": "fast"}',
+            "[1, 2]",
+            "\udcff".encode("utf-8", "surrogatepass").decode("latin-1"),
+        ):
+            await ws.send(text)
+        with pytest.raises(TimeoutError):  # the server keeps the stream open
+            await asyncio.wait_for(ws.wait_closed(), 1.0)

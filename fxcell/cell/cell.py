@@ -178,9 +178,8 @@ class Cell(CellCommands):
         self._move_started = asyncio.Event()
         """Set when a move starts: the remote watch polls fast from then on."""
         self.local_control = False
-        """The teach pendant is in Local control (polled every 0.25 s, 0.02 s while a move
-        runs): moves are refused
-        and a running move brakes."""
+        """The teach pendant is in Local control (polled every 0.25 s, every 0.02 s while a
+        move runs): moves are refused and a running move brakes."""
         self._opened = False
         self._gripper: Gripper | None = None
         self._io: CellIO | None = None

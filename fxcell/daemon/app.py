@@ -7,8 +7,10 @@ Layout of the API (the OpenAPI document is at ``/api/openapi.json``, browsable a
   from the newest 500 Hz sample — no robot round trip.
 - ``GET /api/cell/<query>``: the Cell's general and kinematic queries (``get_robot_mode``, ...).
 - ``POST /api/cell/<command>``: commands that change the robot. They need the bearer token
-  and control; each runs as an operation. General commands answer when done (``wait``
-  defaults to true), moves answer at once with 202 and the operation (``wait=true`` to block).
+  and control; each runs as an operation, once the Cell's admission
+  (``Cell.check_command``) has passed: a refusal is the answer (409/422) whatever ``wait``
+  is. General commands answer when done (``wait`` defaults to true), moves answer at once
+  with 202 and the operation (``wait=true`` to block).
 - ``/api/operations``: list, get, wait on and cancel operations (cancel = stop).
 - ``/api/control``: who controls the cell; take (``force`` to take over) and release it.
 - ``/api/statechart``: the robot-mode state machine as data, with the states each command needs.
@@ -421,7 +423,10 @@ def create_app(service: CellService) -> FastAPI:
         async def receive() -> None:
             while True:
                 text = await websocket.receive_text()
-                with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
+                # a client's malformed message is ignored (too deep or huge numbers too)
+                with contextlib.suppress(
+                    ValueError, TypeError, KeyError, AttributeError, RecursionError, OverflowError
+                ):
                     message = json.loads(text)
                     if message.get("type") == "pong":
                         watcher.last_pong = time.monotonic()
