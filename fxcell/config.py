@@ -151,6 +151,12 @@ class DaemonConfig(_Model):
     allowed_hosts: tuple[str, ...] = ()
     """Host names (besides localhost, the bind address and any IP address) under which
     the daemon may be reached; other names are refused (DNS-rebinding protection)."""
+    header_timeout: float = Field(3.0, gt=0, le=60)
+    """Seconds a client has to send a request's headers; a slower connection is closed."""
+    body_timeout: float = Field(10.0, gt=0, le=600)
+    """Seconds a client has to send a request's body once its headers are in."""
+    idle_timeout: int = Field(5, ge=1, le=3600)
+    """Seconds a kept-alive connection may stay idle between requests before it is closed."""
 
 
 class IOConfig(_Model):

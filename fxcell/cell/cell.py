@@ -25,7 +25,7 @@ from fxcell.cell import handling
 from fxcell.cell.gripper import Gripper
 from fxcell.cell.io import CellIO
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
-from fxcell.cell.teach import TaughtStore
+from fxcell.cell.teach import TaughtStore, check_frame_point
 from fxcell.cell.teach import check_name as check_position_name
 from fxcell.commands import CellCommands, get_command
 from fxcell.config import CellConfig
@@ -95,7 +95,10 @@ _FAILURE_STATES: dict[CellState, type[FxcellError]] = {
     CellState.FAULT: RobotFaultError,
 }
 REMOTE_POLL = 0.25
-"""Seconds between two queries of the pendant's Local/Remote switch."""
+"""Seconds between two queries of the pendant's Local/Remote switch while no move runs."""
+REMOTE_POLL_MOVING = 0.02
+"""... and while a move runs: a switch to Local brakes it within this plus a dashboard
+round trip (neither RTDE nor the primary interface streams the switch)."""
 _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
     **_FAILURE_STATES,
     CellState.PROGRAM_STOPPED: ProgramStoppedError,
@@ -172,9 +175,11 @@ class Cell(CellCommands):
         """The arm's calibration the planner uses (None: not read, or unreadable)."""
         self._restore: asyncio.Task[None] | None = None
         self._remote_watch: asyncio.Task[None] | None = None
+        self._move_started = asyncio.Event()
+        """Set when a move starts: the remote watch polls fast from then on."""
         self.local_control = False
-        """The teach pendant is in Local control (polled every 0.25 s): moves are refused
-        and a running move brakes."""
+        """The teach pendant is in Local control (polled every 0.25 s, every 0.02 s while a
+        move runs): moves are refused and a running move brakes."""
         self._opened = False
         self._gripper: Gripper | None = None
         self._io: CellIO | None = None
@@ -444,15 +449,116 @@ class Cell(CellCommands):
 
     # ------------------------------------------------------------- commands
 
-    async def run_command(self, name: str, **args: Any) -> Any:
-        """Run command ``name`` of :data:`fxcell.commands.COMMANDS` with keyword arguments
+    async def run_command(self, command: str, /, **args: Any) -> Any:
+        """Run ``command`` of :data:`fxcell.commands.COMMANDS` with keyword arguments
         (how the daemon and replay call the Cell)."""
-        entry = get_command(name)
+        entry = get_command(command)
         entry.check_args(args)
-        method = getattr(type(self), name)
-        if method is getattr(CellCommands, name):
-            raise NotImplementedError(f"Cell does not implement {name}()")
-        return await getattr(self, name)(**args)
+        method = getattr(type(self), command)
+        if method is getattr(CellCommands, command):
+            raise NotImplementedError(f"Cell does not implement {command}()")
+        return await getattr(self, command)(**args)
+
+    async def check_command(self, command: str, /, **args: Any) -> None:
+        """Raise now what ``command`` with ``args`` would be refused with before it starts,
+        without starting it (nothing is sent to the robot).
+
+        The checks are those the command itself makes before it acts: the arguments
+        against the table (names, finite numbers, bounds, lengths), the state machine's
+        guard, for moves a running move (unless ``queue``), Local control, the factors
+        and the target (within the joint limits, a pose, within reach, a collision-free
+        IK solution; for ``pick``/``place`` names, interlock, what the gripper holds and
+        the slot's poses). The daemon calls it before an operation exists, so a refusal
+        is the request's answer whether or not the client waits. A refusal is recorded
+        as the command's error.
+        """
+        entry = get_command(command)
+        try:
+            entry.check_args(args)
+            entry.check_values(args)
+            self._check_arguments(command, args)
+            await self._move_landed()
+            if entry.kind != "move":
+                if entry.guard is not None:
+                    self.machine.check(entry.guard, command)
+                return
+            await self._admit_move(command, args, queue=bool(args.get("queue")))
+        except FxcellError as exc:
+            self._record_refusal(command, args, exc)
+            raise
+
+    def _check_arguments(self, command: str, args: Mapping[str, Any]) -> None:
+        """The checks of arguments against the cell's configuration that commands other
+        than moves make before they act (moves: :meth:`_admit_move`)."""
+        checks: dict[str, Callable[[], object]] = {
+            "io_set": lambda: self.io.check_set(args["signal"], args["value"]),
+            "io_wait_for": lambda: self.io.check_wait(args["signal"], args.get("value", True)),
+            "teach": lambda: check_position_name(args["name"]),
+            "teach_frame_point": lambda: check_frame_point(
+                self.layout.station(args["station"]).name, args["point"]
+            ),
+        }
+        check = checks.get(command)
+        if check is not None:
+            check()
+
+    def _record_refusal(self, name: str, args: Mapping[str, Any], exc: FxcellError) -> None:
+        """Record a command refused before it started, as one that failed at once."""
+        command_id = self.bus.next_command_id()
+        started = time.time()
+        origin = COMMAND_ORIGIN.get() or self._origin
+        recorded = {k: to_jsonable(v) for k, v in args.items()}
+        self.bus.publish(CommandEvent(command_id, name, recorded, origin, started))
+        self.bus.publish(
+            CommandEvent(
+                command_id, name, recorded, origin, started, time.time(), "error",
+                type(exc).__name__, str(exc),
+            )
+        )  # fmt: skip
+
+    async def _admit_move(self, name: str, args: Mapping[str, Any], *, queue: bool) -> None:
+        """Raise what refuses move ``name`` before it exists: another move running
+        (unless ``queue``: it waits its turn), the guard, Local control, then the factors
+        and the target, or for ``pick``/``place`` the slot."""
+        if not (queue and self._moving()):
+            if self._moving():
+                raise MoveInProgressError(f"{name}(): another move is running")
+            self.machine.check("move", name)
+        self._check_remote(name)
+        vf, af = args.get("velocity_factor"), args.get("acceleration_factor")
+        if name in handling.ADMIT:
+            await handling.check(self, name, args["station"], args["slot"], vf, af)
+            return
+        target = self._move_target(name, args)
+        await self._moves().check(target, self._sample().actual_q, vf, af)
+
+    def _move_target(self, name: str, args: Mapping[str, Any]) -> MoveTarget:
+        """The target of move command ``name`` (the move methods and :meth:`check_command`
+        build it here, so both check the same thing)."""
+        targets: dict[str, Callable[[], MoveTarget]] = {
+            "move_joint": lambda: JointTarget(args["target"]),
+            "go_home": lambda: JointTarget(self.config.home),
+            "move_pose": lambda: PoseTarget(args["target"], bool(args.get("linear", False))),
+            "move_distance": lambda: DistanceTarget(args["distance"]),
+            "move_relative": lambda: RelativeTarget(args["start_pose"], args["target_pose"]),
+            "move_to": lambda: JointTarget(self._position_joints(args["name"])),
+        }
+        return targets[name]()
+
+    def _position_joints(self, name: str) -> Sequence[float]:
+        """The joints of taught position ``name`` (``home``: the configured home);
+        UnknownPositionError for an unknown name."""
+        if name == "home":
+            return self.config.home
+        joints: Sequence[float] = self.taught.position(name)["joints"]
+        return joints
+
+    def _check_remote(self, name: str) -> None:
+        if self.local_control:
+            raise NotInRemoteControlError(
+                f"{name}() refused: the teach pendant is in Local control; "
+                "switch it to Remote Control"
+            )
 
     @contextlib.asynccontextmanager
     async def _command(self, name: str, /, **args: Any) -> AsyncIterator[dict[str, Any]]:
@@ -499,7 +605,11 @@ class Cell(CellCommands):
     async def _watch_remote(self) -> None:
         """Follow the pendant's Local/Remote switch: Local brakes a running move."""
         while True:
-            await asyncio.sleep(REMOTE_POLL)
+            period = REMOTE_POLL_MOVING if self._moving() else REMOTE_POLL
+            with contextlib.suppress(TimeoutError):  # a move starting ends the wait
+                async with asyncio.timeout(period):
+                    await self._move_started.wait()
+            self._move_started.clear()
             link = self.link
             if link is None or not link.up:
                 continue
@@ -772,14 +882,11 @@ class Cell(CellCommands):
             if self._runner is not None and self._runner.running:
                 raise MoveInProgressError(f"{name}(): another move is running")
             self.machine.check("move", name)
-            if self.local_control:
-                raise NotInRemoteControlError(
-                    f"{name}() refused: the teach pendant is in Local control; "
-                    "switch it to Remote Control"
-                )
+            self._check_remote(name)
             runner = make()
             self._runner = runner
             task = runner.start()
+            self._move_started.set()
             self._observe(self.robot_state, name)
             try:
                 out["result"] = result = await asyncio.shield(task)
@@ -839,7 +946,18 @@ class Cell(CellCommands):
         running execution."""
         return self._moves()
 
-    async def _move(
+    async def _move(self, name: str, args: dict[str, Any], *, queue: bool = False) -> MoveResult:
+        """Run move command ``name``: its target checked before the move exists (a
+        refusal is recorded), then planned and executed as the Cell's one move."""
+        try:
+            await self._move_landed()
+            await self._admit_move(name, args, queue=queue)
+        except FxcellError as exc:
+            self._record_refusal(name, {**args, "queue": queue}, exc)
+            raise
+        return await self._run_checked(name, args, self._move_target(name, args), queue=queue)
+
+    async def _run_checked(
         self, name: str, args: dict[str, Any], target: MoveTarget, *, queue: bool = False
     ) -> MoveResult:
         if queue:
@@ -855,7 +973,7 @@ class Cell(CellCommands):
                     recorded = {k: to_jsonable(v) for k, v in args.items()}
                     async with self._command(name, **recorded, queue=True):
                         raise MoveStoppedError(f"{name}() was waiting in the queue: stopped")
-                return await self._move(name, {**args, "queue": True}, target)
+                return await self._run_checked(name, {**args, "queue": True}, target)
         await self._move_landed()
 
         def make() -> MoveRunner:
@@ -891,7 +1009,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_joint", args, JointTarget(target), queue=queue)
+        return await self._move("move_joint", args, queue=queue)
 
     async def go_home(
         self,
@@ -901,7 +1019,7 @@ class Cell(CellCommands):
         queue: bool = False,
     ) -> MoveResult:
         args = {"velocity_factor": velocity_factor, "acceleration_factor": acceleration_factor}
-        return await self._move("go_home", args, JointTarget(self.config.home), queue=queue)
+        return await self._move("go_home", args, queue=queue)
 
     async def move_pose(
         self,
@@ -914,7 +1032,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor, "linear": linear}  # fmt: skip
-        return await self._move("move_pose", args, PoseTarget(target, linear), queue=queue)
+        return await self._move("move_pose", args, queue=queue)
 
     async def move_distance(
         self,
@@ -926,7 +1044,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         args = {"distance": distance, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_distance", args, DistanceTarget(distance), queue=queue)
+        return await self._move("move_distance", args, queue=queue)
 
     async def move_relative(
         self,
@@ -940,8 +1058,7 @@ class Cell(CellCommands):
         args = {"start_pose": start_pose, "target_pose": target_pose,
                 "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        target = RelativeTarget(start_pose, target_pose)
-        return await self._move("move_relative", args, target, queue=queue)
+        return await self._move("move_relative", args, queue=queue)
 
     async def set_velocity_factor(self, value: float) -> None:
         async with self._command("set_velocity_factor", value=to_jsonable(value)):
@@ -1116,8 +1233,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         args = {"name": name, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        joints = self.config.home if name == "home" else self.taught.position(name)["joints"]
-        return await self._move("move_to", args, JointTarget(joints), queue=queue)
+        return await self._move("move_to", args, queue=queue)
 
     # ------------------------------------------------------------- layout, pick and place
 

@@ -46,10 +46,57 @@ def check_interlock(cell: Cell, station: Station) -> None:
         )
 
 
-def _precheck(cell: Cell, station: Station, slot: str) -> None:
-    """IK for approach, grip and retreat on one configuration, free of collision."""
-    planner = cell.motion.planner
+def admit_pick(cell: Cell, station_name: str, slot_name: str) -> tuple[Station, str]:
+    """The station and slot of a pick, or the error that refuses it (names, interlock,
+    a held object): no IK yet (see :func:`reach_slot`)."""
+    station, slot = cell.layout.slot(station_name, slot_name)
+    check_interlock(cell, station)
+    if cell.held is not None:
+        raise HoldingError(
+            f"pick refused: the gripper holds a {cell.held}; place or release it first"
+        )
+    return station, slot
+
+
+def admit_place(cell: Cell, station_name: str, slot_name: str) -> tuple[Station, str]:
+    """The station and slot of a place, or the error that refuses it (names, interlock,
+    nothing or the wrong kind held)."""
+    station, slot = cell.layout.slot(station_name, slot_name)
+    check_interlock(cell, station)
+    if cell.held is None:
+        raise HoldingError("place refused: the gripper holds nothing; pick an object first")
+    if cell.held != station.config.holds:
+        raise HoldingError(
+            f"place refused: {station.name} takes {station.config.holds}s, "
+            f"the gripper holds a {cell.held}"
+        )
+    return station, slot
+
+
+async def check(
+    cell: Cell,
+    name: str,
+    station_name: str,
+    slot_name: str,
+    velocity_factor: float | None,
+    acceleration_factor: float | None,
+) -> None:
+    """Raise what refuses ``pick`` or ``place`` (``name``) before anything moves: names,
+    interlock, what the gripper holds, factors, reach of the slot's three poses."""
+    station, slot = ADMIT[name](cell, station_name, slot_name)
+    cell.motion.factors(velocity_factor, acceleration_factor)
+    await reach_slot(cell, station, slot)
+
+
+async def reach_slot(cell: Cell, station: Station, slot: str) -> None:
+    """IK for approach, grip and retreat on one configuration, free of collision (in the
+    planner's worker thread, one at a time with plans)."""
     q0 = np.asarray(cell._sample().actual_q, float)
+    await cell.motion.locked(lambda: _reach_slot(cell, station, slot, q0))
+
+
+def _reach_slot(cell: Cell, station: Station, slot: str, q0: np.ndarray) -> None:
+    planner = cell.motion.planner
     what = f"{station.name} {slot}"
     try:
         q_above = planner.solve(station.approach_pose(slot), q0)
@@ -68,13 +115,9 @@ async def pick(
     velocity_factor: float | None,
     acceleration_factor: float | None,
 ) -> GripResult:
-    station, slot = cell.layout.slot(station_name, slot_name)
-    check_interlock(cell, station)
-    if cell.held is not None:
-        raise HoldingError(
-            f"pick refused: the gripper holds a {cell.held}; place or release it first"
-        )
-    _precheck(cell, station, slot)
+    station, slot = admit_pick(cell, station_name, slot_name)
+    cell.motion.factors(velocity_factor, acceleration_factor)
+    await reach_slot(cell, station, slot)
     kind = station.kind
     vf, af = velocity_factor, acceleration_factor
     await cell.gripper_move(min(0.050, kind.width + CLEARANCE))
@@ -106,16 +149,9 @@ async def place(
     velocity_factor: float | None,
     acceleration_factor: float | None,
 ) -> GripResult:
-    station, slot = cell.layout.slot(station_name, slot_name)
-    check_interlock(cell, station)
-    if cell.held is None:
-        raise HoldingError("place refused: the gripper holds nothing; pick an object first")
-    if cell.held != station.config.holds:
-        raise HoldingError(
-            f"place refused: {station.name} takes {station.config.holds}s, "
-            f"the gripper holds a {cell.held}"
-        )
-    _precheck(cell, station, slot)
+    station, slot = admit_place(cell, station_name, slot_name)
+    cell.motion.factors(velocity_factor, acceleration_factor)
+    await reach_slot(cell, station, slot)
     vf, af = velocity_factor, acceleration_factor
     await cell.move_pose(station.approach_pose(slot), vf, af)
     check_interlock(cell, station)
@@ -125,3 +161,7 @@ async def place(
     await cell._hold(None)
     await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
     return released
+
+
+ADMIT = {"pick": admit_pick, "place": admit_place}
+"""The admission check of each slot command (see :func:`check`)."""

@@ -30,6 +30,7 @@ import uvicorn
 from fxcell.config import CellConfig
 from fxcell.daemon.app import create_app
 from fxcell.daemon.auth import MIN_REMOTE_TOKEN_LENGTH, load_or_create_token
+from fxcell.daemon.connection import guarded_protocol
 from fxcell.daemon.notify import Notifier
 from fxcell.daemon.service import CellService
 from fxcell.errors import ConfigError, FxcellError
@@ -102,16 +103,20 @@ class Daemon:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self._on_signal, sig)
+        daemon = self.config.daemon
         server = _Server(
             uvicorn.Config(
                 self.app,
-                host=self.config.daemon.host,
-                port=self.config.daemon.port,
+                host=daemon.host,
+                port=daemon.port,
                 log_level="warning",
                 lifespan="off",
                 ws="websockets-sansio",
                 ws_ping_interval=None,
                 timeout_graceful_shutdown=1,
+                # half-open connections are closed (fxcell.daemon.connection)
+                http=guarded_protocol(daemon.header_timeout, daemon.body_timeout),
+                timeout_keep_alive=daemon.idle_timeout,
             )
         )
         sock = self._bind()

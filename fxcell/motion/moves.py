@@ -19,7 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -114,6 +114,18 @@ class MovePlan:
         return self.trajectory.duration
 
 
+T = TypeVar("T")
+
+MAX_ANGLE = 2 * math.pi
+"""Largest roll, pitch or yaw (rad) a pose's 6-list may give."""
+
+
+def _reach(kinematics: Any) -> float:
+    dh = kinematics.dh
+    tcp = float(np.linalg.norm(kinematics.tcp.position))
+    return float(sum(abs(v) for v in (*dh.a, *dh.d))) + tcp + 0.01
+
+
 def _vector(value: object, n: int, what: str) -> Array:
     try:
         arr = np.asarray(value, dtype=float)
@@ -158,6 +170,9 @@ class MotionPlanner:
         )
         self._lower = np.asarray(config.limits.position_min, float)
         self._upper = np.asarray(config.limits.position_max, float)
+        self.reach = _reach(self.kinematics)
+        """No TCP position farther than this from the base origin is reachable (m; the sum
+        of the DH lengths and the TCP offset, plus a margin for calibration deltas)."""
 
     @property
     def max_acceleration(self) -> tuple[float, ...]:
@@ -196,19 +211,66 @@ class MotionPlanner:
         if len(outside):
             j = int(outside[0])
             raise InvalidTargetError(
-                f"{what}: joint {j + 1} = {q[j]:.4f} rad is outside "
+                f"{what}: joint {j + 1} = {q[j]:.6g} rad is outside "
                 f"[{self._lower[j]:.4f}, {self._upper[j]:.4f}]"
             )
         return q
 
     def parse_pose(self, target: object) -> Pose:
-        """A Pose, 7-list (quaternion) or 6-list (RPY) as :meth:`Pose.parse`; InvalidTargetError."""
+        """A Pose, 7-list (quaternion) or 6-list (RPY) as :meth:`Pose.parse`; InvalidTargetError.
+
+        Roll, pitch and yaw must lie in [-2π, 2π]: a larger angle is a mistake (a unit or a
+        typo), not a rotation anybody means."""
         try:
-            return target if isinstance(target, Pose) else Pose.parse(target)
+            pose = target if isinstance(target, Pose) else Pose.parse(target)
         except InvalidTargetError:
             raise
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise InvalidTargetError(f"not a pose: {target!r} ({exc})") from None
+        if not isinstance(target, Pose) and len(target) == 6:  # type: ignore[arg-type]
+            for axis, angle in zip(("roll", "pitch", "yaw"), list(target)[3:], strict=True):  # type: ignore[call-overload]
+                if not abs(float(angle)) <= MAX_ANGLE:
+                    raise InvalidTargetError(
+                        f"{axis} {float(angle):.6g} rad is not an angle in [-2π, 2π]"
+                    )
+        return pose
+
+    def check_reach(self, pose: Pose, what: str = "target") -> None:
+        """UnreachableError for a TCP position beyond the arm's reach, before IK or a
+        straight line is computed (a huge target would overflow them)."""
+        distance = math.hypot(*(float(v) for v in pose.position))
+        if not distance <= self.reach:  # also inf and nan
+            raise UnreachableError(
+                f"the {what} is {distance:.4g} m from the base; the arm reaches "
+                f"{self.reach:.3f} m at most"
+            )
+
+    def distance_target(self, start: ArrayLike, distance: object) -> Pose:
+        """The TCP pose ``distance`` (x, y, z, m, base axes; finite) away from the pose at
+        ``start`` joints, orientation kept; InvalidArgumentError for a bad vector."""
+        try:
+            d = _vector(distance, 3, "distance vector")
+        except InvalidTargetError as exc:
+            raise InvalidArgumentError(str(exc)) from None
+        here = self.tcp_pose(_vector(start, 6, "start joints"))
+        return Pose(here.position + d, here.rotation)
+
+    def check(self, target: MoveTarget, start: ArrayLike) -> None:
+        """Raise what can be known of a move before it is planned: a target that is not
+        finite, outside the joint limits, no pose, beyond reach, or with no collision-free
+        IK solution (each leg of a relative move). No path is searched."""
+        self._check_calibrated(target)
+        q0 = _vector(start, 6, "start joints")
+        match target:
+            case JointTarget(joints):
+                self.check_joints(joints)
+            case PoseTarget(pose, _):
+                self.solve(self.parse_pose(pose), q0)
+            case DistanceTarget(distance):
+                self.solve(self.distance_target(q0, distance), q0)
+            case RelativeTarget(start_pose, target_pose):
+                q1 = self.solve(self.parse_pose(start_pose), q0)
+                self.solve(self.parse_pose(target_pose), q1)
 
     def solve(self, pose: Pose, seed: Array) -> Array:
         """IK nearest ``seed`` among the collision-free solutions.
@@ -216,6 +278,7 @@ class MotionPlanner:
         UnreachableError when no solution is within the limits, CollisionError when
         every solution collides.
         """
+        self.check_reach(pose)
         solutions = self.kinematics.inverse_all(pose, seed=seed)
         if not solutions:
             raise UnreachableError(f"no inverse-kinematics solution within the limits for {pose!r}")
@@ -239,12 +302,7 @@ class MotionPlanner:
     ) -> list[MovePlan]:
         """The plans (legs) of a move from ``start`` joints to ``target``."""
         vf, af = velocity_factor, acceleration_factor
-        if self.uncalibrated is not None and not isinstance(target, JointTarget):
-            raise UncalibratedError(
-                f"pose moves are refused: {self.uncalibrated}; the nominal model would put the "
-                "TCP millimetres off (set robot.accept_nominal_kinematics to allow it, or give "
-                "robot.calibration a calibration.conf)"
-            )
+        self._check_calibrated(target)
         match target:
             case JointTarget(joints):
                 return [self.plan_joint(start, joints, vf, af)]
@@ -255,6 +313,14 @@ class MotionPlanner:
             case RelativeTarget(start_pose, target_pose):
                 return self.plan_relative(start, start_pose, target_pose, vf, af)
         raise InvalidArgumentError(f"not a move target: {target!r}")
+
+    def _check_calibrated(self, target: MoveTarget) -> None:
+        if self.uncalibrated is not None and not isinstance(target, JointTarget):
+            raise UncalibratedError(
+                f"pose moves are refused: {self.uncalibrated}; the nominal model would put the "
+                "TCP millimetres off (set robot.accept_nominal_kinematics to allow it, or give "
+                "robot.calibration a calibration.conf)"
+            )
 
     def plan_joint(
         self,
@@ -344,13 +410,8 @@ class MotionPlanner:
         keeping the orientation."""
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
-        try:
-            d = _vector(distance, 3, "distance vector")
-        except InvalidTargetError as exc:
-            raise InvalidArgumentError(str(exc)) from None
+        target = self.distance_target(start, distance)
         q0 = _vector(start, 6, "start joints")
-        here = self.tcp_pose(q0)
-        target = Pose(here.position + d, here.rotation)
         return self._plan_line(
             q0, target, limits, t0, "distance", velocity_factor, acceleration_factor
         )
@@ -386,6 +447,7 @@ class MotionPlanner:
         af: float,
     ) -> MovePlan:
         self.checker.check(q0, "start configuration")
+        self.check_reach(target, "line's end")
         line = cartesian_line(self.kinematics, self.checker, q0, target)
         traj = along_path(line.joints, line.knots, limits)
         bad = self.checker.first_collision(traj.positions)
@@ -927,6 +989,32 @@ class MotionController:
             finally:
                 self._plan_lock.release()
         return await asyncio.to_thread(locked)
+
+    async def check(
+        self,
+        target: MoveTarget,
+        start: ArrayLike,
+        velocity_factor: object | None = None,
+        acceleration_factor: object | None = None,
+    ) -> None:
+        """Raise now what a move to ``target`` would be refused with before it plans:
+        bad factors, then :meth:`MotionPlanner.check` (IK and collision checks in a worker
+        thread, under the plan lock like a plan; a joint target on the loop)."""
+        self.factors(velocity_factor, acceleration_factor)
+        if isinstance(target, JointTarget):
+            self.planner.check(target, start)
+            return
+        await self.locked(lambda: self.planner.check(target, start))
+
+    async def locked(self, work: Callable[[], T]) -> T:
+        """Run ``work`` (which uses the planner's Pinocchio and collision data) in a worker
+        thread, one at a time with plans."""
+
+        def run() -> T:
+            with self._plan_lock:
+                return work()
+
+        return await asyncio.to_thread(run)
 
     def runner(
         self,

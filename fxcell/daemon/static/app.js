@@ -38,8 +38,14 @@ function log(text, kind = "") {
 
 // ------------------------------------------------------------------ HTTP
 
+// Header values are Latin-1 bytes: a name with other characters goes as an RFC 8187
+// ext-value (UTF-8'' and its percent-encoded UTF-8), which the daemon decodes.
+function clientHeader(name) {
+  return /^[\x20-\x7e]*$/.test(name) && !/^utf-8''/i.test(name) ? name : `UTF-8''${encodeURIComponent(name)}`;
+}
+
 async function api(method, path, body) {
-  const headers = { "X-Fxcell-Client": page.client };
+  const headers = { "X-Fxcell-Client": clientHeader(page.client) };
   const token = localStorage.getItem("fxcell-token");
   if (token) headers["Authorization"] = `Bearer ${token}`;
   if (page.lease) headers["X-Fxcell-Lease"] = page.lease;
