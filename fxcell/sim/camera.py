@@ -15,15 +15,26 @@ benches call :func:`render` directly (``fxcell.testing.vision``).
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
+import contextlib
+import logging
 import math
-from collections.abc import Iterable, Sequence
+import os
+import random
+import threading
+from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
 
+from fxcell.config import CameraConfig
 from fxcell.geometry import Pose
-from fxcell.vision.model import Deck, FloatArray, Intrinsics, plane_homography
+from fxcell.vision.model import Deck, FloatArray, Intrinsics, camera_pose, plane_homography
+
+log = logging.getLogger(__name__)
 
 TEXTURE_SCALE = 0.00025  # m per texture pixel of the holder plate
 PLATE_BGR = (58.0, 60.0, 62.0)
@@ -250,3 +261,168 @@ def _plate_texture(deck: Deck) -> tuple[np.ndarray, FloatArray]:
         mbgr = np.repeat(marker[:, :, None], 3, axis=2).astype(np.float32) * (226 / 255) + 12
         tex[m0v : m0v + side, m0u : m0u + side] = mbgr
     return tex, np.array([x0, y1])
+
+
+# ---------------------------------------------------------------- the simulator's camera
+
+
+def world_things(
+    objects: Iterable[SimObjectLike], deck: Deck, grip_heights: dict[str, float]
+) -> list[Thing]:
+    """The simulator's objects (grip-point poses in the base frame) as solids in the station
+    frame. Crucibles and beads are drawn as such; anything else as a box of its size."""
+    to_station = deck.station.frame.inverse()
+    out = []
+    for obj in objects:
+        pose = to_station @ obj.pose
+        down = pose.rotation[:, 2]  # a grip pose points down the object's axis
+        grip = grip_heights.get(obj.kind, obj.height / 2)
+        bottom = pose.position + down * grip
+        up = -down
+        if np.linalg.norm(bottom[:2] - deck.station.frame.inverse().position[:2]) > 1.0:
+            continue  # far from the holder: out of view
+        tilt = math.acos(max(-1.0, min(1.0, float(up[2]))))
+        azimuth = math.atan2(float(up[1]), float(up[0])) if tilt > 1e-6 else 0.0
+        position = (float(bottom[0]), float(bottom[1]), float(bottom[2]))
+        if obj.kind in ("crucible", "bead"):
+            out.append(Thing(obj.kind, position, obj.width, obj.height, tilt=tilt, azimuth=azimuth))
+        else:
+            out.append(
+                Thing("box", position, obj.width, obj.height, obj.width, tilt=tilt, azimuth=azimuth)
+            )
+    return out
+
+
+class SimObjectLike(Protocol):
+    kind: str
+    width: float
+    height: float
+    pose: Pose
+
+
+class CameraConnection(asyncio.Protocol):
+    """``GET /snapshot.jpg`` over HTTP/1.1: one rendered JPEG per request, as the still-image
+    URL of a network camera; anything else is 404. Rendering runs in a worker thread so the
+    controller's cycle keeps its time."""
+
+    def __init__(self, snapshot: Callable[[], Awaitable[bytes]]) -> None:
+        self.snapshot = snapshot
+        self.transport: asyncio.Transport | None = None
+        self.buffer = b""
+        self.task: asyncio.Task[None] | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.transport = None
+
+    def data_received(self, data: bytes) -> None:
+        self.buffer += data
+        if len(self.buffer) > 16384:
+            self._answer(431, b"request too large", "text/plain", close=True)
+            return
+        if b"\r\n\r\n" not in self.buffer or self.task is not None:
+            return
+        head, self.buffer = self.buffer.split(b"\r\n\r\n", 1)
+        request = head.split(b"\r\n", 1)[0].decode("latin-1").split()
+        if len(request) < 2 or request[0] not in ("GET", "HEAD"):
+            self._answer(405, b"only GET", "text/plain")
+            return
+        if request[1].split("?", 1)[0] != SNAPSHOT_PATH:
+            self._answer(404, b"the camera is at " + SNAPSHOT_PATH.encode(), "text/plain")
+            return
+        self.task = asyncio.get_running_loop().create_task(self._serve(request[0] == "HEAD"))
+
+    async def _serve(self, head_only: bool) -> None:
+        try:
+            data = await self.snapshot()
+        except Exception as exc:  # a rendering bug must not take the controller down
+            log.exception("camera: rendering failed")
+            self._answer(500, str(exc).encode(), "text/plain")
+        else:
+            self._answer(200, b"" if head_only else data, "image/jpeg", length=len(data))
+        finally:
+            self.task = None
+
+    def _answer(
+        self, status: int, body: bytes, kind: str, *, length: int | None = None, close: bool = False
+    ) -> None:
+        if self.transport is None:
+            return
+        reason = {200: "OK", 404: "Not Found", 405: "Method Not Allowed", 431: "Too Large"}
+        size = length if length is not None else len(body)
+        connection = "close" if close else "keep-alive"
+        head = (
+            f"HTTP/1.1 {status} {reason.get(status, 'Error')}\r\n"
+            f"Content-Type: {kind}\r\nContent-Length: {size}\r\n"
+            f"Cache-Control: no-store\r\nConnection: {connection}\r\n\r\n"
+        )
+        self.transport.write(head.encode() + body)
+        if close:
+            self.transport.close()
+
+
+SNAPSHOT_PATH = "/snapshot.jpg"
+
+
+def _lower_thread_priority() -> None:
+    """Rendering is not real-time work: a worker of a SCHED_FIFO simulator drops to normal."""
+    with contextlib.suppress(AttributeError, OSError, PermissionError):
+        os.sched_setscheduler(threading.get_native_id(), os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError, PermissionError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 5)
+
+
+class SimCamera:
+    """The cell's configured camera in the simulated world: renders the simulator's objects
+    with mild, varying imaging conditions (each frame a little different, as a real one)."""
+
+    def __init__(
+        self,
+        renderer: Renderer,
+        camera: CameraConfig,
+        objects: Callable[[], list[SimObjectLike]],
+        grip_heights: dict[str, float],
+        flange: Callable[[], Pose],
+    ) -> None:
+        self.renderer = renderer
+        self.camera = camera
+        self.objects = objects
+        self.grip_heights = grip_heights
+        self.flange = flange
+        self.frames = 0
+        self._executor = concurrent.futures.ThreadPoolExecutor(
+            1, "fxcell-sim-camera", initializer=_lower_thread_priority
+        )
+
+    async def snapshot(self) -> bytes:
+        """Take a frame (the world as it is now), rendered in the worker thread."""
+        deck = self.renderer.deck
+        flange = self.flange() if self.camera.mount == "flange" else None
+        camera_in_station = deck.station.frame.inverse() @ camera_pose(self.camera, flange)
+        things = world_things(self.objects(), deck, self.grip_heights)
+        self.frames += 1
+        rng = random.Random(self.frames)
+        imaging = Imaging(
+            gain=rng.uniform(0.9, 1.1),
+            gradient=(rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)),
+            noise=rng.uniform(1.5, 3.0),
+            jpeg_quality=None,
+            seed=self.frames,
+        )
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(
+            self._executor, self._encode, camera_in_station, things, imaging
+        )
+
+    def _encode(self, camera_in_station: Pose, things: list[Thing], imaging: Imaging) -> bytes:
+        frame = self.renderer.render(camera_in_station, things, imaging)
+        ok, data = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, 92])
+        if not ok:
+            raise RuntimeError("JPEG encoding failed")
+        return bytes(data)
+
+    def close(self) -> None:
+        self._executor.shutdown(wait=False, cancel_futures=True)
