@@ -35,6 +35,7 @@ LAYERS: dict[str, int] = {
     "fxcell.signals": 0,
     "fxcell.link": 1,
     "fxcell.link.embedded": 1,
+    "fxcell.vision": 1,
     "fxcell.motion": 2,
     "fxcell.motion.kinematics": 2,
     "fxcell.motion.calibration": 2,

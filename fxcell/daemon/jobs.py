@@ -14,13 +14,14 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import TYPE_CHECKING, Any
 
 from fxcell.errors import ConnectionLostError, FxcellError, InvalidArgumentError
 from fxcell.events import DeviceEvent
 from fxcell.job import Job, JobStore
 from fxcell.layout import Layout
+from fxcell.vision.placement import PlacementReport
 
 if TYPE_CHECKING:
     from fxcell.cell import Cell
@@ -75,6 +76,9 @@ class CellForJob:
 
     async def go_home(self) -> None:
         await self._cell.go_home()
+
+    async def inspect_placement(self, expected: Collection[str]) -> PlacementReport | None:
+        return await self._cell.inspect_placement(expected)
 
 
 class JobService:

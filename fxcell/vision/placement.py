@@ -27,13 +27,14 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Collection
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Final, Literal
 
 import cv2
 import numpy as np
 
 from fxcell.config import PlacementThresholds, VisionConfig
+from fxcell.errors import InvalidArgumentError
 from fxcell.geometry import Pose
 from fxcell.layout import Layout
 from fxcell.vision.model import Deck, FloatArray, Intrinsics, plane_homography
@@ -69,6 +70,10 @@ class PositionCheck:
     """Whether a crucible belongs here (``None``: no expectation given)."""
     ok: bool = True
     note: str = ""
+    pixel: tuple[float, float] | None = None
+    """Where the position's rim centre is in the image (px; for annotations)."""
+    pixel_radius: float | None = None
+    """A crucible rim's radius there (px)."""
 
 
 @dataclass(frozen=True)
@@ -143,8 +148,6 @@ class PlacementChecker:
         if expected is not None:
             unknown = set(expected) - set(self.deck.positions)
             if unknown:
-                from fxcell.errors import InvalidArgumentError
-
                 names = ", ".join(sorted(unknown))
                 raise InvalidArgumentError(
                     f"station {self.deck.station.name!r} has no position {names}"
@@ -203,9 +206,18 @@ class PlacementChecker:
             return PlacementReport(False, why, markers=n, reprojection_px=error)
         level, obstructions = self._plate(frame, pose)
         checks = []
+        rvec, _ = cv2.Rodrigues(pose.rotation)
+        tvec = pose.position.reshape(3, 1)
         for slot, seat in self.deck.positions.items():
             want = None if expected is None else slot in expected
-            checks.append(self._position(frame, pose, slot, seat, level, want))
+            check = self._position(frame, pose, slot, seat, level, want)
+            z = self.deck.rim_height
+            ring = np.array([[seat[0], seat[1], z], [seat[0] + self.deck.radius, seat[1], z]])
+            uv, _ = cv2.projectPoints(ring, rvec, tvec, self.intrinsics.matrix, np.zeros(4))
+            uv = np.asarray(uv).reshape(2, 2)
+            pixel = (round(float(uv[0, 0]), 1), round(float(uv[0, 1]), 1))
+            radius = round(float(np.linalg.norm(uv[1] - uv[0])), 1)
+            checks.append(replace(check, pixel=pixel, pixel_radius=radius))
         reasons = [f"{c.slot}: {c.note}" for c in checks if not c.ok]
         reasons += [
             f"something on the holder at x {o.x_mm:.0f} mm, y {o.y_mm:.0f} mm "
