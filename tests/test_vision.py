@@ -49,9 +49,11 @@ def test_four_seated_crucibles_pass(bench: VisionBench) -> None:
     report = bench.check(bench.render(dict.fromkeys(ALL, "seated"), LAB_DAY), set(ALL))
     assert report.ok, report.reason
     assert report.verdicts() == dict.fromkeys(ALL, "seated")
-    assert report.holder_found and report.markers == 4
+    assert report.holder_found
+    assert report.markers == 4
     for p in report.positions:
-        assert p.offset_mm is not None and p.offset_mm < 1.0
+        assert p.offset_mm is not None
+        assert p.offset_mm < 1.0
         assert p.confidence >= 0.5
     assert report.image[:2] == b"\xff\xd8"  # the annotated frame, JPEG
 
@@ -68,7 +70,8 @@ def test_an_offset_crucible_is_offset_by_the_measured_distance(
     a3 = report.position("A3")
     assert a3.verdict == "offset", a3
     assert a3.offset_mm == pytest.approx(distance_mm, abs=0.5)
-    assert "A3" in report.reason and "off its position" in report.reason
+    assert "A3" in report.reason
+    assert "off its position" in report.reason
     assert {p.slot for p in report.positions if not p.ok} == {"A3"}
 
 
@@ -87,7 +90,8 @@ def test_a_missing_crucible_is_an_empty_position_that_fails(bench: VisionBench) 
     positions: dict[str, Fault | str] = {"A1": "seated", "A2": "seated", "A4": "seated"}
     report = bench.check(bench.render(positions, LAB_DAY), set(ALL))
     assert report.position("A3").verdict == "empty"
-    assert not report.ok and "A3: no crucible" in report.reason
+    assert not report.ok
+    assert "A3: no crucible" in report.reason
 
 
 @pytest.mark.parametrize(
