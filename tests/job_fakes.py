@@ -88,6 +88,8 @@ class FakeIO:
         self.signals: dict[str, bool] = {}
         self._changed = asyncio.Event()
         self.on_set: list[Any] = []
+        self.history: list[tuple[str, bool]] = []
+        """Every ``set`` (signal, value), in order."""
         self.tick: Any = None
         """An async callable awaited first in ``set`` and ``wait_for`` (the cell's crash point)."""
 
@@ -105,6 +107,7 @@ class FakeIO:
         if self.tick is not None:
             await self.tick()
         self.write(signal, value)
+        self.history.append((signal, value))
         for callback in self.on_set:
             callback(signal, value)
 

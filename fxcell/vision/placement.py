@@ -398,9 +398,13 @@ class PlacementChecker:
                 "empty": "no crucible",
                 "seated": "a crucible where none belongs (in the gripper's path)",
                 "offset": f"crucible {off:.1f} mm off its position" if off is not None else "",
+                # (a crucible leaning towards the camera looks like one shifted: its rim stays
+                # round; far off its pocket it cannot stand flat, so say so)
                 "tilted": "crucible not seated flat (tilted)",
                 "foreign": f"not a crucible: {note}" if note else "not a crucible",
             }[verdict]
+            if verdict == "offset" and off is not None and off > 6.0:
+                what += " (or leaning towards the camera)"
             if verdict in ("offset", "tilted") and expected is False:
                 what += " where none belongs"
             note = what
