@@ -242,3 +242,61 @@ def test_the_job_database_of_schema_1_gains_the_placement_checks(tmp_path: Path)
         assert db.execute("SELECT value FROM meta WHERE key='schema'").fetchone() == (
             str(SCHEMA_VERSION),
         )
+
+
+def test_a_check_is_recorded_as_a_foxglove_image_with_annotations_and_a_verdict(
+    tmp_path: Path, bench: VisionBench
+) -> None:
+    import base64
+    import json
+    import time
+
+    import foxglove.messages as fox
+    import jsonschema
+    from google.protobuf import descriptor_pb2
+    from mcap.reader import make_reader
+
+    from fxcell.events import PlacementEvent
+    from fxcell.recorder import Recorder, topics
+
+    positions: dict[str, Fault | str] = {"A1": "seated", "A2": Fault.offset(0.005)}
+    report = bench.check(bench.render(positions, LAB_DAY), {"A1", "A2"})
+    rec = Recorder(tmp_path)
+    rec.submit(PlacementEvent(time.time(), report.image, report.as_dict()))
+    rec.close()
+    (path,) = tmp_path.glob("*.mcap")
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        schemas = {ch.topic: summary.schemas[ch.schema_id] for ch in summary.channels.values()}
+        messages = {
+            ch.topic: json.loads(msg.data)
+            for _s, ch, msg in reader.iter_messages()
+            if ch.topic.startswith("/camera")
+        }
+    image = messages[topics.CAMERA_PLACEMENT]
+    assert image["format"] == "jpeg"
+    assert base64.b64decode(image["data"]) == report.image
+    annotations = messages[topics.CAMERA_PLACEMENT_ANNOTATIONS]
+    assert len(annotations["circles"]) == 4
+    assert annotations["texts"][0]["text"].startswith("A1 seated")
+    assert annotations["texts"][1]["text"].startswith("A2 offset")
+    verdict = messages[topics.CAMERA_PLACEMENT_VERDICT]
+    assert verdict["ok"] is False
+    assert verdict["positions"][1]["verdict"] == "offset"
+    for topic, sdk, name in (
+        (topics.CAMERA_PLACEMENT, fox.CompressedImage, "CompressedImage"),
+        (topics.CAMERA_PLACEMENT_ANNOTATIONS, fox.ImageAnnotations, "ImageAnnotations"),
+    ):
+        definition = json.loads(schemas[topic].data)
+        assert schemas[topic].name == f"foxglove.{name}"
+        jsonschema.validate(messages[topic], definition)
+        fds = descriptor_pb2.FileDescriptorSet.FromString(sdk.get_schema().data)
+        fields = {m.name: {f.name for f in m.field} for f in fds.file for m in f.message_type}
+        assert set(definition["properties"]) == fields[name]
+    circle = json.loads(schemas[topics.CAMERA_PLACEMENT_ANNOTATIONS].data)["properties"]
+    fds = descriptor_pb2.FileDescriptorSet.FromString(fox.ImageAnnotations.get_schema().data)
+    fields = {m.name: {f.name for f in m.field} for f in fds.file for m in f.message_type}
+    assert set(circle["circles"]["items"]["properties"]) == fields["CircleAnnotation"]
+    assert set(circle["texts"]["items"]["properties"]) == fields["TextAnnotation"]

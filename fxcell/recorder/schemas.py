@@ -201,6 +201,15 @@ _POINT2: Final = {
     "properties": {"x": _NUM, "y": _NUM},
     "required": ["x", "y"],
 }
+_METADATA: Final = {
+    "type": "array",
+    "items": {
+        "title": "foxglove.KeyValuePair",
+        "type": "object",
+        "properties": {"key": _STR, "value": _STR},
+        "required": ["key", "value"],
+    },
+}
 _COLOR: Final = {
     "title": "foxglove.Color",
     "type": "object",
@@ -220,6 +229,8 @@ COMPRESSED_IMAGE_SCHEMA: Final = _object(
 IMAGE_ANNOTATIONS_SCHEMA: Final = _object(
     topics.SCHEMA_IMAGE_ANNOTATIONS,
     {
+        "timestamp": _TIMESTAMP,
+        "metadata": _METADATA,
         "circles": {
             "type": "array",
             "items": {
@@ -232,6 +243,7 @@ IMAGE_ANNOTATIONS_SCHEMA: Final = _object(
                     "thickness": _NUM,
                     "fill_color": _COLOR,
                     "outline_color": _COLOR,
+                    "metadata": _METADATA,
                 },
                 "required": ["timestamp", "position", "diameter", "thickness"],
             },
@@ -249,6 +261,7 @@ IMAGE_ANNOTATIONS_SCHEMA: Final = _object(
                     "font_size": _NUM,
                     "text_color": _COLOR,
                     "background_color": _COLOR,
+                    "metadata": _METADATA,
                 },
                 "required": ["timestamp", "position", "text", "font_size"],
             },
@@ -357,7 +370,7 @@ def placement_messages(
                 "background_color": {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.6},
             }
         )
-    annotations = {"circles": circles, "points": [], "texts": texts}
+    annotations = {"timestamp": stamp, "circles": circles, "points": [], "texts": texts}
     verdict = {"time": ns / 1e9, **report}
     return dumps(image), dumps(annotations), dumps(verdict)
 
