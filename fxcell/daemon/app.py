@@ -282,7 +282,7 @@ def create_app(service: CellService) -> FastAPI:
 
     # ------------------------------------------------------------- the camera
 
-    jpeg = {200: {"content": {"image/jpeg": {}}}}
+    jpeg: dict[int | str, dict[str, Any]] = {200: {"content": {"image/jpeg": {}}}}
 
     @api.get(
         "/job/placement/{check_id}.jpg",
