@@ -433,27 +433,47 @@ def _ellipse_residual(
     return float(np.mean(np.abs(k - 1.0)) * math.sqrt(a * b))
 
 
+ANNOTATED_WIDTH: Final = 960  # px: the annotated image, cropped to the holder
+
+
 def annotate(
     frame: np.ndarray, report: PlacementReport, checker: PlacementChecker, pose: Pose | None
 ) -> bytes:
-    """``frame`` with the holder, each position's verdict and the outcome drawn on it (JPEG)."""
-    img = frame.copy()
+    """The frame around the holder (the whole frame when it was not found), ``ANNOTATED_WIDTH``
+    pixels wide, with each position's ring and verdict, obstructions and the outcome (JPEG)."""
     deck = checker.deck
     K = checker.intrinsics.matrix
-    w = img.shape[1]
-    scale = max(1, round(w / 900))
+    h, w = frame.shape[:2]
     red, green, amber = (40, 40, 230), (60, 190, 60), (0, 170, 240)
+    rvec: np.ndarray | None = None
+    tvec: np.ndarray | None = None
+    left, top, right, bottom = 0, 0, w, h
+    x0, y0, x1, y1 = deck.holder
+    outline = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], float)
     if pose is not None:
         rvec, _ = cv2.Rodrigues(pose.rotation)
         tvec = pose.position.reshape(3, 1)
+        uv, _ = cv2.projectPoints(outline.reshape(-1, 1, 3), rvec, tvec, K, np.zeros(4))
+        uv = np.asarray(uv).reshape(-1, 2)
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        margin = 0.12 * (hi - lo)
+        left, top = (int(max(0, v)) for v in lo - margin)
+        right, bottom = (int(min(m, v)) for v, m in zip(hi + margin, (w, h), strict=True))
+        top = max(0, top - int(0.10 * (bottom - top)))  # room for the banner
+    crop = frame[top:bottom, left:right]
+    zoom = ANNOTATED_WIDTH / max(1, crop.shape[1])
+    img = cv2.resize(crop, (ANNOTATED_WIDTH, max(1, round(crop.shape[0] * zoom))))
 
-        def project(points: FloatArray) -> np.ndarray:
-            uv, _ = cv2.projectPoints(points.reshape(-1, 1, 3), rvec, tvec, K, np.zeros(4))
-            return np.round(np.asarray(uv).reshape(-1, 2) * 16).astype(np.int32)
+    def project(points: FloatArray) -> np.ndarray:
+        assert rvec is not None
+        assert tvec is not None
+        uv, _ = cv2.projectPoints(points.reshape(-1, 1, 3), rvec, tvec, K, np.zeros(4))
+        px = (np.asarray(uv).reshape(-1, 2) - (left, top)) * zoom
+        out: np.ndarray = np.round(px * 16).astype(np.int32)
+        return out
 
-        x0, y0, x1, y1 = deck.holder
-        outline = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], float)
-        cv2.polylines(img, [project(outline)], True, (220, 220, 220), scale, cv2.LINE_AA, 4)
+    if pose is not None:
+        cv2.polylines(img, [project(outline)], True, (220, 220, 220), 1, cv2.LINE_AA, 4)
         phi = np.linspace(0, 2 * math.pi, 60, endpoint=False)
         for check in report.positions:
             seat = deck.positions[check.slot]
@@ -465,8 +485,8 @@ def annotate(
                 ]
             )
             colour = green if check.ok else red
-            cv2.polylines(img, [project(ring)], True, colour, 2 * scale, cv2.LINE_AA, 4)
-            if check.offset_xy_mm is not None:
+            cv2.polylines(img, [project(ring)], True, colour, 3, cv2.LINE_AA, 4)
+            if check.offset_xy_mm is not None and check.verdict in ("offset", "tilted"):
                 centre = np.array(
                     [
                         [seat[0], seat[1], deck.rim_height],
@@ -478,31 +498,40 @@ def annotate(
                     ]
                 )
                 p = project(centre)
-                cv2.arrowedLine(img, tuple(p[0]), tuple(p[1]), amber, scale, cv2.LINE_AA, 4, 0.3)
+                cv2.arrowedLine(img, tuple(p[0]), tuple(p[1]), amber, 2, cv2.LINE_AA, 4, 0.3)
             label: str = check.verdict
-            if check.offset_mm is not None and check.verdict != "foreign":
-                label += f" {check.offset_mm:.1f}mm"
-            anchor = project(np.array([[seat[0] - deck.radius, seat[1] - deck.radius - 0.012, 0]]))
-            org = (int(anchor[0, 0] // 16), int(anchor[0, 1] // 16))
-            _text(img, f"{check.slot} {label}", org, colour, scale)
+            if check.offset_mm is not None and check.verdict in ("offset", "tilted"):
+                label += f" {check.offset_mm:.0f}mm"
+            box = project(ring) / 16
+            mid_x = int(box[:, 0].mean())
+            _text(img, check.slot, (mid_x, int(box[:, 1].min()) - 6), colour, 0.6, centre=True)
+            _text(img, label, (mid_x, int(box[:, 1].max()) + 22), colour, 0.6, centre=True)
         for o in report.obstructions:
             q = project(np.array([[o.x_mm / 1000, o.y_mm / 1000, 0.0]]))
             mid = (int(q[0, 0] // 16), int(q[0, 1] // 16))
-            cv2.circle(img, mid, 24 * scale, red, 2 * scale, cv2.LINE_AA)
-            _text(img, "obstruction", (mid[0] - 40 * scale, mid[1] - 30 * scale), red, scale)
+            cv2.circle(img, mid, 34, red, 3, cv2.LINE_AA)
+            _text(img, "in the path", (mid[0], mid[1] - 40), red, 0.6, centre=True)
     banner = ("OK: " if report.ok else "STOP: ") + report.reason
-    cv2.rectangle(img, (0, 0), (w, 34 * scale), (30, 30, 30), -1)
-    _text(img, banner[:110], (8 * scale, 24 * scale), green if report.ok else red, scale)
+    cv2.rectangle(img, (0, 0), (img.shape[1], 36), (25, 25, 25), -1)
+    _text(img, banner[:64], (8, 26), green if report.ok else red, 0.7)
     ok, data = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
     return bytes(data) if ok else b""
 
 
 def _text(
-    img: np.ndarray, text: str, org: tuple[int, int], colour: tuple[int, int, int], scale: int
+    img: np.ndarray,
+    text: str,
+    org: tuple[int, int],
+    colour: tuple[int, int, int],
+    size: float,
+    *,
+    centre: bool = False,
 ) -> None:
-    cv2.putText(
-        img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (0, 0, 0), 4 * scale, cv2.LINE_AA
-    )
-    cv2.putText(
-        img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, colour, 1 * scale + 1, cv2.LINE_AA
-    )
+    """Text on a dark box (legible on any background); ``org`` its baseline's left end (or
+    its middle with ``centre``)."""
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    thick = max(1, round(1.6 * size))
+    (tw, th), base = cv2.getTextSize(text, font, size, thick)
+    x, y = (org[0] - tw // 2 if centre else org[0]), org[1]
+    cv2.rectangle(img, (x - 3, y - th - 3), (x + tw + 3, y + base), (25, 25, 25), -1)
+    cv2.putText(img, text, (x, y), font, size, colour, thick, cv2.LINE_AA)
