@@ -275,10 +275,11 @@ def world_things(
     out = []
     for obj in objects:
         pose = to_station @ obj.pose
-        down = pose.rotation[:, 2]  # a grip pose points down the object's axis
+        # a layout grip pose points down the object's axis; add_object's pose is upright
+        z = pose.rotation[:, 2]
+        up = -z if z[2] < 0 else z
         grip = grip_heights.get(obj.kind, obj.height / 2)
-        bottom = pose.position + down * grip
-        up = -down
+        bottom = pose.position - up * grip
         if np.linalg.norm(bottom[:2] - deck.station.frame.inverse().position[:2]) > 1.0:
             continue  # far from the holder: out of view
         tilt = math.acos(max(-1.0, min(1.0, float(up[2]))))
