@@ -44,13 +44,12 @@ def seated(sim: SimulatorHandle) -> Iterator[SimulatorHandle]:
 AWAY = (1.0, 1.0, 0.5)  # out of the camera's view (the simulator has no "remove")
 
 
-def put(name: str, kind: str, width: float, height: float, at: object) -> None:
-    host = HOST[0]
-    position = [float(v) for v in at]  # type: ignore[attr-defined]
-    embedded.add_object(host, name, kind, width=width, height=height, mass=0.05, position=position)
-
-
-HOST: list[str] = []
+def put(host: str, name: str, kind: str, size: tuple[float, float], at: Sequence[float]) -> None:
+    """An upright object of (width, height) with its middle at ``at`` (base frame)."""
+    position = [float(v) for v in at]
+    embedded.add_object(
+        host, name, kind, width=size[0], height=size[1], mass=0.05, position=position
+    )
 
 
 def recorded_topics(path: Path) -> set[str]:
