@@ -201,3 +201,8 @@ async def test_a_crucible_4_mm_off_holds_the_run_and_the_page_leads_with_it(
             "document.querySelector('#run-next').textContent.includes('fusion machine runs')"
         )
         (SCREENSHOT_DIR / "fxcell-run-view-fusing.png").write_bytes(await browser.screenshot())
+        # the 3D view draws the crucibles where the job's records put them
+        occupants = await browser.js("JSON.stringify(page.occupants)")
+        assert '"machine:A1":{"kind":"crucible","label":"S01"}' in occupants
+        await browser.js("document.querySelector('#view').scrollIntoView()")
+        (SCREENSHOT_DIR / "fxcell-run-view-3d.png").write_bytes(await browser.screenshot())

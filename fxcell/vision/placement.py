@@ -24,6 +24,7 @@ distributions of ``bench/placement.py``.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Collection
@@ -135,6 +136,33 @@ class PlacementChecker:
                 i.matrix, i.distortion, None, i.matrix, (i.width, i.height), cv2.CV_16SC2
             )
 
+    @functools.cached_property
+    def _plate_mask(self) -> np.ndarray:
+        """The plate's pixels (rectified at ``PLATE_SCALE``) away from positions and markers."""
+        x0, y0, x1, y1 = self.deck.holder
+        s = PLATE_SCALE
+        w, h = round((x1 - x0) / s), round((y1 - y0) / s)
+        X, Y = np.meshgrid(x0 + s * np.arange(w), y1 - s * np.arange(h))
+        margin = 0.003
+        mask = (x0 + margin < X) & (x1 - margin > X) & (y0 + margin < Y) & (y1 - margin > Y)
+        for seat in self.deck.positions.values():
+            mask &= np.hypot(X - seat[0], Y - seat[1]) > self.deck.radius + EXCLUSION
+        half = self.deck.marker_size * 0.7 + 0.003
+        for corners in self.deck.markers.values():
+            cx, cy = corners[:, :2].mean(axis=0)
+            mask &= (np.abs(X - cx) > half) | (np.abs(Y - cy) > half)
+        out: np.ndarray = mask
+        return out
+
+    @functools.cached_property
+    def _patch_radius(self) -> np.ndarray:
+        """Distance (m) of each pixel of a rectified position from the position's centre."""
+        n = round(2 * PATCH_HALF / PATCH_SCALE)
+        yy, xx = np.mgrid[0:n, 0:n]
+        c = PATCH_HALF / PATCH_SCALE
+        r: np.ndarray = np.hypot(xx - c, yy - c) * PATCH_SCALE
+        return r
+
     @property
     def thresholds(self) -> PlacementThresholds:
         return self.config.thresholds
@@ -245,19 +273,22 @@ class PlacementChecker:
             borderMode=cv2.BORDER_REPLICATE,
         )  # fmt: skip
 
-    def _foreground(self, patch: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
-        """Grey image and foreground mask (differs from the plate's level, or colourful)."""
+    def _foreground(
+        self, patch: np.ndarray, level: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Grey image, foreground mask (differs from the plate's level, or colourful) and the
+        raw Lab chroma."""
         g = np.asarray(
             cv2.GaussianBlur(
                 cv2.cvtColor(patch, cv2.COLOR_BGR2GRAY).astype(np.float32), (0, 0), 1.0
             )
         )
         lab = cv2.cvtColor(patch, cv2.COLOR_BGR2LAB).astype(np.float32)
-        chroma = np.hypot(lab[:, :, 1] - 128, lab[:, :, 2] - 128)
-        chroma = cv2.GaussianBlur(chroma, (0, 0), 1.5)
+        raw = np.hypot(lab[:, :, 1] - 128, lab[:, :, 2] - 128)
+        chroma = cv2.GaussianBlur(raw, (0, 0), 1.5)
         fg = (np.abs(g - level) > max(14.0, 0.45 * level)) | (chroma > CHROMA)
         fg8 = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-        return g, fg8
+        return g, fg8, raw
 
     def _plate(self, frame: np.ndarray, pose: Pose) -> tuple[float, list[Obstruction]]:
         """The plate's grey level and what lies on it outside the positions."""
@@ -266,21 +297,10 @@ class PlacementChecker:
         w, h = round((x1 - x0) / s), round((y1 - y0) / s)
         origin = np.array([x0, y1])
         plate = self._warp(frame, pose, 0.0, origin, s, (w, h))
-        u = x0 + s * np.arange(w)
-        v = y1 - s * np.arange(h)
-        X, Y = np.meshgrid(u, v)
-        mask = np.ones((h, w), bool)
-        margin = 0.003
-        mask &= (x0 + margin < X) & (x1 - margin > X) & (y0 + margin < Y) & (y1 - margin > Y)
-        for seat in self.deck.positions.values():
-            mask &= np.hypot(X - seat[0], Y - seat[1]) > self.deck.radius + EXCLUSION
-        half = self.deck.marker_size * 0.7 + 0.003
-        for corners in self.deck.markers.values():
-            cx, cy = corners[:, :2].mean(axis=0)
-            mask &= (np.abs(X - cx) > half) | (np.abs(Y - cy) > half)
+        mask = self._plate_mask
         gray = cv2.cvtColor(plate, cv2.COLOR_BGR2GRAY)
         level = float(np.median(gray[mask]))
-        _, fg = self._foreground(plate, level)
+        _, fg, _ = self._foreground(plate, level)
         fg &= mask.astype(np.uint8)
         count, _, stats, centroids = cv2.connectedComponentsWithStats(fg)
         found = []
@@ -305,10 +325,9 @@ class PlacementChecker:
         n = round(2 * PATCH_HALF / s)
         origin = np.array([seat[0] - PATCH_HALF, seat[1] + PATCH_HALF])
         patch = self._warp(frame, pose, self.deck.rim_height, origin, s, (n, n))
-        g, fg = self._foreground(patch, level)
+        g, fg, raw_chroma = self._foreground(patch, level)
         c = PATCH_HALF / s  # the seat's pixel
-        yy, xx = np.mgrid[0:n, 0:n]
-        r = np.hypot(xx - c, yy - c) * s
+        r = self._patch_radius
         disc = r <= self.deck.radius
         fg &= (r <= PATCH_HALF).astype(np.uint8)
         coverage = float(fg[disc].mean())
@@ -325,8 +344,7 @@ class PlacementChecker:
         obj = labels == best
         values = g[obj]
         top_level = float(np.percentile(values, 98))
-        lab = cv2.cvtColor(patch, cv2.COLOR_BGR2LAB).astype(np.float32)
-        chroma = float(np.hypot(lab[:, :, 1] - 128, lab[:, :, 2] - 128)[obj].mean())
+        chroma = float(raw_chroma[obj].mean())
         note = ""
         if top_level < level * 2.0:
             note = "dark or dull (not a platinum rim)"

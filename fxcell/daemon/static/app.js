@@ -321,8 +321,10 @@ function onMessage(m) {
       else if (m.outcome === "ok") log(`${m.name} done (${m.origin})`);
       if (m.outcome === "ok" && (m.name === "teach")) loadPositions();
       if (m.outcome === "ok" && m.name === "teach_frame_point") loadLayout();
-      if (m.outcome === "ok" && m.name === "check_placement" && m.result)
+      if (m.outcome === "ok" && m.name === "check_placement" && m.result) {
         showPlacement({ ...m.result, time: m.ended }, `/api/camera/placement.jpg?t=${m.ended}`);
+        log(`placement check: ${m.result.ok ? "OK" : "STOP: " + m.result.reason}`, m.result.ok ? "" : "warn");
+      }
       else log(`${m.name} started (${m.origin})`);
       break;
     case "operation":
