@@ -137,6 +137,7 @@ async def test_a_crucible_4_mm_off_holds_the_run_and_the_page_leads_with_it(
     # the first crucible the gripper lets go slides 4 mm along the deck
     assert "lands" in await asyncio.to_thread(embedded.inject, sim.host, "place_offset", 0.004, 0.0)
     async with RemoteCell(daemon.url, TOKEN, name="operator") as cell:
+        await asyncio.to_thread(daemon.wait_connected)  # (the link may still be coming up)
         await cell.init()
         await cell.gripper_activate()
         await cell.job_start(RUN)
@@ -187,12 +188,20 @@ async def test_a_crucible_4_mm_off_holds_the_run_and_the_page_leads_with_it(
         assert r.headers["content-type"] == "image/jpeg"
 
         # the operator seats the crucible and resumes from the page: the camera looks again
-        await asyncio.to_thread(embedded.offset_object, sim.host, "crucible-A1", -0.004, 0.0)
+        moved = await asyncio.to_thread(
+            embedded.offset_object, sim.host, "crucible-A1", -0.004, 0.0
+        )
+        assert "crucible-A1 moved" in moved
         await cell.release_control()
+        first = status["placement"]["check"]
         await browser.click("#run button[data-job=resume]")
-        status = await job_state(cell, "waiting_for_machine", "running", "fault", "paused", "done")
+        # the camera looks again (a new check), then the machine starts
+        deadline = time.monotonic() + 120
+        while (status := await cell.job_status())["placement"]["check"] == first:
+            assert time.monotonic() < deadline, f"no new placement check: {status}"
+            await asyncio.sleep(0.05)
         status = await job_state(cell, "waiting_for_machine", "fault", "paused", "done")
-        assert status["state"] == "waiting_for_machine", status
+        assert status["state"] == "waiting_for_machine", (status["placement"], status["message"])
         assert status["placement"]["ok"] is True
         await browser.wait_for(
             "document.querySelector('#placement-verdict').textContent.startsWith('Placement OK')"
