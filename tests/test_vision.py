@@ -14,6 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fxcell.config import CellConfig
 from fxcell.errors import (
@@ -300,3 +302,36 @@ def test_a_check_is_recorded_as_a_foxglove_image_with_annotations_and_a_verdict(
     fields = {m.name: {f.name for f in m.field} for f in fds.file for m in f.message_type}
     assert set(circle["circles"]["items"]["properties"]) == fields["CircleAnnotation"]
     assert set(circle["texts"]["items"]["properties"]) == fields["TextAnnotation"]
+
+
+@given(
+    position=st.tuples(*[st.floats(-0.3, 0.3)] * 2, st.floats(0.3, 0.8)),
+    tilt=st.tuples(*[st.floats(-0.3, 0.3)] * 3),
+    height=st.floats(0.0, 0.05),
+    point=st.tuples(st.floats(-0.1, 0.3), st.floats(-0.08, 0.08)),
+)
+@settings(max_examples=60, deadline=None)
+def test_the_plane_homography_maps_rectified_pixels_where_the_camera_sees_them(
+    position: tuple[float, float, float],
+    tilt: tuple[float, float, float],
+    height: float,
+    point: tuple[float, float],
+) -> None:
+    from fxcell.geometry import Pose
+    from fxcell.vision.model import plane_homography
+
+    # a camera above the plane, looking down (turned by up to ~17° about each axis)
+    looking_down = Pose.from_rotvec((0, 0, 0), (math.pi, 0, 0))
+    camera = Pose(position, (looking_down @ Pose.from_rotvec((0, 0, 0), tilt)).rotation)
+    station_in_cam = camera.inverse()
+    K = np.array([[1100.0, 0, 640], [0, 1100.0, 480], [0, 0, 1]])
+    origin, scale = np.array([-0.05, 0.07]), 0.0005
+    # the rectified pixel of the plane point (x, y) at that height
+    u, v = (point[0] - origin[0]) / scale, (origin[1] - point[1]) / scale
+    H = plane_homography(K, station_in_cam, height, origin, scale)
+    mapped = H @ np.array([u, v, 1.0])
+    rvec, _ = cv2.Rodrigues(station_in_cam.rotation)
+    expected, _ = cv2.projectPoints(
+        np.array([[point[0], point[1], height]]), rvec, station_in_cam.position, K, np.zeros(4)
+    )
+    assert mapped[:2] / mapped[2] == pytest.approx(np.asarray(expected).ravel(), abs=1e-3)

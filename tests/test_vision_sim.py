@@ -12,7 +12,7 @@ import pytest
 from mcap.reader import make_reader
 
 from fxcell import Cell
-from fxcell.config import CellConfig
+from fxcell.config import SIMULATOR_CAMERA_PORT, CellConfig
 from fxcell.layout import Layout
 from fxcell.link import embedded
 from fxcell.recorder import topics
@@ -136,3 +136,32 @@ async def test_check_placement_on_a_cell_is_recorded(
         topics.CAMERA_PLACEMENT_VERDICT,
         topics.COMMANDS,
     } <= seen
+
+
+async def test_the_simulator_camera_answers_like_a_snapshot_url(sim: SimulatorHandle) -> None:
+    import httpx
+
+    base = f"http://{sim.host}:{SIMULATOR_CAMERA_PORT}"
+    async with httpx.AsyncClient(timeout=20) as http:
+        one = await http.get(f"{base}/snapshot.jpg")
+        two = await http.get(f"{base}/snapshot.jpg?t=2")  # the same connection, kept alive
+        missing = await http.get(f"{base}/video")
+        refused = await http.post(f"{base}/snapshot.jpg", content=b"x")
+    assert one.status_code == two.status_code == 200
+    assert one.headers["content-type"] == "image/jpeg"
+    assert one.content[:2] == b"\xff\xd8"
+    assert one.content != two.content  # each frame is taken anew (noise, light)
+    assert missing.status_code == 404
+    assert refused.status_code == 405
+
+
+async def test_a_camera_that_does_not_answer_is_a_camera_error() -> None:
+    from fxcell.errors import CameraError
+    from fxcell.vision.camera import SnapshotCamera
+
+    camera = SnapshotCamera("http://127.0.0.254:9/snapshot.jpg", timeout=2.0)
+    try:
+        with pytest.raises(CameraError, match="snapshot camera"):
+            await camera.capture()
+    finally:
+        await camera.close()

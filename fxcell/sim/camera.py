@@ -329,7 +329,7 @@ class CameraConnection(asyncio.Protocol):
         head, self.buffer = self.buffer.split(b"\r\n\r\n", 1)
         request = head.split(b"\r\n", 1)[0].decode("latin-1").split()
         if len(request) < 2 or request[0] not in ("GET", "HEAD"):
-            self._answer(405, b"only GET", "text/plain")
+            self._answer(405, b"only GET", "text/plain", close=True)  # its body is not read
             return
         if request[1].split("?", 1)[0] != SNAPSHOT_PATH:
             self._answer(404, b"the camera is at " + SNAPSHOT_PATH.encode(), "text/plain")
