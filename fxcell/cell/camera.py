@@ -14,8 +14,10 @@ import time
 from collections.abc import Collection
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
+from fxcell.errors import CameraError
 from fxcell.events import PlacementEvent
 from fxcell.layout import Layout
 from fxcell.vision.camera import Camera, open_camera
@@ -65,7 +67,10 @@ class CellCamera:
                     checker.deck.station.index(slot)
                 expected = set(expected)
             frame = await self.capture()
-            report = await asyncio.to_thread(checker.check, frame, expected)
+            try:
+                report = await asyncio.to_thread(checker.check, frame, expected)
+            except cv2.error as exc:  # a frame OpenCV cannot work on (size, type)
+                raise CameraError(f"the frame could not be judged: {exc.msg}") from None
             self.last = report
             self._cell.bus.publish(PlacementEvent(time.time(), report.image, report.as_dict()))
             return report
