@@ -151,6 +151,11 @@ def test_a_frame_without_the_holder_says_so(bench: VisionBench) -> None:
     assert report.positions == ()
 
 
+def test_a_frame_of_another_size_than_the_calibration_is_refused(bench: VisionBench) -> None:
+    with pytest.raises(InvalidArgumentError, match=r"640x480 pixels.*1280x960"):
+        bench.check(np.zeros((480, 640, 3), np.uint8), {"A1"})
+
+
 def test_an_unknown_position_is_refused_before_the_frame_is_judged(bench: VisionBench) -> None:
     with pytest.raises(InvalidArgumentError, match="no position B7"):
         bench.check(np.zeros((960, 1280, 3), np.uint8), {"A1", "B7"})

@@ -180,14 +180,18 @@ class PlacementChecker:
                 raise InvalidArgumentError(
                     f"station {self.deck.station.name!r} has no position {names}"
                 )
+        i = self.intrinsics
+        if frame.ndim != 3 or frame.shape[:2] != (i.height, i.width):
+            raise InvalidArgumentError(
+                f"the frame is {'x'.join(str(n) for n in frame.shape[1::-1])} pixels; the "
+                f"camera's calibration (vision.camera) is for {i.width}x{i.height} colour frames"
+            )
         if self._undistort is not None:
             frame = cv2.remap(frame, *self._undistort, cv2.INTER_LINEAR)
-        report = self._analyse(frame, expected)
+        report, pose = self._analyse(frame, expected)
         report.duration = time.perf_counter() - started
-        report.image = annotate(frame, report, self, self._last_pose)
+        report.image = annotate(frame, report, self, pose)
         return report
-
-    _last_pose: Pose | None = None
 
     def locate_holder(self, gray: np.ndarray) -> tuple[Pose | None, int, float | None]:
         """The station frame in the camera frame from the markers, their count, the RMS
@@ -220,10 +224,12 @@ class PlacementChecker:
             return None, len(obj), error
         return pose, len(obj), error
 
-    def _analyse(self, frame: np.ndarray, expected: Collection[str] | None) -> PlacementReport:
+    def _analyse(
+        self, frame: np.ndarray, expected: Collection[str] | None
+    ) -> tuple[PlacementReport, Pose | None]:
+        """The report and the holder's pose in the camera frame (``None``: not found)."""
         gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         pose, n, error = self.locate_holder(gray)
-        self._last_pose = pose
         if pose is None:
             why = (
                 f"the holder's markers are inconsistent (reprojection {error:.1f} px)"
@@ -231,7 +237,7 @@ class PlacementChecker:
                 else f"the holder was not found: {n} of {len(self.deck.markers)} markers seen "
                 "(at least 2 needed)"
             )
-            return PlacementReport(False, why, markers=n, reprojection_px=error)
+            return PlacementReport(False, why, markers=n, reprojection_px=error), None
         level, obstructions = self._plate(frame, pose)
         checks = []
         rvec, _ = cv2.Rodrigues(pose.rotation)
@@ -253,7 +259,7 @@ class PlacementChecker:
             for o in obstructions
         ]
         ok = not reasons
-        return PlacementReport(
+        report = PlacementReport(
             ok,
             "every position as expected" if ok else "; ".join(reasons),
             tuple(checks),
@@ -262,6 +268,7 @@ class PlacementChecker:
             n,
             error,
         )
+        return report, pose
 
     def _warp(
         self, frame: np.ndarray, pose: Pose, height: float, origin: FloatArray, scale: float,
