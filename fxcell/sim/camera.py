@@ -410,7 +410,17 @@ class SimCamera:
             gain=rng.uniform(0.9, 1.1),
             gradient=(rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)),
             noise=rng.uniform(1.5, 3.0),
+            blur=rng.uniform(0.0, 0.6),
             jpeg_quality=None,
+            # a mount that is not perfectly rigid: a millimetre, a tenth of a degree
+            shift=(
+                rng.gauss(0, 0.001),
+                rng.gauss(0, 0.001),
+                rng.gauss(0, 0.001),
+                rng.gauss(0, 0.002),
+                rng.gauss(0, 0.002),
+                rng.gauss(0, 0.002),
+            ),
             seed=self.frames,
         )
         loop = asyncio.get_running_loop()
