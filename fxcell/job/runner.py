@@ -859,6 +859,9 @@ class Job:
         this step, and so the check, again. True when the machine may start."""
         assert self.run is not None
         assert self.run_id is not None
+        io = self.cell.io
+        if not self.config.manual and (io.get(BUSY) or io.get(DONE)):
+            return True  # after a restart: the machine started already, too late to look
         expected = {s.machine for s in self.run.samples if s.cycle == step.cycle}
         try:
             report = await self.cell.inspect_placement(expected)
