@@ -11,8 +11,9 @@ ring, lump), a crucible in a position that should be empty, or a crucible left l
 holder between positions (in the gripper's path).
 
 Targets: detection of a faulty scene ≥ 99.5 %, false alarms on correct scenes ≤ 0.5 %, and the
-time per check (analysis of one 1280×960 frame, this machine) median ≤ 0.3 s, p99 ≤ 1 s.
-Peer: ArUco marker detection alone on the same frames. It also prints the measured
+time per check (analysis of one 1280×960 frame, this machine) median ≤ 0.3 s, p99 ≤ 1 s, and
+median ≤ 4 × the peer's: ArUco marker detection alone on the same frames (the ratio holds on
+a busy machine, the absolute times do not). It also prints the measured
 distributions behind the thresholds in ``vision.thresholds`` (seated: largest offset and
 lowest axis ratio; faults: smallest measured offset and highest ratio).
 
@@ -173,6 +174,10 @@ def main() -> int:
     targets.check(
         "check time median", median, "<=", 0.3, "s",
         peer=statistics.median(peer), peer_name="ArUco detection alone",
+    )  # fmt: skip
+    peer_median = statistics.median(peer)
+    targets.check(
+        "check time median / ArUco detection alone", median / peer_median, "<=", 4.0, "x",
     )  # fmt: skip
     targets.check(
         "check time p99", p99, "<=", 1.0, "s",
