@@ -82,10 +82,10 @@ from fxcell.motion.runner import (
 )
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.results import GripResult, MoveResult, ProgramStatus
-from fxcell.vision.placement import PlacementReport
 
 if TYPE_CHECKING:
     from fxcell.motion.moves import MotionController
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 

@@ -21,11 +21,11 @@ from fxcell.errors import ConnectionLostError, FxcellError, InvalidArgumentError
 from fxcell.events import DeviceEvent
 from fxcell.job import Job, JobStore
 from fxcell.layout import Layout
-from fxcell.vision.placement import PlacementReport
 
 if TYPE_CHECKING:
     from fxcell.cell import Cell
     from fxcell.config import CellConfig
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 

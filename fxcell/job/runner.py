@@ -71,10 +71,10 @@ from fxcell.job.store import (
 )
 from fxcell.layout import Layout
 from fxcell.resources import resource_dir
-from fxcell.vision.placement import PlacementReport
 
 if TYPE_CHECKING:
     from fxcell.cell.cell import Cell
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 
