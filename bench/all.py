@@ -32,6 +32,7 @@ BENCHES = (
     "api",
     "recorder",
     "moves",
+    "placement",
     "load",
 )
 LONG = {"recorder", "moves"}

@@ -103,10 +103,16 @@ LEVEL = ArgType(
 STATION = ArgType("station", "a station of the layout (rack, tray, machine, moulds)", scalar="str")
 SLOT = ArgType("slot", "a slot of the station: row letter and column number, e.g. B3", scalar="str")
 FRAME_POINT = ArgType("frame_point", "origin, x_point or xy_point", scalar="str")
+SLOTS = ArgType(
+    "slots",
+    "positions that must hold a seated crucible, comma-separated (e.g. A1,A2); '-': none; "
+    "empty: each position seated or empty",
+    scalar="str",
+)
 
 ARG_TYPES: tuple[ArgType, ...] = (
     FACTOR, JOINTS, POSE, VECTOR3, FLAG, SECONDS, GRIP_WIDTH, GRIP_SPEED, GRIP_FORCE,
-    NAME, SIGNAL, LEVEL, STATION, SLOT, FRAME_POINT,
+    NAME, SIGNAL, LEVEL, STATION, SLOT, FRAME_POINT, SLOTS,
 )  # fmt: skip
 
 
@@ -719,6 +725,25 @@ class CellCommands(Protocol):
     ) -> GripResult:
         """Place the held object in a slot: approach, descend straight, release, rise."""
         return await self.run_command("place", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command(
+        "command",
+        MAPPING,
+        args={"expected": SLOTS},
+        guard=None,
+        needs_control=False,
+        docs={"expected": SLOTS.doc},
+    )
+    async def check_placement(self, expected: str = "") -> dict[str, Any]:
+        """Look at the fusion machine's crucible positions with the camera: each is
+        ``empty``, ``seated``, ``offset``, ``tilted`` or ``foreign``, with a confidence and
+        the measured offset (mm); anything on the holder outside them is an obstruction.
+
+        Returns ``{"ok", "reason", "positions", "obstructions", ...}``; the annotated image
+        is recorded (MCAP ``/camera/placement``) and served by the daemon
+        (``/api/camera/placement.jpg``). Raises ``CameraError`` when no frame comes.
+        """
+        return await self.run_command("check_placement", **_given(locals()))  # type: ignore[no-any-return]
 
     @command("command", BOOL, needs_control=False)
     async def stop(self) -> bool:

@@ -215,6 +215,106 @@ class JobConfig(_Model):
     been measured."""
 
 
+class CameraConfig(_Model):
+    """A camera of the cell: where its frames come from, its intrinsics and where it is.
+
+    The camera frame is OpenCV's: z along the optical axis, x to the image's right, y down.
+    """
+
+    source: str | int | None = "simulator"
+    """Where frames come from: ``null`` (no camera: the placement check is unavailable), a
+    V4L2/USB index (``0``), a stream URL OpenCV opens (``rtsp://...``, ``http://.../mjpg``),
+    ``snapshot:http://...`` (one JPEG per HTTP GET, as network cameras offer), or
+    ``simulator``: the camera the simulator renders (the controller's address, port
+    :data:`SIMULATOR_CAMERA_PORT`)."""
+    width: int = Field(1280, ge=16, le=8192)
+    height: int = Field(960, ge=16, le=8192)
+    fx: float = Field(1100.0, gt=0)
+    """Focal length in pixels (from a calibration: docs/guides/vision.md)."""
+    fy: float = Field(1100.0, gt=0)
+    cx: float = 639.5
+    cy: float = 479.5
+    distortion: tuple[float, ...] = ()
+    """OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]); empty: none."""
+    mount: Literal["base", "flange"] = "base"
+    """What :attr:`pose` is relative to: the robot base, or the flange (a wrist camera)."""
+    pose: Vector6 = (0.0, 0.33, 0.60, 3.0414, 0.0, 0.0)
+    """The camera frame in the base (or flange) frame: x, y, z (m), rotation vector (rad)."""
+    timeout: float = Field(5.0, gt=0)
+    """Seconds a frame may take to arrive."""
+
+    @field_validator("distortion")
+    @classmethod
+    def _distortion_length(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if len(v) not in (0, 4, 5, 8, 12, 14):
+            raise ValueError("OpenCV takes 4, 5, 8, 12 or 14 distortion coefficients")
+        return v
+
+
+SIMULATOR_CAMERA_PORT = 8089
+"""The simulator serves its rendered camera on this port of its address (``GET /snapshot.jpg``)."""
+
+
+class FiducialConfig(_Model):
+    """One ArUco marker on the crucible holder: its id and centre in the station frame (m)."""
+
+    id: int = Field(ge=0)
+    position: tuple[float, float]
+
+
+class PlacementThresholds(_Model):
+    """Where the placement check draws its lines (chosen from measured data: bench/placement.py)."""
+
+    offset: float = Field(0.0012, gt=0)
+    """A crucible whose rim centre is farther than this (m) from its position is ``offset``."""
+    tilt_ratio: float = Field(0.972, gt=0, le=1)
+    """A rim whose minor/major axis ratio is below this is ``tilted`` (cos 13.6° ≈ 0.972)."""
+    diameter: float = Field(0.0012, gt=0)
+    """A top disc whose minor axis differs from the crucible's width by more than this (m) is
+    not a crucible (``foreign``)."""
+    rectangularity: float = Field(0.88, gt=0, le=1)
+    """A top whose area fills more of its bounding rectangle than this is boxy: ``foreign``."""
+    saturation: float = Field(60.0, gt=0, le=255)
+    """A top whose mean colour saturation (0-255) exceeds this is not platinum: ``foreign``."""
+    presence: float = Field(0.12, gt=0, le=1)
+    """A position whose foreground covers less than this fraction of a crucible's disc is
+    ``empty``."""
+    obstruction: float = Field(2.0e-5, gt=0)
+    """Foreground of more than this area (m²) on the holder outside the positions is an
+    obstruction (something left in the gripper's path)."""
+
+
+class VisionConfig(_Model):
+    """The camera and the placement check of the fusion machine's crucible positions."""
+
+    camera: CameraConfig = CameraConfig()
+    station: str = "machine"
+    """The layout station whose positions the check judges (its slots, its object kind)."""
+    dictionary: str = "DICT_4X4_50"
+    """The ArUco dictionary of the holder's markers (``cv2.aruco`` name)."""
+    marker_size: float = Field(0.028, gt=0)
+    """Side of each marker's black square (m)."""
+    markers: tuple[FiducialConfig, ...] = (
+        FiducialConfig(id=0, position=(-0.045, -0.042)),
+        FiducialConfig(id=1, position=(0.225, -0.042)),
+        FiducialConfig(id=2, position=(0.225, 0.042)),
+        FiducialConfig(id=3, position=(-0.045, 0.042)),
+    )
+    """The holder's markers, on the seat plane (z = 0 of the station frame)."""
+    holder: tuple[float, float, float, float] = (-0.078, -0.068, 0.258, 0.068)
+    """The holder's top plate in the station frame: x min, y min, x max, y max (m)."""
+    thresholds: PlacementThresholds = PlacementThresholds()
+    check_before_start: bool = True
+    """The job checks the positions before it starts the machine (when a camera is set)."""
+
+    @field_validator("markers")
+    @classmethod
+    def _enough_markers(cls, v: tuple[FiducialConfig, ...]) -> tuple[FiducialConfig, ...]:
+        if len(v) < 2 or len({m.id for m in v}) != len(v):
+            raise ValueError("give at least two markers with distinct ids")
+        return v
+
+
 class CellConfig(_Model):
     """Everything a :class:`~fxcell.cell.cell.Cell` and the daemon need."""
 
@@ -232,6 +332,7 @@ class CellConfig(_Model):
     recorder: RecorderConfig = RecorderConfig()
     daemon: DaemonConfig = DaemonConfig()
     job: JobConfig = JobConfig()
+    vision: VisionConfig = VisionConfig()
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> CellConfig:

@@ -326,3 +326,15 @@ class JobStoreError(JobError):
 
 class MachineError(JobError):
     """The fusion machine reports an error, or did not answer as its protocol requires."""
+
+
+# ----------------------------------------------------------------- camera
+
+
+class CameraError(FxcellError):
+    """The camera gave no frame: not configured, cannot be opened, or too slow (the
+    message says which and where it was looked for)."""
+
+
+class CameraNotConfiguredError(CameraError):
+    """No camera is configured (``vision.camera.source`` is null)."""

@@ -88,6 +88,8 @@ class FakeIO:
         self.signals: dict[str, bool] = {}
         self._changed = asyncio.Event()
         self.on_set: list[Any] = []
+        self.history: list[tuple[str, bool]] = []
+        """Every ``set`` (signal, value), in order."""
         self.tick: Any = None
         """An async callable awaited first in ``set`` and ``wait_for`` (the cell's crash point)."""
 
@@ -105,6 +107,7 @@ class FakeIO:
         if self.tick is not None:
             await self.tick()
         self.write(signal, value)
+        self.history.append((signal, value))
         for callback in self.on_set:
             callback(signal, value)
 
@@ -212,6 +215,14 @@ class FakeCell:
         self.in_step = asyncio.Event()
         self.homes = 0
         self.moves: list[tuple[str, str, str]] = []
+        self.camera: Any = None
+        """A ``fxcell.testing.vision.VisionBench``: the machine's positions are looked at
+        (rendered from the world); ``None``: the cell has no camera."""
+        self.faults: dict[str, Any] = {}
+        """Machine slot -> the ``Fault`` its crucible stands in (default: seated)."""
+        self.next_place_fault: Any = None
+        """The next crucible placed in the machine stands like this (e.g. 4 mm off)."""
+        self.checks: list[Any] = []
 
     async def _tick(self) -> None:
         self.ticks += 1
@@ -240,6 +251,8 @@ class FakeCell:
         if place not in self.world.places:
             raise NothingGraspedError(f"nothing between the fingers at {place}")
         self.world.move(place, GRIPPER)
+        if station == "machine":
+            self.faults.pop(slot, None)
         self.machine.changed()
         await self._tick()  # retreat
 
@@ -253,8 +266,25 @@ class FakeCell:
             await self.gate.wait()
         await self._tick()  # descend, open
         self.world.move(GRIPPER, place)
+        if station == "machine" and self.next_place_fault is not None:
+            self.faults[slot] = self.next_place_fault
+            self.next_place_fault = None
         self.machine.changed()
         await self._tick()  # retreat
+
+    async def inspect_placement(self, expected: Any) -> Any:
+        if self.camera is None:
+            return None
+        from fxcell.testing.vision import Fault
+
+        positions = {
+            p.split(":")[1]: self.faults.get(p.split(":")[1], Fault.seated())
+            for p, obj in self.world.places.items()
+            if p.startswith("machine:") and obj.startswith("crucible:")
+        }
+        report = self.camera.check(self.camera.render(positions), set(expected))
+        self.checks.append(report)
+        return report
 
     async def go_home(self) -> None:
         self.homes += 1

@@ -218,7 +218,7 @@ async def test_a_missing_crucible_pauses_the_run_naming_the_slot(
             run = {"samples": [{"id": "S09", "rack": "C3", "machine": "A3", "tray": "C3"}]}
             await cell.job_start(run)  # the simulator's rack has crucibles in A1 and A2 only
             paused = await job_state(cell, "paused", "fault")
-            assert paused["state"] == "paused"
+            assert paused["state"] == "paused", paused["message"]
             assert "no crucible detected in rack slot C3" in paused["message"]
             assert paused["samples"][0]["crucible"] == "rack:C3"  # the record did not move it
             await cell.job_discard()

@@ -35,6 +35,7 @@ LAYERS: dict[str, int] = {
     "fxcell.signals": 0,
     "fxcell.link": 1,
     "fxcell.link.embedded": 1,
+    "fxcell.vision": 1,
     "fxcell.motion": 2,
     "fxcell.motion.kinematics": 2,
     "fxcell.motion.calibration": 2,
@@ -128,3 +129,17 @@ def test_importing_the_whole_runtime_loads_no_simulator_code() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
     )
     assert out.stdout.strip() == ""
+
+
+def test_the_daemon_and_the_cell_load_opencv_only_when_the_camera_is_used() -> None:
+    """The daemon imports the Cell on its event loop: OpenCV (seconds to load on a busy
+    machine) must wait for the first placement check, which imports it in a worker thread."""
+    code = (
+        "import sys\n"
+        "import fxcell, fxcell.cell, fxcell.job, fxcell.daemon.server, fxcell.daemon.jobs\n"
+        "print('cv2' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "False"

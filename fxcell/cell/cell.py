@@ -16,12 +16,21 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Mapping, Sequence
+from collections.abc import (
+    AsyncIterator,
+    Awaitable,
+    Callable,
+    Collection,
+    Coroutine,
+    Mapping,
+    Sequence,
+)
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.calibration import Calibration
 from fxcell.cell import handling
+from fxcell.cell.camera import CellCamera
 from fxcell.cell.gripper import Gripper
 from fxcell.cell.io import CellIO
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
@@ -76,6 +85,7 @@ from fxcell.results import GripResult, MoveResult, ProgramStatus
 
 if TYPE_CHECKING:
     from fxcell.motion.moves import MotionController
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 
@@ -183,6 +193,7 @@ class Cell(CellCommands):
         self._opened = False
         self._gripper: Gripper | None = None
         self._io: CellIO | None = None
+        self._camera: CellCamera | None = None
         self._freedrive = False
         self.held: str | None = None
         """The kind of object the gripper holds after a pick (None: nothing)."""
@@ -209,6 +220,13 @@ class Cell(CellCommands):
         if self._io is None:
             self._io = CellIO(self)
         return self._io
+
+    @property
+    def camera(self) -> CellCamera:
+        """The cell's camera and the placement check (``vision`` in the configuration)."""
+        if self._camera is None:
+            self._camera = CellCamera(self)
+        return self._camera
 
     @property
     def host(self) -> str | None:
@@ -265,6 +283,8 @@ class Cell(CellCommands):
             self._restore = None
         if self._gripper is not None:
             await self._gripper.close_connection()
+        if self._camera is not None:
+            await self._camera.close()
         if self.link is not None:
             await self.link.close()
         if self._machine_task is not None:
@@ -1310,6 +1330,29 @@ class Cell(CellCommands):
                 self, station, slot, velocity_factor, acceleration_factor
             )
             return result
+
+    async def check_placement(self, expected: str = "") -> dict[str, Any]:
+        async with self._command("check_placement", expected=expected) as out:
+            text = expected.strip()
+            slots: set[str] | None
+            if not text:
+                slots = None
+            elif text == "-":
+                slots = set()
+            else:
+                slots = {s.strip().upper() for s in text.split(",") if s.strip()}
+            report = await self.camera.check(slots)
+            out["result"] = result = report.as_dict()
+            return result
+
+    async def inspect_placement(self, expected: Collection[str]) -> PlacementReport | None:
+        """The job's check before it starts the machine: ``expected`` must hold seated
+        crucibles, the other positions be empty (recorded as ``check_placement``). ``None``
+        when no camera is configured or ``vision.check_before_start`` is off."""
+        if not (self.camera.configured and self.config.vision.check_before_start):
+            return None
+        await self.check_placement(",".join(sorted(expected)) or "-")
+        return self.camera.last
 
     async def get_max_acceleration(self) -> tuple[float, ...]:
         async with self._command("get_max_acceleration") as out:

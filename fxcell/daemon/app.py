@@ -328,6 +328,37 @@ def create_app(service: CellService) -> FastAPI:
     for job_command in JOB_COMMANDS:
         add_job_command(job_command)
 
+    # ------------------------------------------------------------- the camera
+
+    jpeg: dict[int | str, dict[str, Any]] = {200: {"content": {"image/jpeg": {}}}}
+
+    @api.get(
+        "/job/placement/{check_id}.jpg",
+        summary="The annotated image of a placement check the job made (its job database)",
+        response_class=Response,
+        responses=jpeg,
+    )
+    async def job_placement_image(check_id: int) -> Response:
+        job = await service.jobs.require()
+        try:
+            data = await asyncio.to_thread(job.store.placement_image, check_id)
+        except FxcellError as exc:
+            raise RemoteError(str(exc), status=404) from None
+        return Response(data, media_type="image/jpeg", headers={"Cache-Control": "no-store"})
+
+    @api.get(
+        "/camera/placement.jpg",
+        summary="The annotated image of the cell's last placement check",
+        response_class=Response,
+        responses=jpeg,
+    )
+    async def camera_placement_image() -> Response:
+        cell = service.cell
+        last = None if cell is None else cell.camera.last
+        if last is None:
+            raise RemoteError("no placement check yet: run check_placement", status=404)
+        return Response(last.image, media_type="image/jpeg", headers={"Cache-Control": "no-store"})
+
     @api.get("/cell/state", summary="The state machine's current state")
     async def cell_state() -> dict[str, Any]:
         return {"result": service.machine_state()}

@@ -38,6 +38,8 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.MachineError, 502),
     (errors.JobStoreError, 500),  # the job database is unreadable: the daemon's fault
     (errors.JobError, 409),  # e.g. an unfinished run blocks a new one
+    (errors.CameraNotConfiguredError, 409),
+    (errors.CameraError, 502),
     (errors.FxcellError, 500),
 )
 _DETAIL_ATTRS = ("command", "state", "allowed", "next_step", "remaining", "failures")

@@ -14,7 +14,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import TYPE_CHECKING, Any
 
 from fxcell.errors import ConnectionLostError, FxcellError, InvalidArgumentError
@@ -25,6 +25,7 @@ from fxcell.layout import Layout
 if TYPE_CHECKING:
     from fxcell.cell import Cell
     from fxcell.config import CellConfig
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,9 @@ class CellForJob:
 
     async def go_home(self) -> None:
         await self._cell.go_home()
+
+    async def inspect_placement(self, expected: Collection[str]) -> PlacementReport | None:
+        return await self._cell.inspect_placement(expected)
 
 
 class JobService:

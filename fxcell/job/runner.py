@@ -22,7 +22,15 @@ import contextlib
 import functools
 import logging
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Mapping, Sequence
+from collections.abc import (
+    AsyncIterator,
+    Awaitable,
+    Callable,
+    Collection,
+    Coroutine,
+    Mapping,
+    Sequence,
+)
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Concatenate, ParamSpec, Protocol, TypeVar
@@ -52,12 +60,21 @@ from fxcell.job.plan import (
     make_plan,
 )
 from fxcell.job.spec import MOULDS, Run, RunSpec, load_run, validate_run
-from fxcell.job.store import BEAD, CRUCIBLE, Change, JobStore, Key, StepRecord
+from fxcell.job.store import (
+    BEAD,
+    CRUCIBLE,
+    Change,
+    JobStore,
+    Key,
+    PlacementRecord,
+    StepRecord,
+)
 from fxcell.layout import Layout
 from fxcell.resources import resource_dir
 
 if TYPE_CHECKING:
     from fxcell.cell.cell import Cell
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +137,12 @@ class JobCell(Protocol):
     async def place(self, station: str, slot: str, /) -> object: ...
 
     async def go_home(self) -> object: ...
+
+    async def inspect_placement(self, expected: Collection[str], /) -> PlacementReport | None:
+        """Look at the machine's positions: ``expected`` must hold seated crucibles, the
+        others be empty. ``None``: no camera (the job starts the machine unchecked);
+        :class:`~fxcell.errors.CameraError` when the camera gives no frame."""
+        ...
 
 
 if TYPE_CHECKING:  # mypy proves that the real Cell is a JobCell
@@ -203,6 +226,9 @@ class Job:
         self._durations: dict[str, tuple[float, int]] = {}
         self.locations: dict[Key, str] = {}
         """Where each object of the run is, as recorded: (sample index, object) -> place."""
+        self.placement: dict[str, Any] | None = None
+        """The run's last placement check: ``check`` (its id in the store), ``time``, ``ok``,
+        ``reason``, ``cycle``, ``positions`` (slot → verdict, offset)."""
 
     # ------------------------------------------------------------- state
 
@@ -319,6 +345,7 @@ class Job:
             "questions": [asdict(q) for q in self.questions.values()],
             "prompt": self.prompt,
             "samples": samples,
+            "placement": self.placement,
         }
 
     # ------------------------------------------------------------- database
@@ -367,6 +394,8 @@ class Job:
         self.run = record.run
         self.plan = make_plan(record.run)
         self.locations = await self._db(self.store.locations, run_id)
+        checks = await self._db(self.store.placement_checks, run_id)
+        self.placement = _placement_summary(checks[-1]) if checks else None
         self._durations = {
             kind: (mean, 1) for kind, mean in (await self._db(self.store.mean_durations)).items()
         }
@@ -549,6 +578,7 @@ class Job:
         self.plan = []
         self.questions = {}
         self.locations = {}
+        self.placement = None
 
     async def close(self) -> None:
         """Stop the job's task (as :meth:`abort` when it runs); the store stays open."""
@@ -823,8 +853,54 @@ class Job:
         """``machine_done`` while waiting; none while pausing (the loop then pauses)."""
         return "machine_done" if self.state == "waiting_for_machine" else None
 
+    async def _placement_checked(self, step: Step) -> bool:
+        """Before the machine starts: are the cycle's crucibles seated, the other positions
+        empty, nothing on the holder? If not, hold (paused) with the reason; resuming runs
+        this step, and so the check, again. True when the machine may start."""
+        assert self.run is not None
+        assert self.run_id is not None
+        io = self.cell.io
+        if not self.config.manual and (io.get(BUSY) or io.get(DONE)):
+            return True  # after a restart: the machine started already, too late to look
+        expected = {s.machine for s in self.run.samples if s.cycle == step.cycle}
+        try:
+            report = await self.cell.inspect_placement(expected)
+        except FxcellError as exc:
+            await self._fault_now(f"placement check before fusion cycle {step.cycle + 1}: {exc}")
+            return False
+        if report is None:
+            return True
+        verdict = report.as_dict()
+        check_id = await self._db(
+            self.store.add_placement_check, self.run_id, step.seq, verdict, report.image
+        )
+        self.placement = {
+            "check": check_id,
+            "cycle": step.cycle + 1,
+            "time": report.time,
+            "ok": report.ok,
+            "reason": report.reason,
+            "positions": {
+                p.slot: {"verdict": p.verdict, "ok": p.ok, "offset_mm": p.offset_mm}
+                for p in report.positions
+            },
+        }
+        self._emit({"event": "placement", **self.placement})
+        if report.ok:
+            return True
+        message = (
+            f"placement check before fusion cycle {step.cycle + 1}: {report.reason}. "
+            "Seat the crucibles in their positions and clear the holder, then resume "
+            "(the check runs again)"
+        )
+        await self._db(self._set_state_now, self._dest("hold"), message)
+        self._fire("hold", message)
+        return False
+
     async def _start_machine(self, step: Step) -> bool:
         io = self.cell.io
+        if not await self._placement_checked(step):
+            return False
         if self.config.manual:
             step_id = await self._begin_waiting(step, "start the fusion machine, then confirm")
             ok = await self._ask(PROMPT_STARTED, "Start the fusion machine, then confirm.")
@@ -903,3 +979,18 @@ class Job:
             message=f"fusion cycle {step.cycle + 1} done",
         )
         return True
+
+
+def _placement_summary(record: PlacementRecord) -> dict[str, Any]:
+    """The status form of a stored check."""
+    return {
+        "check": record.id,
+        "cycle": None,
+        "time": record.time,
+        "ok": record.ok,
+        "reason": record.reason,
+        "positions": {
+            p["slot"]: {"verdict": p["verdict"], "ok": p["ok"], "offset_mm": p.get("offset_mm")}
+            for p in record.verdict.get("positions", ())
+        },
+    }

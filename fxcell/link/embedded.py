@@ -26,11 +26,13 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from fxcell.config import SIMULATOR_CAMERA_PORT
 from fxcell.errors import InvalidArgumentError, SimulatorError
 
 SIM_MODULE = "fxcell.sim"
 CONTROL_PORT = 29990  # the simulator's control port (fault injection, state)
-PORTS = (29999, 30004, 30001, 30002, 30003, 63352, CONTROL_PORT)  # 63352: Robotiq URCap gripper
+# 63352: Robotiq URCap gripper; SIMULATOR_CAMERA_PORT: the rendered camera (GET /snapshot.jpg)
+PORTS = (29999, 30004, 30001, 30002, 30003, 63352, CONTROL_PORT, SIMULATOR_CAMERA_PORT)
 FAULTS = (
     "protective_stop",
     "emergency_stop",
@@ -49,6 +51,7 @@ FAULTS = (
     "machine_reset",  # clears the fusion machine's error
     "door_open",  # the fusion machine's door opens: error, not ready (aborts a cycle)
     "door_close",
+    "place_offset",  # DX DY: the next object the gripper releases lands that far off (m)
     "hide_kinematics_info",  # the primary interface's robot state lacks the calibration
     "show_kinematics_info",
 )
@@ -177,6 +180,24 @@ def place_object(
     answer = _request(host, " ".join(words), timeout)
     if not answer.startswith("ok"):
         raise SimulatorError(f"simulator refused place_object: {answer}")
+    return answer[3:].strip()
+
+
+def offset_object(
+    host: str,
+    name: str,
+    dx: float,
+    dy: float,
+    tilt_deg: float = 0.0,
+    azimuth_deg: float = 0.0,
+    timeout: float = 5.0,
+) -> str:
+    """Shift a standing object by (dx, dy) m along the base axes and lean it ``tilt_deg``
+    towards ``azimuth_deg`` (a misplaced crucible, for the camera's placement check)."""
+    line = f"offset_object {name} {dx!r} {dy!r} {tilt_deg!r} {azimuth_deg!r}"
+    answer = _request(host, line, timeout)
+    if not answer.startswith("ok"):
+        raise SimulatorError(f"simulator refused offset_object: {answer}")
     return answer[3:].strip()
 
 

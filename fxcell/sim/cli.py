@@ -165,6 +165,19 @@ def register(sub: Any) -> None:
     po.add_argument("slot")
     po.add_argument("contents", nargs="?", help="what it carries ('-': nothing)")
     po.set_defaults(func=run_place_object)
+    oo = inner.add_parser(
+        "offset-object",
+        help="misplace a standing object of a running simulator (for the camera's check)",
+        description="Shift it by DX DY (m, base axes) and lean it --tilt degrees towards "
+        "--azimuth (degrees from base +x), turning about its bottom's edge.",
+    )
+    oo.add_argument("--host", default="127.0.0.1", help="the simulator's address")
+    oo.add_argument("name")
+    oo.add_argument("dx", type=float)
+    oo.add_argument("dy", type=float)
+    oo.add_argument("--tilt", type=float, default=0.0, help="degrees")
+    oo.add_argument("--azimuth", type=float, default=0.0, help="degrees")
+    oo.set_defaults(func=run_offset_object)
     m = inner.add_parser("machine", help="print the simulated fusion machine's state (JSON)")
     m.add_argument("--host", default="127.0.0.1", help="the simulator's address")
     m.set_defaults(func=run_machine)
@@ -198,6 +211,18 @@ def run_set_input(args: argparse.Namespace) -> int:
         print(set_input(args.host, args.input, args.value))
     except SimulatorError as exc:
         print(f"fxcell sim set-input: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run_offset_object(args: argparse.Namespace) -> int:
+    from fxcell.errors import SimulatorError
+    from fxcell.link.embedded import offset_object
+
+    try:
+        print(offset_object(args.host, args.name, args.dx, args.dy, args.tilt, args.azimuth))
+    except SimulatorError as exc:
+        print(f"fxcell sim offset-object: {exc}", file=sys.stderr)
         return 1
     return 0
 

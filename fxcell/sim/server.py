@@ -31,8 +31,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fxcell.calibration import Calibration
-from fxcell.config import CellConfig
-from fxcell.errors import InvalidArgumentError
+from fxcell.config import SIMULATOR_CAMERA_PORT, CellConfig
+from fxcell.errors import FxcellError, InvalidArgumentError
 from fxcell.geometry import Pose, rows_to_rotvec
 from fxcell.layout import Layout
 from fxcell.link.embedded import CONTROL_PORT
@@ -80,6 +80,7 @@ PORTS = (
     SCRIPT_PORT,
     URCAP_GRIPPER_PORT,
     CONTROL_PORT,
+    SIMULATOR_CAMERA_PORT,
 )
 IDLE_PERIOD = 0.02  # s: cycle period while no client streams and nothing moves
 URCAP_TIMEOUT = 5.0
@@ -288,11 +289,37 @@ class SimServer:
                 POSITIONS_STATION,
                 MOULDS_STATION,
             )
+        self.camera = self._make_camera()
         if crucibles:
             rack = self.layout.station("rack")
             for slot in slots_of(rack, crucibles):
                 self.place_object(f"crucible-{slot}", rack.config.holds, "rack", slot, "sample")
         self.publish_state()
+
+    def _make_camera(self) -> Any:
+        """The configured camera, rendering this world (None when the layout has no holder)."""
+        from fxcell.sim.camera import Renderer, SimCamera
+        from fxcell.vision.model import Deck, Intrinsics
+
+        vision = self.config.vision
+        try:
+            deck = Deck.from_config(vision, self.layout)
+        except FxcellError as exc:
+            log.warning("no camera: %s", exc)
+            return None
+        tcp = self.controller
+
+        def flange() -> Pose:
+            return Pose.from_ur(self.hub.state.actual_tcp_pose) @ Pose.from_ur(tcp.tcp).inverse()
+
+        grips = {name: kind.grip_height for name, kind in self.layout.config.objects.items()}
+        return SimCamera(
+            Renderer(deck, Intrinsics.from_config(vision.camera)),
+            vision.camera,
+            lambda: list(self.gripper.objects.values()),
+            grips,
+            flange,
+        )
 
     # ------------------------------------------------------------------ state
 
@@ -510,6 +537,10 @@ class SimServer:
             return self._add_object(args)
         if cmd == "place_object":
             return self._place_object(args)
+        if cmd == "offset_object":
+            return self._offset_object(args)
+        if cmd == "inject" and args and args[0].lower() == "place_offset":
+            return self._place_offset(args[1:])
         if cmd == "set_input":
             return self._set_input(args)
         if cmd == "machine":
@@ -578,7 +609,8 @@ class SimServer:
             "set_joints Q*6 | push DX DY DZ | push D1..D6 | gripper | objects | "
             "add_object NAME KIND W H M X Y Z)"
             "set_joints Q*6 | gripper | objects | add_object NAME KIND W H M X Y Z | "
-            "place_object NAME KIND STATION SLOT [CONTENTS] | set_input SIGNAL VALUE | machine)"
+            "place_object NAME KIND STATION SLOT [CONTENTS] | "
+            "offset_object NAME DX DY [TILT [AZ]] | set_input SIGNAL VALUE | machine)"
         )
 
     def _push(self, args: list[str]) -> str:
@@ -715,6 +747,57 @@ class SimServer:
         except InvalidArgumentError as exc:
             return f"error: place_object: {exc}"
 
+    def _offset_object(self, args: list[str]) -> str:
+        """``offset_object NAME DX DY [TILT_DEG [AZIMUTH_DEG]]``: shift a standing object by
+        (dx, dy) m along the base axes and lean it ``TILT_DEG`` towards ``AZIMUTH_DEG`` (from
+        base +x), turning about its bottom's edge (a crucible resting on its pocket's rim)."""
+        usage = "error: offset_object NAME DX DY [TILT_DEG [AZIMUTH_DEG]]"
+        if not 3 <= len(args) <= 5:
+            return usage
+        obj = self.gripper.objects.get(args[0])
+        if obj is None:
+            return f"error: offset_object: no object {args[0]!r}"
+        if obj.held_from is not None:
+            return f"error: offset_object: {args[0]} is in the gripper"
+        try:
+            dx, dy, tilt_deg, azimuth_deg = (float(v) for v in [*args[1:], "0", "0"][:4])
+        except ValueError:
+            return usage
+        if not all(math.isfinite(v) for v in (dx, dy, tilt_deg, azimuth_deg)):
+            return usage
+        if abs(dx) > 0.2 or abs(dy) > 0.2 or not 0 <= tilt_deg < 60:
+            return "error: offset_object: |DX|, |DY| <= 0.2 m and 0 <= TILT_DEG < 60"
+        tilt, az = math.radians(tilt_deg), math.radians(azimuth_deg)
+        grip = (
+            self.layout.config.objects[obj.kind].grip_height
+            if (obj.kind in self.layout.config.objects)
+            else obj.height / 2
+        )
+        down = obj.pose.rotation[:, 2]
+        bottom = obj.pose.position + down * grip + np.array([dx, dy, 0.0])
+        lean = Pose.from_rotvec((0, 0, 0), np.array([-math.sin(az), math.cos(az), 0.0]) * tilt)
+        # turn about the bottom's edge on the lean side: the bottom lifts and slides
+        r = obj.width / 2 * 0.78
+        bottom = bottom + np.array(
+            [math.cos(az) * r * (1 - math.cos(tilt)), math.sin(az) * r * (1 - math.cos(tilt)),
+             r * math.sin(tilt)]
+        )  # fmt: skip
+        rotation = lean.rotation @ obj.pose.rotation
+        obj.pose = Pose(bottom - rotation[:, 2] * grip, rotation)
+        return f"ok: {obj.name} moved by ({dx:g}, {dy:g}) m, leaning {tilt_deg:g}°"
+
+    def _place_offset(self, args: list[str]) -> str:
+        if len(args) != 2:
+            return "error: inject place_offset DX DY (m, base frame)"
+        try:
+            dx, dy = float(args[0]), float(args[1])
+        except ValueError:
+            return "error: inject place_offset DX DY (m, base frame)"
+        if not (math.isfinite(dx) and math.isfinite(dy)) or max(abs(dx), abs(dy)) > 0.05:
+            return "error: place_offset: |DX|, |DY| <= 0.05 m"
+        self.gripper.release_offset = (dx, dy)
+        return f"ok: the next object released lands ({dx:g}, {dy:g}) m off"
+
     def _set_input(self, args: list[str]) -> str:
         if len(args) != 2:
             return "error: set_input SIGNAL VALUE (e.g. DI5 1, CI2 0, TI0 1, AI0 4.2)"
@@ -797,6 +880,11 @@ class SimServer:
             (URCAP_GRIPPER_PORT, lambda: GripperConnection(self.gripper)),
             (CONTROL_PORT, lambda: ControlConnection(self)),
         ]
+        if self.camera is not None:
+            from fxcell.sim.camera import CameraConnection
+
+            camera = self.camera
+            factories.append((SIMULATOR_CAMERA_PORT, lambda: CameraConnection(camera.snapshot)))
         try:
             self.hub.listen(loop, self.host, RTDE_PORT)
             for port, factory in factories:
@@ -817,7 +905,8 @@ class SimServer:
                 f"fxcell sim listening on {self.host}: dashboard {DASHBOARD_PORT}, rtde "
                 f"{RTDE_PORT}, primary/secondary/real-time {PRIMARY_PORT}/{SECONDARY_PORT}/"
                 f"{SCRIPT_PORT}, "
-                f"gripper {URCAP_GRIPPER_PORT}, control {CONTROL_PORT}",
+                f"gripper {URCAP_GRIPPER_PORT}, control {CONTROL_PORT}"
+                + (f", camera {SIMULATOR_CAMERA_PORT}" if self.camera is not None else ""),
                 flush=True,
             )
         if on_listening is not None:
@@ -833,6 +922,8 @@ class SimServer:
             self.clients.close()
             for srv in self._servers:
                 srv.close()
+            if self.camera is not None:
+                self.camera.close()
             for sig in signals:
                 loop.remove_signal_handler(sig)
 
