@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from fxcell.config import CellConfig, JobConfig
-from fxcell.errors import FxcellError, IOTimeoutError, NothingGraspedError
+from fxcell.errors import FxcellError, GripperError, IOTimeoutError, NothingGraspedError
 from fxcell.job import Job, JobStore, Run
 from fxcell.job.plan import location
 from fxcell.layout import Layout
@@ -191,6 +191,22 @@ class FakeMachine:
             self._timer.cancel()
 
 
+class FakeGripper:
+    """The gripper's object detection over the world; ``readable=False`` (the default):
+    it cannot be read (a fake without a gripper), so the job asks the operator."""
+
+    def __init__(self, world: World) -> None:
+        self.world = world
+        self.readable = False
+        self.holding = False
+
+    async def get_width(self) -> float:
+        if not self.readable:
+            raise GripperError("the fake cell has no gripper to read")
+        self.holding = GRIPPER in self.world.places
+        return 0.0 if self.holding else 0.05
+
+
 class FakeCell:
     """A :class:`fxcell.job.JobCell` over a :class:`World`.
 
@@ -212,6 +228,15 @@ class FakeCell:
         self.in_step = asyncio.Event()
         self.homes = 0
         self.moves: list[tuple[str, str, str]] = []
+        self.gripper = FakeGripper(world)
+        self.held: str | None = None
+        self.restores = 0
+
+    async def declare_held(self, kind: str | None = None) -> None:
+        self.held = kind
+
+    async def restore_control(self) -> None:
+        self.restores += 1
 
     async def _tick(self) -> None:
         self.ticks += 1
@@ -240,6 +265,7 @@ class FakeCell:
         if place not in self.world.places:
             raise NothingGraspedError(f"nothing between the fingers at {place}")
         self.world.move(place, GRIPPER)
+        self.held = self.layout.station(station).config.holds
         self.machine.changed()
         await self._tick()  # retreat
 
@@ -253,6 +279,7 @@ class FakeCell:
             await self.gate.wait()
         await self._tick()  # descend, open
         self.world.move(GRIPPER, place)
+        self.held = None
         self.machine.changed()
         await self._tick()  # retreat
 
