@@ -59,7 +59,7 @@ class RobotConfig(_Model):
     """Seconds a general command waits for the robot to confirm its effect."""
     connect_timeout: float = Field(10.0, gt=0)
     reconnect_backoff_max: float = Field(5.0, gt=0)
-    heal_attempts: int = Field(3, ge=0, le=20)
+    heal_attempts: int = Field(5, ge=0, le=20)
     """Times a pick, place or job step goes on by itself after the robot link dropped or
     restarted under it (the arm at rest or braked), before it stops for the operator."""
     heal_timeout: float = Field(30.0, gt=0)
@@ -212,7 +212,7 @@ class JobConfig(_Model):
     cycle_estimate: float = Field(900.0, gt=0)
     """Seconds a fusion cycle is expected to take, for the time-left estimate until one has
     been measured."""
-    heal_attempts: int = Field(3, ge=0, le=20)
+    heal_attempts: int = Field(5, ge=0, le=20)
     """Times a step that is safe to repeat (go home, the machine's start pulse) is run again
     after the robot link dropped under it, before the job stops for the operator (pick and
     place go on by themselves within, see ``robot.heal_attempts``)."""

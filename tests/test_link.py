@@ -91,6 +91,7 @@ async def test_unreachable_controller_reports_each_failed_client() -> None:
         await client.close()
 
 
+@pytest.mark.injects_faults("the link process killed")
 async def test_killed_link_process_is_detected_and_restarted(link: LinkClient) -> None:
     old_pid = link.pid
     seen: list[LinkStatus] = []
@@ -106,6 +107,7 @@ async def test_killed_link_process_is_detected_and_restarted(link: LinkClient) -
     assert link.latest is not None
 
 
+@pytest.mark.injects_faults("a stalled state stream")
 async def test_stalled_rtde_marks_the_link_down_then_up(sim: Any) -> None:
     down_at: list[float] = []
 
@@ -121,6 +123,7 @@ async def test_stalled_rtde_marks_the_link_down_then_up(sim: Any) -> None:
         await link.wait_up(10)
 
 
+@pytest.mark.injects_faults("a stalled state stream")
 async def test_a_link_mute_for_seconds_is_restarted(link: LinkClient, sim: Any) -> None:
     restarts, pid = link.restarts, link.pid
     await asyncio.to_thread(sim.inject, "stall_rtde", "3.5")
@@ -216,6 +219,7 @@ async def test_replace_remaining_ends_the_trajectory_early(link: LinkClient) -> 
     assert result.duration < 1.5
 
 
+@pytest.mark.injects_faults("a protective stop")
 async def test_trajectory_fails_on_protective_stop(link: LinkClient, sim: Any) -> None:
     await _ready_for_control(link)
     assert link.latest is not None

@@ -86,6 +86,7 @@ def _sim_motion(handle: SimulatorHandle, over: float = 0.05) -> float:
     return float(np.max(np.abs(np.array(handle.state()["q"]) - q0)))
 
 
+@pytest.mark.injects_faults("a stalled state stream")
 async def test_a_stalled_state_stream_brakes_the_move_before_its_caller_hears(
     shared: SimulatorHandle, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -181,6 +182,7 @@ async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandl
         assert abs(shared.state()["q"][0] - FAR[0]) > 0.5
 
 
+@pytest.mark.injects_faults("the pendant switched to Local")
 async def test_local_control_brakes_a_running_move_and_refuses_new_ones(
     shared: SimulatorHandle,
 ) -> None:

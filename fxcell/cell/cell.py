@@ -96,6 +96,10 @@ _FAILURE_STATES: dict[CellState, type[FxcellError]] = {
     CellState.EMERGENCY_STOP: EmergencyStopError,
     CellState.FAULT: RobotFaultError,
 }
+EXPLAIN_SAMPLES = 25
+"""State samples a failed move waits for the one that shows why (a safety or program stop)..."""
+EXPLAIN_WITHIN = 0.25
+"""...and seconds at most (the state stream may have stopped)."""
 REST_SAMPLES = 25
 """State samples in a row (50 ms at 500 Hz) that must show the arm at rest before a
 recovery takes control back or a move is sent again."""
@@ -882,8 +886,42 @@ class Cell(CellCommands):
                 if runner.error is not None:
                     raise runner.error from None
                 raise
+            except FxcellError as exc:
+                if runner.error is not None:
+                    raise runner.error from None
+                # the body may have heard of a stop (the link's end report) before the
+                # state sample that shows it: that sample names the error
+                explained = await self._stop_behind(name)
+                if explained is not None:
+                    raise explained from exc
+                raise
             finally:
                 self._observe(self.robot_state, f"{name} ended")
+
+    async def _stop_behind(self, name: str) -> FxcellError | None:
+        """The stop that ended a failed move, once the state shows it (within
+        :data:`EXPLAIN_SAMPLES` samples or :data:`EXPLAIN_WITHIN` s); None if none shows."""
+
+        def seen() -> FxcellError | None:
+            error = _MOVE_ABORT_STATES.get(self._observed)
+            if error is None:
+                return None
+            return error(f"move aborted: robot went to {self._observed.value}")
+
+        found = seen()
+        link = self.link
+        if found is not None or link is None:
+            return found
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(EXPLAIN_WITHIN):
+                with link.subscribe(EXPLAIN_SAMPLES + 1) as samples:
+                    count = 0
+                    async for _ in samples:  # each was observed before it got here
+                        found = seen()
+                        count += 1
+                        if found is not None or count >= EXPLAIN_SAMPLES:
+                            break
+        return found
 
     def _moving(self) -> bool:
         return self._runner is not None and self._runner.running

@@ -687,10 +687,24 @@ class Job:
         self._fire("fail", message)
         self._announce_questions()
 
+    async def _signal(self, signal: str) -> bool:
+        """A machine signal now (read again once a lost robot link is back)."""
+
+        async def read() -> bool:
+            return bool(self.cell.io.get(signal))
+
+        return await self._healing(f"read {signal}", read)
+
     async def _step(self, step: Step) -> bool:
-        if not self.config.manual and self.cell.io.get(ERROR):
-            await self._fault_now("the fusion machine reports an error")
-            return False
+        if not self.config.manual:
+            try:
+                error = await self._signal(ERROR)
+            except FxcellError as exc:
+                await self._fault_now(f"the machine's signals cannot be read: {exc}")
+                return False
+            if error:
+                await self._fault_now("the fusion machine reports an error")
+                return False
         if step.action == HOME:
             return await self._home(step)
         if step.action == START:
@@ -962,7 +976,7 @@ class Job:
         started = time.monotonic()
         try:
             # After a restart the machine may have started already: then only end the pulse.
-            if not (io.get(BUSY) or io.get(DONE)):
+            if not (await self._signal(BUSY) or await self._signal(DONE)):
                 await self._healing("start pulse", lambda: io.set(START_SIGNAL, True))
                 fired = await self._wait_any(
                     [(BUSY, True), (DONE, True), (ERROR, True)], self.config.start_timeout
