@@ -178,7 +178,6 @@ def injected_faults(why: str, **expected: int) -> Iterator[FaultWatch | None]:
 def watching_test(request: pytest.FixtureRequest) -> Iterator[FaultWatch]:
     """Watch one test: install a :class:`FaultWatch`; the simulators and daemons of its
     module- or session-scoped fixtures (already running) are watched from now on."""
-    global _current
     running: list[Any] = []
     definitions = request.node._fixtureinfo.name2fixturedefs
     for name in request.fixturenames:
@@ -186,9 +185,18 @@ def watching_test(request: pytest.FixtureRequest) -> Iterator[FaultWatch]:
         if not defs or defs[-1].scope == "function":
             continue  # function-scoped simulators and daemons start inside the watch
         running.append(request.getfixturevalue(name))
+    with watching(_watchable(running)) as watch:
+        yield watch
+
+
+@contextlib.contextmanager
+def watching(objects: list[Any]) -> Iterator[FaultWatch]:
+    """Install a :class:`FaultWatch` (watching ``objects``, simulators and daemons already
+    running, too) as the one :func:`injected_faults` reports to."""
+    global _current
     watch = FaultWatch()
     watch.install()
-    watch.adopt(_watchable(running))
+    watch.adopt(objects)
     watch.begin()
     _current = watch
     try:
