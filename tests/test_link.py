@@ -133,6 +133,7 @@ async def test_a_link_mute_for_seconds_is_restarted(link: LinkClient, sim: Any) 
     assert link.restarts == restarts + 1
 
 
+@pytest.mark.injects_faults("the control program stopped")
 async def test_control_ready_follows_the_control_program(link: LinkClient, sim: Any) -> None:
     await _ready_for_control(link)
     await asyncio.to_thread(sim.inject, "stop_program")
@@ -183,6 +184,7 @@ async def test_trajectory_streams_to_its_target_with_progress(link: LinkClient) 
     )
 
 
+@pytest.mark.injects_faults("the link process killed mid-trajectory")
 async def test_the_garbage_collector_waits_while_a_trajectory_streams(link: LinkClient) -> None:
     # A full collection in a big heap stops the process for 100-300 ms, longer than the
     # link process waits for a beat: it must not run mid-move, and must run again after.
