@@ -59,6 +59,9 @@ class RobotConfig(_Model):
     """Seconds a general command waits for the robot to confirm its effect."""
     connect_timeout: float = Field(10.0, gt=0)
     reconnect_backoff_max: float = Field(5.0, gt=0)
+    realtime_priority: int = Field(80, ge=0, le=99)
+    """SCHED_FIFO priority the robot-link process asks for (where the user may: see the
+    real-robot guide); 0 keeps it at normal scheduling."""
     heal_attempts: int = Field(5, ge=0, le=20)
     """Times a pick, place or job step goes on by itself after the robot link dropped or
     restarted under it (the arm at rest or braked), before it stops for the operator."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import os
 import time
 from collections.abc import AsyncIterator, Iterator
 from typing import Any
@@ -13,6 +14,7 @@ import pytest
 
 from fxcell.errors import InvalidArgumentError, RobotLinkError
 from fxcell.link import LinkClient, LinkStatus, collector
+from fxcell.link.realtime import probe
 from fxcell.protocol import CONTROL_PERIOD, RobotMode, RuntimeState
 from fxcell.testing import simulator
 
@@ -68,6 +70,15 @@ async def test_state_stream_delivers_every_sample_the_controller_sent(
     assert np.all(steps >= 1)
     # cycles the simulator skipped while it ran late (a busy machine) were never sent
     assert int(np.sum(steps - 1)) <= late
+
+
+async def test_the_link_process_says_how_it_is_scheduled(link: LinkClient) -> None:
+    # SCHED_FIFO where this user may (the probe asks the same of a short-lived thread)
+    assert link.scheduling is not None
+    assert link.scheduling.realtime == probe(link.realtime_priority).realtime
+    assert link.pid is not None
+    policy = os.sched_getscheduler(link.pid)
+    assert policy == (os.SCHED_FIFO if link.scheduling.realtime else os.SCHED_OTHER)
 
 
 async def test_dashboard_call_returns_the_reply_line(link: LinkClient) -> None:

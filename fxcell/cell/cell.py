@@ -62,7 +62,7 @@ from fxcell.jsonable import to_jsonable
 from fxcell.layout import Layout, LayoutConfig, layout_data
 from fxcell.link import LinkStatus, StateSubscription
 from fxcell.link.backend import LinkBackend, LinkFactory
-from fxcell.link.client import process_link
+from fxcell.link.client import LinkClient, process_link
 from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.motion.runner import (
     DistanceTarget,
@@ -250,6 +250,8 @@ class Cell(CellCommands):
             await self.link.start(wait=True)
             await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
             self.controller_info = await self._read_controller_info()
+            if isinstance(self.link, LinkClient) and self.link.scheduling is not None:
+                self.controller_info["link_scheduling"] = self.link.scheduling.describe()
             self.controller_info.update(await self._use_calibration())
             if self._recorder is not None:
                 self._recorder.update_metadata(self.controller_info)
