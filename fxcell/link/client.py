@@ -51,7 +51,7 @@ from fxcell.errors import (
 )
 from fxcell.link import collector, wire
 from fxcell.link.process import Guard, stop_reason
-from fxcell.link.realtime import LINK_PRIORITY, Scheduling
+from fxcell.link.realtime import LINK_PRIORITY, Scheduling, request_realtime
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
 if TYPE_CHECKING:
@@ -69,6 +69,8 @@ BEAT_PERIOD = 0.01
 LOOP_STALL_AFTER = 0.5
 """Seconds the event loop may go without running before the beats stop (and the link
 process brakes): nothing supervises a move while the loop stands still."""
+BEAT_PRIORITY_BELOW = 5
+"""The beat thread's SCHED_FIFO priority is the link process's less this (where permitted)."""
 WATCHDOG_LATE = 0.1
 """Seconds beyond which the watchdog's wake-up counts as late (its sleeps are ≤ 50 ms)."""
 GAP_REPORT = 0.02
@@ -682,7 +684,13 @@ class LinkClient:
         A thread, not a task: a late event loop (a busy machine, a long callback) must not
         brake a healthy move; a frozen process, or a loop stalled for LOOP_STALL_AFTER,
         must. Only the trajectory count and a timestamp are read here, without locks.
+
+        It runs real time just below the link process where permitted: a link process that
+        keeps its 2 ms while this thread waits for a CPU would take a busy machine for a
+        frozen cell and brake healthy moves.
         """
+        if self.realtime_priority > 0:
+            request_realtime(max(1, self.realtime_priority - BEAT_PRIORITY_BELOW))
         channel.setblocking(False)
         with channel:
             while not done.wait(BEAT_PERIOD):
