@@ -166,6 +166,7 @@ async def test_a_link_process_frozen_mid_move_resumes_without_a_setpoint_jump(
         assert await asyncio.to_thread(_sim_motion, shared, 0.05) < 1e-4
 
 
+@pytest.mark.injects_faults("the cell's side of the link closed mid-move")
 async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandle) -> None:
     # The cell side vanishes mid-move (its socket to the link process closes): the link
     # brakes the trajectory along its path before it exits.
