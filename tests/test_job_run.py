@@ -445,6 +445,9 @@ async def test_a_step_the_lost_link_interrupted_goes_on_by_itself_and_is_shown(
     assert heals[0]["what"] == "go home"
     assert heals[0]["step"] == "go home"
     assert job.status()["heals"]["count"] == 2
+    assert job.run_id is not None
+    home = next(r for r in store.steps(job.run_id) if r.kind == "home")
+    assert home.detail == "went on by itself after 2 lost robot link(s)"  # recorded
     cell.machine.close()
 
 

@@ -247,6 +247,7 @@ class Job:
         self.locations: dict[Key, str] = {}
         """Where each object of the run is, as recorded: (sample index, object) -> place."""
         self.heals: list[Event] = []
+        self._step_heals = 0
         """The run's recoveries from a lost robot link (this process), each an event."""
 
     # ------------------------------------------------------------- state
@@ -720,6 +721,7 @@ class Job:
             self.store.begin_step, self.run_id, step.seq, step.kind, step.idx, state
         )
         self._current = step
+        self._step_heals = 0
         event: Event = {"event": "step", "phase": "start", "seq": step.seq, "kind": step.kind}
         event["text"] = step.describe(self.run)
         if step.moves_object:
@@ -750,6 +752,8 @@ class Job:
         assert self.run is not None
         duration = None if started is None else time.monotonic() - started
         state = None if trigger is None else (self._dest(trigger), message)
+        if self._step_heals and not detail:  # the store keeps it with the step
+            detail = f"went on by itself after {self._step_heals} lost robot link(s)"
         await self._db(
             self.store.end_step,
             step_id,
@@ -856,6 +860,8 @@ class Job:
             "phase": heal.phase,
             "reason": heal.reason,
         }
+        if heal.phase == "start":
+            self._step_heals += 1
         self.heals.append({"time": time.time(), **event})
         self._emit(event)
 
