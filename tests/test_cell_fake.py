@@ -19,6 +19,7 @@ from fxcell import Cell, CellState, RobotMode
 from fxcell.errors import (
     ConnectionLostError,
     InvalidStateError,
+    LinkBrakeError,
     MoveStoppedError,
     NotInRemoteControlError,
     ProgramStoppedError,
@@ -368,3 +369,16 @@ async def test_restore_control_in_a_protective_stop_raises_its_error(
     await fake_cell.wait_for_state(CellState.PROTECTIVE_STOP)
     with pytest.raises(ProtectiveStopError):
         await fake_cell.restore_control(timeout=5)
+
+
+async def test_a_move_the_link_brakes_for_a_paused_stream_says_so(
+    fake_cell: Cell, fake_robot: FakeRobot
+) -> None:
+    # 90 ms without state: the link process's guard brakes (80 ms), the link stays up (100 ms)
+    task = asyncio.create_task(fake_cell.move_joint(QUARTER_TURN))
+    await _moving(fake_cell)
+    fake_robot.inject("stall_rtde", 0.09)
+    with pytest.raises(LinkBrakeError, match="stopped at"):
+        await task
+    assert fake_cell.link_losses == 0
+    await fake_cell.move_joint(QUARTER_TURN)  # made again from where it braked: arrives

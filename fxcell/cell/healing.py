@@ -1,7 +1,8 @@
 """Going on by itself after what needs no human: a robot link that dropped or restarted.
 
 A step of pick or place (a move, a gripper command, a check) that fails because the robot
-link went down under it (the link process died or was restarted, the state stream paused)
+link went down under it (the link process died or was restarted, the state stream paused;
+or the link process braked the move by itself, :class:`~fxcell.errors.LinkBrakeError`)
 is not a reason to call the operator: the arm braked (the link process brakes it, or the
 controller holds the last setpoint), nothing was lost, and the step can simply be done again
 from where the arm is. :func:`resilient` runs such a step: on a failure caused by a lost
@@ -28,6 +29,7 @@ from fxcell.errors import (
     ConnectionLostError,
     FxcellError,
     InvalidStateError,
+    LinkBrakeError,
     MoveStoppedError,
     RobotTimeoutError,
 )
@@ -59,8 +61,8 @@ HEAL_LISTENER: ContextVar[Callable[[Heal], None] | None] = ContextVar(
 
 def healable(cell: Cell, error: FxcellError, losses_before: int) -> bool:
     """Whether ``error`` came from a lost link (and so needs no human)."""
-    if isinstance(error, ConnectionLostError):
-        return True
+    if isinstance(error, ConnectionLostError | LinkBrakeError):
+        return True  # the link went down, or its guard braked the arm (a paused stream)
     if not isinstance(error, MoveStoppedError | InvalidStateError | RobotTimeoutError):
         return False  # safety stops, gripper findings, bad targets, Local control, ...
     if type(error) is MoveStoppedError and cell.link_losses == losses_before:

@@ -40,6 +40,7 @@ from fxcell.errors import (
     JobAnswerError,
     JobError,
     JobStateError,
+    LinkBrakeError,
     MachineError,
     NothingGraspedError,
 )
@@ -178,7 +179,7 @@ class _Model:
 
 def _link_lost(error: FxcellError) -> bool:
     """A failure a lost (or just restored) robot link explains: nothing for the operator."""
-    if isinstance(error, ConnectionLostError):
+    if isinstance(error, ConnectionLostError | LinkBrakeError):
         return True
     return isinstance(error, InvalidStateError) and error.state in _LINK_STATES
 
