@@ -14,10 +14,10 @@ Figures:
 Three runs in a row beside two CPU burners (a busy cell PC; this process at the service's
 ``Nice=-5``, the link real time where permitted, as ``contrib/fxcell.service`` runs them), the
 library's ``Job`` on a ``Cell``: the operator is never asked (a fault or a pause counts as an
-intervention and ends that run). Targets: 0 interventions, every bead on its tray slot and every crucible back in
-its rack slot in every run (by the simulator's object poses, within 1 mm), and a median
-overhead ratio ≤ 1.5. The median wall time and overhead are compared with the previous
-run of the bench (kept in ``$FXCELL_STATE_DIR/bench/job-N.json``).
+intervention and ends that run). Targets: 0 interventions, every bead on its tray slot and
+every crucible back in its rack slot in every run (by the simulator's object poses, within
+1 mm), and a median overhead ratio ≤ 1.5. The median wall time and overhead are compared
+with the previous run of the bench (kept in ``$FXCELL_STATE_DIR/bench/job-N.json``).
 
     ./dev bench job                          # 16 samples, 3 runs, 2 burners
     ./dev bench job --samples 4 --runs 1     # one fusion cycle, once
