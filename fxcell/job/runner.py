@@ -248,8 +248,8 @@ class Job:
         self.locations: dict[Key, str] = {}
         """Where each object of the run is, as recorded: (sample index, object) -> place."""
         self.heals: list[Event] = []
-        self._step_heals = 0
         """The run's recoveries from a lost robot link (this process), each an event."""
+        self._step_heals = 0
 
     # ------------------------------------------------------------- state
 
