@@ -109,10 +109,11 @@ SLOTS = ArgType(
     "empty: each position seated or empty",
     scalar="str",
 )
+OBJECT_KIND = ArgType("object_kind", "an object kind of the layout (crucible, bead)", scalar="str")
 
 ARG_TYPES: tuple[ArgType, ...] = (
     FACTOR, JOINTS, POSE, VECTOR3, FLAG, SECONDS, GRIP_WIDTH, GRIP_SPEED, GRIP_FORCE,
-    NAME, SIGNAL, LEVEL, STATION, SLOT, FRAME_POINT, SLOTS,
+    NAME, SIGNAL, LEVEL, STATION, SLOT, FRAME_POINT, SLOTS, OBJECT_KIND,
 )  # fmt: skip
 
 
@@ -307,6 +308,7 @@ _DOCS = {
     "queue": "wait for a running move to end instead of failing with MoveInProgressError",
     "timeout": "time limit (default: the cell's command timeout)",
 }
+_HEAL_DOCS = {"timeout": "time limit (default: robot.heal_timeout)"}
 _GRIP_DOCS = {"expect_object": "raise NothingGraspedError if the fingers close on nothing"}
 _MOVE = {"velocity_factor": FACTOR, "acceleration_factor": FACTOR, "queue": FLAG}
 _AT_SLOT = {
@@ -366,6 +368,18 @@ class CellCommands(Protocol):
     async def stop_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         """Stop the control program; returns when no program is playing."""
         return await self.run_command("stop_external_control", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"timeout": SECONDS}, guard=None, docs=_HEAL_DOCS)
+    async def restore_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """After the robot link dropped or restarted: wait until it is up and the arm is seen
+        at rest, then take external control back (and set the tool again).
+
+        A safety stop raises its error (``ProtectiveStopError``, ...); an arm that is not
+        running (powered off, brakes engaged) raises ``InvalidStateError``; nothing within
+        ``timeout`` raises ``RobotTimeoutError``. What pick, place and the job do by
+        themselves before they go on.
+        """
+        return await self.run_command("restore_control", **_given(locals()))  # type: ignore[no-any-return]
 
     @command(
         "command",
@@ -744,6 +758,13 @@ class CellCommands(Protocol):
         (``/api/camera/placement.jpg``). Raises ``CameraError`` when no frame comes.
         """
         return await self.run_command("check_placement", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"kind": OBJECT_KIND}, guard=None)
+    async def declare_held(self, kind: str | None = None) -> None:
+        """Tell the cell what the gripper holds: an object kind of the layout (``crucible``,
+        ``bead``), or nothing when left out (e.g. after a restart, when a job knows it).
+        Collision checking and the payload set on the controller follow."""
+        return await self.run_command("declare_held", **_given(locals()))  # type: ignore[no-any-return]
 
     @command("command", BOOL, needs_control=False)
     async def stop(self) -> bool:

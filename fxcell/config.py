@@ -59,6 +59,14 @@ class RobotConfig(_Model):
     """Seconds a general command waits for the robot to confirm its effect."""
     connect_timeout: float = Field(10.0, gt=0)
     reconnect_backoff_max: float = Field(5.0, gt=0)
+    realtime_priority: int = Field(80, ge=0, le=99)
+    """SCHED_FIFO priority the robot-link process asks for (where the user may: see the
+    real-robot guide); 0 keeps it at normal scheduling."""
+    heal_attempts: int = Field(5, ge=0, le=20)
+    """Times a pick, place or job step goes on by itself after the robot link dropped or
+    restarted under it (the arm at rest or braked), before it stops for the operator."""
+    heal_timeout: float = Field(30.0, gt=0)
+    """Seconds such a recovery waits for the link, the arm at rest and external control."""
     heartbeat_timeout: float = Field(0.1, ge=0.02, le=1.0)
     """The link process brakes a running move by itself when it has heard nothing from
     the cell for this long (s): a thread of the cell process beats every 10 ms while a move
@@ -213,6 +221,10 @@ class JobConfig(_Model):
     cycle_estimate: float = Field(900.0, gt=0)
     """Seconds a fusion cycle is expected to take, for the time-left estimate until one has
     been measured."""
+    heal_attempts: int = Field(5, ge=0, le=20)
+    """Times a step that is safe to repeat (go home, the machine's start pulse) is run again
+    after the robot link dropped under it, before the job stops for the operator (pick and
+    place go on by themselves within, see ``robot.heal_attempts``)."""
 
 
 class CameraConfig(_Model):

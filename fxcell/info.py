@@ -44,4 +44,15 @@ def run(args: argparse.Namespace) -> int:
     ]
     print(f"stations: {', '.join(stations) or 'none'}")
     print(f"positions: {config.positions_file}")
+    print(f"robot link scheduling: {link_scheduling(config.robot.realtime_priority)}")
     return 0
+
+
+def link_scheduling(priority: int) -> str:
+    """Whether a robot-link process started by this user gets real-time scheduling."""
+    from fxcell.link.realtime import probe
+
+    scheduling = probe(priority)
+    if scheduling.realtime:
+        return f"real time ({scheduling.describe()}): permitted for this user"
+    return f"normal, not real time: {scheduling.detail} (see docs/guides/real-robot.md)"

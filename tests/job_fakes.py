@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from fxcell.config import CellConfig, JobConfig
-from fxcell.errors import FxcellError, IOTimeoutError, NothingGraspedError
+from fxcell.errors import FxcellError, GripperError, IOTimeoutError, NothingGraspedError
 from fxcell.job import Job, JobStore, Run
 from fxcell.job.plan import location
 from fxcell.layout import Layout
@@ -194,6 +194,22 @@ class FakeMachine:
             self._timer.cancel()
 
 
+class FakeGripper:
+    """The gripper's object detection over the world; ``readable=False`` (the default):
+    it cannot be read (a fake without a gripper), so the job asks the operator."""
+
+    def __init__(self, world: World) -> None:
+        self.world = world
+        self.readable = False
+        self.holding = False
+
+    async def get_width(self) -> float:
+        if not self.readable:
+            raise GripperError("the fake cell has no gripper to read")
+        self.holding = GRIPPER in self.world.places
+        return 0.0 if self.holding else 0.05
+
+
 class FakeCell:
     """A :class:`fxcell.job.JobCell` over a :class:`World`.
 
@@ -223,6 +239,15 @@ class FakeCell:
         self.next_place_fault: Any = None
         """The next crucible placed in the machine stands like this (e.g. 4 mm off)."""
         self.checks: list[Any] = []
+        self.gripper = FakeGripper(world)
+        self.held: str | None = None
+        self.restores = 0
+
+    async def declare_held(self, kind: str | None = None) -> None:
+        self.held = kind
+
+    async def restore_control(self) -> None:
+        self.restores += 1
 
     async def _tick(self) -> None:
         self.ticks += 1
@@ -253,6 +278,7 @@ class FakeCell:
         self.world.move(place, GRIPPER)
         if station == "machine":
             self.faults.pop(slot, None)
+        self.held = self.layout.station(station).config.holds
         self.machine.changed()
         await self._tick()  # retreat
 
@@ -269,6 +295,7 @@ class FakeCell:
         if station == "machine" and self.next_place_fault is not None:
             self.faults[slot] = self.next_place_fault
             self.next_place_fault = None
+        self.held = None
         self.machine.changed()
         await self._tick()  # retreat
 

@@ -449,6 +449,7 @@ def _descendants(pid: int) -> list[tuple[int, str]]:
     return out
 
 
+@pytest.mark.injects_faults("the link process killed")
 async def test_daemon_survives_a_crashed_robot_link(
     daemon: DaemonProcess, http: httpx.AsyncClient
 ) -> None:
@@ -493,30 +494,22 @@ def test_sigterm_during_a_move_stops_the_robot_finishes_the_log_and_exits_0(
         assert r.status_code == 200
         lease = {"X-Fxcell-Lease": r.headers["X-Fxcell-Lease"]}
         q = http.get("/api/state").json()["robot"]["q"]
-        attempts: list[dict[str, Any]] = []
-        while True:  # a move the link braked on a starved, busy machine is sent again
-            start = http.get("/api/state").json()["robot"]["q"]
-            target = [q[0] + 1.5 if abs(start[0] - q[0]) < 0.75 else q[0], *q[1:]]
-            r = http.post(
-                "/api/cell/move_joint",
-                # full speed: stops brake with the braking limits, well within the 3 s
-                json={"target": target, "velocity_factor": 1.0},
-                headers={**headers(), **lease},
-            )
-            assert r.status_code == 202, r.text
-            op = r.json()["id"]
-            deadline = time.monotonic() + 20
-            while abs(http.get("/api/state").json()["robot"]["qd"][0]) < 0.8:
-                record = http.get(f"/api/operations/{op}").json()
-                if record["status"] != "running":
-                    break
-                assert time.monotonic() < deadline, "the move did not reach speed"
-                time.sleep(0.01)
-            else:
-                break
-            attempts.append(record)
-            assert len(attempts) < 3, attempts
-            http.post("/api/cell/init", headers={**headers(), **lease})
+        target = [q[0] + 1.5, *q[1:]]
+        r = http.post(
+            "/api/cell/move_joint",
+            # full speed: stops brake with the braking limits, well within the 3 s
+            json={"target": target, "velocity_factor": 1.0},
+            headers={**headers(), **lease},
+        )
+        assert r.status_code == 202, r.text
+        op = r.json()["id"]
+        deadline = time.monotonic() + 20
+        while abs(http.get("/api/state").json()["robot"]["qd"][0]) < 0.8:
+            record = http.get(f"/api/operations/{op}").json()
+            # it ended before reaching speed: the daemon's log says why (a link brake?)
+            assert record["status"] == "running", (record, daemon.output[-15:])
+            assert time.monotonic() < deadline, "the move did not reach speed"
+            time.sleep(0.01)
         notify.settimeout(0)
         with contextlib.suppress(BlockingIOError):  # the watchdog notices so far
             while True:
@@ -680,6 +673,7 @@ def test_a_command_sent_as_soon_as_the_daemon_serves_waits_for_the_cell(tmp_path
         assert daemon.stop(signal.SIGTERM, timeout=10) == 0
 
 
+@pytest.mark.injects_faults("the program stopped, the power lost")
 @pytest.mark.parametrize("fault", ["stop_program", "power_loss"])
 async def test_a_move_the_controller_aborts_answers_with_an_error_status(
     tmp_path: Path, fault: str
@@ -758,6 +752,7 @@ def test_no_simulator_refuses_to_start_without_a_robot_host(tmp_path: Path) -> N
     assert "no robot host configured" in out.stderr
 
 
+@pytest.mark.injects_faults("the daemon frozen (SIGSTOP) mid-move")
 def test_a_frozen_daemon_leaves_no_arm_moving(tmp_path: Path) -> None:
     # SIGSTOP freezes the cell process, the thread that beats to the link included; the
     # link process (its own process group) brakes by itself within the beat timeout.

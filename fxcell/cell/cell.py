@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.calibration import Calibration
-from fxcell.cell import handling
+from fxcell.cell import handling, healing
 from fxcell.cell.camera import CellCamera
 from fxcell.cell.gripper import Gripper
 from fxcell.cell.io import CellIO
@@ -44,6 +44,7 @@ from fxcell.errors import (
     EmergencyStopError,
     FxcellError,
     InvalidArgumentError,
+    InvalidStateError,
     MoveInProgressError,
     MoveStoppedError,
     NotInRemoteControlError,
@@ -70,7 +71,7 @@ from fxcell.jsonable import to_jsonable
 from fxcell.layout import Layout, LayoutConfig, layout_data
 from fxcell.link import LinkStatus, StateSubscription
 from fxcell.link.backend import LinkBackend, LinkFactory
-from fxcell.link.client import process_link
+from fxcell.link.client import LinkClient, process_link
 from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.motion.runner import (
     DistanceTarget,
@@ -82,6 +83,7 @@ from fxcell.motion.runner import (
 )
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.results import GripResult, MoveResult, ProgramStatus
+from fxcell.settling import REST_VELOCITY
 
 if TYPE_CHECKING:
     from fxcell.motion.moves import MotionController
@@ -104,6 +106,13 @@ _FAILURE_STATES: dict[CellState, type[FxcellError]] = {
     CellState.EMERGENCY_STOP: EmergencyStopError,
     CellState.FAULT: RobotFaultError,
 }
+EXPLAIN_SAMPLES = 25
+"""State samples a failed move waits for the one that shows why (a safety or program stop)..."""
+EXPLAIN_WITHIN = 0.25
+"""...and seconds at most (the state stream may have stopped)."""
+REST_SAMPLES = 25
+"""State samples in a row (50 ms at 500 Hz) that must show the arm at rest before a
+recovery takes control back or a move is sent again."""
 REMOTE_POLL = 0.25
 """Seconds between two queries of the pendant's Local/Remote switch while no move runs."""
 REMOTE_POLL_MOVING = 0.02
@@ -197,6 +206,10 @@ class Cell(CellCommands):
         self._freedrive = False
         self.held: str | None = None
         """The kind of object the gripper holds after a pick (None: nothing)."""
+        self.link_losses = 0
+        """Times the robot link went down after being up (a dropped or restarted link
+        process, a paused state stream): each one is a warning in the log."""
+        self._link_was_up = False
 
     @classmethod
     def from_config(cls, config: str | Path | CellConfig | None = None, **kwargs: Any) -> Cell:
@@ -260,6 +273,8 @@ class Cell(CellCommands):
             await self.link.start(wait=True)
             await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
             self.controller_info = await self._read_controller_info()
+            if isinstance(self.link, LinkClient) and self.link.scheduling is not None:
+                self.controller_info["link_scheduling"] = self.link.scheduling.describe()
             self.controller_info.update(await self._use_calibration())
             if self._recorder is not None:
                 self._recorder.update_metadata(self.controller_info)
@@ -404,9 +419,14 @@ class Cell(CellCommands):
 
     def _on_link_status(self, status: LinkStatus, reason: str) -> None:
         if status is not LinkStatus.UP:
+            if self._link_was_up and status is LinkStatus.DOWN:
+                self.link_losses += 1
+            self._link_was_up = False
             self._shutting_down = False
             self._observe(None, reason)
-        elif self._control_wanted and (self._restore is None or self._restore.done()):
+            return
+        self._link_was_up = True
+        if self._control_wanted and (self._restore is None or self._restore.done()):
             self._restore = asyncio.create_task(self._restore_control(), name="restore control")
 
     async def _restore_control(self) -> None:
@@ -419,6 +439,10 @@ class Cell(CellCommands):
         """
         try:
             await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
+            if self._control_wanted and self.state is CellState.PROGRAM_STOPPED:
+                # the arm may still be braking after the old link's last setpoint: a new
+                # control script is started only once it is seen at rest
+                await self._wait_at_rest(self.command_timeout, "restore_external_control")
             sample = self.robot_state
             if (
                 self._control_wanted
@@ -438,6 +462,71 @@ class Cell(CellCommands):
                     await self._send_tool()
         except FxcellError as exc:
             log.warning("could not restore external control after reconnecting: %s", exc)
+
+    @property
+    def link_recovering(self) -> bool:
+        """The link is down, or back but external control not restored yet."""
+        return self.state is CellState.DISCONNECTED or (
+            self._restore is not None and not self._restore.done()
+        )
+
+    async def _wait_at_rest(self, within: float, command: str) -> None:
+        """Return once :data:`REST_SAMPLES` state samples in a row show every joint slower
+        than ``REST_VELOCITY`` (the controller's own joint speeds)."""
+        quiet = 0
+        try:
+            async with asyncio.timeout(within):
+                with self._link().subscribe(256) as samples:
+                    latest = self.robot_state
+                    if latest is not None and _at_rest(latest):
+                        quiet = 1
+                    async for sample in samples:
+                        quiet = quiet + 1 if _at_rest(sample) else 0
+                        if quiet >= REST_SAMPLES:
+                            return
+        except TimeoutError:
+            raise RobotTimeoutError(
+                f"{command}(): the arm was not seen at rest within {within:g} s"
+            ) from None
+
+    async def restore_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        async with self._command("restore_control"):
+            limit = timeout if timeout is not None else self.config.robot.heal_timeout
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + limit
+
+            def left() -> float:
+                return max(0.0, deadline - loop.time())
+
+            connected = [s for s in CellState if s is not CellState.DISCONNECTED]
+            await self.wait_for_state(*connected, timeout=left())
+            restore = self._restore
+            if restore is not None and not restore.done():
+                # the automatic take-over after the reconnect finishes first
+                with contextlib.suppress(Exception):
+                    async with asyncio.timeout(left()):
+                        await asyncio.shield(restore)
+            await self._move_landed()
+            state = self.state
+            error = _FAILURE_STATES.get(state)
+            if error is not None:
+                raise error(f"restore_control(): the robot is in {state.value}")
+            if not state.is_running or state is CellState.FREEDRIVE:
+                raise InvalidStateError(
+                    "restore_control",
+                    state.value,
+                    sorted(s.value for s in _running_states() if s is not CellState.FREEDRIVE),
+                    "init the robot (power on, brake release) first",
+                )
+            await self._wait_at_rest(left(), "restore_control")
+            if self.state is CellState.PROGRAM_STOPPED:
+                await self._require_remote()
+                self._control_wanted = True
+                await self._link().start_control(
+                    self.external_control, self.config.robot.urcap_program, left()
+                )
+            await self._await_effect("restore_control", {CellState.EXTERNAL_CONTROL_READY}, left())
+            await self._send_tool()
 
     def _on_control(self, ready: bool, reason: str) -> None:
         if self.link is not None:
@@ -926,8 +1015,42 @@ class Cell(CellCommands):
                 if runner.error is not None:
                     raise runner.error from None
                 raise
+            except FxcellError as exc:
+                if runner.error is not None:
+                    raise runner.error from None
+                # the body may have heard of a stop (the link's end report) before the
+                # state sample that shows it: that sample names the error
+                explained = await self._stop_behind(name)
+                if explained is not None:
+                    raise explained from exc
+                raise
             finally:
                 self._observe(self.robot_state, f"{name} ended")
+
+    async def _stop_behind(self, name: str) -> FxcellError | None:
+        """The stop that ended a failed move, once the state shows it (within
+        :data:`EXPLAIN_SAMPLES` samples or :data:`EXPLAIN_WITHIN` s); None if none shows."""
+
+        def seen() -> FxcellError | None:
+            error = _MOVE_ABORT_STATES.get(self._observed)
+            if error is None:
+                return None
+            return error(f"move aborted: robot went to {self._observed.value}")
+
+        found = seen()
+        link = self.link
+        if found is not None or link is None:
+            return found
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(EXPLAIN_WITHIN):
+                with link.subscribe(EXPLAIN_SAMPLES + 1) as samples:
+                    count = 0
+                    async for _ in samples:  # each was observed before it got here
+                        found = seen()
+                        count += 1
+                        if found is not None or count >= EXPLAIN_SAMPLES:
+                            break
+        return found
 
     def _moving(self) -> bool:
         return self._runner is not None and self._runner.running
@@ -1156,13 +1279,12 @@ class Cell(CellCommands):
                 cog=list(tool.payload_cog),
             )
 
-    async def declare_held(self, kind: str | None) -> None:
-        """Tell the cell what the gripper holds (an object kind of the layout, or None), e.g.
-        after a restart when a job knows it; collision checking and the payload follow."""
-        if kind is not None and kind not in self.config.layout.objects:
-            known = ", ".join(sorted(self.config.layout.objects))
-            raise InvalidArgumentError(f"no object kind {kind!r} (known: {known})")
-        await self._hold(kind)
+    async def declare_held(self, kind: str | None = None) -> None:
+        async with self._command("declare_held", kind=kind):
+            if kind is not None and kind not in self.config.layout.objects:
+                known = ", ".join(sorted(self.config.layout.objects))
+                raise InvalidArgumentError(f"no object kind {kind!r} (known: {known})")
+            await self._hold(kind)
 
     async def _hold(self, kind: str | None) -> None:
         """The gripper now holds an object of ``kind`` (None: nothing): collision checking
@@ -1323,9 +1445,14 @@ class Cell(CellCommands):
     ) -> GripResult:
         """Run ``handling.pick`` or ``handling.place`` as the recorded command of its name."""
         name = action.__name__
-        async with self._command(name, station=station, slot=slot) as out:
+
+        async def admitted() -> None:
             await self._move_landed()
             self.machine.check("move", name)
+
+        async with self._command(name, station=station, slot=slot) as out:
+            # a link that dropped just before is waited for, as within the steps
+            await healing.resilient(self, f"start {name}", admitted)
             out["result"] = result = await action(
                 self, station, slot, velocity_factor, acceleration_factor
             )
@@ -1358,6 +1485,10 @@ class Cell(CellCommands):
         async with self._command("get_max_acceleration") as out:
             out["result"] = limits = self._moves().max_acceleration
             return limits
+
+
+def _at_rest(sample: RobotState) -> bool:
+    return max(map(abs, sample.actual_qd)) < REST_VELOCITY
 
 
 def _running_states() -> set[CellState]:

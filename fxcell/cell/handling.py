@@ -1,6 +1,9 @@
 """Pick and place at the layout's slots: approach, descend straight, grip or release, rise.
 
-Everything that can be checked is checked before the arm moves: the station and slot names,
+A step that fails because the robot link dropped or restarted under it is done again once
+the link, the arm at rest and external control are back (:mod:`fxcell.cell.healing`):
+each is a move to a fixed target or a gripper command, so it goes on from wherever the arm
+braked. Everything that can be checked is checked before the arm moves: the station and slot names,
 the zone's interlock, the gripper's readiness and what it holds, and that the approach, grip
 and retreat poses have collision-free IK solutions on one arm configuration. Each step is a
 recorded command of its own (``move_pose``, ``gripper_close``, ...) inside the recorded
@@ -9,10 +12,12 @@ recorded command of its own (``move_pose``, ``gripper_close``, ...) inside the r
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from fxcell.cell.healing import resilient
 from fxcell.errors import (
     FxcellError,
     GripperError,
@@ -117,23 +122,41 @@ async def pick(
 ) -> GripResult:
     station, slot = admit_pick(cell, station_name, slot_name)
     cell.motion.factors(velocity_factor, acceleration_factor)
-    await reach_slot(cell, station, slot)
+    where = f"{station.name} {slot}"
+    await resilient(cell, f"check {where}", _checked(cell, station, slot))
     kind = station.kind
     vf, af = velocity_factor, acceleration_factor
-    await cell.gripper_move(min(0.050, kind.width + CLEARANCE))
-    await cell.move_pose(station.approach_pose(slot), vf, af)
+    open_width = min(0.050, kind.width + CLEARANCE)
+    await resilient(cell, "open the gripper", lambda: cell.gripper_move(open_width))
+    await resilient(
+        cell, f"approach {where}", lambda: cell.move_pose(station.approach_pose(slot), vf, af)
+    )
     check_interlock(cell, station)
-    await cell.move_pose(station.grip_pose(slot), vf, af, linear=True)
+    await resilient(
+        cell,
+        f"descend to {where}",
+        lambda: cell.move_pose(station.grip_pose(slot), vf, af, linear=True),
+    )
     try:
-        grip = await cell.gripper_close(expect_object=True)
+        grip = await resilient(
+            cell, f"grip at {where}", lambda: cell.gripper_close(expect_object=True)
+        )
     except NothingGraspedError:
-        await cell.gripper_move(min(0.050, kind.width + CLEARANCE))
-        await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+        await resilient(cell, "open the gripper", lambda: cell.gripper_move(open_width))
+        await resilient(
+            cell,
+            f"rise from {where}",
+            lambda: cell.move_pose(station.retreat_pose(slot), vf, af, linear=True),
+        )
         raise NothingGraspedError(
             f"no {station.config.holds} detected in {station.name} slot {slot}"
         ) from None
-    await cell._hold(station.config.holds)
-    await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+    await resilient(cell, "hold", lambda: cell._hold(station.config.holds))
+    await resilient(
+        cell,
+        f"rise from {where}",
+        lambda: cell.move_pose(station.retreat_pose(slot), vf, af, linear=True),
+    )
     try:
         await cell.gripper.check_holding()
     except GripperError:
@@ -151,16 +174,39 @@ async def place(
 ) -> GripResult:
     station, slot = admit_place(cell, station_name, slot_name)
     cell.motion.factors(velocity_factor, acceleration_factor)
-    await reach_slot(cell, station, slot)
+    where = f"{station.name} {slot}"
+    await resilient(cell, f"check {where}", _checked(cell, station, slot))
     vf, af = velocity_factor, acceleration_factor
-    await cell.move_pose(station.approach_pose(slot), vf, af)
+    await resilient(
+        cell, f"approach {where}", lambda: cell.move_pose(station.approach_pose(slot), vf, af)
+    )
     check_interlock(cell, station)
     await cell.gripper.check_holding()
-    await cell.move_pose(station.grip_pose(slot), vf, af, linear=True)
-    released = await cell.gripper_move(min(0.050, station.kind.width + CLEARANCE))
-    await cell._hold(None)
-    await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+    await resilient(
+        cell,
+        f"descend to {where}",
+        lambda: cell.move_pose(station.grip_pose(slot), vf, af, linear=True),
+    )
+    width = min(0.050, station.kind.width + CLEARANCE)
+    released = await resilient(cell, f"release at {where}", lambda: cell.gripper_move(width))
+    await resilient(cell, "let go", lambda: cell._hold(None))
+    await resilient(
+        cell,
+        f"rise from {where}",
+        lambda: cell.move_pose(station.retreat_pose(slot), vf, af, linear=True),
+    )
     return released
+
+
+def _checked(cell: Cell, station: Station, slot: str) -> Callable[[], Awaitable[None]]:
+    """The checks before a pick or place moves (they need the robot's state), repeated
+    when a lost link interrupts them."""
+
+    async def check() -> None:
+        check_interlock(cell, station)
+        await reach_slot(cell, station, slot)
+
+    return check
 
 
 ADMIT = {"pick": admit_pick, "place": admit_place}

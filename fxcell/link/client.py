@@ -51,6 +51,7 @@ from fxcell.errors import (
 )
 from fxcell.link import collector, wire
 from fxcell.link.process import Guard, stop_reason
+from fxcell.link.realtime import LINK_PRIORITY, Scheduling, request_realtime
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
 if TYPE_CHECKING:
@@ -68,6 +69,8 @@ BEAT_PERIOD = 0.01
 LOOP_STALL_AFTER = 0.5
 """Seconds the event loop may go without running before the beats stop (and the link
 process brakes): nothing supervises a move while the loop stands still."""
+BEAT_PRIORITY_BELOW = 5
+"""The beat thread's SCHED_FIFO priority is the link process's less this (where permitted)."""
 WATCHDOG_LATE = 0.1
 """Seconds beyond which the watchdog's wake-up counts as late (its sleeps are ≤ 50 ms)."""
 GAP_REPORT = 0.02
@@ -377,6 +380,7 @@ class LinkClient:
         backoff_max: float = 5.0,
         urcap_port: int = URCAP_SCRIPT_PORT,
         receiver: Literal["stream", "ur_rtde"] = "stream",
+        realtime_priority: int = LINK_PRIORITY,
         on_state: Callable[[RobotState], None] | None = None,
         on_status: Callable[[LinkStatus, str], None] | None = None,
         on_control: Callable[[bool, str], None] | None = None,
@@ -387,6 +391,7 @@ class LinkClient:
         self.backoff_max = backoff_max
         self.urcap_port = urcap_port
         self.receiver = receiver
+        self.realtime_priority = realtime_priority
         self._on_state = on_state
         self._on_status = on_status
         self._on_control = on_control
@@ -413,6 +418,8 @@ class LinkClient:
         self._link_fresh = 0.0  # time.monotonic() (system-wide) of the link's newest sample
         self._last_timestamp: float | None = None  # controller time of the newest sample
         self._loop_ran = 0.0  # time.monotonic() when the event loop last ran the beat task
+        self.scheduling: Scheduling | None = None
+        """How the link process is scheduled (SCHED_FIFO where permitted), once it said so."""
         self.gaps = 0
         """State-stream gaps seen (each logged as a warning, so recorded in the MCAP /log)."""
         self._status_changed = asyncio.Event()
@@ -544,6 +551,8 @@ class LinkClient:
                         self.receiver,
                         "--beat-fd",
                         str(beats_child.fileno()),
+                        "--rt-priority",
+                        str(self.realtime_priority),
                     ],
                     pass_fds=(child.fileno(), beats_child.fileno()),
                     stdin=subprocess.DEVNULL,
@@ -675,7 +684,13 @@ class LinkClient:
         A thread, not a task: a late event loop (a busy machine, a long callback) must not
         brake a healthy move; a frozen process, or a loop stalled for LOOP_STALL_AFTER,
         must. Only the trajectory count and a timestamp are read here, without locks.
+
+        It runs real time just below the link process where permitted: a link process that
+        keeps its 2 ms while this thread waits for a CPU would take a busy machine for a
+        frozen cell and brake healthy moves.
         """
+        if self.realtime_priority > 0:
+            request_realtime(max(1, self.realtime_priority - BEAT_PRIORITY_BELOW))
         channel.setblocking(False)
         with channel:
             while not done.wait(BEAT_PERIOD):
@@ -772,6 +787,21 @@ class LinkClient:
             self.last_failure = str(RobotLinkError(text, failures))
         elif kind == wire.LOG:
             log.log(int(message[1]), "link: %s", message[2])
+        elif kind == wire.HELLO:
+            self._hello(message[1])
+
+    def _hello(self, data: dict[str, Any]) -> None:
+        info = data.get("scheduling")
+        if not isinstance(info, dict):
+            return
+        first = self.scheduling is None
+        self.scheduling = Scheduling(**info)
+        if first and not self.scheduling.realtime:
+            log.warning(
+                "robot link process without real-time scheduling: %s (see the real-robot "
+                "guide: LimitRTPRIO)",
+                self.scheduling.detail,
+            )
 
     def _handle_trajectory(self, traj_id: int, kind: str, data: dict[str, Any]) -> None:
         handle = self._trajectories.get(traj_id)
@@ -944,6 +974,7 @@ def process_link(
         receiver=robot.receiver,
         connect_timeout=robot.connect_timeout,
         backoff_max=robot.reconnect_backoff_max,
+        realtime_priority=robot.realtime_priority,
         on_state=on_state,
         on_status=on_status,
         on_control=on_control,

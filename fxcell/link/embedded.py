@@ -21,10 +21,10 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, ClassVar
 
 from fxcell.config import SIMULATOR_CAMERA_PORT
 from fxcell.errors import InvalidArgumentError, SimulatorError
@@ -245,6 +245,10 @@ class EmbeddedSimulator:
     before the simulator binds it). ``time_scale`` shortens controller delays.
     """
 
+    observers: ClassVar[list[Callable[[EmbeddedSimulator, str], None]]] = []
+    """Called with each simulator and ``started`` or ``stopping`` (``fxcell.testing`` counts
+    the faults of a test's simulators)."""
+
     def __init__(
         self,
         host: str | None = None,
@@ -302,6 +306,8 @@ class EmbeddedSimulator:
             ok, last = self._launch(host)
             if ok:
                 self.host = host
+                for observer in tuple(EmbeddedSimulator.observers):
+                    observer(self, "started")
                 return host
         raise SimulatorError(f"simulator did not start: {last}")
 
@@ -352,6 +358,9 @@ class EmbeddedSimulator:
 
     def stop(self, timeout: float = 10.0) -> None:
         """Terminate the process (SIGTERM, then SIGKILL after ``timeout``)."""
+        if self.process is not None:
+            for observer in tuple(EmbeddedSimulator.observers):
+                observer(self, "stopping")
         proc, self.process = self.process, None
         if proc is None:
             return

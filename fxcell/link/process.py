@@ -42,10 +42,12 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import asdict
 from typing import Any
 
 from fxcell.link import wire
 from fxcell.link.follower import Follower, Guard, brake_duration, stop_reason
+from fxcell.link.realtime import LINK_PRIORITY, request_realtime
 from fxcell.link.rtde_stream import RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
@@ -195,7 +197,11 @@ class Link:
         return True
 
     def run(self) -> int:
-        self.send(wire.HELLO, {"pid": os.getpid()})
+        scheduling = getattr(self.args, "scheduling", None)
+        hello: dict[str, Any] = {"pid": os.getpid()}
+        if scheduling is not None:
+            hello["scheduling"] = asdict(scheduling)
+        self.send(wire.HELLO, hello)
         if not self.connect():
             return 2
         # ur_rtde and the imports are loaded for good: no full collection need scan them
@@ -927,6 +933,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frequency", type=float, default=500.0)
     parser.add_argument("--timeout", type=float, default=2.0)
     parser.add_argument("--urcap-port", type=int, default=50002)
+    parser.add_argument("--rt-priority", type=int, default=LINK_PRIORITY)
     parser.add_argument(
         "--receiver",
         choices=("stream", "ur_rtde"),
@@ -935,6 +942,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
+    # before any thread starts (ur_rtde's included): they inherit the policy
+    args.scheduling = request_realtime(args.rt_priority)
     sock = socket.socket(fileno=args.fd)
     link = Link(sock, args)
     code = link.run()

@@ -32,6 +32,7 @@ from fxcell.errors import (
     EmergencyStopError,
     InvalidArgumentError,
     InvalidTargetError,
+    LinkBrakeError,
     MoveError,
     MoveStoppedError,
     PlanningError,
@@ -470,6 +471,8 @@ class MotionPlanner:
 
 # ----------------------------------------------------------------- execution
 
+LINK_BRAKES = frozenset({"state_stalled", "cell_silent", "link_down"})
+"""Why the link process brakes a trajectory by itself (its guard; see fxcell.link.process)."""
 _FAILURES: dict[str, type[Exception]] = {
     "protective_stop": ProtectiveStopError,
     "emergency_stop": EmergencyStopError,
@@ -820,7 +823,9 @@ class MoveExecution:
         reached = np.asarray(state.actual_q, float)
         result = self._result(reached, self._settled_at, end)
         if self._braked or (end.status == "stopped" and not self._settled):
-            raise MoveStoppedError(
+            # braked by the link process's own guard (not asked by the cell): LinkBrakeError
+            guarded = not self._braked and end.reason in LINK_BRAKES
+            raise (LinkBrakeError if guarded else MoveStoppedError)(
                 f"the move was stopped at {reached.round(4).tolist()} "
                 f"({result.executed_duration:.3f} s after it started)",
                 result,

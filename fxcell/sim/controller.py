@@ -30,6 +30,12 @@ from fxcell.protocol import (
 from fxcell.sim.program_store import URCAP_PROGRAM, ProgramStore
 from fxcell.sim.signals import Signal
 
+# injections that undo a fault or change no behaviour: not counted as faults
+_NOT_FAULTS = frozenset(
+    {"emergency_stop_release", "safeguard_stop_release", "remote_control", "machine_reset"}
+    | {"door_close", "hide_kinematics_info", "show_kinematics_info"}
+)
+
 if TYPE_CHECKING:
     from fxcell.sim.motion import Arm
     from fxcell.sim.script import ControlScript
@@ -207,6 +213,9 @@ class Controller:
         self.program_kind: str | None = None  # "urp" | "script" | None
         self.last_stop_reason = ""
         self.log_messages: list[str] = []
+        self.faults: list[str] = []
+        """Every fault of the session: safety stops (injected or the controller's own, such
+        as a violation), injected faults, watchdog stops (tests count the unplanned ones)."""
         self.watchdog: tuple[str, float] | None = None  # (input variable, min frequency)
         self.watchdog_action = "stop"  # what a starved watchdog does: "stop" or "pause"
         self.watchdog_armed_at = 0.0
@@ -610,6 +619,7 @@ class Controller:
         last = self.input_updated.get(name, self.watchdog_armed_at)
         if self.time - max(last, self.watchdog_armed_at) > 1.0 / frequency:
             log.warning("RTDE watchdog on %s starved: %s the program", name, self.watchdog_action)
+            self.faults.append(f"RTDE watchdog on {name} starved")
             if self.watchdog_action == "pause":
                 self.log_messages.append("RTDE watchdog timeout: program paused")
                 self.watchdog_armed_at = self.time  # armed again when the program resumes
@@ -635,6 +645,7 @@ class Controller:
             return
         log.warning("protective stop: %s", reason)
         self.log_messages.append(f"protective stop: {reason}")
+        self.faults.append(f"protective stop: {reason}")
         self.safety_mode = SafetyMode.PROTECTIVE_STOP
         self.protective_stop_time = self.time
         self.cancel("brakes")
@@ -645,6 +656,8 @@ class Controller:
         """Apply a fault injection; returns a short description."""
         if fault not in FAULTS:
             raise FaultError(f"unknown fault {fault!r}; known: {', '.join(FAULTS)}")
+        if fault not in _NOT_FAULTS and fault != "protective_stop":  # that one counts itself
+            self.faults.append(f"injected {fault} {' '.join(args)}".strip())
         if fault == "stall_rtde":
             if len(args) != 1:
                 raise FaultError("stall_rtde needs SECONDS")

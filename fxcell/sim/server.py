@@ -570,6 +570,7 @@ class SimServer:
                     "last_stop_reason": c.last_stop_reason,
                     "late_cycles": self.late_cycles,
                     "log": c.log_messages[-20:],
+                    "faults": c.faults,
                 }
             )
         if cmd == "stats":

@@ -12,6 +12,9 @@ to get these fixtures:
   initialised. Fast unit tests of cell behaviour; no gripper (see
   :mod:`fxcell.testing.fake`).
 - ``fxcell_no_leaked_tasks`` (automatic): fails a test that leaves asyncio tasks running.
+- ``fxcell_no_unplanned_faults`` (automatic, system tests): fails a test that saw a robot-link
+  drop or a simulator fault it did not inject (:mod:`fxcell.testing.faults`); declare the
+  test's own with :func:`injected_faults` or ``@pytest.mark.injects_faults("why")``.
 
 This package is test support: the runtime never imports it.
 """
@@ -36,12 +39,14 @@ import pytest_asyncio
 from fxcell.link import embedded
 from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.testing.fake import FakeLink, FakeRobot, FakeTrajectory
+from fxcell.testing.faults import injected_faults, watching_test
 
 __all__ = [
     "FakeLink",
     "FakeRobot",
     "FakeTrajectory",
     "SimulatorHandle",
+    "injected_faults",
     "simulator",
     "urcap_port",
 ]
@@ -53,6 +58,33 @@ def _describe(task: asyncio.Task[object]) -> str:
     coro = task.get_coro()
     where = getattr(coro, "__qualname__", repr(coro))
     return f"{task.get_name()} ({where})"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "injects_faults(why): the test drops links or makes the simulator fault on purpose "
+        "(else an unplanned link drop or simulator fault fails a system test)",
+    )
+
+
+@pytest.fixture(autouse=True)
+def fxcell_no_unplanned_faults(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fail a system test that saw a robot-link drop or a simulator fault it did not inject
+    (see :mod:`fxcell.testing.faults`; ``@pytest.mark.injects_faults`` or
+    :func:`injected_faults` declare the test's own)."""
+    node = request.node
+    if node.get_closest_marker("system") is None or node.get_closest_marker("injects_faults"):
+        yield
+        return
+    with watching_test(request) as watch:
+        yield
+        unplanned = watch.unplanned()
+    if unplanned:
+        pytest.fail(
+            "unplanned faults (not injected by the test): " + "; ".join(unplanned[:10]),
+            pytrace=False,
+        )
 
 
 @pytest_asyncio.fixture(autouse=True)

@@ -875,6 +875,12 @@ function showJob(st) {
     fault: "alarm", paused: "alarm" }[st.state] || "off");
   $("#job-message").textContent = st.message || "";
   $("#job-step").textContent = st.step ? `step: ${st.step}` : "";
+  const heals = st.heals || { count: 0, recent: [] };
+  const last = heals.recent.length ? heals.recent[heals.recent.length - 1] : null;
+  $("#job-heals").textContent = heals.count
+    ? `went on by itself after ${heals.count} lost robot link${heals.count > 1 ? "s" : ""}` +
+      (last ? ` (last: ${last.what}, ${last.phase})` : "")
+    : "";
   const p = st.progress;
   $("#job-progress").max = p ? Math.max(1, p.total) : 1;
   $("#job-progress").value = p ? p.done : 0;
