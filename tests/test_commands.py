@@ -54,9 +54,18 @@ def test_cell_and_remote_cell_have_the_tables_signatures_and_result_types() -> N
 
 
 # Public coroutines of Cell that are the library's own plumbing, not commands: opening and
-# closing the session, waiting on the state machine, running a table command by name, and
-# running a caller's coroutine as the Cell's move (it takes a Python callable).
-NOT_COMMANDS = {"open", "close", "wait_for_state", "run_command", "run_move"}
+# closing the session, waiting on the state machine, running a table command by name, checking
+# whether a table command by name would be admitted, running a caller's coroutine as the
+# Cell's move (it takes a Python callable), and the job's typed view of check_placement.
+NOT_COMMANDS = {
+    "open",
+    "close",
+    "wait_for_state",
+    "run_command",
+    "check_command",
+    "run_move",
+    "inspect_placement",
+}
 
 
 def test_every_public_cell_coroutine_is_a_command_of_the_table() -> None:
