@@ -360,7 +360,7 @@ class RemoteCell(CellCommands):
     # whose default bodies call run_command: the command table says how each goes over
     # HTTP and how its answer decodes.
 
-    async def run_command(self, name: str, **args: Any) -> Any:
+    async def run_command(self, name: str, /, **args: Any) -> Any:
         """Run command ``name`` of :data:`fxcell.commands.COMMANDS` in the daemon; its
         result decoded into the type the Cell returns."""
         entry = get_command(name)

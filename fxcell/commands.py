@@ -242,7 +242,7 @@ class CellCommands(Protocol):
     ``RemoteCell`` implements them all); ``Cell`` implements each one.
     """
 
-    async def run_command(self, name: str, **args: Any) -> Any:
+    async def run_command(self, name: str, /, **args: Any) -> Any:
         """Run command ``name`` of :data:`COMMANDS` with keyword arguments."""
         ...
 

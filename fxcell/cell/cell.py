@@ -444,7 +444,7 @@ class Cell(CellCommands):
 
     # ------------------------------------------------------------- commands
 
-    async def run_command(self, name: str, **args: Any) -> Any:
+    async def run_command(self, name: str, /, **args: Any) -> Any:
         """Run command ``name`` of :data:`fxcell.commands.COMMANDS` with keyword arguments
         (how the daemon and replay call the Cell)."""
         entry = get_command(name)

@@ -140,7 +140,7 @@ class CellService:
         finally:
             COMMAND_ORIGIN.reset(token)
 
-    async def call(self, name: str, **kwargs: Any) -> Any:
+    async def call(self, name: str, /, **kwargs: Any) -> Any:
         cell = await self.wait_cell()
         return await cell.run_command(name, **kwargs)
 

@@ -34,6 +34,7 @@ from sila2.discovery.service_info import SilaServiceInfo
 from sila2.features.authorizationservice import AuthorizationServiceFeature
 from sila2.features.lockcontroller import LockControllerFeature
 from sila2.framework import Command, Feature
+from sila2.framework.abc.sila_error import SilaError
 from sila2.server import SilaServer
 from zeroconf import InterfaceChoice, IPVersion, Zeroconf
 
@@ -93,6 +94,9 @@ class SilaCellServer:
         self.identity = await asyncio.to_thread(load_or_create, self.config)
         self.server = await asyncio.to_thread(self._build, bridge, self.identity)
         await asyncio.to_thread(self._listen, self.server, self.identity)
+        quiet = _QuietSila(set(self.server.features))
+        for handler in logging.getLogger().handlers:
+            handler.addFilter(quiet)
         self._refresher = asyncio.create_task(self._refresh(), name="fxcell sila properties")
         if self.config.daemon.sila.discovery:
             try:
@@ -241,6 +245,29 @@ class SilaCellServer:
             zeroconf.close()
         if server.running:
             server.stop(grace_period=within / 2)
+
+
+class _QuietSila(logging.Filter):
+    """Keeps the ``sila2`` package's chatter out of the daemon's log: its per-call INFO
+    records, and the traceback it logs for every error answered to a client (a refused
+    command is the client's to handle; the daemon records its operations anyway)."""
+
+    PREFIXES = ("sila2", "SubscriptionManagerThread[", "observable-command-manager-")
+
+    def __init__(self, features: set[str]) -> None:
+        super().__init__()
+        self.features = features
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        name = record.name
+        if not (name.startswith(self.PREFIXES) or name in self.features):
+            return True
+        if record.levelno < logging.WARNING:
+            return False
+        exc = record.exc_info[1] if record.exc_info else None
+        if exc is None:  # "Raising exception as RpcError", logged with no exception at hand
+            return record.levelno > logging.ERROR or "RpcError" not in record.getMessage()
+        return not isinstance(exc, SilaError)
 
 
 def _unspecified(host: str) -> bool:
