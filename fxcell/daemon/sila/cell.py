@@ -128,6 +128,9 @@ class CellController(_CellFeature):
     def Stop(self, *, metadata: MetadataDict) -> bool:
         return bool(self._run("stop", {}, metadata))
 
+    def GripperActivate(self, *, metadata: MetadataDict) -> None:
+        self._run("gripper_activate", {}, metadata)
+
     def GripperOpen(self, *, metadata: MetadataDict) -> GripperOpen_Responses:
         result = self._run("gripper_open", {}, metadata)
         return GripperOpen_Responses(float(result.width))
