@@ -51,9 +51,9 @@ def row(name: str, values: list[float]) -> None:
     )
 
 
-def idle_stops(http: httpx.Client, sila: SilaClient, md: list[object], n: int) -> tuple[
-    list[float], list[float]
-]:
+def idle_stops(
+    http: httpx.Client, sila: SilaClient, md: list[object], n: int
+) -> tuple[list[float], list[float]]:
     for _ in range(50):  # warm-up
         http.post("/api/cell/stop").raise_for_status()
         sila.CellController.Stop(metadata=md)

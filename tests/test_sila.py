@@ -219,14 +219,17 @@ def test_four_sample_run_to_its_end_with_a_response_per_step(cell: Cell) -> None
 
 
 def test_paused_run_recovered_through_error_recovery(cell: Cell) -> None:
-    samples = [{"SampleId": "R1", "RackSlot": "B1", "MachineSlot": "B1", "TraySlot": "B1"}]
+    samples = [{"SampleId": "R1", "RackSlot": "B1", "MachineSlot": "A1", "TraySlot": "B1"}]
     with cell.client() as client, Locked(client) as md:
         client.CellController.Init(metadata=md)
+        client.CellController.GripperActivate(metadata=md)
         instance = client.JobController.RunJob("recovery", samples, metadata=md)
         steps = instance.subscribe_to_intermediate_responses()
         for step in steps:  # abort in the middle of carrying the crucible
             if step.Step.startswith("place the crucible of sample R1"):
                 break
+        else:
+            pytest.fail(f"the run ended before carrying the crucible: {instance.get_responses()}")
         client.JobController.Abort(metadata=md)
         errors = client.ErrorRecoveryService.RecoverableErrors.subscribe(metadata=token(client))
         pending = next(e for e in errors if e)

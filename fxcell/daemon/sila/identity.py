@@ -25,6 +25,7 @@ import stat
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from fxcell.config import CellConfig
 from fxcell.errors import ConfigError
@@ -165,6 +166,8 @@ def _covers(certificate: bytes, host: str, server_uuid: uuid.UUID) -> bool:
     except (ValueError, x509.ExtensionNotFound):
         return False
     value = carried.value
+    if cert.subject != _subject(server_uuid):
+        return False
     if not isinstance(value, x509.UnrecognizedExtension) or value.value != str(server_uuid).encode(
         "ascii"
     ):
@@ -177,20 +180,31 @@ def _covers(certificate: bytes, host: str, server_uuid: uuid.UUID) -> bool:
     return set(ips) <= have_ips and set(names) <= have_names
 
 
+def _subject(server_uuid: uuid.UUID) -> Any:
+    """Common name ``SiLA2`` (what SiLA clients expect of a self-signed server certificate);
+    the server UUID as organisational unit, so that a client pinning several cells' certificates
+    tells them apart (they would otherwise share one subject, which TLS looks issuers up by)."""
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    return x509.Name(
+        [
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "fxcell"),
+            x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, str(server_uuid)),
+            x509.NameAttribute(NameOID.COMMON_NAME, "SiLA2"),
+        ]
+    )
+
+
 def _generate(server_uuid: uuid.UUID, host: str) -> tuple[bytes, bytes]:
     """A private key and a self-signed certificate for ``host`` (PEM)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+    from cryptography.x509.oid import ExtendedKeyUsageOID
 
     key = ec.generate_private_key(ec.SECP256R1())
-    name = x509.Name(
-        [
-            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "fxcell"),
-            x509.NameAttribute(NameOID.COMMON_NAME, "SiLA2"),  # what SiLA clients expect
-        ]
-    )
+    name = _subject(server_uuid)
     ips, names = _names(host)
     now = datetime.datetime.now(datetime.UTC)
     cert = (
