@@ -12,7 +12,7 @@ reference package's generic client (``sila2.client.SilaClient``) and a keep-aliv
   brake) and to the operation of the move having ended (the arm at rest on its path).
 
 Peer: the HTTP API, measured in the same run. Target: SiLA STOP p50 and p99 (idle) within
-2 ms of HTTP's; during a move, the median time until the move's operation ended within
+2 ms of HTTP's; during a move, the p50 time until the move's operation ended within
 10 ms of HTTP's.
 """
 
@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import os
 import random
-import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -77,7 +76,7 @@ def moving_stop(
 ) -> tuple[float, float]:
     """(answer, move ended) seconds after the stop was sent."""
     target = [home[0] + 2.0, *home[1:]]
-    op = http.post("/api/cell/move_joint", json={"joints": target}, params={"wait": False})
+    op = http.post("/api/cell/move_joint", json={"target": target}, params={"wait": False})
     op.raise_for_status()
     op_id = op.json()["id"]
     time.sleep(random.uniform(0.3, 0.8))  # a moment into the move (not a condition)
@@ -92,7 +91,7 @@ def moving_stop(
     assert stopped, "no move was running when stop was sent"
     # the operation's end is stamped by the daemon (wall clock); convert our send time
     sent_wall = time.time() - (time.perf_counter() - t0)
-    http.post("/api/cell/move_joint", json={"joints": home}, params={"wait": True})
+    http.post("/api/cell/move_joint", json={"target": home}, params={"wait": True})
     return answered, float(ended) - sent_wall
 
 
@@ -125,11 +124,12 @@ def main() -> int:
             ):
                 md = [sila.AuthorizationService.AccessToken(TOKEN)]
                 r = http.post("/api/cell/init")
-                r.raise_for_status()
+                if r.is_error:
+                    raise SystemExit(f"init failed: {r.text}")
+                # The HTTP client holds control (it moves the arm); STOP needs only the token.
+                http.headers["X-Fxcell-Lease"] = r.headers["X-Fxcell-Lease"]
                 home = http.get("/api/info").json()["home"]
                 http.post("/api/cell/go_home", params={"wait": True}).raise_for_status()
-                # Control is free again for the SiLA client's unlocked commands.
-                http.headers["X-Fxcell-Lease"] = r.headers["X-Fxcell-Lease"]
                 print(f"measuring {args.n} idle STOPs per API, interleaved ...", flush=True)
                 h_idle, s_idle = idle_stops(http, sila, md, args.n)
                 print(f"measuring {args.moves} stopped moves per API ...", flush=True)
@@ -156,10 +156,10 @@ def main() -> int:
             f"SiLA STOP {label}, idle (bound: HTTP's + {MARGIN_MS:.0f} ms)",
             pct(s_idle, q) * 1e3, "<=", peer + MARGIN_MS, "ms", peer=peer, peer_name="HTTP",
         )  # fmt: skip
-    peer = statistics.median(e for _, e in h_move) * 1e3
+    peer = pct([e for _, e in h_move], 0.5) * 1e3
     targets.check(
-        f"SiLA STOP during a move, median to the move's end (bound: HTTP's + {MOVE_MARGIN_MS:.0f} ms)",
-        statistics.median(e for _, e in s_move) * 1e3, "<=", peer + MOVE_MARGIN_MS, "ms",
+        f"SiLA STOP during a move, p50 to the move's end (bound: HTTP's + {MOVE_MARGIN_MS:.0f} ms)",
+        pct([e for _, e in s_move], 0.5) * 1e3, "<=", peer + MOVE_MARGIN_MS, "ms",
         peer=peer, peer_name="HTTP",
     )  # fmt: skip
     return targets.finish()
