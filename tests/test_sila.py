@@ -123,13 +123,16 @@ class Locked:
         self.client.LockController.UnlockServer(self.identifier, metadata=token(self.client))
 
 
-def run_to_end(instance: Any, steps: Any = None) -> tuple[list[Any], Any]:
+def run_to_end(cell: Cell, instance: Any, steps: Any = None) -> tuple[list[Any], Any]:
     """Every intermediate response of a Run Job execution, then its responses; fails at
-    once when the run faults (a recoverable error nobody here answers)."""
+    once when the run faults (a recoverable error nobody here answers), saying why."""
     seen = []
     for step in steps if steps is not None else instance.subscribe_to_intermediate_responses():
         seen.append(step)
-        assert step.JobState != "fault", f"the run faulted at {step.Step!r}: {seen}"
+        if step.JobState == "fault":
+            job = httpx.get(f"{cell.daemon.url}/api/job", timeout=10).json()
+            log = "\n".join(cell.daemon.output[-30:])
+            pytest.fail(f"the run faulted at {step.Step!r}: {job['message']}\n{log}")
     return seen, instance.get_responses()
 
 
@@ -182,11 +185,44 @@ def test_locked_cell_refuses_other_clients_and_the_page_shows_the_lock(cell: Cel
         )
         assert refused.status_code == 409, refused.text
         assert refused.json()["error"]["type"] == "ControlHeldError"
+        holders = owner.CellController.ControlHolder.subscribe(metadata=token(owner))
+        assert next(holders) == "SiLA client (LockController)"
+        holders.cancel()
         owner.CellController.Init(metadata=md)
+        owner.CellController.MoveToPosition("home", metadata=md)
+        with pytest.raises(SilaError, match="InvalidArgument: UnknownPositionError"):
+            owner.CellController.MoveToPosition("nowhere", metadata=md)
+        assert owner.CellController.CellState.get(metadata=token(owner)).startswith("running")
         # Stop needs the token, not the lock.
         assert other.CellController.Stop(metadata=token(other)).Stopped is False
     with cell.client() as client:
         assert client.LockController.IsLocked.get(metadata=token(client)) is False
+
+
+def test_stop_over_sila_stops_a_move_started_over_http(cell: Cell) -> None:
+    headers = {"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": "engineer"}
+    with (
+        httpx.Client(base_url=cell.daemon.url, headers=headers, timeout=30) as http,
+        cell.client() as client,
+    ):
+        r = http.post("/api/cell/init")
+        assert r.status_code == 200, r.text
+        http.headers["X-Fxcell-Lease"] = r.headers["X-Fxcell-Lease"]
+        http.post("/api/cell/go_home", params={"wait": True}).raise_for_status()
+        home = http.get("/api/info").json()["home"]
+        moving = threading.Event()
+        states = client.CellController.CellState.subscribe(metadata=token(client))
+        states.add_callback(lambda state: state == "running.moving" and moving.set())
+        op = http.post("/api/cell/move_joint", json={"target": [home[0] + 2.5, *home[1:]]})
+        assert op.status_code == 202, op.text
+        op_id = op.json()["id"]
+        assert moving.wait(30), "the move never showed in CellState"
+        states.cancel()
+        assert client.CellController.Stop(metadata=token(client)).Stopped is True
+        ended = http.post(f"/api/operations/{op_id}/wait", params={"timeout": 10}).json()
+        assert ended["error"]["type"] == "MoveStoppedError", ended
+        http.post("/api/cell/go_home", params={"wait": True}).raise_for_status()
+        http.delete("/api/control").raise_for_status()
 
 
 def test_four_sample_run_to_its_end_with_a_response_per_step(cell: Cell) -> None:
@@ -198,7 +234,7 @@ def test_four_sample_run_to_its_end_with_a_response_per_step(cell: Cell) -> None
         client.CellController.Init(metadata=md)
         client.CellController.GripperActivate(metadata=md)
         instance = client.JobController.RunJob("four samples", samples, metadata=md)
-        steps, result = run_to_end(instance)
+        steps, result = run_to_end(cell, instance)
         locations = client.JobController.SampleLocations.get(metadata=token(client))
     assert result.StepsDone == steps[-1].StepsTotal
     assert steps[-1].JobState == "done"
@@ -248,7 +284,7 @@ def test_paused_run_recovered_through_error_recovery(cell: Cell) -> None:
         client.ErrorRecoveryService.ExecuteContinuationOption(
             error.CommandExecutionUUID, truth, "", metadata=md
         )
-        rest, result = run_to_end(instance, steps)
+        rest, result = run_to_end(cell, instance, steps)
         assert rest[-1].JobState == "done"
         assert result.StepsDone == rest[-1].StepsTotal
         assert client.ErrorRecoveryService.RecoverableErrors.get(metadata=token(client)) == []
