@@ -39,7 +39,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 TOKEN = "sila-test-token-0123456789abcdef"
 LAYOUT = Layout(CellConfig.load().layout)
 FAST = {"acceleration": [3.0, 3.0, 3.0, 6.0, 6.0, 6.0], "jerk": [30.0] * 6}
-CRUCIBLES = "A1,A2,A3,A4,B1"
+CRUCIBLES = "A1,A2,A3,A4,B1,B2,B3"
 
 
 class Cell:
@@ -87,7 +87,15 @@ def start_cell(tmp: Path, name: str) -> Iterator[Cell]:
 
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
+    """The cell most tests share (they use disjoint crucibles)."""
     yield from start_cell(tmp_path_factory.mktemp("cell-1"), "fxcell test cell 1")
+
+
+@pytest.fixture
+def job_cell(tmp_path: Path) -> Iterator[Cell]:
+    """A cell of its own for a run: whatever a run leaves (a fault on an overloaded machine
+    stops the arm where it was) stays out of the other tests."""
+    yield from start_cell(tmp_path, "fxcell test job cell")
 
 
 def token(client: SilaClient) -> list[Any]:
@@ -225,7 +233,8 @@ def test_stop_over_sila_stops_a_move_started_over_http(cell: Cell) -> None:
         http.delete("/api/control").raise_for_status()
 
 
-def test_four_sample_run_to_its_end_with_a_response_per_step(cell: Cell) -> None:
+def test_four_sample_run_to_its_end_with_a_response_per_step(job_cell: Cell) -> None:
+    cell = job_cell
     samples = [
         {"SampleId": f"S{i}", "RackSlot": f"A{i}", "MachineSlot": f"A{i}", "TraySlot": f"A{i}"}
         for i in range(1, 5)
@@ -254,7 +263,8 @@ def test_four_sample_run_to_its_end_with_a_response_per_step(cell: Cell) -> None
     }
 
 
-def test_paused_run_recovered_through_error_recovery(cell: Cell) -> None:
+def test_paused_run_recovered_through_error_recovery(job_cell: Cell) -> None:
+    cell = job_cell
     samples = [{"SampleId": "R1", "RackSlot": "B1", "MachineSlot": "A1", "TraySlot": "B1"}]
     with cell.client() as client, Locked(client) as md:
         client.CellController.Init(metadata=md)
@@ -298,26 +308,26 @@ def test_transfer_between_two_slots_lands_within_1_mm(cell: Cell) -> None:
         client.CellController.Init(metadata=md)
         client.CellController.GripperActivate(metadata=md)
         sites = client.LabwareTransferManipulatorController.Sites.get(metadata=token(client))
-        assert {"rack/A3", "rack/D4"} <= set(sites)
+        assert {"rack/B2", "rack/D4"} <= set(sites)
         with pytest.raises(SilaError, match="HandoverPositionUnknown"):
             client.LabwareTransferManipulatorController.GetLabware(
                 {"Position": "rack", "SubPosition": "Z9"}, metadata=md
             )
         client.LabwareTransferManipulatorController.TransferLabware(
-            {"Position": "rack", "SubPosition": "A3"},
+            {"Position": "rack", "SubPosition": "B2"},
             {"Position": "rack", "SubPosition": "D4"},
             metadata=md,
         )
-        obj = cell.sim.objects()["crucible-A3"]
+        obj = cell.sim.objects()["crucible-B2"]
         target = LAYOUT.station("rack").grip_pose("D4").position
         assert not obj["held"]
         assert np.linalg.norm(np.array(obj["pose"][:3]) - target) < 1e-3
         client.LabwareTransferManipulatorController.TransferLabware(
             {"Position": "rack", "SubPosition": "D4"},
-            {"Position": "rack", "SubPosition": "A3"},
+            {"Position": "rack", "SubPosition": "B2"},
             metadata=md,
         )
-    assert place_of(cell.sim.objects()["crucible-A3"]) == "rack:A3"
+    assert place_of(cell.sim.objects()["crucible-B2"]) == "rack:B2"
 
 
 # ----------------------------------------------------------------- two cells
@@ -357,7 +367,7 @@ def test_two_cells_discovered_and_driven_at_once(
                     failures.append(exc)
 
             threads = [
-                threading.Thread(target=drive, args=(found[cell.name], "A2", "D3")),
+                threading.Thread(target=drive, args=(found[cell.name], "B3", "D3")),
                 threading.Thread(target=drive, args=(found[other.name], "A4", "D2")),
             ]
             for t in threads:
@@ -365,8 +375,9 @@ def test_two_cells_discovered_and_driven_at_once(
             for t in threads:
                 t.join(300)
             assert not failures, failures
-        assert place_of(cell.sim.objects()["crucible-A2"]) == "rack:D3"
+        assert place_of(cell.sim.objects()["crucible-B3"]) == "rack:D3"
         assert place_of(other.sim.objects()["crucible-A4"]) == "rack:D2"
         assert place_of(cell.sim.objects()["crucible-A4"]) == "rack:A4"  # each its own
+        assert place_of(other.sim.objects()["crucible-B3"]) == "rack:B3"
     finally:
         second.close()
