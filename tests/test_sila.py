@@ -272,6 +272,9 @@ def test_paused_run_recovered_through_error_recovery(job_cell: Cell) -> None:
         instance = client.JobController.RunJob("recovery", samples, metadata=md)
         steps = instance.subscribe_to_intermediate_responses()
         for step in steps:  # abort in the middle of carrying the crucible
+            if step.JobState == "fault":
+                job = httpx.get(f"{cell.daemon.url}/api/job", timeout=10).json()
+                pytest.fail(f"the run faulted at {step.Step!r}: {job['message']}")
             if step.Step.startswith("place the crucible of sample R1"):
                 break
         else:
