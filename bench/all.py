@@ -30,6 +30,7 @@ BENCHES = (
     "sim_stream",
     "loop_lag",
     "api",
+    "sila",
     "recorder",
     "moves",
     "placement",

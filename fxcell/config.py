@@ -148,6 +148,24 @@ class RecorderConfig(_Model):
     """Seconds after which a log is removed (``null``: kept for ever)."""
 
 
+class SilaConfig(_Model):
+    """The SiLA 2 server beside the daemon's HTTP API (``fxcell daemon --sila``; guide:
+    docs/guides/sila.md)."""
+
+    enabled: bool = False
+    """Serve SiLA 2 (``--sila`` turns it on for one start)."""
+    port: int = Field(50052, ge=1, le=65535)
+    """gRPC port, on the daemon's address (daemon.host)."""
+    server_name: str = Field("fxcell cell", min_length=1, max_length=255)
+    """The SiLA Server Name schedulers show and discover the cell by (one per cell)."""
+    insecure: bool = False
+    """Plain (unencrypted) gRPC: development only; SiLA 2 expects TLS."""
+    discovery: bool = True
+    """Announce the server over zeroconf (mDNS, ``_sila._tcp``) on the daemon's address."""
+    state_dir: Path | None = None
+    """Where the server UUID, certificate and key are kept; default: beside the token file."""
+
+
 class DaemonConfig(_Model):
     host: str = "127.0.0.1"
     port: int = Field(8040, ge=1, le=65535)
@@ -165,6 +183,8 @@ class DaemonConfig(_Model):
     """Seconds a client has to send a request's body once its headers are in."""
     idle_timeout: int = Field(5, ge=1, le=3600)
     """Seconds a kept-alive connection may stay idle between requests before it is closed."""
+    sila: SilaConfig = SilaConfig()
+    """The SiLA 2 server (off by default)."""
 
 
 class IOConfig(_Model):

@@ -276,3 +276,15 @@ async def test_gripper_commands_answer_the_same_on_both(api: CellCommands) -> No
         await api.gripper_close(expect_object=True)
     with pytest.raises(InvalidArgumentError):
         await api.gripper_move(0.08)
+
+
+async def test_a_command_whose_argument_is_called_name_runs_through_run_command(
+    fake_cell: Any,
+) -> None:
+    # run_command takes the command's name positionally: move_to's and teach's own argument
+    # is called ``name`` too (the daemon and the SiLA server call them so).
+    await fake_cell.init()
+    taught = await fake_cell.run_command("teach", name="p1")
+    assert taught["joints"]
+    result = await fake_cell.run_command("move_to", name="p1")
+    assert result.target_joints == pytest.approx(taught["joints"])

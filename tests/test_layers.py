@@ -52,6 +52,7 @@ LAYERS: dict[str, int] = {
     "fxcell.compat": 4,
     "fxcell.client": 4,
     "fxcell.daemon": 4,
+    "fxcell.daemon.sila": 4,
     "fxcell.replay": 4,
     "fxcell.info": 4,
     "fxcell.cli": 4,

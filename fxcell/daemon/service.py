@@ -60,6 +60,8 @@ class CellService:
         )
         self.jobs = JobService(config)
         """The fusion-machine job on the attached Cell (the supervisor attaches it)."""
+        self.lease_keepers: list[Callable[[Holder], bool]] = []
+        """More reasons a control lease stays alive (the SiLA server's lock)."""
 
     # ------------------------------------------------------------- the cell
 
@@ -273,7 +275,11 @@ class CellService:
     # ------------------------------------------------------------- notifications
 
     def _keeps_alive(self, holder: Holder) -> bool:
-        return self.hub.watches(holder.lease) or bool(self.operations.running(holder.lease))
+        return (
+            self.hub.watches(holder.lease)
+            or bool(self.operations.running(holder.lease))
+            or any(keeps(holder) for keeps in self.lease_keepers)
+        )
 
     def _operation_changed(self, op: Operation) -> None:
         if self.hub.watchers:  # no description (nor its JSON) when nobody watches
