@@ -42,7 +42,11 @@ def test_the_urdf_loads_in_pinocchio_with_collision_bodies_and_the_same_fk() -> 
     geoms = pin.buildGeomFromUrdfString(model, ned2.urdf(), pin.COLLISION)
     assert model.nq == 6
     assert {g.name.rsplit("_", 1)[0] for g in geoms.geometryObjects} >= {
-        "base_link", "arm_link", "forearm_link", "hand_link", "gripper_link"
+        "base_link",
+        "arm_link",
+        "forearm_link",
+        "hand_link",
+        "gripper_link",
     }
     data = model.createData()
     tool = model.getFrameId("tool_link")
@@ -77,7 +81,8 @@ def test_ik_returns_the_solution_nearest_the_seed_that_a_dense_search_finds(
     target = ned2.forward(q)
     ours = ned2.inverse(target, seed)
     reference = _reference(target, seed)
-    assert ours.q is not None and reference.q is not None
+    assert ours.q is not None
+    assert reference.q is not None
     assert np.linalg.norm(ours.q - seed) <= np.linalg.norm(reference.q - seed) + 1e-6
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -29,6 +30,7 @@ import numpy.typing as npt
 from fxcell.errors import InvalidArgumentError
 
 Array = npt.NDArray[np.float64]
+Joints = Sequence[float] | npt.NDArray[np.floating[Any]]  # six joint positions (rad)
 
 __all__ = [
     "ACCELERATION_LIMITS",
@@ -96,7 +98,9 @@ _ORIGINS = np.stack(ORIGINS)  # (6, 4, 4)
 def pose_to_matrix(pose: Sequence[float]) -> Array:
     """A 4x4 transform from Niryo's ``[x, y, z, roll, pitch, yaw]``."""
     if len(pose) != 6:
-        raise InvalidArgumentError(f"a pose has 6 values (x, y, z, roll, pitch, yaw), got {len(pose)}")
+        raise InvalidArgumentError(
+            f"a pose has 6 values (x, y, z, roll, pitch, yaw), got {len(pose)}"
+        )
     t = np.eye(4)
     t[:3, :3] = _rpy(float(pose[3]), float(pose[4]), float(pose[5]))
     t[:3, 3] = [float(v) for v in pose[:3]]
@@ -146,14 +150,15 @@ def forward_batch(q: Array) -> Array:
     return _frames(np.asarray(q, dtype=float).reshape(-1, 6))[:, 6]
 
 
-def forward(q: Sequence[float]) -> Array:
+def forward(q: Joints) -> Array:
     """``tool_link`` in ``base_link`` (4x4) at joint positions ``q`` (rad)."""
     if len(q) != 6:
         raise InvalidArgumentError(f"the Ned2 has 6 joints, got {len(q)} values")
-    return forward_batch(np.asarray(q, dtype=float)[None, :])[0]
+    result: Array = forward_batch(np.asarray(q, dtype=float)[None, :])[0]
+    return result
 
 
-def within_limits(q: Sequence[float], tol: float = 1e-9) -> bool:
+def within_limits(q: Joints, tol: float = 1e-9) -> bool:
     a = np.asarray(q, dtype=float)
     return bool(np.all(a >= LOWER - tol) and np.all(a <= UPPER + tol))
 
@@ -266,7 +271,7 @@ def _solve(
 
 def inverse(
     target: Array | Sequence[float],
-    seed: Sequence[float],
+    seed: Joints,
     *,
     extra_seeds: Array | None = None,
     iterations: int = 60,
@@ -302,8 +307,15 @@ def inverse(
     return IkResult(distinct[0] if distinct else None, tuple(distinct))
 
 
-_LINKS = ("base_link", "shoulder_link", "arm_link", "elbow_link", "forearm_link", "wrist_link",
-          "hand_link")
+_LINKS = (
+    "base_link",
+    "shoulder_link",
+    "arm_link",
+    "elbow_link",
+    "forearm_link",
+    "wrist_link",
+    "hand_link",
+)
 # Simple collision bodies per link in the link's own frame: (shape, size, xyz, rpy);
 # cylinders (radius, length) along the local z, boxes (x, y, z). Conservative envelopes of
 # Niryo's meshes for planning, not the meshes themselves.
@@ -332,7 +344,7 @@ def _fmt(values: Sequence[float]) -> str:
 
 def _origin_xml(t: Array) -> str:
     rpy = matrix_to_pose(t)[3:]
-    return f'<origin xyz="{_fmt(t[:3, 3])}" rpy="{_fmt(rpy)}"/>'
+    return f'<origin xyz="{_fmt(list(t[:3, 3]))}" rpy="{_fmt(rpy)}"/>'
 
 
 def urdf() -> str:

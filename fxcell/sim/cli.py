@@ -142,8 +142,9 @@ def register(sub: Any) -> None:
     i.add_argument("--robot", choices=("ur3e", "ned2"), default="ur3e")
     i.add_argument("fault", choices=sorted({*FAULTS, *NED2_FAULTS}))
     i.add_argument(
-        "args", nargs="*", help="fault arguments (stall_rtde SECONDS; ned2: stall SECONDS, "
-        "motor_error JOINT)"
+        "args",
+        nargs="*",
+        help="fault arguments (stall_rtde SECONDS; ned2: stall SECONDS, motor_error JOINT)",
     )
     i.set_defaults(func=run_inject)
     push = inner.add_parser(
@@ -196,8 +197,10 @@ def run_inject(args: argparse.Namespace) -> int:
         try:
             answer = request(args.host, " ".join(["inject", args.fault, *args.args]))
         except OSError as exc:
-            print(f"fxcell sim inject: simulator at {args.host} does not answer: {exc}",
-                  file=sys.stderr)
+            print(
+                f"fxcell sim inject: simulator at {args.host} does not answer: {exc}",
+                file=sys.stderr,
+            )
             return 1
         if not answer.startswith("ok"):
             print(f"fxcell sim inject: {answer}", file=sys.stderr)

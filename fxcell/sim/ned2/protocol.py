@@ -325,7 +325,9 @@ class Interpreter:
         kind = position["obj_type"]
         if kind == "JOINTS":
             if linear:
-                raise CommandError("The robot can only do a linear move with a pose, not with joints")
+                raise CommandError(
+                    "The robot can only do a linear move with a pose, not with joints"
+                )
             joints = _joints_from_dict(position)
             await self.robot.move_joints(self.robot.check_joints(joints))
         else:
@@ -482,7 +484,13 @@ def _jsonable_scalar(v: Any) -> bool:
 def _quaternion(r: np.ndarray) -> list[float]:
     """(x, y, z, w) of a rotation matrix, w >= 0."""
     w = math.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2.0
-    x = math.copysign(math.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) / 2.0, r[2, 1] - r[1, 2])
-    y = math.copysign(math.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) / 2.0, r[0, 2] - r[2, 0])
-    z = math.copysign(math.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) / 2.0, r[1, 0] - r[0, 1])
+    x = math.copysign(
+        math.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) / 2.0, r[2, 1] - r[1, 2]
+    )
+    y = math.copysign(
+        math.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) / 2.0, r[0, 2] - r[2, 0]
+    )
+    z = math.copysign(
+        math.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) / 2.0, r[1, 0] - r[0, 1]
+    )
     return [x, y, z, w]

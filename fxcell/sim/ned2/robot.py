@@ -8,6 +8,7 @@ and a message); the TCP server wraps them as Niryo's server does.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -80,8 +81,12 @@ class Ned2Robot:
     gripper_open: bool = True
     held: str | None = None
     objects: dict[str, SimObject] = field(default_factory=dict)
-    digital_out: dict[str, bool] = field(default_factory=lambda: dict.fromkeys(DIGITAL_OUTPUTS, False))
-    digital_in: dict[str, bool] = field(default_factory=lambda: dict.fromkeys(DIGITAL_INPUTS, False))
+    digital_out: dict[str, bool] = field(
+        default_factory=lambda: dict.fromkeys(DIGITAL_OUTPUTS, False)
+    )
+    digital_in: dict[str, bool] = field(
+        default_factory=lambda: dict.fromkeys(DIGITAL_INPUTS, False)
+    )
     analog_out: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ANALOG_OUTPUTS, 0.0))
     analog_in: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ANALOG_INPUTS, 0.0))
     moving: bool = False
@@ -217,8 +222,7 @@ class Ned2Robot:
             if not lo <= v <= hi:
                 raise RobotError(
                     INVALID_PARAMETERS,
-                    f"joint_{i + 1} target {v:.4f} rad is out of its limits "
-                    f"[{lo:.4f}, {hi:.4f}]",
+                    f"joint_{i + 1} target {v:.4f} rad is out of its limits [{lo:.4f}, {hi:.4f}]",
                 )
         return a
 
@@ -255,7 +259,7 @@ class Ned2Robot:
         start = ned2.forward(self.joints)
         end = ned2.pose_to_matrix(pose)
         distance = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
-        steps = max(2, int(math.ceil(distance / 0.005)) + 1)
+        steps = max(2, math.ceil(distance / 0.005) + 1)
         path = [self.joints.copy()]
         r0 = start[:3, :3]
         rel = r0.T @ end[:3, :3]
@@ -282,13 +286,13 @@ class Ned2Robot:
         self.moving = True
         self._abort = None
         try:
-            for a, b in zip(waypoints, waypoints[1:], strict=False):
+            for a, b in itertools.pairwise(waypoints):
                 vs, as_, duration = self._profile(a, b)
                 clock = time.monotonic()
                 while True:
-                    if self._abort is not None:
-                        code, message = self._abort
-                        raise RobotError(code, message)
+                    abort = self._pending_abort()
+                    if abort is not None:
+                        raise RobotError(*abort)
                     elapsed = (time.monotonic() - clock) / self.time_scale
                     if elapsed >= duration:
                         self.joints = b.copy()
@@ -300,6 +304,9 @@ class Ned2Robot:
         finally:
             self.moving = False
             self._abort = None
+
+    def _pending_abort(self) -> tuple[int, str] | None:
+        return self._abort
 
     def _carry(self) -> None:
         if self.held is not None:
@@ -340,7 +347,7 @@ class Ned2Robot:
             return opened
         if self.held is not None:  # the fingers stop on the object
             width = self.objects[self.held].width
-            return int(round(closed + (opened - closed) * min(1.0, width / GRIPPER_1_STROKE)))
+            return round(closed + (opened - closed) * min(1.0, width / GRIPPER_1_STROKE))
         return closed
 
 

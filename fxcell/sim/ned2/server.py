@@ -120,7 +120,8 @@ class Ned2Server:
                 log.info("client sent a frame that is not JSON (%s): disconnecting", exc)
                 return
             answer = await interpreter.interpret(request)
-            while (delay := self._stall_until - asyncio.get_running_loop().time()) > 0:
+            delay = self._stall_until - asyncio.get_running_loop().time()
+            if delay > 0:  # a stalled server: the answer comes that much later
                 await asyncio.sleep(delay)
             if writer.is_closing():
                 return
@@ -293,4 +294,3 @@ def request(host: str, line: str, timeout: float = 5.0) -> str:
 def state(host: str) -> dict[str, Any]:
     result: dict[str, Any] = json.loads(request(host, "state"))
     return result
-
