@@ -47,6 +47,7 @@ class Ned2Server:
         self._stall_until = 0.0
         self._tasks: set[asyncio.Task[Any]] = set()
         self.powered = True
+        self._closing = False
 
     # ---------------------------------------------------------------- serving
 
@@ -81,6 +82,7 @@ class Ned2Server:
             await self.close()
 
     async def close(self) -> None:
+        self._closing = True
         for server in (self._tcp, self._control):
             if server is not None:
                 server.close()
@@ -100,6 +102,11 @@ class Ned2Server:
                 await self._serve_client(reader, writer)
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
+        except asyncio.CancelledError:
+            if not self._closing:
+                raise
+            # the simulator shuts down: end quietly (asyncio's stream callback would report
+            # a cancelled handler as an error)
         finally:
             self._clients.discard(writer)
             if task is not None:
