@@ -5,7 +5,7 @@ Poses: joint vectors uniform within the Ned2's limits → forward kinematics; ea
 from a random seed (uniform within the limits) by:
 
 - ``fxcell``: ``fxcell.motion.ned2.inverse(pose, seed)`` (batched damped least squares
-  from the seed and 48 branch seeds; every converged solution within the limits, the one
+  from the seed and 216 branch seeds; every converged solution within the limits, the one
   nearest the seed returned);
 - ``pinocchio CLIK``: damped least squares on the shipped URDF's ``tool_link`` (``log6``
   error, damping 1e-10), clamped to the limits, restarts from random configurations after
@@ -16,8 +16,9 @@ from a random seed (uniform within the limits) by:
 
 Solved = position error < 1e-6 m and rotation error < 1e-6 rad (by fxcell's forward
 kinematics) and every joint within the limits. "Nearest" = fxcell's solution is no
-farther from the seed (Euclidean, rad) than the dense reference's (+1e-6). The three
-take turns pose by pose, so machine noise hits them alike. Each call is timed alone.
+farther from the seed (Euclidean, rad) than the dense reference's (+1e-4: the same
+solution). The three take turns pose by pose, so machine noise hits them alike. Each call
+is timed alone.
 
 Targets: 100 % solved, 100 % nearest (issue 29); fxcell's median and p99 are printed
 beside CLIK's (a ratio, no bound: CLIK answers with any solution, fxcell with the
@@ -40,6 +41,9 @@ from _harness import Targets
 from fxcell.motion import ned2
 
 TOL = 1e-6
+# two solutions closer than this (rad) are one: near a wrist singularity the solver stops
+# within 1e-7 m/rad of the pose while the joints still differ by ~1e-5
+SAME = 1e-4
 
 
 class Clik:
@@ -119,7 +123,7 @@ def main() -> int:
             for name, sol in (("fxcell", ours), ("clik", generic), ("reference", ref)):
                 solved[name] += _solved(sol, target)
             if ours is not None and ref is not None:
-                nearest += bool(np.linalg.norm(ours - seed) <= np.linalg.norm(ref - seed) + 1e-6)
+                nearest += bool(np.linalg.norm(ours - seed) <= np.linalg.norm(ref - seed) + SAME)
     finally:
         gc.enable()
     n = args.poses

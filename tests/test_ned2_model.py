@@ -15,6 +15,9 @@ from fxcell.errors import InvalidArgumentError
 from fxcell.motion import ned2
 
 pytestmark = pytest.mark.timeout(300)
+# two solutions closer than this (rad) are one: near a wrist singularity the solver stops
+# within 1e-7 m/rad of the pose while the joints still differ by ~1e-5
+SAME = 1e-4
 
 joints = st.tuples(
     *[st.floats(float(lo), float(hi)) for lo, hi in zip(ned2.LOWER, ned2.UPPER, strict=True)]
@@ -83,7 +86,7 @@ def test_ik_returns_the_solution_nearest_the_seed_that_a_dense_search_finds(
     reference = _reference(target, seed)
     assert ours.q is not None
     assert reference.q is not None
-    assert np.linalg.norm(ours.q - seed) <= np.linalg.norm(reference.q - seed) + 1e-6
+    assert np.linalg.norm(ours.q - seed) <= np.linalg.norm(reference.q - seed) + SAME
 
 
 def test_an_unreachable_pose_has_no_solution() -> None:

@@ -203,12 +203,14 @@ class IkResult:
 
 
 def _branch_seeds() -> Array:
-    """A fixed spread of starting points over the joint ranges (shoulder, elbow, wrist)."""
+    """A fixed spread of starting points over the joint ranges: shoulder back/up/forward,
+    elbow down/level/up, wrist rolled either way or not, wrist bent either way (108; the
+    base joint is set per target). 48 starts left 1 % of random reachable poses unsolved."""
     rows = []
-    for q2 in (-0.9, 0.2):
-        for q3 in (-0.8, 0.6):
+    for q2 in (-1.2, -0.4, 0.3):
+        for q3 in (-1.0, 0.0, 1.2):
             for q4 in (-1.6, 0.0, 1.6):
-                for q5 in (-1.0, 1.0):
+                for q5 in (-1.2, 1.2):
                     rows.append([0.0, q2, q3, q4, q5, 0.0])
     return np.array(rows)
 
@@ -274,13 +276,17 @@ def inverse(
     seed: Joints,
     *,
     extra_seeds: Array | None = None,
+    branches: bool = True,
     iterations: int = 60,
     tol_pos: float = 1e-7,
     tol_rot: float = 1e-7,
 ) -> IkResult:
     """Joint positions within the limits that put ``tool_link`` at ``target`` (a 4x4
     transform or Niryo's 6-value pose), the one nearest ``seed`` (Euclidean in joint
-    space); ``q`` is None when no start converged (the pose is out of reach)."""
+    space); ``q`` is None when no start converged (the pose is out of reach).
+
+    ``branches=False`` starts from the seed (and ``extra_seeds``) only: a local solve for
+    a path whose previous point is the seed (a linear move), ~20x faster."""
     t = np.asarray(target, dtype=float)
     if t.shape == (6,):
         t = pose_to_matrix(list(t))
@@ -290,11 +296,11 @@ def inverse(
     if s.shape != (6,) or not np.all(np.isfinite(s)):
         raise InvalidArgumentError("seed must be 6 finite joint positions")
     base_yaw = math.atan2(t[1, 3], t[0, 3])
-    branches = _BRANCHES.copy()
-    branches[:, 0] = base_yaw
+    first = _BRANCHES.copy()
+    first[:, 0] = base_yaw
     flipped = _BRANCHES.copy()
     flipped[:, 0] = base_yaw + (math.pi if base_yaw < 0 else -math.pi)
-    starts = [s[None, :], branches, flipped]
+    starts = [s[None, :], first, flipped] if branches else [s[None, :]]
     if extra_seeds is not None:
         starts.append(np.asarray(extra_seeds, dtype=float).reshape(-1, 6))
     q, ok = _solve(t, np.concatenate(starts), iterations, tol_pos, tol_rot)

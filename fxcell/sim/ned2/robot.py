@@ -272,7 +272,9 @@ class Ned2Robot:
             t = np.eye(4)
             t[:3, 3] = start[:3, 3] + s * (end[:3, 3] - start[:3, 3])
             t[:3, :3] = r0 @ _axis_angle(axis, s * angle)
-            result = ned2.inverse(t, path[-1])
+            result = ned2.inverse(t, path[-1], branches=False)
+            if result.q is None:  # the local solve lost the branch: look for all of them
+                result = ned2.inverse(t, path[-1])
             if result.q is None or np.max(np.abs(result.q - path[-1])) > 0.3:
                 raise RobotError(
                     INVERT_KINEMATICS_FAILURE,
