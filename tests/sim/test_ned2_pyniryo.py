@@ -9,6 +9,8 @@ import gc
 import json
 import socket
 import struct
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 
@@ -17,7 +19,7 @@ import pytest
 
 from fxcell.motion import ned2
 from fxcell.sim.ned2.robot import GRIPPER_STEPS, GRIPPER_TCP
-from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
+from fxcell.testing.ned2 import Ned2SimulatorHandle, free_ned2_host, ned2_simulator
 
 pyniryo = pytest.importorskip("pyniryo")
 from pyniryo import (  # noqa: E402
@@ -265,3 +267,28 @@ def test_malformed_json_makes_the_robot_drop_the_connection(sim: Ned2SimulatorHa
 def test_pyniryo_reports_a_refused_command_as_its_exception(ready: NiryoRobot) -> None:
     with pytest.raises(NiryoRobotException, match="Error Code : -52"):
         ready.move(JointsPosition(3.5, 0.0, 0.0, 0.0, 0.0, 0.0))  # beyond joint 1's limit
+
+
+def test_fxcell_sim_robot_ned2_serves_and_takes_injected_faults() -> None:
+    host = free_ned2_host()
+    cmd = [sys.executable, "-m", "fxcell", "sim", "--robot", "ned2", "--host", host]
+    proc = subprocess.Popen([*cmd, "--calibrated"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        assert "listening" in proc.stdout.readline()
+        r = NiryoRobot(host, verbose=False)
+        try:
+            assert r.get_hardware_status().calibration_needed == "False"
+            inject = [sys.executable, "-m", "fxcell", "sim", "inject", "--robot", "ned2"]
+            done = subprocess.run(
+                [*inject, "--host", host, "uncalibrate"], capture_output=True, text=True, timeout=60
+            )
+            assert done.returncode == 0, done.stderr
+            assert r.get_hardware_status().calibration_needed == "True"
+        finally:
+            r.close_connection()
+    finally:
+        proc.terminate()
+        assert proc.wait(30) == 0
+        if proc.stdout is not None:
+            proc.stdout.close()
