@@ -216,6 +216,7 @@ def _branch_seeds() -> Array:
 
 
 _BRANCHES = _branch_seeds()
+_DENSE = np.random.default_rng(2029).uniform(LOWER, UPPER, size=(400, 6))
 
 
 def _solve(
@@ -252,6 +253,16 @@ def _solve(
         a = jt @ j + lam[:, None, None] * eye
         g = np.einsum("nij,nj->ni", jt, e)
         dq = np.linalg.solve(a, g[..., None])[..., 0]
+        # a joint at a limit that the step pushes outwards leaves the step (projected LM):
+        # clipping alone makes the others crawl along the limit
+        blocked = ((qa >= UPPER - 1e-12) & (dq > 0)) | ((qa <= LOWER + 1e-12) & (dq < 0))
+        if bool(np.any(blocked)):
+            free = (~blocked)[:, None, :]
+            jm = j * free
+            jmt = jm.transpose(0, 2, 1)
+            am = jmt @ jm + lam[:, None, None] * eye
+            gm = np.einsum("nij,nj->ni", jmt, e)
+            dq = np.where(blocked, 0.0, np.linalg.solve(am, gm[..., None])[..., 0])
         q_new = np.clip(qa + np.clip(dq, -0.5, 0.5), LOWER, UPPER)
         f_new = _frames(q_new)
         e_new = _error(f_new, target)
@@ -304,6 +315,10 @@ def inverse(
     if extra_seeds is not None:
         starts.append(np.asarray(extra_seeds, dtype=float).reshape(-1, 6))
     q, ok = _solve(t, np.concatenate(starts), iterations, tol_pos, tol_rot)
+    if branches and not bool(np.any(ok)):
+        # none converged: a pose reachable only near joint limits, where the branch starts
+        # settle on a limit; a dense spread of starts finds it (~0.25 s, rare)
+        q, ok = _solve(t, _DENSE, iterations, tol_pos, tol_rot)
     found = q[ok]
     distinct: list[Array] = []
     for row in found:
