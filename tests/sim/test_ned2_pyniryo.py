@@ -292,3 +292,15 @@ def test_fxcell_sim_robot_ned2_serves_and_takes_injected_faults() -> None:
         assert proc.wait(30) == 0
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+def test_without_a_tool_the_gripper_commands_are_refused(
+    robot: NiryoRobot, sim: Ned2SimulatorHandle
+) -> None:
+    sim.inject("tool_disconnect")
+    assert robot.get_current_tool_id() == ToolID.NONE
+    with pytest.raises(NiryoRobotException, match="Error Code : -253"):
+        robot.grasp_with_tool()
+    sim.inject("tool_connect")
+    robot.grasp_with_tool()
+    assert sim.state()["gripper_open"] is False

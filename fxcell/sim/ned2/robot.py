@@ -210,8 +210,6 @@ class Ned2Robot:
     def set_learning_mode(self, on: bool) -> None:
         if on and self.moving:
             self.abort(STOPPED, "Command has been stopped: learning mode activated")
-        if not on and not self.calibrated:
-            raise RobotError(CALIBRATION_NOT_DONE, "Robot not calibrated: calibrate it first")
         self.learning_mode = on
 
     def check_joints(self, q: list[float]) -> np.ndarray:
@@ -319,8 +317,6 @@ class Ned2Robot:
     def _check_tool(self) -> None:
         if self.tool == "NONE":
             raise RobotError(TOOL_NOT_CONNECTED, "No tool connected")
-        if self.learning_mode and not self.calibrated:
-            raise RobotError(CALIBRATION_NOT_DONE, "Robot not calibrated: calibrate it first")
 
     async def close_gripper(self) -> None:
         self._check_tool()
