@@ -24,6 +24,7 @@ HERE = Path(__file__).resolve().parent
 # The load bench runs CPU burners: last, so that it disturbs no other bench.
 BENCHES = (
     "ik",
+    "ik_ned2",
     "planning",
     "trajectory",
     "stop",

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from fxcell.link.embedded import FAULTS
+from fxcell.sim.ned2 import FAULTS as NED2_FAULTS
 
 
 def _joints(text: str) -> list[float]:
@@ -49,6 +50,18 @@ def _machine_io(text: str) -> Any:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="loopback address to serve on")
+    p.add_argument(
+        "--robot",
+        choices=("ur3e", "ned2"),
+        default="ur3e",
+        help="the controller to simulate: ur3e (default) or ned2 (Niryo's TCP server on "
+        "40001 as pyniryo uses it; only --host, --time-scale and --calibrated apply)",
+    )
+    p.add_argument(
+        "--calibrated",
+        action="store_true",
+        help="ned2: start calibrated (a real Ned2 boots needing calibration)",
+    )
     p.add_argument(
         "--time-scale",
         type=_positive,
@@ -121,13 +134,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: Any) -> None:
-    p = sub.add_parser("sim", help="run the embedded UR3e controller simulator")
+    p = sub.add_parser("sim", help="run the embedded UR3e (or Niryo Ned2) controller simulator")
     add_arguments(p)
     inner = p.add_subparsers(title="simulator commands", metavar="COMMAND")
     i = inner.add_parser("inject", help="inject a fault into a running simulator")
     i.add_argument("--host", default="127.0.0.1", help="the simulator's address")
-    i.add_argument("fault", choices=FAULTS)
-    i.add_argument("args", nargs="*", help="fault arguments (stall_rtde SECONDS)")
+    i.add_argument("--robot", choices=("ur3e", "ned2"), default="ur3e")
+    i.add_argument("fault", choices=sorted({*FAULTS, *NED2_FAULTS}))
+    i.add_argument(
+        "args",
+        nargs="*",
+        help="fault arguments (stall_rtde SECONDS; ned2: stall SECONDS, motor_error JOINT)",
+    )
     i.set_defaults(func=run_inject)
     push = inner.add_parser(
         "push", help="move the arm by hand while it is in freedrive (teach mode)"
@@ -186,6 +204,22 @@ def register(sub: Any) -> None:
 def run_inject(args: argparse.Namespace) -> int:
     from fxcell.link.embedded import inject
 
+    if args.robot == "ned2":
+        from fxcell.sim.ned2.server import request
+
+        try:
+            answer = request(args.host, " ".join(["inject", args.fault, *args.args]))
+        except OSError as exc:
+            print(
+                f"fxcell sim inject: simulator at {args.host} does not answer: {exc}",
+                file=sys.stderr,
+            )
+            return 1
+        if not answer.startswith("ok"):
+            print(f"fxcell sim inject: {answer}", file=sys.stderr)
+            return 1
+        print(answer[3:].strip())
+        return 0
     print(inject(args.host, args.fault, *args.args))
     return 0
 
@@ -271,6 +305,10 @@ def run(args: argparse.Namespace) -> int:
     from fxcell.config import CellConfig
 
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # kill -USR1: where is it?
+    if args.robot == "ned2":
+        from fxcell.sim.ned2.server import run as serve_ned2
+
+        return serve_ned2(args)
     from fxcell.sim.server import run as serve
 
     if args.exit_with_parent:
