@@ -16,13 +16,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-
-from fxcell.motion import ned2
-from fxcell.sim.ned2.robot import GRIPPER_STEPS, GRIPPER_TCP
-from fxcell.testing.ned2 import Ned2SimulatorHandle, free_ned2_host, ned2_simulator
-
-pyniryo = pytest.importorskip("pyniryo")
-from pyniryo import (  # noqa: E402
+from pyniryo import (
     JointsPosition,
     NiryoRobot,
     NiryoRobotException,
@@ -31,7 +25,11 @@ from pyniryo import (  # noqa: E402
     PoseObject,
     ToolID,
 )
-from pyniryo.api.exceptions import HostNotReachableException  # noqa: E402
+from pyniryo.api.exceptions import HostNotReachableException
+
+from fxcell.motion import ned2
+from fxcell.sim.ned2.robot import GRIPPER_STEPS, GRIPPER_TCP
+from fxcell.testing.ned2 import Ned2SimulatorHandle, free_ned2_host, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 
