@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from fxcell.protocol import CONTROL_PERIOD
-from fxcell.sim.controller import REGISTER_COUNT
+from fxcell.sim.constants import POLYSCOPE_VERSION, REGISTER_COUNT
 
 if TYPE_CHECKING:
     from fxcell.sim.controller import Controller
@@ -645,8 +645,6 @@ class RTDEConnection:
                 self.protocol = version
             self._send(86, bytes([1 if version in (1, 2) else 0]))
         elif kind == 118:  # 'v' controller version
-            from fxcell.sim.controller import POLYSCOPE_VERSION
-
             self._send(118, struct.pack(">IIII", *POLYSCOPE_VERSION))
         elif kind == 79:  # 'O' output setup
             self._setup_outputs(payload)

@@ -45,6 +45,7 @@ from fxcell.protocol import (
     URCAP_SCRIPT_PORT,
     RobotMode,
 )
+from fxcell.sim.constants import DELAYS
 from fxcell.sim.controller import Controller, FaultError
 from fxcell.sim.dashboard import Dashboard, DashboardConnection
 from fxcell.sim.fusion import (
@@ -884,8 +885,6 @@ def run(
     ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``) and the program
     store (``programs``).
     """
-    from fxcell.sim.controller import DELAYS
-
     _raise_priority(realtime)
     try:
         sim = SimServer(

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fxcell.geometry import Pose
-from fxcell.sim.controller import REGISTER_COUNT
+from fxcell.sim.constants import REGISTER_COUNT
 from fxcell.sim.motion import JointMove, LinearMove, MotionToken
 
 if TYPE_CHECKING:
