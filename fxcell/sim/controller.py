@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from fxcell.errors import InvalidArgumentError
-from fxcell.link.embedded import FAULTS  # one list of faults, shared with the launcher
+from fxcell.link.embedded import FAULTS, SimulatorState  # FAULTS: shared with the launcher
 from fxcell.protocol import (
     CONTROL_PERIOD,
     RobotMode,
@@ -607,6 +607,26 @@ class Controller:
         self.cancel("brakes")
         self._stop_program(f"protective stop: {reason}")
         self.arm.safety_stop()
+
+    def state(self, *, late_cycles: int = 0) -> SimulatorState:
+        """The controller's own view of the robot: the control port's ``state`` reply."""
+        return {
+            "time": self.time,
+            "robot_mode": self.robot_mode.name,
+            "safety_mode": self.safety_mode.name,
+            "runtime_state": self.runtime_state.name,
+            "remote_control": self.remote_control,
+            "q": self.arm.q.tolist(),
+            "qd": self.arm.qd.tolist(),
+            "tcp": list(self.tcp),
+            "payload": self.payload_mass,
+            "teach_mode": self.teach_mode,
+            "program": self.loaded_program,
+            "control_script": self.script is not None,
+            "last_stop_reason": self.last_stop_reason,
+            "late_cycles": late_cycles,
+            "log": self.log_messages[-20:],
+        }
 
     def inject(self, fault: str, args: list[str]) -> str:
         """Apply a fault injection; returns a short description."""

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fxcell.link.embedded import SimulatorState
 from fxcell.motion.kinematics import Kinematics
 from fxcell.protocol import RobotMode, RuntimeState
 from fxcell.sim.controller import Controller
@@ -372,8 +373,8 @@ def test_programs_sent_to_the_script_ports_run_on_the_simulator() -> None:
 
 
 def wait(
-    sim: SimulatorHandle, predicate: Callable[[dict[str, object]], bool], timeout: float = 10.0
-) -> dict[str, object]:
+    sim: SimulatorHandle, predicate: Callable[[SimulatorState], bool], timeout: float = 10.0
+) -> SimulatorState:
     deadline = time.monotonic() + timeout
     while True:
         state = sim.state()
