@@ -32,6 +32,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from fxcell._version import __version__
+from fxcell.calibration import nominal_model
 from fxcell.commands import COMMANDS, Command
 from fxcell.daemon import models
 from fxcell.daemon.control import LEASE_HEADER
@@ -162,6 +163,10 @@ def create_app(service: CellService) -> FastAPI:
     @api.get("/info", summary="Daemon version, robot and configuration")
     async def get_info() -> dict[str, Any]:
         return service.info()
+
+    @api.get("/robot/model", summary="The arm's kinematic model: UR's nominal DH table (m, rad)")
+    async def get_robot_model() -> dict[str, object]:
+        return nominal_model()
 
     @api.get("/statechart", summary="The robot-mode state machine as data")
     async def get_statechart() -> dict[str, Any]:
