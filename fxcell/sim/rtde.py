@@ -391,13 +391,13 @@ class RTDEHub:
         # asks for DYNAMICS, then calls back; that connection's setup is answered after it.
         self.dynamics_ready = False
         self.load_dynamics: Callable[[Callable[[], None]], None] = self._no_model
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.listener: socket.socket | None = None
 
     def _no_model(self, done: Callable[[], None]) -> None:
         """Without a server to load the model, the outputs answer with their initial values."""
         self.dynamics_ready = True
         done()
-        self.loop: asyncio.AbstractEventLoop | None = None
-        self.listener: socket.socket | None = None
 
     @property
     def streaming(self) -> bool:
