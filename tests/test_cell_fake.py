@@ -29,6 +29,7 @@ from fxcell.errors import (
 )
 from fxcell.events import TransitionEvent
 from fxcell.geometry import Pose
+from fxcell.link.embedded import SimulatorState
 from fxcell.protocol import ProgramState, RuntimeState
 from fxcell.testing import FakeLink, FakeRobot
 
@@ -67,6 +68,16 @@ def _at_rest(robot: FakeRobot) -> bool:
 
 
 # ----------------------------------------------------------------- life cycle
+
+
+async def test_the_fakes_state_has_the_simulators_schema(
+    off_cell: Cell, fake_robot: FakeRobot
+) -> None:
+    assert set(fake_robot.state()) == SimulatorState.__required_keys__
+    assert fake_robot.state()["control_script"] is False
+    await off_cell.init()  # ur_rtde's control script running: the same key says so
+    assert fake_robot.state()["control_script"] is True
+    assert fake_robot.state()["robot_mode"] == "RUNNING"
 
 
 async def test_init_walks_the_modes_to_external_control_and_sets_the_tool(

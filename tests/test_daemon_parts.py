@@ -4,6 +4,7 @@ decimation, and the HTTP layer's refusals (which happen before any robot is invo
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import socket
@@ -14,6 +15,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from fxcell import errors
@@ -29,6 +31,7 @@ from fxcell.daemon.server import check_bind, fix_mmap_threshold, is_loopback
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import Watcher, parse_rate, parse_topics
 from fxcell.errors import ConfigError, ControlHeldError
+from fxcell.motion.kinematics import Kinematics
 
 TOKEN = "s3cret-token-for-tests-0123456789"
 
@@ -346,6 +349,25 @@ async def test_openapi_documents_every_cell_function(http: httpx.AsyncClient) ->
     assert "/api/operations/{op_id}/cancel" in paths
     schema = doc["components"]["schemas"]["MoveJointRequest"]["properties"]["target"]
     assert schema["minItems"] == schema["maxItems"] == 6
+
+
+async def test_the_page_draws_the_arm_with_the_runtimes_kinematics(
+    http: httpx.AsyncClient,
+) -> None:
+    model = (await http.get("/api/robot/model")).json()
+    assert model["robot"] == "UR3e"
+    dh = model["dh"]
+    kinematics = Kinematics.ur3e()
+    for q in ([0.0] * 6, [0.3, -1.2, 1.1, -0.4, 1.3, 0.7], [-2.0, -0.5, -1.9, 2.2, -0.8, 3.0]):
+        frame = np.eye(4)  # the page's chain: standard DH, link by link
+        for i in range(6):
+            ct, st = math.cos(q[i]), math.sin(q[i])
+            ca, sa = math.cos(dh["alpha"][i]), math.sin(dh["alpha"][i])
+            a, d = dh["a"][i], dh["d"][i]
+            link = [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
+                    [0, sa, ca, d], [0, 0, 0, 1]]  # fmt: skip
+            frame = frame @ np.array(link)
+        assert np.allclose(frame[:3, 3], kinematics.forward(np.array(q)).position, atol=1e-12)
 
 
 async def test_page_and_its_assets_are_served_without_external_resources(

@@ -34,6 +34,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fxcell._version import __version__
+from fxcell.calibration import nominal_model
 from fxcell.client import CLIENT_HEADER, decode_client_name
 from fxcell.commands import COMMANDS, Command
 from fxcell.daemon import models
@@ -210,6 +211,10 @@ def create_app(service: CellService) -> FastAPI:
     @api.get("/info", summary="Daemon version, robot and configuration")
     async def get_info() -> dict[str, Any]:
         return service.info()
+
+    @api.get("/robot/model", summary="The arm's kinematic model: UR's nominal DH table (m, rad)")
+    async def get_robot_model() -> dict[str, object]:
+        return nominal_model()
 
     @api.get("/statechart", summary="The robot-mode state machine as data")
     async def get_statechart() -> dict[str, Any]:

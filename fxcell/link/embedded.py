@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypedDict, cast
 
 from fxcell.config import SIMULATOR_CAMERA_PORT
 from fxcell.errors import InvalidArgumentError, SimulatorError
@@ -106,14 +106,37 @@ def inject(host: str, fault: str, *args: object, timeout: float = 5.0) -> str:
     return answer[3:].strip()
 
 
-def state(host: str, timeout: float = 5.0) -> dict[str, Any]:
+class SimulatorState(TypedDict):
+    """The simulator's own view of the robot: the control port's ``state`` reply, and what
+    the in-process fake robot's ``state()`` returns (one schema, built in one place:
+    ``fxcell.sim.controller.Controller.state``)."""
+
+    time: float  # controller time, s
+    robot_mode: str  # a RobotMode name
+    safety_mode: str  # a SafetyMode name
+    runtime_state: str  # a RuntimeState name
+    remote_control: bool
+    q: list[float]  # rad
+    qd: list[float]  # rad/s
+    tcp: list[float]  # the TCP offset set by the program (x y z rx ry rz)
+    payload: float  # kg
+    teach_mode: bool  # freedrive
+    program: str | None  # the loaded program
+    control_script: bool  # ur_rtde's control script is running
+    last_stop_reason: str
+    late_cycles: int  # control cycles the simulator ran late (0 in the fake)
+    log: list[str]  # the newest controller log lines
+    faults: list[str]  # every fault of the session (tests count the ones they did not inject)
+
+
+def state(host: str, timeout: float = 5.0) -> SimulatorState:
     """The simulator's own view of the robot (modes, joints, recent log)."""
     answer = _request(host, "state", timeout)
     try:
-        result: dict[str, Any] = json.loads(answer)
+        result = json.loads(answer)
     except ValueError:
         raise SimulatorError(f"simulator at {host} sent a bad state reply: {answer!r}") from None
-    return result
+    return cast(SimulatorState, result)
 
 
 def stats(host: str, *, reset: bool = False, timeout: float = 5.0) -> dict[str, Any]:
@@ -390,7 +413,7 @@ class EmbeddedSimulator:
     def inject(self, fault: str, *args: object) -> str:
         return inject(self._host(), fault, *args)
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> SimulatorState:
         return state(self._host())
 
     def set_joints(self, q: Sequence[float]) -> None:

@@ -48,7 +48,7 @@ from typing import Any
 from fxcell.link import wire
 from fxcell.link.follower import Follower, Guard, brake_duration, stop_reason
 from fxcell.link.realtime import LINK_PRIORITY, request_realtime
-from fxcell.link.rtde_stream import RTDEStream
+from fxcell.link.rtde_stream import UR_RTDE_GETTERS, RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
 log = logging.getLogger("fxcell.link.process")
@@ -375,30 +375,13 @@ class Link:
 
     @staticmethod
     def _sample(r: Any, ts: float) -> RobotState:
-        return RobotState(
-            timestamp=ts,
-            robot_mode=r.getRobotMode(),
-            safety_mode=r.getSafetyMode(),
-            runtime_state=r.getRuntimeState(),
-            robot_status_bits=r.getRobotStatus(),
-            safety_status_bits=r.getSafetyStatusBits(),
-            target_q=tuple(r.getTargetQ()),
-            target_qd=tuple(r.getTargetQd()),
-            target_qdd=tuple(r.getTargetQdd()),
-            actual_q=tuple(r.getActualQ()),
-            actual_qd=tuple(r.getActualQd()),
-            actual_current=tuple(r.getActualCurrent()),
-            target_tcp_pose=tuple(r.getTargetTCPPose()),
-            actual_tcp_pose=tuple(r.getActualTCPPose()),
-            actual_tcp_speed=tuple(r.getActualTCPSpeed()),
-            speed_scaling=r.getSpeedScaling(),
-            digital_input_bits=r.getActualDigitalInputBits(),
-            digital_output_bits=r.getActualDigitalOutputBits(),
-            standard_analog_input0=r.getStandardAnalogInput0(),
-            standard_analog_input1=r.getStandardAnalogInput1(),
-            standard_analog_output0=r.getStandardAnalogOutput0(),
-            standard_analog_output1=r.getStandardAnalogOutput1(),
-        )
+        """One sample from ur_rtde's getters (``ts`` is the one already read)."""
+        values: dict[str, Any] = {}
+        for attr, getter in UR_RTDE_GETTERS:
+            value = getattr(r, getter)()
+            values[attr] = tuple(value) if isinstance(value, list) else value
+        values["timestamp"] = ts
+        return RobotState(**values)
 
     def next_sample(
         self, seen: int, timeout: float, woken: Callable[[], bool] | None = None

@@ -21,6 +21,25 @@ _V, _O, _S, _U, _M = ord("V"), ord("O"), ord("S"), ord("U"), ord("M")
 
 _ATTRS: tuple[str, ...] = tuple(attr for attr, _ in RTDE_STATE_OUTPUTS)
 FIELDS: tuple[str, ...] = tuple(output for _, output in RTDE_STATE_OUTPUTS)
+
+# ur_rtde names its RTDEReceiveInterface getters after the outputs ("actual_TCP_pose" ->
+# ``getActualTCPPose``), with these exceptions.
+_UR_RTDE_EXCEPTIONS = {"robot_status_bits": "getRobotStatus"}
+
+
+def ur_rtde_getter(output: str) -> str:
+    """The name of ur_rtde's ``RTDEReceiveInterface`` getter for an RTDE output."""
+    exception = _UR_RTDE_EXCEPTIONS.get(output)
+    if exception is not None:
+        return exception
+    return "get" + "".join(word[:1].upper() + word[1:] for word in output.split("_"))
+
+
+UR_RTDE_GETTERS: tuple[tuple[str, str], ...] = tuple(
+    (attr, ur_rtde_getter(output)) for attr, output in RTDE_STATE_OUTPUTS
+)
+"""The :class:`RobotState` fields with the ur_rtde getter each is polled from when the link
+reads through ur_rtde instead of :class:`RTDEStream`: derived from the one list of outputs."""
 _CODES = {
     "BOOL": ("?", 1),
     "UINT8": ("B", 1),

@@ -11,14 +11,13 @@ and so does the 5 s protective-stop unlock rule.
 
 from __future__ import annotations
 
-import datetime
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from fxcell.errors import InvalidArgumentError
-from fxcell.link.embedded import FAULTS  # one list of faults, shared with the launcher
+from fxcell.link.embedded import FAULTS, SimulatorState  # FAULTS: shared with the launcher
 from fxcell.protocol import (
     CONTROL_PERIOD,
     RobotMode,
@@ -27,8 +26,12 @@ from fxcell.protocol import (
     SafetyMode,
     SafetyStatusBits,
 )
+from fxcell.sim.constants import DELAYS, REGISTER_COUNT, UNLOCK_DELAY
+from fxcell.sim.events import RobotMessage, RuntimeException, TextMessage
 from fxcell.sim.program_store import URCAP_PROGRAM, ProgramStore
+from fxcell.sim.script import ControlScript, is_control_script
 from fxcell.sim.signals import Signal
+from fxcell.sim.urscript import Program, URScriptError
 
 # injections that undo a fault or change no behaviour: not counted as faults
 _NOT_FAULTS = frozenset(
@@ -38,32 +41,9 @@ _NOT_FAULTS = frozenset(
 
 if TYPE_CHECKING:
     from fxcell.sim.motion import Arm
-    from fxcell.sim.script import ControlScript
-    from fxcell.sim.urscript import Program
 
 log = logging.getLogger(__name__)
 
-# Real-controller delays in seconds, before time scaling.
-DELAYS = {
-    "boot": 2.0,
-    "power_on": 2.0,  # POWER_ON -> IDLE
-    "brake_release": 1.5,  # IDLE -> RUNNING
-    "program_start": 0.3,  # compile and start a program or an uploaded script
-    "restart_safety": 1.5,
-}
-UNLOCK_DELAY = 5.0  # protective stop: unlock refused until this long after the stop
-
-# The PolyScope the simulator presents, the same everywhere: Dashboard ``PolyscopeVersion``
-# and ``version``, the primary/secondary version message, RTDE's controller version. The
-# RTDE outputs are those of this version's RTDE guide (``actual_current_as_torque`` and the
-# other fields of the 5.2x releases included). Its build number and date are the
-# simulator's own.
-POLYSCOPE_VERSION = (5, 25, 1, 1)
-POLYSCOPE_BUILD_DATE = datetime.datetime(2025, 9, 3)
-SERIAL_NUMBER = "20235500001"
-ROBOT_MODEL = "UR3"
-
-REGISTER_COUNT = 48
 
 # joint_mode values reported per robot mode
 JOINT_MODE = {
@@ -227,7 +207,7 @@ class Controller:
         self.on_drop_rtde: Callable[[], None] = lambda: None
         self.on_shutdown: Callable[[], None] = lambda: None
         self.request_urcap_program: Callable[[], None] = lambda: None
-        self.on_robot_message: Callable[[bytes], None] = lambda message: None
+        self.on_robot_message: Callable[[RobotMessage], None] = lambda message: None
         self._timers: list[tuple[float, int, Callable[[], None]]] = []
         self._timer_seq = 0
         self._pending: dict[str, int] = {}  # name -> timer seq, for cancellable transitions
@@ -426,8 +406,6 @@ class Controller:
         if program_name(self.loaded_program) != URCAP_PROGRAM:
             text = self.programs.script(self.loaded_program)
             if text is not None:  # the URScript PolyScope saved with the program
-                from fxcell.sim.urscript import Program, URScriptError
-
                 try:
                     program = Program(self, text)
                 except URScriptError as exc:
@@ -470,9 +448,6 @@ class Controller:
                 self.safety_mode.name,
             )
             return False
-        from fxcell.sim.script import ControlScript, is_control_script
-        from fxcell.sim.urscript import Program, URScriptError
-
         program: Program | None = None
         if not is_control_script(text):
             try:
@@ -510,8 +485,6 @@ class Controller:
 
     def run_secondary(self, text: str) -> bool:
         """A ``sec`` program: runs at once beside the main program (it cannot take time)."""
-        from fxcell.sim.urscript import Program, URScriptError
-
         try:
             program = Program(self, text, secondary=True)
         except URScriptError as exc:
@@ -540,31 +513,25 @@ class Controller:
     ) -> None:
         """A runtime (or compile) error, reported as the controller does: a runtime exception
         message on the primary/secondary interfaces and the log; the program stops."""
-        from fxcell.sim.primary import runtime_exception_message
-
         entry = f"Runtime exception: {text} (line {line}, column {column})"
         log.error("%s", entry)
         self.log_messages.append(entry)
-        self.on_robot_message(runtime_exception_message(text, line, column, self.time))
+        self.on_robot_message(RuntimeException(text, line, column, self.time))
         if stop:
             self._stop_program(f"runtime exception: {text}")
             self.arm.stop_motion()
 
     def report_error(self, text: str) -> None:
         """An error the program survives: the log and a text message to the clients."""
-        from fxcell.sim.primary import text_message
-
         log.error("%s", text)
         self.log_messages.append(f"error: {text}")
-        self.on_robot_message(text_message(text, self.time))
+        self.on_robot_message(TextMessage(text, self.time))
 
     def text_message(self, text: str) -> None:
         """``textmsg``: the log and a text message to the primary/secondary clients."""
-        from fxcell.sim.primary import text_message
-
         log.info("textmsg: %s", text)
         self.log_messages.append(f"textmsg: {text}")
-        self.on_robot_message(text_message(text, self.time))
+        self.on_robot_message(TextMessage(text, self.time))
 
     def enter_freedrive(
         self, axes: tuple[int, ...] = (1,) * 6, feature: list[float] | None = None
@@ -651,6 +618,27 @@ class Controller:
         self.cancel("brakes")
         self._stop_program(f"protective stop: {reason}")
         self.arm.safety_stop()
+
+    def state(self, *, late_cycles: int = 0) -> SimulatorState:
+        """The controller's own view of the robot: the control port's ``state`` reply."""
+        return {
+            "time": self.time,
+            "robot_mode": self.robot_mode.name,
+            "safety_mode": self.safety_mode.name,
+            "runtime_state": self.runtime_state.name,
+            "remote_control": self.remote_control,
+            "q": self.arm.q.tolist(),
+            "qd": self.arm.qd.tolist(),
+            "tcp": list(self.tcp),
+            "payload": self.payload_mass,
+            "teach_mode": self.teach_mode,
+            "program": self.loaded_program,
+            "control_script": self.script is not None,
+            "last_stop_reason": self.last_stop_reason,
+            "late_cycles": late_cycles,
+            "log": self.log_messages[-20:],
+            "faults": list(self.faults),
+        }
 
     def inject(self, fault: str, args: list[str]) -> str:
         """Apply a fault injection; returns a short description."""

@@ -12,13 +12,13 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, ClassVar
 
 from fxcell.protocol import RobotMode, SafetyMode
-from fxcell.sim.controller import (
+from fxcell.sim.constants import (
     POLYSCOPE_BUILD_DATE,
     POLYSCOPE_VERSION,
     ROBOT_MODEL,
     SERIAL_NUMBER,
-    program_name,
 )
+from fxcell.sim.controller import program_name
 
 if TYPE_CHECKING:
     from fxcell.sim.controller import Controller

@@ -32,7 +32,8 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from fxcell.protocol import RobotMode, RuntimeState, SafetyMode
-from fxcell.sim.controller import POLYSCOPE_BUILD_DATE, POLYSCOPE_VERSION
+from fxcell.sim.constants import POLYSCOPE_BUILD_DATE, POLYSCOPE_VERSION
+from fxcell.sim.events import RobotMessage, RuntimeException, TextMessage
 
 if TYPE_CHECKING:
     from fxcell.calibration import Calibration
@@ -103,6 +104,15 @@ def runtime_exception_message(text: str, line: int, column: int, timestamp: floa
     """A runtime exception message: script line and column, then the text."""
     body = struct.pack(">ii", line, column) + text.encode("utf-8", "replace")
     return robot_message(MESSAGE_RUNTIME_EXCEPTION, body, timestamp)
+
+
+def encode_robot_message(message: RobotMessage) -> bytes:
+    """The controller's typed message as the primary/secondary interfaces send it."""
+    match message:
+        case TextMessage(text, time):
+            return text_message(text, time)
+        case RuntimeException(text, line, column, time):
+            return runtime_exception_message(text, line, column, time)
 
 
 class StateSource:
@@ -347,10 +357,13 @@ class ClientInterfaces:
         self.primary.discard(conn)
         self.realtime.discard(conn)
 
-    def broadcast(self, message: bytes) -> None:
+    def broadcast(self, message: RobotMessage) -> None:
         """A robot message (text, runtime error) to every primary/secondary client."""
+        if not self.primary:
+            return
+        packet = encode_robot_message(message)
         for conn in list(self.primary):
-            conn.send(message)
+            conn.send(packet)
 
     def stream(self) -> None:
         """Send what is due at the controller's current time (call after each advance)."""
@@ -381,6 +394,7 @@ __all__ = [
     "ClientInterfaces",
     "StateConnection",
     "StateSource",
+    "encode_robot_message",
     "robot_message",
     "runtime_exception_message",
     "text_message",

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from fxcell.protocol import CONTROL_PERIOD
-from fxcell.sim.controller import REGISTER_COUNT
+from fxcell.sim.constants import POLYSCOPE_VERSION, REGISTER_COUNT
 
 if TYPE_CHECKING:
     from fxcell.sim.controller import Controller
@@ -391,13 +391,13 @@ class RTDEHub:
         # asks for DYNAMICS, then calls back; that connection's setup is answered after it.
         self.dynamics_ready = False
         self.load_dynamics: Callable[[Callable[[], None]], None] = self._no_model
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.listener: socket.socket | None = None
 
     def _no_model(self, done: Callable[[], None]) -> None:
         """Without a server to load the model, the outputs answer with their initial values."""
         self.dynamics_ready = True
         done()
-        self.loop: asyncio.AbstractEventLoop | None = None
-        self.listener: socket.socket | None = None
 
     @property
     def streaming(self) -> bool:
@@ -645,8 +645,6 @@ class RTDEConnection:
                 self.protocol = version
             self._send(86, bytes([1 if version in (1, 2) else 0]))
         elif kind == 118:  # 'v' controller version
-            from fxcell.sim.controller import POLYSCOPE_VERSION
-
             self._send(118, struct.pack(">IIII", *POLYSCOPE_VERSION))
         elif kind == 79:  # 'O' output setup
             self._setup_outputs(payload)

@@ -45,6 +45,7 @@ from fxcell.protocol import (
     URCAP_SCRIPT_PORT,
     RobotMode,
 )
+from fxcell.sim.constants import DELAYS
 from fxcell.sim.controller import Controller, FaultError
 from fxcell.sim.dashboard import Dashboard, DashboardConnection
 from fxcell.sim.fusion import (
@@ -553,26 +554,7 @@ class SimServer:
             except FaultError as exc:
                 return f"error: {exc}"
         if cmd == "state":
-            return json.dumps(
-                {
-                    "time": c.time,
-                    "robot_mode": c.robot_mode.name,
-                    "safety_mode": c.safety_mode.name,
-                    "runtime_state": c.runtime_state.name,
-                    "remote_control": c.remote_control,
-                    "q": self.arm.q.tolist(),
-                    "qd": self.arm.qd.tolist(),
-                    "tcp": list(c.tcp),
-                    "payload": c.payload_mass,
-                    "teach_mode": c.teach_mode,
-                    "program": c.loaded_program,
-                    "control_script": c.script is not None,
-                    "last_stop_reason": c.last_stop_reason,
-                    "late_cycles": self.late_cycles,
-                    "log": c.log_messages[-20:],
-                    "faults": c.faults,
-                }
-            )
+            return json.dumps(c.state(late_cycles=self.late_cycles))
         if cmd == "stats":
             if args[:1] == ["reset"]:
                 self._send_count = 0
@@ -976,8 +958,6 @@ def run(
     ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``) and the program
     store (``programs``).
     """
-    from fxcell.sim.controller import DELAYS
-
     _raise_priority(realtime)
     try:
         sim = SimServer(

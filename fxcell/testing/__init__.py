@@ -37,7 +37,7 @@ import pytest
 import pytest_asyncio
 
 from fxcell.link import embedded
-from fxcell.link.embedded import EmbeddedSimulator
+from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 from fxcell.testing.fake import FakeLink, FakeRobot, FakeTrajectory
 from fxcell.testing.faults import injected_faults, watching_test
 
@@ -139,7 +139,7 @@ class SimulatorHandle:
     def inject(self, fault: str, *args: object) -> str:
         return self._sim.inject(fault, *args)
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> SimulatorState:
         return self._sim.state()
 
     def set_joints(self, q: Sequence[float]) -> None:

@@ -55,6 +55,7 @@ from fxcell.link.client import (
     TrajectoryProgress,
     TrajectoryResult,
 )
+from fxcell.link.embedded import SimulatorState
 from fxcell.link.follower import Follower, Guard
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 from fxcell.sim.controller import Controller
@@ -146,23 +147,9 @@ class FakeRobot:
         ``stop_program``, ``power_loss``, ``drop_rtde``, ``stall_rtde SECONDS``)."""
         return self.controller.inject(fault, [str(a) for a in args])
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> SimulatorState:
         """Modes by name, joints and program, as the simulator's control port's ``state``."""
-        c = self.controller
-        return {
-            "time": c.time,
-            "robot_mode": c.robot_mode.name,
-            "safety_mode": c.safety_mode.name,
-            "runtime_state": c.runtime_state.name,
-            "remote_control": c.remote_control,
-            "program": c.loaded_program,
-            "script": c.script is not None,
-            "teach_mode": c.teach_mode,
-            "q": self.arm.q.tolist(),
-            "qd": self.arm.qd.tolist(),
-            "tcp": list(c.tcp),
-            "payload": c.payload_mass,
-        }
+        return self.controller.state()
 
     def set_joints(self, q: Sequence[float]) -> None:
         """Place the resting arm."""

@@ -24,7 +24,7 @@ from typing import Any
 import pytest
 
 from fxcell.daemon.process import DaemonProcess
-from fxcell.link.embedded import EmbeddedSimulator
+from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 
 _LINK_DOWN = re.compile(r"robot link to \S+ down: (.*)")
 
@@ -151,8 +151,8 @@ def _watchable(values: list[Any]) -> list[Any]:
 _HOLDERS = ("handle", "sim", "daemon", "_simulator")
 
 
-def _faults(state: dict[str, Any]) -> list[str]:
-    return [str(f) for f in state.get("faults", [])]
+def _faults(state: SimulatorState) -> list[str]:
+    return list(state["faults"])
 
 
 _current: FaultWatch | None = None

@@ -13,6 +13,7 @@ from rtde_control import RTDEControlInterface
 from rtde_receive import RTDEReceiveInterface
 
 from fxcell.errors import SimulatorError
+from fxcell.link.embedded import SimulatorState
 from fxcell.testing import SimulatorHandle, simulator
 
 from .test_sim_primary import Messages
@@ -82,6 +83,13 @@ def ready(robot: Robot) -> Robot:
     robot.ensure_running()
     assert robot.c.moveJ(START, 3.0, 20.0)
     return robot
+
+
+def test_the_control_ports_state_has_the_one_schema(ready: Robot) -> None:
+    state = ready.sim.state()
+    assert set(state) == SimulatorState.__required_keys__
+    assert state["control_script"] is True  # ur_rtde's control script is running
+    assert state["robot_mode"] == "RUNNING"
 
 
 def test_movej_reaches_the_target_on_a_trapezoid(ready: Robot) -> None:

@@ -444,8 +444,12 @@ $("#copy-pose").addEventListener("click", async () => {
 
 // ------------------------------------------------------------------ arm view (UR3e, DH)
 
-const DH = { d: [0.15185, 0, 0, 0.13105, 0.08535, 0.0921], a: [0, -0.24355, -0.2132, 0, 0, 0],
-  alpha: [Math.PI / 2, 0, 0, Math.PI / 2, -Math.PI / 2, 0] };
+// The arm's DH table (d, a, alpha in m and rad) comes from the daemon: one source in Python.
+let DH = null;
+(async () => {
+  try { DH = (await api("GET", "/api/robot/model")).dh; requestDraw(); }
+  catch (e) { log(`cannot load the robot model: ${e.message}`, "error"); }
+})();
 
 function matMul(A, B) {
   const C = new Array(16).fill(0);
@@ -470,6 +474,7 @@ const P = (T) => [T[3], T[7], T[11]];
 function armPoints(q) {
   let T = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
   const pts = [P(T)];
+  if (!DH) return pts;  // the model has not arrived yet
   for (let i = 0; i < 6; i++) {
     const Tz = matMul(T, dh(q[i], DH.d[i], 0, 0));
     pts.push(P(Tz));
