@@ -45,7 +45,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from fxcell.link import wire
-from fxcell.link.follower import Follower, Guard, brake_duration, stop_reason
+from fxcell.link.follower import STATE_STALLED, Follower, Guard, brake_duration, stop_reason
 from fxcell.link.rtde_stream import RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
@@ -769,6 +769,7 @@ class _Trajectory:
         )
         status: str = "completed"
         reason = ""
+        cycled = started  # time.monotonic() of this thread's previous cycle
         if c is None:
             status, reason = "failed", "no_external_control"
         else:
@@ -779,12 +780,16 @@ class _Trajectory:
                     self._take_requests(follower)
                     if cell_timeout is not None:
                         link.heard_within(cell_timeout, now)  # reads beats still waiting
+                    braking = follower.braking
                     out = follower.cycle(
                         now,
                         link.latest,
                         heard_at=link.last_heard if cell_timeout is not None else None,
                         state_at=link.last_state_at,
                     )
+                    if braking is None and follower.braking is not None:
+                        self._explain_stall(follower.braking[0], now, cycled)
+                    cycled = now
                     self._tell(follower)
                     if out.target is None:
                         status, reason = out.status or "completed", out.reason
@@ -845,6 +850,22 @@ class _Trajectory:
         with link._traj_lock:
             if link._traj is self:
                 link._traj = None
+
+    def _explain_stall(self, why: str, now: float, cycled: float) -> None:
+        """Log where a stalled state stream stalled: in the controller (nothing unread)
+        or in this process (samples waiting in the socket while its threads waited for a
+        CPU)."""
+        if why != STATE_STALLED:
+            return
+        link = self.link
+        unread = link.stream.unread() if link.stream is not None else -1
+        self.link.send(
+            wire.LOG,
+            logging.WARNING,
+            f"state stalled: newest sample {1e3 * (now - link.last_state_at):.1f} ms old, "
+            f"{unread} bytes unread from the controller, this thread's previous cycle "
+            f"{1e3 * (now - cycled):.1f} ms ago",
+        )
 
     def _tell(self, follower: Follower) -> None:
         """Send what the follower has to say (a braking warning, a splice's outcome)."""

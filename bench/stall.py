@@ -1,0 +1,152 @@
+"""Moves beside CPU burners: how many brake on a stalled state stream, and where it stalled.
+
+Setup: a UR3e simulator process, a Cell on it (its robot-link process), and ``--burners``
+CPU burners (default 2: one per core of the CI machine; each a bounded busy loop). Then
+``--moves`` joint moves of the base (±0.2 rad at 0.3 of full speed, about 0.6 s each),
+each awaited. A move the link process braked on ``state_stalled`` (no state sample for the
+guard's ``stall_timeout``, 80 ms) counts as a stall.
+
+Where each hop stood, for the diagnosis:
+
+* the simulator: its own RTDE send period (control port ``stats``: median, p99, max) and
+  the controller-time gaps the client saw in the stream (``LinkClient.gaps``: > 20 ms);
+* the link process: its ``state stalled`` lines (how old the newest sample was, how many
+  bytes the controller had sent that the pump had not read yet, and how long the
+  trajectory thread itself had not run). Bytes unread mean the stall was in the link
+  process, not in the controller.
+
+``--sim`` and ``--link`` choose each process's scheduling (``realtime``: SCHED_FIFO, as the
+test suite asks for the simulator and as the link process asks for itself where
+permitted; ``normal``: the parent's). ``--link realtime`` here applies SCHED_FIFO to every
+thread of the running link process from outside (root only), so the bench measures the
+policy whatever the link's own default.
+
+    ./dev bench stall [--moves N] [--burners N] [--sim realtime|normal] [--link realtime|normal]
+
+Target: no move braked on a stall. Exits 1 otherwise. Takes about a minute.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import subprocess
+import sys
+import time
+
+from _harness import Targets
+
+from fxcell.cell import Cell
+from fxcell.config import CellConfig
+from fxcell.errors import FxcellError
+from fxcell.link import embedded
+from fxcell.testing import simulator
+
+BURN_SECONDS = 300  # a burner ends by itself even if this bench is killed
+
+
+def burners(n: int) -> list[subprocess.Popen[bytes]]:
+    code = f"import time\nend = time.monotonic() + {BURN_SECONDS}\n"
+    code += "while time.monotonic() < end: pass"
+    return [subprocess.Popen([sys.executable, "-c", code]) for _ in range(n)]
+
+
+def realtime_threads(pid: int, priority: int) -> None:
+    """SCHED_FIFO for every thread of process ``pid``."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+
+
+class Lines(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+
+async def run(args: argparse.Namespace) -> dict[str, object]:
+    config = CellConfig.load()
+    home = list(config.home)
+    lines = Lines()
+    logging.getLogger("fxcell").addHandler(lines)
+    failed = 0
+    with simulator(joints=home) as sim:
+        async with Cell(sim.host, config=config) as cell:
+            await cell.init()
+            await cell.set_velocity_factor(0.3)
+            link = cell.link
+            pid = getattr(link, "pid", None)
+            if args.link == "realtime" and pid is not None:
+                realtime_threads(pid, 80)
+            procs = burners(args.burners)
+            try:
+                embedded.stats(sim.host, reset=True)
+                gaps_before = getattr(link, "gaps", 0)
+                t0 = time.monotonic()
+                for k in range(args.moves):
+                    target = [home[0] + (0.2 if k % 2 == 0 else 0.0), *home[1:]]
+                    try:
+                        await cell.move_joint(target)
+                    except FxcellError as exc:
+                        failed += 1
+                        print(f"  move {k}: {type(exc).__name__}: {exc}"[:200], flush=True)
+                        await cell.init()
+                elapsed = time.monotonic() - t0
+                sim_stats = embedded.stats(sim.host)
+                gaps = getattr(link, "gaps", 0) - gaps_before
+            finally:
+                for p in procs:
+                    p.kill()
+                for p in procs:
+                    p.wait()
+    logging.getLogger("fxcell").removeHandler(lines)
+    stalled = sum("state_stalled" in line for line in lines.lines)
+    return {
+        "elapsed": elapsed,
+        "stalled": stalled,
+        "failed": failed,
+        "sim": sim_stats,
+        "gaps": gaps,
+        "warnings": lines.lines,
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--moves", type=int, default=40)
+    parser.add_argument("--burners", type=int, default=2)
+    parser.add_argument("--sim", choices=("realtime", "normal"), default="realtime")
+    parser.add_argument("--link", choices=("realtime", "normal"), default="realtime")
+    args = parser.parse_args()
+    os.environ["FXCELL_SIM_PRIORITY"] = args.sim
+    with open("/proc/loadavg") as f:
+        load = f.read().split()[0]
+    out = asyncio.run(run(args))
+    sim = out["sim"]
+    assert isinstance(sim, dict)
+    print(
+        f"{args.moves} moves in {out['elapsed']:.0f} s beside {args.burners} burners "
+        f"(load average {load}; simulator {args.sim}, link {args.link})"
+    )
+    print(
+        f"  simulator send period: median {sim['period_ms_median']:.2f} ms, "
+        f"p99 {sim['period_ms_p99']:.2f} ms, max {sim['period_ms_max']:.2f} ms, "
+        f"late cycles {sim['late_cycles']}; stream gaps seen by the client: {out['gaps']}"
+    )
+    warnings = out["warnings"]
+    assert isinstance(warnings, list)
+    for line in warnings:
+        print(f"  warning: {line}"[:300])
+    print(f"  braked on a stall: {out['stalled']}; failed moves: {out['failed']}")
+    targets = Targets("stall")
+    targets.check("moves braked on a stalled state stream", out["stalled"], "==", 0)
+    targets.check("failed moves", out["failed"], "==", 0)
+    return targets.finish()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
