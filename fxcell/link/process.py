@@ -45,7 +45,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from fxcell.link import wire
-from fxcell.link.follower import STATE_STALLED, Follower, Guard, brake_duration, stop_reason
+from fxcell.link.follower import Follower, Guard, brake_duration, stop_reason
 from fxcell.link.rtde_stream import RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
@@ -788,7 +788,7 @@ class _Trajectory:
                         state_at=link.last_state_at,
                     )
                     if braking is None and follower.braking is not None:
-                        self._explain_stall(follower.braking[0], now, cycled)
+                        self._explain_stall(now, cycled)
                     cycled = now
                     self._tell(follower)
                     if out.target is None:
@@ -851,13 +851,13 @@ class _Trajectory:
             if link._traj is self:
                 link._traj = None
 
-    def _explain_stall(self, why: str, now: float, cycled: float) -> None:
+    def _explain_stall(self, now: float, cycled: float) -> None:
         """Log where a stalled state stream stalled: in the controller (nothing unread)
         or in this process (samples waiting in the socket while its threads waited for a
         CPU)."""
-        if why != STATE_STALLED:
-            return
         link = self.link
+        if now - link.last_state_at <= self.guard.stall_timeout:
+            return  # it brakes for another reason
         unread = link.stream.unread() if link.stream is not None else -1
         self.link.send(
             wire.LOG,
