@@ -17,9 +17,9 @@ Where each hop stood, for the diagnosis:
 
 ``--sim`` and ``--link`` choose each process's scheduling (``realtime``: SCHED_FIFO, as the
 test suite asks for the simulator and as the link process asks for itself where
-permitted; ``normal``: the parent's). ``--link realtime`` here applies SCHED_FIFO to every
-thread of the running link process from outside (root only), so the bench measures the
-policy whatever the link's own default.
+permitted; ``normal``: SCHED_OTHER). The bench sets ``--link``'s policy on every thread of
+the running link process from outside (root only), so it measures either policy whatever
+the link process asked for itself.
 
     ./dev bench stall [--moves N] [--burners N] [--sim realtime|normal] [--link realtime|normal]
 
@@ -35,6 +35,8 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
+from typing import Any
 
 from _harness import Targets
 
@@ -53,10 +55,14 @@ def burners(n: int) -> list[subprocess.Popen[bytes]]:
     return [subprocess.Popen([sys.executable, "-c", code]) for _ in range(n)]
 
 
-def realtime_threads(pid: int, priority: int) -> None:
-    """SCHED_FIFO for every thread of process ``pid``."""
+def schedule_threads(pid: int, policy: str, priority: int = 80) -> None:
+    """SCHED_FIFO at ``priority`` (``realtime``) or SCHED_OTHER (``normal``) for every
+    thread of process ``pid``; the threads it starts later inherit their creator's."""
     for tid in os.listdir(f"/proc/{pid}/task"):
-        os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+        if policy == "realtime":
+            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+        else:
+            os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))
 
 
 class Lines(logging.Handler):
@@ -68,7 +74,17 @@ class Lines(logging.Handler):
         self.lines.append(record.getMessage())
 
 
-async def run(args: argparse.Namespace) -> dict[str, object]:
+@dataclass
+class Outcome:
+    elapsed: float
+    stalled: int
+    failed: int
+    sim: dict[str, Any]
+    gaps: int
+    warnings: list[str]
+
+
+async def run(args: argparse.Namespace) -> Outcome:
     config = CellConfig.load()
     home = list(config.home)
     lines = Lines()
@@ -80,8 +96,8 @@ async def run(args: argparse.Namespace) -> dict[str, object]:
             await cell.set_velocity_factor(0.3)
             link = cell.link
             pid = getattr(link, "pid", None)
-            if args.link == "realtime" and pid is not None:
-                realtime_threads(pid, 80)
+            if pid is not None:
+                schedule_threads(pid, args.link)
             procs = burners(args.burners)
             try:
                 embedded.stats(sim.host, reset=True)
@@ -95,6 +111,9 @@ async def run(args: argparse.Namespace) -> dict[str, object]:
                         failed += 1
                         print(f"  move {k}: {type(exc).__name__}: {exc}"[:200], flush=True)
                         await cell.init()
+                        pid = getattr(link, "pid", None)  # a link that went down restarted
+                        if pid is not None:
+                            schedule_threads(pid, args.link)
                 elapsed = time.monotonic() - t0
                 sim_stats = embedded.stats(sim.host)
                 gaps = getattr(link, "gaps", 0) - gaps_before
@@ -105,14 +124,7 @@ async def run(args: argparse.Namespace) -> dict[str, object]:
                     p.wait()
     logging.getLogger("fxcell").removeHandler(lines)
     stalled = sum("state_stalled" in line for line in lines.lines)
-    return {
-        "elapsed": elapsed,
-        "stalled": stalled,
-        "failed": failed,
-        "sim": sim_stats,
-        "gaps": gaps,
-        "warnings": lines.lines,
-    }
+    return Outcome(elapsed, stalled, failed, sim_stats, gaps, lines.lines)
 
 
 def main() -> int:
@@ -126,25 +138,22 @@ def main() -> int:
     with open("/proc/loadavg") as f:
         load = f.read().split()[0]
     out = asyncio.run(run(args))
-    sim = out["sim"]
-    assert isinstance(sim, dict)
+    sim = out.sim
     print(
-        f"{args.moves} moves in {out['elapsed']:.0f} s beside {args.burners} burners "
+        f"{args.moves} moves in {out.elapsed:.0f} s beside {args.burners} burners "
         f"(load average {load}; simulator {args.sim}, link {args.link})"
     )
     print(
         f"  simulator send period: median {sim['period_ms_median']:.2f} ms, "
         f"p99 {sim['period_ms_p99']:.2f} ms, max {sim['period_ms_max']:.2f} ms, "
-        f"late cycles {sim['late_cycles']}; stream gaps seen by the client: {out['gaps']}"
+        f"late cycles {sim['late_cycles']}; stream gaps seen by the client: {out.gaps}"
     )
-    warnings = out["warnings"]
-    assert isinstance(warnings, list)
-    for line in warnings:
+    for line in out.warnings:
         print(f"  warning: {line}"[:300])
-    print(f"  braked on a stall: {out['stalled']}; failed moves: {out['failed']}")
+    print(f"  braked on a stall: {out.stalled}; failed moves: {out.failed}")
     targets = Targets("stall")
-    targets.check("moves braked on a stalled state stream", out["stalled"], "==", 0)
-    targets.check("failed moves", out["failed"], "==", 0)
+    targets.check("moves braked on a stalled state stream", out.stalled, "==", 0)
+    targets.check("failed moves", out.failed, "==", 0)
     return targets.finish()
 
 
