@@ -17,11 +17,14 @@ Where each hop stood, for the diagnosis:
 
 ``--sim`` and ``--link`` choose each process's scheduling (``realtime``: SCHED_FIFO, as the
 test suite asks for the simulator and as the link process asks for itself where
-permitted; ``normal``: SCHED_OTHER). The bench sets ``--link``'s policy on every thread of
+permitted; ``normal``: SCHED_OTHER; ``starved``: SCHED_OTHER at nice 19, a link process that
+loses every contest for a CPU, as on a machine much busier than the burners make it). The
+bench sets ``--link``'s policy on every thread of
 the running link process from outside (root only), so it measures either policy whatever
 the link process asked for itself.
 
-    ./dev bench stall [--moves N] [--burners N] [--sim realtime|normal] [--link realtime|normal]
+    ./dev bench stall [--moves N] [--burners N] [--sim realtime|normal]
+                      [--link realtime|normal|starved]
 
 Target: no move braked on a stall. Exits 1 otherwise. Takes about a minute.
 """
@@ -63,6 +66,7 @@ def schedule_threads(pid: int, policy: str, priority: int = 80) -> None:
             os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
         else:
             os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, int(tid), 19 if policy == "starved" else 0)
 
 
 class Lines(logging.Handler):
@@ -72,6 +76,23 @@ class Lines(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         self.lines.append(record.getMessage())
+
+
+async def recover(cell: Cell) -> None:
+    """Init again once the Cell allows it (the braked move ends, the link is back)."""
+    async with asyncio.timeout(60):
+        while True:
+            try:
+                await cell.init()
+            except FxcellError:
+                with cell.robot_states() as states:
+                    n = 0
+                    async for _ in states:  # 50 ms of samples, then try again
+                        n += 1
+                        if n >= 25:
+                            break
+            else:
+                return
 
 
 @dataclass
@@ -110,7 +131,7 @@ async def run(args: argparse.Namespace) -> Outcome:
                     except FxcellError as exc:
                         failed += 1
                         print(f"  move {k}: {type(exc).__name__}: {exc}"[:200], flush=True)
-                        await cell.init()
+                        await recover(cell)
                         pid = getattr(link, "pid", None)  # a link that went down restarted
                         if pid is not None:
                             schedule_threads(pid, args.link)
@@ -132,7 +153,7 @@ def main() -> int:
     parser.add_argument("--moves", type=int, default=40)
     parser.add_argument("--burners", type=int, default=2)
     parser.add_argument("--sim", choices=("realtime", "normal"), default="realtime")
-    parser.add_argument("--link", choices=("realtime", "normal"), default="realtime")
+    parser.add_argument("--link", choices=("realtime", "normal", "starved"), default="realtime")
     args = parser.parse_args()
     os.environ["FXCELL_SIM_PRIORITY"] = args.sim
     with open("/proc/loadavg") as f:
