@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import os
 import subprocess
@@ -78,21 +79,25 @@ class Lines(logging.Handler):
         self.lines.append(record.getMessage())
 
 
-async def recover(cell: Cell) -> None:
-    """Init again once the Cell allows it (the braked move ends, the link is back)."""
-    async with asyncio.timeout(60):
-        while True:
-            try:
-                await cell.init()
-            except FxcellError:
-                with cell.robot_states() as states:
+async def recover(cell: Cell) -> bool:
+    """Init again once the Cell allows it (the braked move ends, the link is back);
+    False if it did not within 60 s."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            await cell.init()
+        except FxcellError:
+            # 25 state samples (50 ms) or 0.5 s without any (the link is down), then again
+            with contextlib.suppress(TimeoutError), cell.robot_states() as states:
+                async with asyncio.timeout(0.5):
                     n = 0
-                    async for _ in states:  # 50 ms of samples, then try again
+                    async for _ in states:
                         n += 1
                         if n >= 25:
                             break
-            else:
-                return
+        else:
+            return True
+    return False
 
 
 @dataclass
@@ -131,7 +136,10 @@ async def run(args: argparse.Namespace) -> Outcome:
                     except FxcellError as exc:
                         failed += 1
                         print(f"  move {k}: {type(exc).__name__}: {exc}"[:200], flush=True)
-                        await recover(cell)
+                        if not await recover(cell):
+                            print("  the Cell did not recover within 60 s: run ended")
+                            failed += args.moves - k - 1
+                            break
                         pid = getattr(link, "pid", None)  # a link that went down restarted
                         if pid is not None:
                             schedule_threads(pid, args.link)
