@@ -758,6 +758,7 @@ class _Trajectory:
         )
         status: str = "completed"
         reason = ""
+        cycled = started  # time.monotonic() of this thread's previous cycle
         if c is None:
             status, reason = "failed", "no_external_control"
         else:
@@ -768,12 +769,16 @@ class _Trajectory:
                     self._take_requests(follower)
                     if cell_timeout is not None:
                         link.heard_within(cell_timeout, now)  # reads beats still waiting
+                    braking = follower.braking
                     out = follower.cycle(
                         now,
                         link.latest,
                         heard_at=link.last_heard if cell_timeout is not None else None,
                         state_at=link.last_state_at,
                     )
+                    if braking is None and follower.braking is not None:
+                        self._explain_stall(now, cycled)
+                    cycled = now
                     self._tell(follower)
                     if out.target is None:
                         status, reason = out.status or "completed", out.reason
@@ -834,6 +839,22 @@ class _Trajectory:
         with link._traj_lock:
             if link._traj is self:
                 link._traj = None
+
+    def _explain_stall(self, now: float, cycled: float) -> None:
+        """Log where a stalled state stream stalled: in the controller (nothing unread)
+        or in this process (samples waiting in the socket while its threads waited for a
+        CPU)."""
+        link = self.link
+        if now - link.last_state_at <= self.guard.stall_timeout:
+            return  # it brakes for another reason
+        unread = link.stream.unread() if link.stream is not None else -1
+        self.link.send(
+            wire.LOG,
+            logging.WARNING,
+            f"state stalled: newest sample {1e3 * (now - link.last_state_at):.1f} ms old, "
+            f"{unread} bytes unread from the controller, this thread's previous cycle "
+            f"{1e3 * (now - cycled):.1f} ms ago",
+        )
 
     def _tell(self, follower: Follower) -> None:
         """Send what the follower has to say (a braking warning, a splice's outcome)."""

@@ -9,8 +9,12 @@ forwards each controller cycle exactly once. It runs in the robot-link process o
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import socket
 import struct
+import sys
+import termios
 from collections.abc import Iterator
 
 from fxcell.protocol import RTDE_PORT, RTDE_STATE_OUTPUTS, RobotState
@@ -94,6 +98,18 @@ class RTDEStream:
         if not self._reply(_S)[0]:
             raise RTDEError("controller refused to start the RTDE stream")
         sock.settimeout(None)
+
+    def unread(self) -> int:
+        """Bytes the controller sent that the reader has not taken yet (the kernel's
+        receive queue and this reader's partial packet; any thread may ask): a stream
+        that stalled with bytes unread stalled in this process, not in the controller."""
+        sock = self._sock
+        waiting = 0
+        if sock is not None:
+            with contextlib.suppress(OSError, ValueError):
+                raw = fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0" * 4)
+                waiting = int.from_bytes(raw, sys.byteorder, signed=True)
+        return waiting + len(self._buffer)
 
     def close(self) -> None:
         if self._sock is not None:
