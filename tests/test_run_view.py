@@ -8,8 +8,6 @@ again and the machine starts. Headless Chromium at 1366×768, screenshots kept.
 from __future__ import annotations
 
 import asyncio
-import os
-import subprocess
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -17,9 +15,8 @@ from typing import Any
 
 import httpx
 import pytest
-import websockets
 import yaml
-from test_web_page import SCREENSHOT_DIR, Browser, _get_json, find_chromium
+from test_web_page import SCREENSHOT_DIR, Browser, headless_chromium
 
 from fxcell.client import RemoteCell
 from fxcell.daemon.process import DaemonProcess
@@ -68,49 +65,8 @@ def daemon(
 
 @pytest.fixture
 async def browser(tmp_path: Path) -> AsyncIterator[Browser]:
-    chromium = find_chromium()
-    if chromium is None:
-        if os.environ.get("FXCELL_REQUIRE_BROWSER"):
-            pytest.fail("no Chromium found (apt-get install chromium)")
-        pytest.skip("no Chromium found (apt-get install chromium); set FXCELL_CHROMIUM")
-    profile = tmp_path / "profile"
-    proc = subprocess.Popen(  # noqa: ASYNC220 - started once, before the loop is busy
-        [
-            chromium, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-            "--disable-dev-shm-usage", "--hide-scrollbars", f"--user-data-dir={profile}",
-            "--remote-debugging-port=0", "--window-size=1366,768", "about:blank",
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )  # fmt: skip
-    try:
-        port_file = profile / "DevToolsActivePort"
-        deadline = time.monotonic() + 30
-        while not (port_file.exists() and port_file.read_text().count("\n") >= 1):
-            assert proc.poll() is None, "chromium exited while starting"
-            assert time.monotonic() < deadline, "chromium did not open its DevTools port"
-            await asyncio.sleep(0.05)
-        port = int(port_file.read_text().split()[0])
-        targets = await asyncio.to_thread(_get_json, f"http://127.0.0.1:{port}/json/list")
-        target = next(t for t in targets if t["type"] == "page")
-        async with websockets.connect(target["webSocketDebuggerUrl"], max_size=None) as ws:
-            b = Browser(ws)
-            await b.call("Runtime.enable")
-            await b.call("Page.enable")
-            await b.call(
-                "Emulation.setDeviceMetricsOverride", width=1366, height=768,
-                deviceScaleFactor=1, mobile=False,
-            )  # fmt: skip
-            yield b
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
+    async with headless_chromium(tmp_path / "profile", 1366, 768) as b:
+        yield b
 
 
 async def job_state(cell: RemoteCell, *states: str, within: float = 180.0) -> dict[str, Any]:
