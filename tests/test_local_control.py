@@ -56,6 +56,7 @@ def braking_start(samples: list[tuple[float, float]], drop: float = 0.005) -> fl
     raise AssertionError(f"the arm never slowed down: {samples[-5:]}")
 
 
+@pytest.mark.injects_faults("the pendant switched to Local control mid-move")
 async def test_switching_to_local_control_brakes_a_move_within_100_ms(
     shared: SimulatorHandle,
 ) -> None:

@@ -918,7 +918,11 @@ class Job:
         cell = self.cell
         if cell.held is not None or step.station is None:
             return
-        await cell.gripper.get_width()
+        try:
+            await cell.gripper.get_width()
+        except FxcellError as exc:  # the place itself then says what stops it
+            log.info("job: the gripper cannot confirm what it holds: %s", exc)
+            return
         if cell.gripper.holding:
             await cell.declare_held(cell.layout.station(step.station).config.holds)
 

@@ -9,12 +9,11 @@ import argparse
 import logging
 import os
 import sys
-import threading
-import time
 from collections.abc import Sequence
 from typing import Any
 
 from fxcell.link.embedded import FAULTS
+from fxcell.sim.lifetime import watch_parent
 from fxcell.sim.ned2 import FAULTS as NED2_FAULTS
 
 
@@ -287,17 +286,6 @@ def run_machine(args: argparse.Namespace) -> int:
     return 0
 
 
-def _watch_parent() -> None:
-    parent = os.getppid()
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(0)  # the launcher is gone: nobody can stop us any more
-
-    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
-
-
 def run(args: argparse.Namespace) -> int:
     import faulthandler
     import signal
@@ -312,7 +300,7 @@ def run(args: argparse.Namespace) -> int:
     from fxcell.sim.server import run as serve
 
     if args.exit_with_parent:
-        _watch_parent()
+        watch_parent()
     from fxcell.calibration import Calibration
     from fxcell.errors import CalibrationError
 

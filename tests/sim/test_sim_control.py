@@ -267,6 +267,7 @@ def test_payload_and_steady_state_are_reported(ready: Robot) -> None:
     c.stopJ(4.0)
 
 
+@pytest.mark.injects_faults("the client starves the RTDE watchdog")
 def test_watchdog_stops_the_program_when_the_client_starves_it(ready: Robot) -> None:
     c = ready.c
     assert c.setWatchdog(20.0)

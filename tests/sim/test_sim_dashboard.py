@@ -134,6 +134,7 @@ def test_every_reply_form_is_the_polyscope_5_string(sim: SimulatorHandle) -> Non
         d.close()
 
 
+@pytest.mark.injects_faults("the pendant switched to Local control")
 def test_local_control_refuses_robot_commands_but_answers_queries(sim: SimulatorHandle) -> None:
     sim.inject("local_control")
     refusal = sim.dashboard("power on")
@@ -169,6 +170,7 @@ def test_shutdown_ends_the_simulator_process() -> None:
         wait_until(lambda: not sim.running, timeout=10, what="process exit")
 
 
+@pytest.mark.injects_faults("faults injected through the CLI")
 def test_cli_inject_reaches_the_simulator_and_rejects_unknown_faults(
     sim: SimulatorHandle, capsys: pytest.CaptureFixture[str]
 ) -> None:

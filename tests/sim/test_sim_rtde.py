@@ -200,6 +200,7 @@ def test_io_interface_sets_outputs_and_owns_its_registers(sim: SimulatorHandle) 
         r.disconnect()
 
 
+@pytest.mark.injects_faults("a stalled and a dropped RTDE stream")
 def test_stall_rtde_pauses_the_stream_and_drop_rtde_closes_it(sim: SimulatorHandle) -> None:
     c = RawRTDE(sim.host)
     try:

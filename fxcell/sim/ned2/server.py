@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from fxcell.motion import ned2
+from fxcell.sim.lifetime import watch_parent
 from fxcell.sim.ned2 import CONTROL_PORT, FAULTS, NED2_PORT
 from fxcell.sim.ned2.protocol import LENGTH, Interpreter
 from fxcell.sim.ned2.robot import (
@@ -254,9 +255,7 @@ def run(args: argparse.Namespace) -> int:
         print("fxcell sim: --time-scale must be > 0", file=sys.stderr)
         return 2
     if args.exit_with_parent:
-        from fxcell.sim.cli import _watch_parent
-
-        _watch_parent()
+        watch_parent()
     server = Ned2Server(args.host, time_scale=args.time_scale, calibrated=args.calibrated)
     try:
         asyncio.run(server.serve())
