@@ -306,6 +306,7 @@ function onMessage(m) {
       showRobot(m.snapshot.robot);
       showGripper(m.snapshot.gripper);
       m.snapshot.operations.forEach(updateOperation);
+      loadJob();  // job events sent while the stream was down are not replayed
       log(`connected to the daemon (state ${m.snapshot.state})`);
       break;
     case "state":
