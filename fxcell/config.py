@@ -63,8 +63,9 @@ class RobotConfig(_Model):
     """SCHED_FIFO priority the robot-link process asks for (where the user may: see the
     real-robot guide); 0 keeps it at normal scheduling."""
     heal_attempts: int = Field(5, ge=0, le=20)
-    """Times a pick, place or job step goes on by itself after the robot link dropped or
-    restarted under it (the arm at rest or braked), before it stops for the operator."""
+    """Times in a row a pick, place or job step goes on by itself after the robot link
+    dropped or restarted under it (the arm at rest or braked) without the arm getting any
+    further, before it stops for the operator (and four times as many in all)."""
     heal_timeout: float = Field(30.0, gt=0)
     """Seconds such a recovery waits for the link, the arm at rest and external control."""
     heartbeat_timeout: float = Field(0.1, ge=0.02, le=1.0)

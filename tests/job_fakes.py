@@ -27,6 +27,7 @@ from fxcell.errors import FxcellError, GripperError, IOTimeoutError, NothingGras
 from fxcell.job import Job, JobStore, Run
 from fxcell.job.plan import location
 from fxcell.layout import Layout
+from fxcell.protocol import RobotState
 
 GRIPPER = "gripper"
 MACHINE_SIGNALS = ("machine_ready", "machine_busy", "machine_done", "machine_error")
@@ -234,6 +235,8 @@ class FakeCell:
         self.camera: Any = None
         """A ``fxcell.testing.vision.VisionBench``: the machine's positions are looked at
         (rendered from the world); ``None``: the cell has no camera."""
+        self.robot_state: RobotState | None = None
+        """The arm's latest sample (a fake cell has none unless a test sets one)."""
         self.faults: dict[str, Any] = {}
         """Machine slot -> the ``Fault`` its crucible stands in (default: seated)."""
         self.next_place_fault: Any = None

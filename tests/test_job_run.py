@@ -24,6 +24,7 @@ from fxcell.errors import (
 )
 from fxcell.job import Job, JobStore, Run, final_locations, make_plan
 from fxcell.job.runner import CHART
+from fxcell.protocol import RobotState
 
 TIMEOUT = 30.0  # generous: a busy 2-core machine
 
@@ -461,4 +462,41 @@ async def test_a_link_that_keeps_dropping_stops_the_job_for_the_operator(store: 
     assert "disconnected" in job.message
     assert cell.restores == 2
     assert [h["phase"] for h in job.heals] == ["start", "start", "failed"]
+    cell.machine.close()
+
+
+class DriftingFlakyLinkCell(FlakyLinkCell):
+    """Each go-home move the lost link interrupts got the arm 0.01 rad further."""
+
+    async def go_home(self) -> None:
+        q = self.robot_state.actual_q[0] if self.robot_state else 0.0
+        self.robot_state = RobotState(actual_q=(q + 0.01, 0.0, 0.0, 0.0, 0.0, 0.0))
+        await super().go_home()
+
+
+async def test_a_move_interrupted_more_often_than_the_budget_goes_on_while_it_gets_further(
+    store: JobStore,
+) -> None:
+    run = sample_run(1)
+    world = World.for_run(run)
+    cell = DriftingFlakyLinkCell(world, drops=5)
+    job = Job(cell, store, JobConfig(heal_attempts=2))
+    await job.start(run)
+    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "done"
+    assert cell.restores == 5
+    assert [h["phase"] for h in job.heals][-1] == "done"
+    cell.machine.close()
+
+
+async def test_a_move_that_gets_further_each_time_still_stops_after_four_budgets(
+    store: JobStore,
+) -> None:
+    run = sample_run(1)
+    world = World.for_run(run)
+    cell = DriftingFlakyLinkCell(world, drops=100)
+    job = Job(cell, store, JobConfig(heal_attempts=2))
+    await job.start(run)
+    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "fault"
+    assert cell.restores == 8
+    assert [h["phase"] for h in job.heals][-1] == "failed"
     cell.machine.close()

@@ -8,7 +8,9 @@ controller holds the last setpoint), nothing was lost, and the step can simply b
 from where the arm is. :func:`resilient` runs such a step: on a failure caused by a lost
 link it waits for the link, for the arm seen at rest and for external control
 (:meth:`Cell.restore_control <fxcell.cell.cell.Cell.restore_control>`), then runs the step
-again, at most ``robot.heal_attempts`` times. Safety stops, timeouts of the robot, Local
+again. It gives up after ``robot.heal_attempts`` recoveries in a row in which the arm got no
+further (a move interrupted again and again still ends: each attempt starts where the last
+one braked), and after four times as many in all. Safety stops, timeouts of the robot, Local
 control, bad targets and gripper findings (nothing grasped, object lost) are never healed:
 they raise as before.
 
@@ -23,7 +25,7 @@ import logging
 from collections.abc import Awaitable, Callable
 from contextvars import ContextVar
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, TypeVar
+from typing import TYPE_CHECKING, Literal, Protocol, TypeVar
 
 from fxcell.errors import (
     ConnectionLostError,
@@ -36,6 +38,7 @@ from fxcell.errors import (
 
 if TYPE_CHECKING:
     from fxcell.cell.cell import Cell
+    from fxcell.protocol import RobotState
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +88,10 @@ def announce(heal: Heal) -> None:
         listener(heal)
 
 
+PROGRESS = 2e-3
+"""rad: a joint that moved this far between two recoveries means the step got further."""
+
+
 async def retrying(
     what: str,
     step: Callable[[], Awaitable[T]],
@@ -93,23 +100,34 @@ async def retrying(
     healable: Callable[[FxcellError], bool],
     restore: Callable[[], Awaitable[object]],
     announce: Callable[[Heal], None],
+    moved: Callable[[], bool] | None = None,
 ) -> T:
-    """Run ``step``; after a failure ``healable`` accepts, ``restore`` and run it again, at
-    most ``attempts`` times, announcing each :class:`Heal`. A failure of ``restore`` counts
-    as one of the step (it may be healable too: the link dropped again)."""
-    attempt = 0
+    """Run ``step``; after a failure ``healable`` accepts, ``restore`` and run it again,
+    announcing each :class:`Heal`. A failure of ``restore`` counts as one of the step (it
+    may be healable too: the link dropped again).
+
+    It raises after ``attempts`` recoveries in a row without progress, and after
+    ``4 * attempts`` in all. ``moved``, asked after each recovery, says whether the arm got
+    further since it was last asked (or since the step began); without it no recovery is
+    progress.
+    """
+    attempt = 0  # recoveries in all
+    stuck = 0  # recoveries since the arm last got further
     reason = ""
     while True:
         try:
             if attempt:
                 await restore()
+                if moved is not None and moved():
+                    stuck = 0
             result = await step()
         except FxcellError as exc:
-            if attempt >= attempts or not healable(exc):
+            if stuck >= attempts or attempt >= 4 * attempts or not healable(exc):
                 if attempt:
                     announce(Heal(what, attempt, "failed", str(exc)))
                 raise
             attempt += 1
+            stuck += 1
             reason = str(exc)
             announce(Heal(what, attempt, "start", reason))
             continue
@@ -118,10 +136,43 @@ async def retrying(
         return result
 
 
+class Arm(Protocol):
+    """Where :func:`arm_moved` reads the arm's joints (a :class:`Cell`, a job's cell)."""
+
+    @property
+    def robot_state(self) -> RobotState | None: ...
+
+
+def arm_moved(cell: Arm) -> Callable[[], bool]:
+    """A ``moved`` for :func:`retrying`: whether the arm's joints are more than
+    :data:`PROGRESS` from where they were at the previous call (the first: from now; no
+    sample to compare with is no progress)."""
+
+    def joints() -> tuple[float, ...] | None:
+        state = cell.robot_state
+        return state.actual_q if state is not None else None
+
+    last = joints()
+
+    def moved() -> bool:
+        nonlocal last
+        now = joints()
+        if now is None:
+            return False
+        went = last is not None and any(
+            abs(a - b) > PROGRESS for a, b in zip(now, last, strict=True)
+        )
+        last = now
+        return went
+
+    return moved
+
+
 async def resilient(cell: Cell, what: str, step: Callable[[], Awaitable[T]]) -> T:
     """Run ``step`` of a cell; after a failure that a lost link caused, restore control and
-    run it again (at most ``robot.heal_attempts`` times). ``step`` must be safe to repeat
-    from wherever it left the arm (a move to a target, a gripper command, a check)."""
+    run it again (within ``robot.heal_attempts``, see :func:`retrying`). ``step`` must be
+    safe to repeat from wherever it left the arm (a move to a target, a gripper command, a
+    check)."""
     losses = cell.link_losses
 
     async def counted() -> T:
@@ -136,4 +187,5 @@ async def resilient(cell: Cell, what: str, step: Callable[[], Awaitable[T]]) -> 
         healable=lambda exc: healable(cell, exc, losses),
         restore=cell.restore_control,
         announce=announce,
+        moved=arm_moved(cell),
     )

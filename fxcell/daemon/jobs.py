@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from fxcell.cell import Cell
     from fxcell.cell.gripper import Gripper
     from fxcell.config import CellConfig
+    from fxcell.protocol import RobotState
     from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,10 @@ class CellForJob:
     @property
     def held(self) -> str | None:
         return self._cell.held
+
+    @property
+    def robot_state(self) -> RobotState | None:
+        return self._cell.robot_state
 
     async def declare_held(self, kind: str | None = None) -> None:
         await self._cell.declare_held(kind)

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any, Concatenate, ParamSpec, Protocol, TypeVar
 
 from transitions import Machine
 
-from fxcell.cell.healing import HEAL_LISTENER, Heal, announce, retrying
+from fxcell.cell.healing import HEAL_LISTENER, Heal, announce, arm_moved, retrying
 from fxcell.cell.statemachine import Statechart, machine_states, read_statechart
 from fxcell.config import JobConfig
 from fxcell.errors import (
@@ -79,6 +79,7 @@ from fxcell.resources import resource_dir
 
 if TYPE_CHECKING:
     from fxcell.cell.cell import Cell
+    from fxcell.protocol import RobotState
     from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
@@ -153,6 +154,12 @@ class JobCell(Protocol):
     @property
     def held(self) -> str | None:
         """The kind of object the cell knows the gripper holds (None: nothing known)."""
+        ...
+
+    @property
+    def robot_state(self) -> RobotState | None:
+        """The arm's latest sample (None while disconnected): a recovery that got the arm
+        further does not count against ``heal_attempts``."""
         ...
 
     async def declare_held(self, kind: str | None = None, /) -> object:
@@ -907,6 +914,7 @@ class Job:
             healable=_link_lost,
             restore=self.cell.restore_control,
             announce=self._announce_heal,
+            moved=arm_moved(self.cell),
         )
 
     def _announce_heal(self, heal: Heal) -> None:
