@@ -679,8 +679,10 @@ class RTDEConnection:
                 77, bytes([len(msg)]) + msg + bytes([len(b"RTDE")]) + b"RTDE" + bytes([level])
             )
 
-    def _too_long(self, kind: int, names: bytes) -> bool:
-        """Refuse a recipe whose list of names exceeds the controller's limit."""
+    def _too_long(self, kind: int, names: bytes, *, with_id: bool = True) -> bool:
+        """Refuse a recipe whose list of names exceeds the controller's limit: explained in an
+        ``M`` message and answered as a failed setup (recipe id 0, ``NOT_FOUND`` for every
+        name: the only failure a setup reply documents, so that clients parse it)."""
         if len(names) <= MAX_RECIPE_NAMES:
             return False
         log.warning("RTDE %s: recipe of %d bytes refused", self.peer, len(names))
@@ -688,7 +690,8 @@ class RTDEConnection:
             f"recipe refused: the list of names is {len(names)} bytes, "
             f"the limit is {MAX_RECIPE_NAMES}"
         )
-        self._send(kind, b"\x00")
+        count = max(1, len([n for n in names.split(b",") if n.strip()]))
+        self._send(kind, (b"\x00" if with_id else b"") + b",".join([b"NOT_FOUND"] * count))
         return True
 
     def _refuse_recipe(self, kind: int, types: list[str], direction: str) -> None:
@@ -710,7 +713,7 @@ class RTDEConnection:
             return
         else:
             frequency, raw = struct.unpack_from(">d", payload)[0], payload[8:]
-        if self._too_long(79, raw):
+        if self._too_long(79, raw, with_id=not v1):
             return
         names = [n.strip() for n in raw.decode("ascii", "replace").split(",") if n.strip()]
         types = [OUTPUTS[n][0] if n in OUTPUTS else "NOT_FOUND" for n in names]

@@ -182,11 +182,30 @@ def test_an_over_long_recipe_is_refused_at_once_and_the_session_goes_on(
         text = message[1 : 1 + message[0]].decode()
         assert "2048" in text
         kind, reply = c.recv()
-        assert (kind, reply) == (ord("O"), b"\x00")
-        assert c.ask(b"I", b"input_int_register_9," * 200) == b"\x00"
+        assert (kind, reply) == (ord("O"), b"\x00" + b",".join([b"NOT_FOUND"] * 120))
+        assert c.ask(b"I", b"input_int_register_9," * 200) == b"\x00" + b",".join(
+            [b"NOT_FOUND"] * 200
+        )
         assert c.ask(b"O", struct.pack(">d", 500.0) + b"timestamp") == b"\x01DOUBLE"
     finally:
         c.close()
+
+
+def test_urs_client_reads_the_refusal_of_an_over_long_recipe_and_goes_on(
+    running: SimulatorHandle, ur_rtde_module: object
+) -> None:
+    rtde = ur_rtde_module
+    names = [f"output_double_register_{i % 48}" for i in range(120)]
+    con = rtde.RTDE(running.host, 30004)  # type: ignore[attr-defined]
+    con.connect()
+    try:
+        # the reply is the documented failed setup: every name NOT_FOUND, which UR's client
+        # turns into its error for an unknown variable (not a parse failure on empty types)
+        with pytest.raises(ValueError, match=r"Unknown data type: NOT_FOUND$"):
+            con.send_output_setup(names, frequency=10)
+        assert con.send_output_setup(["timestamp"], ["DOUBLE"], frequency=10)
+    finally:
+        con.disconnect()
 
 
 def test_the_speed_slider_reaches_programs_and_the_primary_interface(
