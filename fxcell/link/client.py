@@ -416,6 +416,7 @@ class LinkClient:
         self._last_sample = 0.0
         self._last_message = 0.0  # time.monotonic() of the newest message of any kind
         self._link_fresh = 0.0  # time.monotonic() (system-wide) of the link's newest sample
+        self._link_said = 0.0  # time.monotonic() of the link process's newest pulse
         self._last_timestamp: float | None = None  # controller time of the newest sample
         self._loop_ran = 0.0  # time.monotonic() when the event loop last ran the beat task
         self.scheduling: Scheduling | None = None
@@ -622,7 +623,8 @@ class LinkClient:
 
         The state stream is judged by the link process's pulses (its own clock): a pulse
         saying its newest sample is STALE_AFTER old means the controller stopped sending.
-        Silence of the process itself for MUTE_AFTER means it hangs. A loop that runs late
+        Silence of the process itself for MUTE_AFTER means it hangs (a process frozen right
+        after a pulse is not a silent controller). A loop that runs late
         reads everything that arrived meanwhile before this task runs again, so it never
         mistakes its own lateness for a dead link.
         """
@@ -654,12 +656,14 @@ class LinkClient:
                     self._down(f"no robot state for {silent:.1f} s")
                 await asyncio.sleep(0.05)
                 continue
-            # The link process's clock is this one (CLOCK_MONOTONIC is system-wide): while
-            # it talks (pulses), its newest sample tells the state stream's age now.
+            # The link process's clock is this one (CLOCK_MONOTONIC is system-wide): its
+            # newest pulse tells how old the state stream was when it last spoke. Only its
+            # own word counts: a process that stopped talking (a ur_rtde call holding its
+            # GIL) says nothing of the controller, and gets MUTE_AFTER.
             mute = now - self._last_message
-            age = now - max(self._link_fresh, self._last_sample)
-            if age >= STALE_AFTER and mute < STALE_AFTER:
-                self._down(f"no robot state for {age * 1000:.0f} ms")
+            said = self._link_said - max(self._link_fresh, self._last_sample)
+            if said >= STALE_AFTER:
+                self._down(f"no robot state for {said * 1000:.0f} ms")
             elif mute >= MUTE_AFTER:
                 self._down(f"the link process has been silent for {mute * 1000:.0f} ms")
             else:
@@ -777,8 +781,9 @@ class LinkClient:
             if self._on_control is not None:
                 self._on_control(self.control_ready, str(reason))
         elif kind == wire.PULSE:
-            _, _link_now, last_state_at = message
+            _, link_now, last_state_at = message
             self._link_fresh = max(self._link_fresh, last_state_at)
+            self._link_said = max(self._link_said, link_now)
         elif kind == wire.HOLD:
             self._hold = bool(message[1])
             self._last_sample = self._link_fresh = time.monotonic()

@@ -64,6 +64,10 @@ class CallError(Exception):
         super().__init__(message)
 
 
+HOLD_FLUSH = 0.05
+"""s: the longest wait for the client to be told of a hold before the call goes ahead."""
+
+
 class _Outbox:
     """The link's messages to the client, written by a thread of their own.
 
@@ -471,7 +475,7 @@ class Link:
             self._drop_control("reconnecting control interface")
         self._stop_leftover_program()
         try:
-            self.send(wire.HOLD, True)
+            self._hold_stream()
             if mode == "urcap":
                 c = rtde_control.RTDEControlInterface(
                     self.host,
@@ -557,10 +561,16 @@ class Link:
                 del c
         self.send(wire.CONTROL, False, reason)
 
+    def _hold_stream(self) -> None:
+        """Tell the client the state stream may pause, and wait until it has been told: the
+        call that follows may hold the GIL, and the writer thread needs it to send."""
+        self.send(wire.HOLD, True)
+        self.outbox.flush(HOLD_FLUSH)
+
     @contextlib.contextmanager
     def held(self) -> Iterator[None]:
         """Tell the client the state stream may pause: a ur_rtde call may hold the GIL."""
-        self.send(wire.HOLD, True)
+        self._hold_stream()
         try:
             yield
         finally:
