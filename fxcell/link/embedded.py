@@ -125,6 +125,7 @@ class SimulatorState(TypedDict):
     control_script: bool  # ur_rtde's control script is running
     last_stop_reason: str
     late_cycles: int  # control cycles the simulator ran late (0 in the fake)
+    stalls: list[list[float]]  # [wall time it ended (s), length (s)] of its newest stalls
     log: list[str]  # the newest controller log lines
     faults: list[str]  # every fault of the session (tests count the ones they did not inject)
 

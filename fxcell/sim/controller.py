@@ -12,7 +12,7 @@ and so does the 5 s protective-stop unlock rule.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -619,7 +619,9 @@ class Controller:
         self._stop_program(f"protective stop: {reason}")
         self.arm.safety_stop()
 
-    def state(self, *, late_cycles: int = 0) -> SimulatorState:
+    def state(
+        self, *, late_cycles: int = 0, stalls: Sequence[tuple[float, float]] = ()
+    ) -> SimulatorState:
         """The controller's own view of the robot: the control port's ``state`` reply."""
         return {
             "time": self.time,
@@ -636,6 +638,7 @@ class Controller:
             "control_script": self.script is not None,
             "last_stop_reason": self.last_stop_reason,
             "late_cycles": late_cycles,
+            "stalls": [list(stall) for stall in stalls],
             "log": self.log_messages[-20:],
             "faults": list(self.faults),
         }

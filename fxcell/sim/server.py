@@ -13,6 +13,7 @@ socket 63352 (:mod:`fxcell.sim.gripper`), and the simulator's own control port 2
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import gc
 import json
@@ -243,6 +244,8 @@ class SimServer:
         self._dynamics: ArmDynamics | None = None
         self._dynamics_key: tuple[object, ...] = ()
         self.late_cycles = 0
+        self.stalls: collections.deque[tuple[float, float]] = collections.deque(maxlen=64)
+        """(wall time it ended, length in s) of the newest stalls of the control cycle."""
         self._sends = [0.0] * 16384  # wall times of cycles that sent RTDE packets
         self._send_count = 0
         self._idle = False
@@ -486,6 +489,8 @@ class SimServer:
             steps = 1
         elif steps > 1 and not self._idle:
             self.late_cycles += steps - 1
+            if steps * CONTROL_PERIOD >= STALL_REPORTED:
+                self._stalled(steps * CONTROL_PERIOD)
         self.hub.poll()
         sent = self.hub.packets_sent
         self.hub.stream(steps)
@@ -506,6 +511,12 @@ class SimServer:
         self._idle = self.controller.idle and not self.hub.streaming and not self.clients.streaming
         wake_at = self._deadline + (IDLE_PERIOD - CONTROL_PERIOD if self._idle else 0.0)
         self._handle = loop.call_at(wake_at, self._cycle)
+
+    def _stalled(self, seconds: float) -> None:
+        """The control cycle ran ``seconds`` late: this process did not get to run (a busy
+        or frozen host), which a real controller never does. Clients saw no state meanwhile."""
+        self.stalls.append((time.time(), seconds))
+        log.warning("the simulated controller stalled for %.0f ms (its host)", seconds * 1e3)
 
     def wake(self) -> None:
         """Leave the idle rate now (a client started streaming or sent a command)."""
@@ -554,7 +565,7 @@ class SimServer:
             except FaultError as exc:
                 return f"error: {exc}"
         if cmd == "state":
-            return json.dumps(c.state(late_cycles=self.late_cycles))
+            return json.dumps(c.state(late_cycles=self.late_cycles, stalls=self.stalls))
         if cmd == "stats":
             if args[:1] == ["reset"]:
                 self._send_count = 0
@@ -910,6 +921,10 @@ class SimServer:
             for sig in signals:
                 loop.remove_signal_handler(sig)
 
+
+STALL_REPORTED = 0.05
+"""s: a control cycle that ran this late is a stall of the simulator itself (a real controller
+never has one): logged and kept in the ``state`` reply's ``stalls``."""
 
 PRIORITY_ENV = "FXCELL_SIM_PRIORITY"
 """Set to ``normal`` to keep the simulator at its parent's priority (benchmarks comparing
