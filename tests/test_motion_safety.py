@@ -107,8 +107,11 @@ async def test_a_stalled_state_stream_brakes_the_move_before_its_caller_hears(
         await cell.wait_for_state(
             CellState.EXTERNAL_CONTROL_READY, CellState.PROGRAM_STOPPED, timeout=10
         )
-    # the hole in the state stream is on record (the recorder keeps fxcell's log records)
+    # the hole in the state stream is on record (the recorder keeps fxcell's log records),
+    # and so is the link process's own brake (a fault the fault watch counts)
     assert any("state stream gap" in r.getMessage() for r in caplog.records)
+    braked = "braked a move by itself: state_stalled"
+    assert any(braked in r.getMessage() for r in caplog.records)
 
 
 async def test_a_late_event_loop_does_not_stop_a_healthy_move(shared: SimulatorHandle) -> None:
@@ -123,6 +126,7 @@ async def test_a_late_event_loop_does_not_stop_a_healthy_move(shared: SimulatorH
         assert result.joint_error < 1e-3
 
 
+@pytest.mark.injects_faults("the cell's event loop frozen for 1.5 s")
 async def test_an_event_loop_stalled_for_long_brakes_the_move_by_itself(
     shared: SimulatorHandle,
 ) -> None:

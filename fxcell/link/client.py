@@ -77,6 +77,8 @@ GAP_REPORT = 0.02
 """A pause of the state stream longer than this (controller time, s) is logged as a gap."""
 HOLD_STALE_AFTER = 8.0
 """The same while the link process runs a blocking ur_rtde constructor."""
+SELF_BRAKES = frozenset({"state_stalled", "cell_silent"})
+"""End reasons of a trajectory the link process braked on its own guard (a fault: logged)."""
 RESTART_AFTER = 3.0
 """Seconds of silence after which a live but mute link process is killed and restarted."""
 EXPLAIN_SAMPLES = 25
@@ -809,6 +811,9 @@ class LinkClient:
             )
 
     def _handle_trajectory(self, traj_id: int, kind: str, data: dict[str, Any]) -> None:
+        if kind == "end" and data["status"] == "stopped" and data["reason"] in SELF_BRAKES:
+            # a fault whoever still waits for the trajectory (the link may be down already)
+            log.warning("robot link to %s braked a move by itself: %s", self.host, data["reason"])
         handle = self._trajectories.get(traj_id)
         if handle is None:
             return
