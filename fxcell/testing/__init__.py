@@ -80,9 +80,11 @@ def fxcell_no_unplanned_faults(request: pytest.FixtureRequest) -> Iterator[None]
     with watching_test(request) as watch:
         yield
         unplanned = watch.unplanned()
+        stalls = watch.host_stalls() if unplanned else []
     if unplanned:
+        also = f" (the simulators' own stalls: {', '.join(stalls)})" if stalls else ""
         pytest.fail(
-            "unplanned faults (not injected by the test): " + "; ".join(unplanned[:10]),
+            "unplanned faults (not injected by the test): " + "; ".join(unplanned[:10]) + also,
             pytrace=False,
         )
 

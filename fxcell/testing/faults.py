@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import re
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -123,6 +124,18 @@ class FaultWatch(logging.Handler):
 
     def unplanned(self) -> list[str]:
         return self._unplanned + self._new_since(self._baseline)
+
+    def host_stalls(self) -> list[str]:
+        """The watched simulators' own stalls (a busy host), to explain a fault with."""
+        out = []
+        for sim in self._sims.values():
+            if not sim.running:
+                continue
+            with contextlib.suppress(Exception):
+                for ended, length in sim.state().get("stalls", []):
+                    at = time.strftime("%H:%M:%S", time.localtime(ended))
+                    out.append(f"{length * 1e3:.0f} ms until {at}.{int(ended % 1 * 1e3):03d}")
+        return out
 
     # -- installation
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import signal
 import socket
 import struct
 import time
@@ -233,3 +234,26 @@ def test_the_simulator_raises_its_priority_unless_told_to_stay_normal(
         monkeypatch.setenv(server.PRIORITY_ENV, env)
     server._raise_priority()
     assert bool(calls) is reniced
+
+
+@pytest.mark.injects_faults("the simulator's process stopped for 0.2 s (SIGSTOP)")
+def test_a_simulator_that_did_not_get_to_run_reports_its_stall(sim: SimulatorHandle) -> None:
+    c = RawRTDE(sim.host)
+    try:
+        assert c.ask(b"V", struct.pack(">H", 2)) == b"\x01"
+        assert c.ask(b"O", struct.pack(">d", 500.0) + b"timestamp") == b"\x01DOUBLE"
+        assert c.ask(b"S") == b"\x01"
+        before = len(sim.state()["stalls"])  # a busy machine may have stalled it already
+        process = sim._sim.process
+        assert process is not None
+        process.send_signal(signal.SIGSTOP)
+        time.sleep(0.2)  # the length of the stall itself
+        process.send_signal(signal.SIGCONT)
+        c.recv()  # the controller runs again
+        stalls = sim.state()["stalls"][before:]
+        assert stalls, "the simulator did not report the 0.2 s it was stopped"
+        ended, length = max(stalls, key=lambda stall: stall[1])
+        assert 0.19 <= length < 2.0
+        assert abs(ended - time.time()) < 5.0
+    finally:
+        c.close()
