@@ -15,7 +15,7 @@ import functools
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -144,6 +144,20 @@ def run_to_end(cell: Cell, instance: Any, steps: Any = None) -> tuple[list[Any],
     return seen, instance.get_responses()
 
 
+def until(cell: Cell, stream: Any, condition: Callable[[Any], bool]) -> list[Any]:
+    """Intermediate responses up to the first one that meets ``condition`` (fails on a
+    fault, or when the run ends first)."""
+    seen = []
+    for step in stream:
+        seen.append(step)
+        if step.JobState == "fault":
+            job = httpx.get(f"{cell.daemon.url}/api/job", timeout=10).json()
+            pytest.fail(f"the run faulted at {step.Step!r}: {job['message']}")
+        if condition(step):
+            return seen
+    pytest.fail(f"the run's responses ended first: {[s.Step for s in seen[-3:]]}")
+
+
 # ----------------------------------------------------------------- one cell
 
 
@@ -233,7 +247,9 @@ def test_stop_over_sila_stops_a_move_started_over_http(cell: Cell) -> None:
         http.delete("/api/control").raise_for_status()
 
 
-def test_four_sample_run_to_its_end_with_a_response_per_step(job_cell: Cell) -> None:
+def test_four_sample_run_paused_and_resumed_to_its_end_with_a_response_per_step(
+    job_cell: Cell,
+) -> None:
     cell = job_cell
     samples = [
         {"SampleId": f"S{i}", "RackSlot": f"A{i}", "MachineSlot": f"A{i}", "TraySlot": f"A{i}"}
@@ -243,7 +259,16 @@ def test_four_sample_run_to_its_end_with_a_response_per_step(job_cell: Cell) -> 
         client.CellController.Init(metadata=md)
         client.CellController.GripperActivate(metadata=md)
         instance = client.JobController.RunJob("four samples", samples, metadata=md)
-        steps, result = run_to_end(cell, instance)
+        stream = instance.subscribe_to_intermediate_responses()
+        steps = until(cell, stream, lambda s: s.Step.startswith("place the crucible of sample S2"))
+        # paused by the scheduler: the step under way ends first, then the run holds
+        client.JobController.Pause(metadata=md)
+        steps += until(cell, stream, lambda s: s.JobState == "paused")
+        assert httpx.get(f"{cell.daemon.url}/api/job", timeout=10).json()["state"] == "paused"
+        assert max(map(abs, cell.sim.state()["qd"])) < 1e-3  # the arm at rest
+        client.JobController.Resume(metadata=md)
+        rest, result = run_to_end(cell, instance, stream)
+        steps += rest
         locations = client.JobController.SampleLocations.get(metadata=token(client))
     assert result.StepsDone == steps[-1].StepsTotal
     assert steps[-1].JobState == "done"
@@ -271,14 +296,8 @@ def test_paused_run_recovered_through_error_recovery(job_cell: Cell) -> None:
         client.CellController.GripperActivate(metadata=md)
         instance = client.JobController.RunJob("recovery", samples, metadata=md)
         steps = instance.subscribe_to_intermediate_responses()
-        for step in steps:  # abort in the middle of carrying the crucible
-            if step.JobState == "fault":
-                job = httpx.get(f"{cell.daemon.url}/api/job", timeout=10).json()
-                pytest.fail(f"the run faulted at {step.Step!r}: {job['message']}")
-            if step.Step.startswith("place the crucible of sample R1"):
-                break
-        else:
-            pytest.fail(f"the run ended before carrying the crucible: {instance.get_responses()}")
+        # abort in the middle of carrying the crucible
+        until(cell, steps, lambda s: s.Step.startswith("place the crucible of sample R1"))
         client.JobController.Abort(metadata=md)
         errors = client.ErrorRecoveryService.RecoverableErrors.subscribe(metadata=token(client))
         pending = next(e for e in errors if e)
