@@ -11,6 +11,8 @@ import asyncio
 import contextlib
 import os
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 
@@ -27,7 +29,7 @@ from fxcell.errors import (
     NotInRemoteControlError,
 )
 from fxcell.link.client import LOOP_STALL_AFTER
-from fxcell.link.process import Guard, brake_duration
+from fxcell.link.process import BUSY_CLIENT_LIMIT, Guard, brake_duration, process_runs
 from fxcell.testing import SimulatorHandle, simulator
 
 CONFIG = CellConfig.load()
@@ -124,6 +126,55 @@ async def test_a_late_event_loop_does_not_stop_a_healthy_move(shared: SimulatorH
         result = await move
         assert not result.stopped
         assert result.joint_error < 1e-3
+
+
+def _hold_the_gil(seconds: float) -> float:
+    """Hold the GIL for about ``seconds`` in one C call (a sort of shuffled numbers); the
+    time it took. The size is calibrated first on this machine."""
+    rng = np.random.default_rng(7)
+    probe = rng.permutation(200_000).tolist()
+    started = time.perf_counter()
+    sorted(probe)
+    per_item = (time.perf_counter() - started) / len(probe)
+    data = rng.permutation(max(len(probe), int(seconds / per_item))).tolist()
+    started = time.perf_counter()
+    sorted(data)
+    return time.perf_counter() - started
+
+
+async def test_a_loop_holding_the_gil_a_while_does_not_stop_a_healthy_move(
+    shared: SimulatorHandle,
+) -> None:
+    # 150 ms in one C call that keeps the GIL (on a busy machine: a thread descheduled while
+    # it holds it): the beat thread cannot beat, but the kernel says the process runs, so
+    # the link process gives it BUSY_CLIENT_LIMIT instead of braking after 100 ms.
+    async with ready_cell(shared) as cell:
+        move = asyncio.create_task(cell.move_joint(FAR))
+        await _moving(cell)
+        held = _hold_the_gil(0.15)
+        assert 0.1 < held < BUSY_CLIENT_LIMIT, f"held the GIL {held:.3f} s"
+        result = await move
+        assert not result.stopped
+        assert result.joint_error < 1e-3
+
+
+def test_a_stopped_process_is_told_from_a_running_one() -> None:
+    assert process_runs(os.getpid())
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        assert process_runs(child.pid)
+        child.send_signal(signal.SIGSTOP)
+        deadline = time.monotonic() + 5
+        while process_runs(child.pid):  # the signal is delivered asynchronously
+            assert time.monotonic() < deadline, "the child never showed as stopped"
+            time.sleep(0.001)
+        child.send_signal(signal.SIGCONT)
+        child.kill()
+        child.wait(5)
+        assert not process_runs(child.pid)  # reaped: gone
+    finally:
+        child.kill()
+        child.wait(5)
 
 
 @pytest.mark.injects_faults("the cell's event loop frozen for 1.5 s")

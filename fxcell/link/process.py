@@ -64,6 +64,23 @@ class CallError(Exception):
         super().__init__(message)
 
 
+BUSY_CLIENT_LIMIT = 0.3
+"""s: the longest silence of a client whose process the kernel says runs (see
+:meth:`Link.heard_at`); the client stops beating by itself when its loop stalls 0.5 s."""
+
+
+def process_runs(pid: int) -> bool:
+    """Whether process ``pid`` exists and is neither stopped (SIGSTOP, a debugger) nor a
+    zombie, by ``/proc/PID/stat`` (False where there is no ``/proc``)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    end = stat.rfind(b")")  # the command name may hold spaces and parentheses
+    return end > 0 and stat[end + 2 : end + 3] not in (b"T", b"t", b"Z", b"X", b"")
+
+
 HOLD_FLUSH = 0.05
 """s: the longest wait for the client to be told of a hold before the call goes ahead."""
 
@@ -163,6 +180,7 @@ class Link:
         self._tick = threading.Condition()
         self._samples = 0  # state samples received (the controller's clock)
         self.last_heard = time.monotonic()  # ... and of the newest message from the client
+        self.client_pid = os.getppid()  # the cell process that started this one
         # the client's beat channel (one byte per beat, from a thread of the client process)
         self.beats = socket.socket(fileno=args.beat_fd) if args.beat_fd is not None else None
         self.outbox = _Outbox(sock, self._stop)
@@ -263,6 +281,21 @@ class Link:
             return False
         self.last_heard = now
         return True
+
+    def heard_at(self, timeout: float, now: float) -> float:
+        """When the client counts as last heard, for a trajectory's ``cell_timeout``.
+
+        Silent for longer than ``timeout`` while the kernel says its process runs (not
+        stopped, not gone), it is not frozen but unscheduled: on a busy machine its beat
+        thread waits for the GIL that a descheduled thread of its own holds. Such a client
+        gets up to :data:`BUSY_CLIENT_LIMIT` before the trajectory brakes; a stopped one
+        (SIGSTOP, a debugger) brakes it after ``timeout`` as before.
+        """
+        if self.heard_within(timeout, now):
+            return self.last_heard
+        if now - self.last_heard < BUSY_CLIENT_LIMIT and process_runs(self.client_pid):
+            return now - 0.5 * timeout  # within it (now - timeout may round beyond it)
+        return self.last_heard
 
     # -- reader
 
@@ -777,13 +810,13 @@ class _Trajectory:
                 while True:
                     now = time.monotonic()
                     self._take_requests(follower)
-                    if cell_timeout is not None:
-                        link.heard_within(cell_timeout, now)  # reads beats still waiting
                     braking = follower.braking
                     out = follower.cycle(
                         now,
                         link.latest,
-                        heard_at=link.last_heard if cell_timeout is not None else None,
+                        heard_at=link.heard_at(cell_timeout, now)
+                        if cell_timeout is not None
+                        else None,
                         state_at=link.last_state_at,
                     )
                     if braking is None and follower.braking is not None:
