@@ -35,6 +35,9 @@ from fxcell.layout import Layout
 from fxcell.testing import SimulatorHandle, simulator
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+RUN_LOCK = 600
+"""s: a lock held through a whole run (SiLA's lock timeout restarts only with a call under
+the lock, and Run Job is one call; 120 s ran out on a busy machine)."""
 
 TOKEN = "sila-test-token-0123456789abcdef"
 LAYOUT = Layout(CellConfig.load().layout)
@@ -255,7 +258,7 @@ def test_four_sample_run_paused_and_resumed_to_its_end_with_a_response_per_step(
         {"SampleId": f"S{i}", "RackSlot": f"A{i}", "MachineSlot": f"A{i}", "TraySlot": f"A{i}"}
         for i in range(1, 5)
     ]
-    with cell.client() as client, Locked(client) as md:
+    with cell.client() as client, Locked(client, timeout=RUN_LOCK) as md:
         client.CellController.Init(metadata=md)
         client.CellController.GripperActivate(metadata=md)
         instance = client.JobController.RunJob("four samples", samples, metadata=md)
@@ -291,7 +294,7 @@ def test_four_sample_run_paused_and_resumed_to_its_end_with_a_response_per_step(
 def test_paused_run_recovered_through_error_recovery(job_cell: Cell) -> None:
     cell = job_cell
     samples = [{"SampleId": "R1", "RackSlot": "B1", "MachineSlot": "A1", "TraySlot": "B1"}]
-    with cell.client() as client, Locked(client) as md:
+    with cell.client() as client, Locked(client, timeout=RUN_LOCK) as md:
         client.CellController.Init(metadata=md)
         client.CellController.GripperActivate(metadata=md)
         instance = client.JobController.RunJob("recovery", samples, metadata=md)
