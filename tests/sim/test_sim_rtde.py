@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from rtde_io import RTDEIOInterface
 from rtde_receive import RTDEReceiveInterface
+from waiting import wait_until
 
 from fxcell.testing import SimulatorHandle
 
@@ -172,9 +173,11 @@ def test_raw_protocol_versions_recipes_and_frequency(sim: SimulatorHandle) -> No
             assert struct.unpack_from(">id", payload, 1) == (42, 1.5)
             # the registers belong to the first connection
             assert other.ask(b"I", b"input_int_register_5") == b"\x00IN_USE"
-            c.close()
-            time.sleep(0.1)
-            assert other.ask(b"I", b"input_int_register_5") == b"\x01INT32"
+            c.close()  # the simulator frees them once it sees the connection gone
+            wait_until(
+                lambda: other.ask(b"I", b"input_int_register_5") == b"\x01INT32",
+                what="the closed connection's registers to be free again",
+            )
         finally:
             other.close()
     finally:
