@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 import pytest
 from rtde_control import RTDEControlInterface
 from rtde_receive import RTDEReceiveInterface
+from waiting import wait_until
 
 from fxcell.errors import SimulatorError
 from fxcell.link.embedded import SimulatorState
@@ -20,14 +21,6 @@ from .test_sim_primary import Messages
 from .test_sim_rtde import dh_forward, rotvec_matrix
 
 START = [0.0, -1.2, 1.2, -1.57, -1.57, 0.0]  # tool down, well inside the workspace
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 5.0, what: str = "it") -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.002)
 
 
 def fresh(r: RTDEReceiveInterface) -> RTDEReceiveInterface:
