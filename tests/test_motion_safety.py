@@ -12,10 +12,11 @@ import contextlib
 import os
 import signal
 import time
-from collections.abc import AsyncIterator, Callable, Iterator, Sequence
+from collections.abc import AsyncIterator, Iterator, Sequence
 
 import numpy as np
 import pytest
+from waiting import controller_time_passed, until
 
 from fxcell.cell import Cell
 from fxcell.cell.statemachine import CellState
@@ -64,13 +65,6 @@ async def _moving(cell: Cell, speed: float = 0.2, within: float = 5.0) -> None:
                     return
 
 
-def _until(condition: Callable[[], bool], within: float) -> None:
-    deadline = time.monotonic() + within
-    while not condition():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
-
-
 def _until_at_rest(handle: SimulatorHandle, within: float = 5.0) -> None:
     """Wait until the simulated arm's own joint speeds are zero."""
     deadline = time.monotonic() + within
@@ -82,10 +76,9 @@ def _until_at_rest(handle: SimulatorHandle, within: float = 5.0) -> None:
 def _sim_motion(handle: SimulatorHandle, over: float = 0.05) -> float:
     """How far (rad, largest joint) the simulated arm moves during ``over`` seconds of its
     controller's own clock (a simulator starved by a busy machine still gets them)."""
-    first = handle.state()
-    _until(lambda: handle.state()["time"] >= first["time"] + over, 10.0 + 20 * over)
-    last = handle.state()
-    return float(np.max(np.abs(np.array(last["q"]) - np.array(first["q"]))))
+    q0 = np.array(handle.state()["q"])
+    controller_time_passed(handle, over)
+    return float(np.max(np.abs(np.array(handle.state()["q"]) - q0)))
 
 
 @pytest.mark.injects_faults("a stalled state stream")
@@ -201,7 +194,7 @@ async def test_local_control_brakes_a_running_move_and_refuses_new_ones(
             await cell.move_joint(WORK)
         await asyncio.to_thread(shared.inject, "remote_control")
         # the cell polls the switch every 0.25 s
-        await asyncio.to_thread(_until, lambda: not cell.local_control, 5.0)
+        await until(lambda: not cell.local_control, "the cell to see Remote control", 5.0)
 
 
 def test_the_link_brake_duration_respects_the_braking_limits() -> None:
