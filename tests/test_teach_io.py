@@ -123,7 +123,9 @@ async def _woken_promptly(waiting: asyncio.Task[float]) -> float:
         ) from None
 
 
-async def test_wait_for_is_woken_by_the_state_sample_that_shows_the_change(cell: Cell) -> None:
+async def test_wait_for_waits_while_the_signal_reads_false_and_wakes_when_it_changes(
+    cell: Cell,
+) -> None:
     await cell.io_set("machine_start", False)
     created = time.monotonic()
     waiting = asyncio.create_task(cell.io_wait_for("machine_start", True, timeout=30.0))
