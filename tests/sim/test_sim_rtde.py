@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from rtde_io import RTDEIOInterface
 from rtde_receive import RTDEReceiveInterface
+from waiting import wait_until
 
 from fxcell.testing import SimulatorHandle
 
@@ -96,10 +97,14 @@ def test_receive_default_recipe_streams_at_500_hz(sim: SimulatorHandle) -> None:
             if not stamps or t != stamps[-1]:
                 stamps.append(t)
             time.sleep(0.0003)
-        steps = np.diff(stamps)
-        # the client keeps only the newest packet: a busy test process may skip a few
-        assert len(stamps) > 300
-        assert np.median(steps) == pytest.approx(0.002, abs=1e-9)
+        # The client keeps only the newest packet: a test process that a busy machine
+        # deschedules misses some (it saw 248 of 500 once), so the rate is read from the
+        # controller's timestamps: packets one 2 ms cycle apart, gaps only whole cycles,
+        # and a controller clock that kept pace with the second of sampling.
+        cycles = np.diff(stamps) / 0.002
+        assert np.allclose(cycles, np.round(cycles), atol=1e-6)
+        assert cycles.min() == pytest.approx(1.0, abs=1e-6)
+        assert stamps[-1] - stamps[0] > 0.8
         assert r.getRobotMode() == 3
         assert r.getSafetyMode() == 1
         assert r.getRuntimeState() == 1
@@ -173,9 +178,11 @@ def test_raw_protocol_versions_recipes_and_frequency(sim: SimulatorHandle) -> No
             assert struct.unpack_from(">id", payload, 1) == (42, 1.5)
             # the registers belong to the first connection
             assert other.ask(b"I", b"input_int_register_5") == b"\x00IN_USE"
-            c.close()
-            time.sleep(0.1)
-            assert other.ask(b"I", b"input_int_register_5") == b"\x01INT32"
+            c.close()  # the simulator frees them once it sees the connection gone
+            wait_until(
+                lambda: other.ask(b"I", b"input_int_register_5") == b"\x01INT32",
+                what="the closed connection's registers to be free again",
+            )
         finally:
             other.close()
     finally:
