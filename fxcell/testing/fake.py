@@ -393,10 +393,10 @@ class FakeLink:
     async def request(self, request: Request) -> object:
         """Answer one request of the link contract as the link process would (its handler
         from :data:`HANDLERS`, by its type)."""
-        self._check_up()
         handler = HANDLERS.get(type(request))
         if handler is None:
             raise LinkContractError(f"the fake link has no request {type(request).__name__}")
+        self._check_up()
         self._sent += 1
         return await handler(self, request)
 
