@@ -35,9 +35,13 @@ from fxcell.link.contract import (
     STOP_ERRORS,
     WIRE_VERSION,
     Dashboard,
+    Guard,
     Ping,
+    ReplaceTrajectory,
     SetOutput,
+    StartTrajectory,
     StopReason,
+    StopTrajectory,
     TrajectoryResult,
     reply_error,
     stop_reason,
@@ -237,3 +241,51 @@ def test_a_failed_results_reason_shows_its_detail() -> None:
     result = TrajectoryResult("failed", StopReason.LINK_ERROR, 0, 5, None, 0.0, "boom")
     assert result.why == "link_error: boom"
     assert TrajectoryResult("stopped", StopReason.SETTLED, 5, 5, None, 0.0).why == "settled"
+
+
+# ----------------------------------------------------------------- trajectory messages
+
+
+class _Traj:
+    id = 5
+
+    def __init__(self) -> None:
+        self.stops: list[StopReason] = []
+
+    def stop(self, reason: StopReason) -> None:
+        self.stops.append(reason)
+
+
+def test_a_stop_message_brakes_the_trajectory_for_its_reason(link: _Sent) -> None:
+    traj = _Traj()
+    link._traj = traj  # type: ignore[assignment]
+    link._dispatch((wire.TRAJ_STOP, StopTrajectory(5, StopReason.LINK_DOWN.value)))
+    link._dispatch((wire.TRAJ_STOP, StopTrajectory(4, StopReason.LINK_DOWN.value)))  # not it
+    assert traj.stops == [StopReason.LINK_DOWN]
+
+
+def test_a_stop_for_a_reason_the_contract_does_not_name_still_brakes(link: _Sent) -> None:
+    traj = _Traj()
+    link._traj = traj  # type: ignore[assignment]
+    link._dispatch((wire.TRAJ_STOP, StopTrajectory(5, "because")))
+    assert traj.stops == [StopReason.STOP_REQUESTED]
+    assert [m[0] for m in link.sent] == [wire.LOG]
+
+
+def test_a_trajectory_message_of_the_untyped_protocol_is_refused(link: _Sent) -> None:
+    traj = _Traj()
+    link._traj = traj  # type: ignore[assignment]
+    link._dispatch((wire.TRAJ_STOP, 5, "stop requested"))  # positional, told apart by length
+    assert traj.stops == []
+    assert "unknown message 'traj_stop'" in link.sent[0][2]
+
+
+def test_a_replacement_for_another_trajectory_is_answered_not_ok(link: _Sent) -> None:
+    link._dispatch((wire.TRAJ_REPLACE, ReplaceTrajectory(8, (1, bytes(48)), None)))
+    assert link.sent == [(wire.TRAJ, 8, "replaced", {"ok": False})]
+
+
+def test_trajectory_messages_survive_the_wire() -> None:
+    start = StartTrajectory(1, (1, bytes(48)), 0.1, 300.0, Guard(cell_timeout=None))
+    for message in ((wire.TRAJ_START, start), (wire.TRAJ_STOP, StopTrajectory(1, "settled"))):
+        assert wire.decode(wire.encode(message)[wire.HEADER.size :]) == message

@@ -56,13 +56,16 @@ from fxcell.link.contract import (
     LeaveServo,
     LinkStatus,
     OutputGroup,
+    ReplaceTrajectory,
     Request,
     ServoStop,
     SetOutput,
     SetTool,
     StartControl,
+    StartTrajectory,
     StopControl,
     StopReason,
+    StopTrajectory,
     TeachMode,
     TrajectoryProgress,
     TrajectoryResult,
@@ -155,10 +158,10 @@ class TrajectoryHandle:
         array = _check_samples(samples)
         if self.done:
             return False
-        if at_index is None:
-            self._link._send(wire.TRAJ_REPLACE, self.id, wire.pack_samples(array))
-        else:
-            self._link._send(wire.TRAJ_REPLACE, self.id, wire.pack_samples(array), int(at_index))
+        at = None if at_index is None else int(at_index)
+        self._link._send(
+            wire.TRAJ_REPLACE, ReplaceTrajectory(self.id, wire.pack_samples(array), at)
+        )
         getter = asyncio.ensure_future(self._replaced.get())
         try:
             waitables: set[asyncio.Future[Any]] = {getter, self._done}
@@ -175,7 +178,9 @@ class TrajectoryHandle:
         """Brake to rest along the path now (the link process does it by itself, even
         with the state stream down) and wait for the end report."""
         if not self.done:
-            self._link._send_safety(wire.TRAJ_STOP, self.id, StopReason(reason).value)
+            self._link._send_safety(
+                wire.TRAJ_STOP, StopTrajectory(self.id, StopReason(reason).value)
+            )
         return await self.wait()
 
     async def wait(self) -> TrajectoryResult:
@@ -569,7 +574,9 @@ class LinkClient:
         """The link is down: brake every running trajectory, then say so."""
         for traj_id, handle in list(self._trajectories.items()):
             if not handle.done:
-                self._send_safety(wire.TRAJ_STOP, traj_id, StopReason.LINK_DOWN.value)
+                self._send_safety(
+                    wire.TRAJ_STOP, StopTrajectory(traj_id, StopReason.LINK_DOWN.value)
+                )
         self._set_status(LinkStatus.DOWN, reason)
 
     async def _beat(self) -> None:
@@ -858,14 +865,10 @@ class LinkClient:
         collector.hold()  # released when the trajectory ends, whatever way it ends
         handle._holds_collector = True
         try:
-            self._send(
-                wire.TRAJ_START,
-                traj_id,
-                wire.pack_samples(array),
-                lookahead_time,
-                gain,
-                dataclasses.asdict(guard or Guard()),
+            start = StartTrajectory(
+                traj_id, wire.pack_samples(array), lookahead_time, gain, guard or Guard()
             )
+            self._send(wire.TRAJ_START, start)
         except BaseException:
             self._trajectories.pop(traj_id, None)
             handle._end(None)

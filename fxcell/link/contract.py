@@ -216,6 +216,41 @@ REQUESTS: tuple[type[Request], ...] = typing.get_args(Request)
 """Every request type: each side's handler table must cover all of them."""
 
 
+# ----------------------------------------------------------------- trajectory messages
+# (sent as (wire.TRAJ_START | TRAJ_REPLACE | TRAJ_STOP, message): not answered by a reply,
+# the link process reports on the trajectory with wire.TRAJ messages)
+
+
+@dataclass(frozen=True, slots=True)
+class StartTrajectory:
+    """Stream ``samples`` (``wire.pack_samples``: N joint vectors 2 ms apart) with servoJ."""
+
+    id: int
+    samples: tuple[int, bytes]
+    lookahead_time: float
+    gain: float
+    guard: Guard
+
+
+@dataclass(frozen=True, slots=True)
+class ReplaceTrajectory:
+    """Replace the samples not yet sent (from ``at_index`` of the trajectory; ``None``:
+    from the next one)."""
+
+    id: int
+    samples: tuple[int, bytes]
+    at_index: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class StopTrajectory:
+    """Brake the trajectory to rest along its path; ``reason``: a :class:`StopReason`'s
+    value (the wire carries the string)."""
+
+    id: int
+    reason: str
+
+
 # ----------------------------------------------------------------- replies
 
 ErrorKind = Literal["robot", "timeout", "connection", "remote", "argument", "contract"]

@@ -54,13 +54,16 @@ from fxcell.link.contract import (
     Guard,
     LeaveServo,
     Ping,
+    ReplaceTrajectory,
     Request,
     ServoStop,
     SetOutput,
     SetTool,
     StartControl,
+    StartTrajectory,
     StopControl,
     StopReason,
+    StopTrajectory,
     TeachMode,
     TrajectoryStatus,
     stop_reason,
@@ -319,25 +322,24 @@ class Link:
             self._calls.put((request_id, request))
         elif kind == wire.BEAT:
             pass  # last_heard is enough
-        elif kind == wire.TRAJ_START:
-            _, traj_id, packed, lookahead, gain = message[:5]
-            guard = Guard(**message[5]) if len(message) > 5 else Guard()
-            self._start_trajectory(traj_id, wire.unpack_samples(packed), lookahead, gain, guard)
-        elif kind == wire.TRAJ_REPLACE:
-            traj_id, samples = message[1], message[2]
-            at_index = message[3] if len(message) > 3 else None
+        elif kind == wire.TRAJ_START and isinstance(message[1], StartTrajectory):
+            start = message[1]
+            samples = wire.unpack_samples(start.samples)
+            self._start_trajectory(start.id, samples, start.lookahead_time, start.gain, start.guard)
+        elif kind == wire.TRAJ_REPLACE and isinstance(message[1], ReplaceTrajectory):
+            replace = message[1]
             with self._traj_lock:
                 traj = self._traj
-            if traj is not None and traj.id == traj_id:
-                traj.replace(wire.unpack_samples(samples), at_index)
+            if traj is not None and traj.id == replace.id:
+                traj.replace(wire.unpack_samples(replace.samples), replace.at_index)
             else:
-                self.send(wire.TRAJ, traj_id, "replaced", {"ok": False})
-        elif kind == wire.TRAJ_STOP:
+                self.send(wire.TRAJ, replace.id, "replaced", {"ok": False})
+        elif kind == wire.TRAJ_STOP and isinstance(message[1], StopTrajectory):
+            stop = message[1]
             with self._traj_lock:
                 traj = self._traj
-            if traj is not None and traj.id == message[1]:
-                reason = message[2] if len(message) > 2 else StopReason.STOP_REQUESTED
-                traj.stop(self._reason(reason))
+            if traj is not None and traj.id == stop.id:
+                traj.stop(self._reason(stop.reason))
         else:
             self.send(wire.LOG, logging.WARNING, f"unknown message {kind!r} refused")
 

@@ -22,9 +22,9 @@ MAX_FRAME = 64 * 1024 * 1024
 
 # client -> link process
 CALL = "call"  # (CALL, request_id, request): a fxcell.link.contract request dataclass
-TRAJ_START = "traj_start"  # (TRAJ_START, traj_id, samples, lookahead_time, gain, guard)
-TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, traj_id, samples[, at_index])
-TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, traj_id[, reason]): the link brakes to rest itself
+TRAJ_START = "traj_start"  # (TRAJ_START, contract.StartTrajectory)
+TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, contract.ReplaceTrajectory)
+TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, contract.StopTrajectory): the link brakes to rest itself
 # (a reason is a contract.StopReason's value; SETTLED, the robot at the target, keeps servo mode)
 BEAT = "beat"  # (BEAT,): the client is alive (sent every 10 ms while a trajectory runs)
 
