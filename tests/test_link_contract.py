@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import logging
 import socket
 from collections.abc import Iterator
 from typing import Any
@@ -90,12 +91,17 @@ class _Sent(process.Link):
 
 
 @pytest.fixture
-def link() -> Iterator[_Sent]:
+def pair() -> Iterator[tuple[socket.socket, socket.socket]]:
     mine, theirs = socket.socketpair()
     with mine, theirs:
-        link = _Sent(mine)
-        yield link
-        link.outbox.close(1.0)
+        yield mine, theirs
+
+
+@pytest.fixture
+def link(pair: tuple[socket.socket, socket.socket]) -> Iterator[_Sent]:
+    link = _Sent(pair[0])
+    yield link
+    link.outbox.close(1.0)
 
 
 def test_the_link_process_answers_a_request_by_its_type(link: _Sent) -> None:
@@ -289,3 +295,25 @@ def test_trajectory_messages_survive_the_wire() -> None:
     start = StartTrajectory(1, (1, bytes(48)), 0.1, 300.0, Guard(cell_timeout=None))
     for message in ((wire.TRAJ_START, start), (wire.TRAJ_STOP, StopTrajectory(1, "settled"))):
         assert wire.decode(wire.encode(message)[wire.HEADER.size :]) == message
+
+
+def test_a_call_of_the_untyped_protocol_is_answered_with_a_contract_error(link: _Sent) -> None:
+    link._dispatch((wire.CALL, 6, "set_output", {"group": "tool"}))  # (CALL, id, method, kwargs)
+    [(kind, request_id, ok, (error_kind, text))] = link.sent
+    assert (kind, request_id, ok) == (wire.REPLY, 6, False)
+    assert isinstance(reply_error(error_kind, text), LinkContractError)
+    assert link._calls.empty()
+
+
+def test_an_undecodable_message_is_refused_and_the_next_one_read(
+    link: _Sent, pair: tuple[socket.socket, socket.socket]
+) -> None:
+    theirs = pair[1]
+    garbage = b"\x80\x05not a pickle"
+    theirs.sendall(wire.HEADER.pack(len(garbage)) + garbage)
+    theirs.sendall(wire.encode((wire.CALL, 2, Ping())))
+    theirs.shutdown(socket.SHUT_WR)  # the reader ends after these two
+    link._reader()
+    assert link.sent[0][:2] == (wire.LOG, logging.ERROR)
+    assert "undecodable message refused" in link.sent[0][2]
+    assert link._calls.get_nowait() == (2, Ping())

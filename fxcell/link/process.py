@@ -299,7 +299,13 @@ class Link:
                 if body is None:
                     break
                 self.last_heard = time.monotonic()
-                self._dispatch(wire.decode(body))
+                try:
+                    message = wire.decode(body)
+                except Exception as exc:  # another contract's class, or corrupt
+                    text = f"undecodable message refused: {type(exc).__name__}: {exc}"
+                    self.send(wire.LOG, logging.ERROR, text)
+                    continue
+                self._dispatch(message)
         finally:
             self._stop.set()  # the client went away: exit
 
@@ -317,9 +323,12 @@ class Link:
 
     def _dispatch(self, message: tuple[Any, ...]) -> None:
         kind = message[0]
-        if kind == wire.CALL:
+        if kind == wire.CALL and len(message) == 3:
             _, request_id, request = message
             self._calls.put((request_id, request))
+        elif kind == wire.CALL and len(message) > 1 and isinstance(message[1], int):
+            text = f"a request of another contract (wire version {WIRE_VERSION} here)"
+            self.send(wire.REPLY, message[1], False, ("contract", text))
         elif kind == wire.BEAT:
             pass  # last_heard is enough
         elif kind == wire.TRAJ_START and isinstance(message[1], StartTrajectory):
