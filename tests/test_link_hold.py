@@ -23,9 +23,9 @@ import numpy as np
 import pytest
 
 from fxcell.link import process, wire
-from fxcell.link.contract import StopReason
+from fxcell.link.contract import Guard, StopReason
 from fxcell.link.follower import servo_omega
-from fxcell.link.process import Guard, _Trajectory
+from fxcell.link.process import _Trajectory
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
 pytestmark = pytest.mark.timeout(30)

@@ -27,7 +27,8 @@ from fxcell.errors import (
     NotInRemoteControlError,
 )
 from fxcell.link.client import LOOP_STALL_AFTER
-from fxcell.link.process import Guard, brake_duration
+from fxcell.link.contract import Guard
+from fxcell.link.follower import brake_duration
 from fxcell.testing import SimulatorHandle, simulator
 
 CONFIG = CellConfig.load()

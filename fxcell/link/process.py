@@ -68,14 +68,14 @@ from fxcell.link.contract import (
     TrajectoryStatus,
     stop_reason,
 )
-from fxcell.link.follower import Follower, brake_duration
+from fxcell.link.follower import Follower
 from fxcell.link.realtime import LINK_PRIORITY, request_realtime
 from fxcell.link.rtde_stream import UR_RTDE_GETTERS, RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
 log = logging.getLogger("fxcell.link.process")
 
-__all__ = ["HANDLERS", "CallError", "Guard", "Link", "brake_duration", "main", "stop_reason"]
+__all__ = ["HANDLERS", "CallError", "Link", "main"]
 
 
 class CallError(Exception):
