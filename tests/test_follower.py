@@ -18,7 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fxcell.link import wire
+from fxcell.link.contract import StopReason
 from fxcell.link.follower import (
     CELL_SILENT,
     STATE_STALLED,
@@ -216,8 +216,8 @@ def test_a_client_stop_brakes_along_the_path_to_rest() -> None:
     for _ in range(100):
         run.cycle()
         run.advance()
-    run.follower.stop("stop requested")
-    _brakes(run, "stop requested")
+    run.follower.stop(StopReason.STOP_REQUESTED)
+    _brakes(run, StopReason.STOP_REQUESTED)
     _braked_smoothly(run, 100)
     duration = brake_duration(path_velocity(ramp(2000), 100), run.guard)
     assert len(run.sent) - 100 == pytest.approx(duration / DT, abs=2)
@@ -229,7 +229,7 @@ def test_the_client_socket_closing_brakes_the_same_way() -> None:
     for _ in range(50):
         run.cycle()
         run.advance()
-    run.follower.stop("link closing")
+    run.follower.stop(StopReason.LINK_CLOSING)
     _brakes(run, "link closing")
     _braked_smoothly(run, 50)
 
@@ -312,9 +312,9 @@ def test_a_stop_at_the_target_needs_no_braking() -> None:
     run = Run([START] * 50)
     run.cycle()
     run.advance()
-    run.follower.stop(wire.SETTLED)
+    run.follower.stop(StopReason.SETTLED)
     out = run.cycle()
-    assert (out.status, out.reason) == ("stopped", wire.SETTLED)
+    assert (out.status, out.reason) == ("stopped", StopReason.SETTLED)
     assert [n for n in run.follower.notices if n.kind == "log"] == []
 
 
@@ -322,7 +322,7 @@ def test_only_a_stop_away_from_the_target_warns() -> None:
     run = Run(ramp(300))
     run.cycle()
     run.advance()
-    run.follower.stop(wire.SETTLED)
+    run.follower.stop(StopReason.SETTLED)
     run.cycle()
     assert [(n.level, n.text) for n in run.follower.notices] == [
         (logging.DEBUG, "braking to rest: settled")
@@ -389,7 +389,7 @@ def test_a_splice_while_braking_by_itself_is_refused() -> None:
     for _ in range(20):
         run.cycle()
         run.advance()
-    run.follower.stop("stop requested")
+    run.follower.stop(StopReason.STOP_REQUESTED)
     run.cycle()
     run.follower.notices.clear()
     run.follower.replace(ramp(10), at_index=None)
@@ -427,11 +427,11 @@ def test_the_end_comes_after_the_settle_time_even_if_the_robot_never_settles() -
 def test_the_hold_after_the_end_ends_on_a_stop_but_not_on_the_settled_stop() -> None:
     path = ramp(20)
     f = Follower(path, Guard(), 0.1, now=0.0, clock=0.0)
-    f.stop(wire.SETTLED)
+    f.stop(StopReason.SETTLED)
     f.begin_hold()
     assert f.hold_target(state(0.0)) == path[-1]
     assert f.hold_target(state(0.0, safety_mode=SafetyMode.PROTECTIVE_STOP)) is None
-    f.stop("link closing")
+    f.stop(StopReason.LINK_CLOSING)
     assert f.hold_target(state(0.0)) is None
 
 
@@ -474,7 +474,7 @@ def test_every_cycle_stays_within_the_limits_across_late_samples_and_stops(
     stop_index = None if stop_at is None else stop_at * len(path)
     for k in range(100_000):
         if stop_index is not None and run.follower.u >= stop_index:
-            run.follower.stop("stop requested")
+            run.follower.stop(StopReason.STOP_REQUESTED)
         out = run.cycle()
         if out.target is None:
             break
@@ -511,7 +511,7 @@ def test_a_link_brake_from_a_path_still_accelerating_stays_within_the_braking_li
     for _ in range(len(path) // 8):
         run.cycle()
         run.advance()
-    run.follower.stop("stop requested")
+    run.follower.stop(StopReason.STOP_REQUESTED)
     assert run.run().status == "stopped"
     assert run.follower.limited == []
     assert run.worst() <= 1.0 + 1e-6

@@ -30,7 +30,9 @@ from fxcell.errors import (
     NotInRemoteControlError,
 )
 from fxcell.link.client import LOOP_STALL_AFTER
-from fxcell.link.process import BUSY_CLIENT_LIMIT, Guard, brake_duration, process_runs
+from fxcell.link.contract import Guard
+from fxcell.link.follower import brake_duration
+from fxcell.link.process import BUSY_CLIENT_LIMIT, process_runs
 from fxcell.testing import SimulatorHandle, simulator
 
 CONFIG = CellConfig.load()
