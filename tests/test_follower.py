@@ -15,7 +15,7 @@ import logging
 import math
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from fxcell.link.contract import StopReason
@@ -36,6 +36,7 @@ START = (0.1, -1.2, 1.0, -1.4, -1.57, 0.0)
 STEP = 0.002  # rad per sample on every joint: 1 rad/s
 LOOKAHEAD, GAIN = 0.1, 300.0
 OMEGA = servo_omega(LOOKAHEAD, GAIN)
+JERK = 10.0  # rad/s³: the shipped limits' jerk (config/ur3e_limits.yaml), which Ruckig keeps
 
 
 def ramp(n: int, step: float = STEP) -> list[tuple[float, ...]]:
@@ -440,10 +441,14 @@ def test_the_hold_after_the_end_ends_on_a_stop_but_not_on_the_settled_stop() -> 
 
 def smooth_path(distances: list[float], lag: float) -> list[tuple[float, ...]]:
     """A rest-to-rest move of ``distances`` (rad per joint) within the move limits
-    (0.7 rad/s², ``q = D (t/T - sin(2πt/T)/2π)``), as the motion layer streams it: led by
-    servoJ's lag (``q + lag·q̇ + lag²/4·q̈``)."""
+    (0.7 rad/s² and the jerk ``JERK``, ``q = D (t/T - sin(2πt/T)/2π)``), as the motion layer
+    streams it: led by servoJ's lag (``q + lag·q̇ + lag²/4·q̈``). Without the jerk bound a
+    10 µrad move lasted 10 ms, which no jerk-limited profile makes: its lag lead alone
+    asked for more than the braking acceleration."""
     peak = max(map(abs, distances))
-    duration = max(math.sqrt(2 * math.pi * peak / 0.7), 4 * DT)
+    duration = max(
+        math.sqrt(2 * math.pi * peak / 0.7), (4 * math.pi**2 * peak / JERK) ** (1 / 3), 4 * DT
+    )
     n = round(duration / DT)
     out = []
     for k in range(n + 1):
@@ -466,6 +471,7 @@ gaps = st.lists(st.sampled_from([1] * 12 + [2, 3, 4, 6]), min_size=1, max_size=6
 
 @settings(max_examples=40, deadline=None)
 @given(distances, gaps, st.one_of(st.none(), st.floats(0.05, 0.95)))
+@example([0.0, 0.0, 1e-5, 0.0, 0.0, 0.0], [1], None)  # the shortest moves (10 µrad)
 def test_every_cycle_stays_within_the_limits_across_late_samples_and_stops(
     move: list[float], pattern: list[int], stop_at: float | None
 ) -> None:
