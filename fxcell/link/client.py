@@ -699,6 +699,8 @@ class LinkClient:
             log.log(int(message[1]), "link: %s", message[2])
         elif kind == wire.HELLO:
             self._hello(message[1])
+        elif kind == wire.CONNECTED:
+            pass  # the process reached the controller; its first state sample brings it up
         else:
             log.warning("robot link: unknown message %r refused", kind)
 
