@@ -2,7 +2,9 @@
 
 While a system test runs, :class:`FaultWatch` counts
 
-- robot-link losses of this process (the link client's ``robot link to ... down`` warning),
+- robot-link losses of this process (the link client's ``robot link to ... down`` warning)
+  and the moves its link process braked on its own guard (a stalled state stream, a silent
+  cell: ``robot link to ... braked a move by itself``),
 - those of the daemons the test talks to (the same line in their output), and
 - the faults of the simulators it uses (the simulator's own fault log: safety stops, its
   own or injected, watchdog stops, injected faults),
@@ -27,11 +29,7 @@ import pytest
 from fxcell.daemon.process import DaemonProcess
 from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 
-_LINK_DOWN = re.compile(r"robot link to \S+ (down): (.*)")
-# Not (yet) counted: ``robot link to ... braked a move by itself`` (the link process's own
-# guard: a stalled stream, a silent cell). A busy machine makes the cell process's event loop
-# hold the GIL while descheduled, the beat thread then misses its 100 ms, and the job heals
-# the braked step: counting those would fail tests on the host, not on fxcell.
+_LINK_DOWN = re.compile(r"robot link to \S+ (down|braked a move by itself): (.*)")
 
 
 @dataclass
