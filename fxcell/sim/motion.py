@@ -272,16 +272,24 @@ class ServoTrack(Motion):
         lookahead: float,
         gain: float,
         now: float,
+        packets: int = 1,
     ) -> None:
+        """Take a new setpoint; a step far beyond the joint speed is a violation.
+
+        ``now`` is wall-clock time: after a late cycle the controller catches up on the
+        missed steps at once, but the setpoints still came in over the real interval.
+        ``packets``: the client's packets that arrived since the last setpoint taken (the
+        cycle reads only the newest). A backlog of packets drained at once (a receiver
+        that was late) spans as many of the client's cycles, however short the interval.
+        """
         sp = [float(v) for v in setpoint]
         if not all(map(math.isfinite, sp)):
             raise SafetyLimitError("servoj: setpoint is not finite")
-        # ``now`` is wall-clock time: after a late cycle the controller catches up on the
-        # missed steps at once, but the setpoints still came in over the real interval.
         interval = servo_time if self.last_command < 0 else max(now - self.last_command, 0.0)
         # Setpoints from a non-real-time client arrive bunched: judge a step over at least
         # a few cycles, so only a jump far beyond the joint speed is a violation.
-        allowed = max(interval, servo_time, SERVO_MIN_INTERVAL) * VIOLATION_FACTOR
+        span = max(interval, servo_time * max(packets, 1), SERVO_MIN_INTERVAL)
+        allowed = span * VIOLATION_FACTOR
         previous = self._setpoint
         for joint, (new, old, limit) in enumerate(zip(sp, previous, arm.speed_limits, strict=True)):
             if abs(new - old) > limit * allowed:

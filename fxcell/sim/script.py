@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 REALTIME = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
 # The commands a client streams, as plain ints: on Python 3.11 an enum attribute lookup
 # costs about as much as the rest of a comparison chain.
+_BACKLOG_REPORTED = 10
+"""Input packets between two control cycles at which the simulator logs its receiver late."""
 _SERVOJ, _SERVOL, _SPEEDJ, _SPEEDL = int(C.SERVOJ), int(C.SERVOL), int(C.SPEEDJ), int(C.SPEEDL)
 # Commands that only adjust settings without effect here (dynamics queries).
 NO_OPS = frozenset({67, 68, 69, 70, 71})
@@ -194,11 +196,12 @@ class ControlScript:
                 # change what that does, so unchanged inputs are not processed again.
                 generation = self.c.input_generation
                 if generation != self._generation or cmd != self._last_realtime:
+                    packets = generation - self._generation
                     self._generation = generation
                     self._last_realtime = cmd
                     if cmd == _SERVOJ:  # streamed at 500 Hz: the registers read in place
                         d, of = registers.in_double, self.of
-                        self._servo(d[of : of + 6], d[of + 8], d[of + 9], d[of + 10])
+                        self._servo(d[of : of + 6], d[of + 8], d[of + 9], d[of + 10], packets)
                     else:
                         self._process(cmd)
                 if not self.terminated:
@@ -271,13 +274,18 @@ class ControlScript:
             raise ScriptError(f"{what}: joint positions {q} outside ±2π")
         return q
 
-    def _servo(self, q: list[float], servo_time: float, lookahead: float, gain: float) -> None:
+    def _servo(
+        self, q: list[float], servo_time: float, lookahead: float, gain: float, packets: int = 1
+    ) -> None:
         arm = self.arm
         if self.servo is None or arm.generator is not self.servo:
             self.servo = ServoTrack(arm)
             arm.run(self.servo)
             self.speed = None
-        self.servo.command(arm, q, servo_time, lookahead, gain, time.monotonic())
+            packets = 1  # the first setpoint is judged from where the arm stands
+        elif packets >= _BACKLOG_REPORTED:
+            log.info("servoj: %d packets arrived since the last cycle (a late receiver)", packets)
+        self.servo.command(arm, q, servo_time, lookahead, gain, time.monotonic(), packets)
 
     def _process(self, cmd: int) -> None:
         arm = self.arm

@@ -91,6 +91,49 @@ def test_servo_jump_far_beyond_the_speed_limit_is_a_violation() -> None:
     servo.command(a, [0.01, *START[1:]], DT, 0.1, 300, 0.0)  # within 1.5x over 8 ms
 
 
+def test_a_backlog_of_setpoints_drained_at_once_is_judged_over_the_cycles_it_spans() -> None:
+    # 25 setpoints of a 1 rad/s stream that a late receiver hands over in one cycle: the
+    # newest is 25 client cycles (50 ms) ahead of the last one taken, 2 ms of wall time later
+    a = arm()
+    servo = ServoTrack(a)
+    a.run(servo)
+    ahead = [START[0] + 1.0 * 25 * DT, *START[1:]]
+    servo.command(a, START, DT, 0.1, 300, 0.0)
+    servo.command(a, ahead, DT, 0.1, 300, DT, packets=25)
+    # the same step in one packet is a jump at 6.25 rad/s (over the 8 ms floor)
+    b = arm()
+    single = ServoTrack(b)
+    b.run(single)
+    single.command(b, START, DT, 0.1, 300, 0.0)
+    with pytest.raises(SafetyLimitError, match=r"joint 0 commanded at 6\.25 rad/s"):
+        single.command(b, ahead, DT, 0.1, 300, DT)
+
+
+def test_the_control_script_credits_every_packet_since_the_setpoint_it_last_took() -> None:
+    from fxcell.protocol import SafetyMode
+    from fxcell.sim.controller import Controller
+    from fxcell.sim.script import _SERVOJ, ControlScript
+
+    def stream(packets_last: int) -> SafetyMode:
+        c = Controller(arm())
+        script = ControlScript(c, "")
+        regs = c.registers
+        regs.in_int[0] = _SERVOJ
+        regs.in_double[8:11] = [DT, 0.1, 300.0]
+
+        def send(q: list[float], packets: int) -> None:
+            regs.in_double[0:6] = q
+            c.input_generation += packets
+            script.step()
+
+        send(START, 1)
+        send([START[0] + 1.0 * 25 * DT, *START[1:]], packets_last)
+        return c.safety_mode
+
+    assert stream(25) == SafetyMode.NORMAL  # a backlog of the 500 Hz stream: no violation
+    assert stream(1) == SafetyMode.PROTECTIVE_STOP  # one packet jumping as far: a violation
+
+
 def test_stop_decelerates_every_joint_together() -> None:
     a = arm()
     a.set_state(a.q, np.array([1.0, -0.5, 0.25, 0.0, 0.0, 2.0]), None)
