@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import time
@@ -646,17 +647,7 @@ class Cell(CellCommands):
 
     def _record_refusal(self, name: str, args: Mapping[str, Any], exc: FxcellError) -> None:
         """Record a command refused before it started, as one that failed at once."""
-        command_id = self.bus.next_command_id()
-        started = time.time()
-        origin = COMMAND_ORIGIN.get() or self._origin
-        recorded = {k: to_jsonable(v) for k, v in args.items()}
-        self.bus.publish(CommandEvent(command_id, name, recorded, origin, started))
-        self.bus.publish(
-            CommandEvent(
-                command_id, name, recorded, origin, started, time.time(), "error",
-                type(exc).__name__, str(exc),
-            )
-        )  # fmt: skip
+        self._failed(self._started(name, {k: to_jsonable(v) for k, v in args.items()}), exc)
 
     async def _admit_move(self, name: str, args: Mapping[str, Any], *, queue: bool) -> None:
         """Raise what refuses move ``name`` before it exists: another move running
@@ -714,34 +705,29 @@ class Cell(CellCommands):
     async def _recorded(self, name: str, /, **args: Any) -> AsyncIterator[dict[str, Any]]:
         """Publish command ``name``'s start, then its end: ``outcome["result"]`` or the
         error that ended it."""
-        command_id = self.bus.next_command_id()
-        started = time.time()
-        origin = COMMAND_ORIGIN.get() or self._origin
-        self.bus.publish(CommandEvent(command_id, name, args, origin, started))
+        start = self._started(name, args)
         outcome: dict[str, Any] = {"result": None}
         try:
             yield outcome
         except BaseException as exc:
-            self.bus.publish(
-                CommandEvent(
-                    command_id,
-                    name,
-                    args,
-                    origin,
-                    started,
-                    time.time(),
-                    "error",
-                    type(exc).__name__,
-                    str(exc),
-                )
-            )
+            self._failed(start, exc)
             raise
+        result = to_jsonable(outcome["result"])
+        self.bus.publish(dataclasses.replace(start, ended=time.time(), outcome="ok", result=result))
+
+    def _started(self, name: str, args: Mapping[str, Any]) -> CommandEvent:
+        origin = COMMAND_ORIGIN.get() or self._origin
+        event = CommandEvent(self.bus.next_command_id(), name, args, origin, time.time())
+        self.bus.publish(event)
+        return event
+
+    def _failed(self, start: CommandEvent, exc: BaseException) -> None:
+        kind, message = type(exc).__name__, str(exc)
         self.bus.publish(
-            CommandEvent(
-                command_id, name, args, origin, started, time.time(), "ok", None, None,
-                to_jsonable(outcome["result"]),
+            dataclasses.replace(
+                start, ended=time.time(), outcome="error", error_type=kind, error_message=message
             )
-        )  # fmt: skip
+        )
 
     def _link(self) -> LinkBackend:
         if self.link is None:
