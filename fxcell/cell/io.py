@@ -3,8 +3,10 @@
 ``io.signals`` in the configuration maps names to addresses (``machine_done: DI2``); task
 code uses only the names. Outputs are set through RTDE's IO recipe (ur_rtde's
 ``RTDEIOInterface`` in the robot-link process) and confirmed on the state stream; inputs and
-outputs are read from the newest 500 Hz sample. Every set and wait is recorded like an arm
-command; the recorder also logs the IO bits on ``/robot/io`` whenever one changes.
+outputs are read from the newest 500 Hz sample. Every set and wait is the Cell's command of
+that name (``io_set``, ``io_wait_for``): recorded, and refused by the command table's guard
+before anything is sent; the recorder also logs the IO bits on ``/robot/io`` whenever one
+changes.
 """
 
 from __future__ import annotations
