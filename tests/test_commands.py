@@ -8,6 +8,7 @@ import inspect
 import subprocess
 import sys
 from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -18,6 +19,7 @@ from fxcell.cell import Cell, CellState
 from fxcell.cell.statemachine import load_statechart
 from fxcell.client import RemoteCell
 from fxcell.commands import COMMANDS, CellCommands
+from fxcell.config import CellConfig
 from fxcell.errors import (
     InvalidArgumentError,
     InvalidStateError,
@@ -26,7 +28,7 @@ from fxcell.errors import (
 )
 from fxcell.protocol import ProgramState, RobotMode, SafetyMode
 from fxcell.results import GripResult, MoveResult, ProgramStatus
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import FakeRobot, SimulatorHandle, simulator
 
 TIME_SCALE = 0.05
 TOKEN = "commands-test-token-0123456789"
@@ -81,27 +83,111 @@ def test_every_public_cell_coroutine_is_a_command_of_the_table() -> None:
     assert public >= NOT_COMMANDS  # the exceptions still exist (else drop them)
 
 
-def test_cell_checks_the_guard_the_table_names() -> None:
-    import ast
-    import textwrap
+# Arguments the guarded commands are called with (valid names and values: the checks of
+# arguments against the configuration come before the guard).
+GUARDED_ARGS: dict[str, dict[str, Any]] = {
+    "move_joint": {"target": [0.0, -1.57, 0.0, -1.57, 0.0, 0.0]},
+    "move_pose": {"target": [-0.25, -0.2, 0.12, 3.14159, 0.0, 0.0]},
+    "move_distance": {"distance": [0.0, 0.0, 0.01]},
+    "move_relative": {
+        "start_pose": [-0.25, -0.2, 0.12, 3.14159, 0.0, 0.0],
+        "target_pose": [-0.25, -0.2, 0.1, 3.14159, 0.0, 0.0],
+    },
+    "move_to": {"name": "home"},
+    "pick": {"station": "rack", "slot": "B2"},
+    "place": {"station": "machine", "slot": "A1"},
+    "gripper_move": {"width": 0.02},
+    "io_set": {"signal": "machine_start", "value": True},
+    "io_wait_for": {"signal": "machine_done", "value": True, "timeout": 1.0},
+    "teach": {"name": "p1"},
+    "teach_frame_point": {"station": "rack", "point": "origin"},
+}
+# States a Cell on the in-process fake robot is brought to, in the order they are tried:
+# each guarded command is called in the first of them its guard refuses.
+SCENES = (
+    CellState.POWER_OFF,
+    CellState.EXTERNAL_CONTROL_READY,
+    CellState.MOVING,
+    CellState.DISCONNECTED,
+)
 
-    for name, entry in COMMANDS.items():
-        if entry.kind == "move":
-            continue  # every move goes through Cell._run_move, which checks "move"
-        tree = ast.parse(textwrap.dedent(inspect.getsource(getattr(Cell, name))))
-        checked = [
-            node.args[0].value
-            for node in ast.walk(tree)
-            if isinstance(node, ast.Call)
-            and isinstance(node.func, ast.Attribute)
-            and node.func.attr == "check"
-            and node.args
-            and isinstance(node.args[0], ast.Constant)
-        ]
-        assert checked[:1] == ([entry.guard] if entry.guard else []), name
-    run_move = inspect.getsource(Cell._run_move)
-    assert 'self.machine.check("move", name)' in run_move
-    assert {c.guard for c in COMMANDS.values() if c.kind == "move"} == {"move"}
+
+def _refused_in(state: CellState) -> list[str]:
+    chart = load_statechart()
+    return [
+        name
+        for name, entry in COMMANDS.items()
+        if entry.guard is not None
+        and next((s for s in SCENES if s not in chart.allowed(entry.guard)), None) is state
+    ]
+
+
+def test_every_guarded_command_is_tried_where_its_guard_refuses_it() -> None:
+    chart = load_statechart()
+    tried = {name for state in SCENES for name in _refused_in(state)}
+    untried = {n for n, e in COMMANDS.items() if e.guard is not None} - tried
+    # only a guard that admits every state (stop) is never refused
+    assert all(set(chart.allowed(COMMANDS[n].guard or "")) == set(CellState) for n in untried)
+    assert untried == {"stop"}
+    for name in tried:
+        required = [a.name for a in COMMANDS[name].args if a.required]
+        assert set(required) <= set(GUARDED_ARGS.get(name, {})), name
+
+
+@pytest.mark.parametrize("state", SCENES, ids=lambda s: s.value)
+async def test_a_command_its_guard_refuses_raises_and_sends_nothing(
+    state: CellState, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The guard of the command table, applied by the Cell itself: every command is refused
+    with InvalidStateError in a state its guard does not admit, and nothing reaches the
+    robot (no request on the link, the gripper's socket never opened)."""
+    import fxcell.cell.gripper
+
+    opened: list[str] = []
+
+    class NoGripper:
+        def __init__(self, host: str) -> None:
+            opened.append(host)
+
+    monkeypatch.setattr(fxcell.cell.gripper, "URCapGripperClient", NoGripper)
+    robot = FakeRobot(time_scale=TIME_SCALE)
+    config = CellConfig.load().model_copy(update={"positions_file": tmp_path / "p.yaml"})
+    async with Cell(link_factory=robot.link_factory, config=config, record=None) as cell:
+        release = asyncio.Event()
+        move: asyncio.Task[None] | None = None
+        if state is not CellState.POWER_OFF:
+            await cell.init()
+        if state is CellState.MOVING:
+            move = asyncio.create_task(cell.run_move("move_joint", {}, release.wait))
+            await cell.wait_for_state(CellState.MOVING)
+        if state is CellState.DISCONNECTED:
+            await cell.shutdown()
+        assert cell.state is state
+        link = cell.link
+        assert link is not None
+        sent: list[object] = []
+        send = link.request
+
+        async def request(message: Any) -> object:
+            task = asyncio.current_task()
+            if task is None or task.get_name() != "remote watch":  # the Local/Remote poll
+                sent.append(message)
+            return await send(message)
+
+        monkeypatch.setattr(link, "request", request)
+        refused = _refused_in(state)
+        assert refused
+        for name in refused:
+            with pytest.raises(InvalidStateError) as info:
+                await cell.run_command(name, **GUARDED_ARGS.get(name, {}))
+            assert (info.value.command, info.value.state) == (name, state.value)
+        assert sent == [], "a refused command sent something to the robot"
+        assert opened == [], "a refused command opened the gripper's socket"
+        assert cell.state is state
+        if move is not None:
+            await cell.stop()
+            with pytest.raises(MoveStoppedError):
+                await move
 
 
 def test_the_operator_page_names_only_commands_of_the_table() -> None:

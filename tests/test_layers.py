@@ -254,3 +254,16 @@ def test_the_cycle_check_sees_an_import_hidden_in_a_function(tmp_path: Path) -> 
     found = _runtime_imports(source, "fxcell.sim.m")
     assert {"fxcell.sim.primary", "fxcell.sim.rtde"} <= found
     assert "fxcell.sim.controller" not in found
+
+
+CELL_PARTS = ("gripper", "io", "handling", "camera", "healing", "teach", "context")
+
+
+@pytest.mark.parametrize("part", CELL_PARTS)
+def test_the_cells_parts_do_not_import_the_cell(part: str) -> None:
+    """The parts get a narrow context (``fxcell.cell.context``), not the Cell: none imports
+    ``fxcell.cell.cell``, not even for annotations."""
+    path = PACKAGE / "cell" / f"{part}.py"
+    imported = _imports(path)
+    assert "fxcell.cell.cell" not in imported
+    assert "fxcell.cell.Cell" not in imported

@@ -26,7 +26,7 @@ from fxcell.layout import Layout
 if TYPE_CHECKING:
     import numpy as np
 
-    from fxcell.cell.cell import Cell
+    from fxcell.cell.context import CellContext
     from fxcell.vision.camera import Camera
     from fxcell.vision.placement import PlacementChecker, PlacementReport
 
@@ -41,8 +41,8 @@ def _import_vision() -> None:
 class CellCamera:
     """The camera of a :class:`~fxcell.cell.Cell` (``cell.camera``)."""
 
-    def __init__(self, cell: Cell) -> None:
-        self._cell = cell
+    def __init__(self, context: CellContext) -> None:
+        self._context = context
         self._camera: Camera | None = None
         self._checker: tuple[Layout, PlacementChecker] | None = None
         self._lock = asyncio.Lock()
@@ -53,7 +53,7 @@ class CellCamera:
     @property
     def configured(self) -> bool:
         """Whether a camera is configured (``vision.camera.source`` is not null)."""
-        return self._cell.config.vision.camera.source is not None
+        return self._context.config().vision.camera.source is not None
 
     async def _ready(self) -> None:
         """OpenCV and the vision modules imported (in a worker thread, once)."""
@@ -65,9 +65,9 @@ class CellCamera:
         """The check for the layout as taught now (re-made when a frame is re-taught)."""
         from fxcell.vision.placement import PlacementChecker
 
-        layout = self._cell.layout
+        layout = self._context.layout()
         if self._checker is None or self._checker[0] is not layout:
-            self._checker = (layout, PlacementChecker(self._cell.config.vision, layout))
+            self._checker = (layout, PlacementChecker(self._context.config().vision, layout))
         return self._checker[1]
 
     async def capture(self) -> np.ndarray:
@@ -76,7 +76,7 @@ class CellCamera:
         from fxcell.vision.camera import open_camera
 
         if self._camera is None:
-            self._camera = open_camera(self._cell.config.vision.camera, self._cell.host)
+            self._camera = open_camera(self._context.config().vision.camera, self._context.host())
         return await self._camera.capture()
 
     async def check(self, expected: Collection[str] | None = None) -> PlacementReport:
@@ -98,7 +98,7 @@ class CellCamera:
             except cv2.error as exc:  # a frame OpenCV cannot work on (size, type)
                 raise CameraError(f"the frame could not be judged: {exc.msg}") from None
             self.last = report
-            self._cell.bus.publish(PlacementEvent(time.time(), report.image, report.as_dict()))
+            self._context.bus.publish(PlacementEvent(time.time(), report.image, report.as_dict()))
             return report
 
     async def close(self) -> None:

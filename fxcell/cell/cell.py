@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import time
@@ -31,12 +32,13 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar
 from fxcell.calibration import Calibration
 from fxcell.cell import handling, healing
 from fxcell.cell.camera import CellCamera
+from fxcell.cell.context import CellContext
 from fxcell.cell.gripper import Gripper
 from fxcell.cell.io import CellIO
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
 from fxcell.cell.teach import TaughtStore, check_frame_point
 from fxcell.cell.teach import check_name as check_position_name
-from fxcell.commands import CellCommands, get_command
+from fxcell.commands import COMMANDS, CellCommands, get_command
 from fxcell.config import CellConfig
 from fxcell.errors import (
     CalibrationError,
@@ -210,6 +212,21 @@ class Cell(CellCommands):
         """Times the robot link went down after being up (a dropped or restarted link
         process, a paused state stream): each one is a warning in the log."""
         self._link_was_up = False
+        self._context = CellContext(
+            bus=self.bus,
+            command=self._command,
+            record=self._recorded,
+            link=self._link,
+            sample=self._sample,
+            latest=lambda: self.robot_state,
+            states=self.robot_states,
+            hold=self._hold,
+            config=lambda: self.config,
+            layout=lambda: self.layout,
+            host=lambda: self.host,
+            timeout=lambda: self.command_timeout,
+        )
+        """What the parts (gripper, IO, camera, pick and place) use of the Cell."""
 
     @classmethod
     def from_config(cls, config: str | Path | CellConfig | None = None, **kwargs: Any) -> Cell:
@@ -224,21 +241,21 @@ class Cell(CellCommands):
     def gripper(self) -> Gripper:
         """The Robotiq Hand-E (through the Robotiq URCap's socket on the controller)."""
         if self._gripper is None:
-            self._gripper = Gripper(self)
+            self._gripper = Gripper(self._context)
         return self._gripper
 
     @property
     def io(self) -> CellIO:
         """The configured IO signals by name (``cell.io.get("machine_done")``)."""
         if self._io is None:
-            self._io = CellIO(self)
+            self._io = CellIO(self._context)
         return self._io
 
     @property
     def camera(self) -> CellCamera:
         """The cell's camera and the placement check (``vision`` in the configuration)."""
         if self._camera is None:
-            self._camera = CellCamera(self)
+            self._camera = CellCamera(self._context)
         return self._camera
 
     @property
@@ -585,12 +602,10 @@ class Cell(CellCommands):
         try:
             entry.check_args(args)
             entry.check_values(args)
-            self._check_arguments(command, args)
-            await self._move_landed()
             if entry.kind != "move":
-                if entry.guard is not None:
-                    self.machine.check(entry.guard, command)
+                await self._admit(command, args)
                 return
+            await self._move_landed()
             await self._admit_move(command, args, queue=bool(args.get("queue")))
         except FxcellError as exc:
             self._record_refusal(command, args, exc)
@@ -611,19 +626,28 @@ class Cell(CellCommands):
         if check is not None:
             check()
 
+    async def _admit(self, name: str, args: Mapping[str, Any]) -> None:
+        """Raise what refuses command ``name`` of the table (not a move: :meth:`_admit_move`)
+        before it acts: its arguments against the configuration, then the guard the table
+        names (a move that has just ended is let land in the state machine first)."""
+        entry = COMMANDS.get(name)
+        if entry is None or entry.kind == "move":
+            return
+        self._check_arguments(name, args)
+        if entry.guard is not None and self.state not in self.machine.allowed(entry.guard):
+            await self._move_landed()
+            self._check_guard(name)
+
+    def _check_guard(self, name: str) -> CellState:
+        """Raise :class:`InvalidStateError` unless the guard the command table names for
+        ``name`` admits the current state (a name outside the table is a move of
+        :meth:`run_move`: the moves' guard); the state."""
+        guard = (COMMANDS.get(name) or COMMANDS["move_joint"]).guard
+        return self.machine.check(guard, name) if guard is not None else self.state
+
     def _record_refusal(self, name: str, args: Mapping[str, Any], exc: FxcellError) -> None:
         """Record a command refused before it started, as one that failed at once."""
-        command_id = self.bus.next_command_id()
-        started = time.time()
-        origin = COMMAND_ORIGIN.get() or self._origin
-        recorded = {k: to_jsonable(v) for k, v in args.items()}
-        self.bus.publish(CommandEvent(command_id, name, recorded, origin, started))
-        self.bus.publish(
-            CommandEvent(
-                command_id, name, recorded, origin, started, time.time(), "error",
-                type(exc).__name__, str(exc),
-            )
-        )  # fmt: skip
+        self._failed(self._started(name, {k: to_jsonable(v) for k, v in args.items()}), exc)
 
     async def _admit_move(self, name: str, args: Mapping[str, Any], *, queue: bool) -> None:
         """Raise what refuses move ``name`` before it exists: another move running
@@ -632,11 +656,11 @@ class Cell(CellCommands):
         if not (queue and self._moving()):
             if self._moving():
                 raise MoveInProgressError(f"{name}(): another move is running")
-            self.machine.check("move", name)
+            self._check_guard(name)
         self._check_remote(name)
         vf, af = args.get("velocity_factor"), args.get("acceleration_factor")
         if name in handling.ADMIT:
-            await handling.check(self, name, args["station"], args["slot"], vf, af)
+            await handling.check(self, self._context, name, args["station"], args["slot"], vf, af)
             return
         target = self._move_target(name, args)
         await self._moves().check(target, self._sample().actual_q, vf, af)
@@ -671,34 +695,39 @@ class Cell(CellCommands):
 
     @contextlib.asynccontextmanager
     async def _command(self, name: str, /, **args: Any) -> AsyncIterator[dict[str, Any]]:
-        command_id = self.bus.next_command_id()
-        started = time.time()
-        origin = COMMAND_ORIGIN.get() or self._origin
-        self.bus.publish(CommandEvent(command_id, name, args, origin, started))
+        """Run command ``name`` as a recorded one (see :meth:`_recorded`), refused first if
+        the table's checks refuse it (:meth:`_admit`: the refusal is recorded as its error)."""
+        async with self._recorded(name, **args) as outcome:
+            await self._admit(name, args)
+            yield outcome
+
+    @contextlib.asynccontextmanager
+    async def _recorded(self, name: str, /, **args: Any) -> AsyncIterator[dict[str, Any]]:
+        """Publish command ``name``'s start, then its end: ``outcome["result"]`` or the
+        error that ended it."""
+        start = self._started(name, args)
         outcome: dict[str, Any] = {"result": None}
         try:
             yield outcome
         except BaseException as exc:
-            self.bus.publish(
-                CommandEvent(
-                    command_id,
-                    name,
-                    args,
-                    origin,
-                    started,
-                    time.time(),
-                    "error",
-                    type(exc).__name__,
-                    str(exc),
-                )
-            )
+            self._failed(start, exc)
             raise
+        result = to_jsonable(outcome["result"])
+        self.bus.publish(dataclasses.replace(start, ended=time.time(), outcome="ok", result=result))
+
+    def _started(self, name: str, args: Mapping[str, Any]) -> CommandEvent:
+        origin = COMMAND_ORIGIN.get() or self._origin
+        event = CommandEvent(self.bus.next_command_id(), name, args, origin, time.time())
+        self.bus.publish(event)
+        return event
+
+    def _failed(self, start: CommandEvent, exc: BaseException) -> None:
+        kind, message = type(exc).__name__, str(exc)
         self.bus.publish(
-            CommandEvent(
-                command_id, name, args, origin, started, time.time(), "ok", None, None,
-                to_jsonable(outcome["result"]),
+            dataclasses.replace(
+                start, ended=time.time(), outcome="error", error_type=kind, error_message=message
             )
-        )  # fmt: skip
+        )
 
     def _link(self) -> LinkBackend:
         if self.link is None:
@@ -782,21 +811,21 @@ class Cell(CellCommands):
 
     async def power_on(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("power_on"):
-            state = self.machine.check("power_on")
+            state = self.state
             if state is CellState.POWER_OFF:
                 await self._dashboard("power on", "Powering on")
             await self._await_effect("power_on", {CellState.IDLE}, timeout)
 
     async def brake_release(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("brake_release"):
-            state = self.machine.check("brake_release")
+            state = self.state
             if state is CellState.IDLE:
                 await self._dashboard("brake release", "Brake releasing")
             await self._await_effect("brake_release", _running_states(), timeout)
 
     async def power_off(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("power_off"):
-            state = self.machine.check("power_off")
+            state = self.state
             if state is not CellState.POWER_OFF:
                 self._control_wanted = False
                 await self._dashboard("power off", "Powering off")
@@ -804,7 +833,6 @@ class Cell(CellCommands):
 
     async def init(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("init"):
-            self.machine.check("init")
             if self.state in (CellState.POWER_OFF, CellState.POWERING_ON):
                 await self.power_on(timeout=timeout)
             if self.state is CellState.IDLE:
@@ -814,7 +842,7 @@ class Cell(CellCommands):
 
     async def start_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("start_external_control", mode=self.external_control):
-            state = self.machine.check("start_external_control")
+            state = self.state
             if state is CellState.EXTERNAL_CONTROL_READY:
                 return
             await self._require_remote()
@@ -830,7 +858,6 @@ class Cell(CellCommands):
 
     async def stop_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("stop_external_control"):
-            self.machine.check("stop_external_control")
             self._control_wanted = False
             link = self._link()
             if link.control_ready or self.state is CellState.EXTERNAL_CONTROL_READY:
@@ -844,7 +871,6 @@ class Cell(CellCommands):
         timeout: float | None = None,  # noqa: ASYNC109
     ) -> None:
         async with self._command("unlock_protective_stop", wait=wait):
-            self.machine.check("unlock_protective_stop")
             await self._require_remote()
             limit = timeout if timeout is not None else self.command_timeout
             deadline = time.monotonic() + limit + (PROTECTIVE_STOP_HOLD if wait else 0.0)
@@ -878,7 +904,6 @@ class Cell(CellCommands):
 
     async def shutdown(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("shutdown"):
-            self.machine.check("shutdown")
             await self._require_remote()
             link = self._link()
             self._control_wanted = False
@@ -904,19 +929,16 @@ class Cell(CellCommands):
 
     async def get_robot_mode(self) -> RobotMode:
         async with self._command("get_robot_mode") as out:
-            self.machine.check("get_robot_mode")
             out["result"] = mode = RobotMode(self._sample().robot_mode)
             return mode
 
     async def get_safety_status(self) -> SafetyMode:
         async with self._command("get_safety_status") as out:
-            self.machine.check("get_safety_status")
             out["result"] = mode = SafetyMode(self._sample().safety_mode)
             return mode
 
     async def get_program_state(self) -> ProgramStatus:
         async with self._command("get_program_state") as out:
-            self.machine.check("get_program_state")
             reply = await self._link().dashboard("programState")
             word, _, program = reply.strip().partition(" ")
             try:
@@ -928,14 +950,12 @@ class Cell(CellCommands):
 
     async def is_in_remote_control(self) -> bool:
         async with self._command("is_in_remote_control") as out:
-            self.machine.check("is_in_remote_control")
             reply = await self._link().dashboard("is in remote control")
             out["result"] = remote = reply.strip().lower() == "true"
             return remote
 
     async def get_current_joint_values(self) -> tuple[float, ...]:
         async with self._command("get_current_joint_values") as out:
-            self.machine.check("get_current_joint_values")
             out["result"] = q = tuple(self._sample().actual_q)
             return q
 
@@ -945,27 +965,23 @@ class Cell(CellCommands):
 
     async def get_current_pose(self) -> tuple[float, ...]:
         async with self._command("get_current_pose") as out:
-            self.machine.check("get_current_pose")
             pose = self._tcp_pose()
             out["result"] = result = (*map(float, pose.position), *pose.quaternion)
             return result
 
     async def get_current_rpy(self) -> tuple[float, float, float]:
         async with self._command("get_current_rpy") as out:
-            self.machine.check("get_current_pose")
             out["result"] = rpy = self._tcp_pose().rpy
             return rpy
 
     async def get_current_pose_rpy(self) -> tuple[float, ...]:
         async with self._command("get_current_pose_rpy") as out:
-            self.machine.check("get_current_pose")
             pose = self._tcp_pose()
             out["result"] = result = (*map(float, pose.position), *pose.rpy)
             return result
 
     async def get_velocity(self) -> tuple[float, ...]:
         async with self._command("get_velocity") as out:
-            self.machine.check("get_velocity")
             out["result"] = qd = tuple(self._sample().actual_qd)
             return qd
 
@@ -990,7 +1006,7 @@ class Cell(CellCommands):
         async with self._command(name, **args) as out:
             if self._runner is not None and self._runner.running:
                 raise MoveInProgressError(f"{name}(): another move is running")
-            self.machine.check("move", name)
+            self._check_guard(name)
             self._check_remote(name)
             runner = make()
             self._runner = runner
@@ -1065,7 +1081,6 @@ class Cell(CellCommands):
 
     async def stop(self) -> bool:
         async with self._command("stop") as out:
-            self.machine.check("stop")
             self._stops += 1  # ends the moves waiting with queue=True too
             running = self._moving()
             await self._cancel_move(MoveStoppedError("stopped by stop()"), graceful=True)
@@ -1222,13 +1237,15 @@ class Cell(CellCommands):
             return factor
 
     # ------------------------------------------------------------- gripper
+    # The gripper records its commands itself (``cell.gripper.open()`` is one too), refused by
+    # its own check of the flange's power; these check the table's guard before it runs.
 
     async def gripper_activate(self) -> None:
-        self.machine.check("gripper")
+        self._check_guard("gripper_activate")
         await self.gripper.activate()
 
     async def gripper_open(self, *, speed: float = 0.150) -> GripResult:
-        self.machine.check("gripper")
+        self._check_guard("gripper_open")
         result = await self.gripper.open(speed=speed)
         if not result.holding and self.held is not None:
             await self._hold(None)
@@ -1237,7 +1254,7 @@ class Cell(CellCommands):
     async def gripper_close(
         self, *, speed: float = 0.150, grip_force: float = 185.0, expect_object: bool = False
     ) -> GripResult:
-        self.machine.check("gripper")
+        self._check_guard("gripper_close")
         return await self.gripper.close(speed=speed, force=grip_force, expect_object=expect_object)
 
     async def gripper_move(
@@ -1248,7 +1265,7 @@ class Cell(CellCommands):
         grip_force: float = 185.0,
         expect_object: bool = False,
     ) -> GripResult:
-        self.machine.check("gripper")
+        self._check_guard("gripper_move")
         result = await self.gripper.move(
             width, speed=speed, force=grip_force, expect_object=expect_object
         )
@@ -1258,7 +1275,6 @@ class Cell(CellCommands):
 
     async def get_gripper_width(self) -> float:
         async with self._command("get_gripper_width") as outcome:
-            self.machine.check("gripper")
             outcome["result"] = await self.gripper.get_width()
             return float(outcome["result"])
 
@@ -1301,12 +1317,10 @@ class Cell(CellCommands):
 
     async def get_io(self) -> dict[str, Any]:
         async with self._command("get_io") as out:
-            self.machine.check("io")
             out["result"] = values = self.io.snapshot()
             return values
 
     async def io_set(self, signal: str, value: bool | float) -> None:
-        self.machine.check("io")
         await self.io.set(signal, value)
 
     async def io_wait_for(
@@ -1315,15 +1329,12 @@ class Cell(CellCommands):
         value: bool | float = True,
         timeout: float = 60.0,  # noqa: ASYNC109
     ) -> float:
-        self.machine.check("io")
         return await self.io.wait_for(signal, value, timeout)
 
     # ------------------------------------------------------------- teach-in
 
     async def freedrive_start(self) -> None:
         async with self._command("freedrive_start"):
-            await self._move_landed()
-            self.machine.check("freedrive_start")
             await self._require_remote()
             await self._link().teach_mode(True, within=self.command_timeout)
             self._freedrive = True
@@ -1332,7 +1343,6 @@ class Cell(CellCommands):
 
     async def freedrive_stop(self) -> None:
         async with self._command("freedrive_stop"):
-            self.machine.check("freedrive_stop")
             if not self._freedrive:
                 return
             try:
@@ -1344,9 +1354,6 @@ class Cell(CellCommands):
 
     async def teach(self, name: str) -> dict[str, Any]:
         async with self._command("teach", name=name) as out:
-            check_position_name(name)
-            await self._move_landed()
-            self.machine.check("teach")
             q = self._sample().actual_q
             pose = self._moves().planner.tcp_pose(q).as_ur()
             self.taught.teach_position(name, q, pose)
@@ -1383,8 +1390,6 @@ class Cell(CellCommands):
     async def teach_frame_point(self, station: str, point: str) -> dict[str, Any]:
         async with self._command("teach_frame_point", station=station, point=point) as out:
             st = self.layout.station(station)
-            await self._move_landed()
-            self.machine.check("teach")
             if self._moving():
                 raise MoveInProgressError("teach_frame_point(): a move is running")
             position = self._moves().planner.tcp_pose(self._sample().actual_q).position.tolist()
@@ -1433,7 +1438,9 @@ class Cell(CellCommands):
 
     async def _at_slot(
         self,
-        action: Callable[[Cell, str, str, float | None, float | None], Awaitable[GripResult]],
+        action: Callable[
+            [Cell, CellContext, str, str, float | None, float | None], Awaitable[GripResult]
+        ],
         station: str,
         slot: str,
         velocity_factor: float | None,
@@ -1444,13 +1451,13 @@ class Cell(CellCommands):
 
         async def admitted() -> None:
             await self._move_landed()
-            self.machine.check("move", name)
+            self._check_guard(name)
 
         async with self._command(name, station=station, slot=slot) as out:
             # a link that dropped just before is waited for, as within the steps
             await healing.resilient(self, f"start {name}", admitted)
             out["result"] = result = await action(
-                self, station, slot, velocity_factor, acceleration_factor
+                self, self._context, station, slot, velocity_factor, acceleration_factor
             )
             return result
 

@@ -35,7 +35,7 @@ from fxcell.protocol import RobotMode
 from fxcell.results import GripResult
 
 if TYPE_CHECKING:
-    from fxcell.cell.cell import Cell
+    from fxcell.cell.context import CellContext
 
 STROKE = GRIP_WIDTH_RANGE[1]  # m, Hand-E fully open (0.050)
 SPEED_RANGE = GRIP_SPEED_RANGE  # m/s
@@ -91,8 +91,8 @@ class GripperState:
 class Gripper:
     """The cell's Hand-E (``cell.gripper``); needs the Robotiq URCap on the controller."""
 
-    def __init__(self, cell: Cell) -> None:
-        self._cell = cell
+    def __init__(self, context: CellContext) -> None:
+        self._context = context
         self._client: URCapGripperClient | None = None
         self._holding = False
         self._lock = asyncio.Lock()
@@ -114,17 +114,17 @@ class Gripper:
     def _state_changed(self, source: str, dest: str, trigger: str) -> None:
         self.last["state"] = dest
         data = {"event": "state", "source": source, "state": dest, "trigger": trigger}
-        self._cell.bus.publish(DeviceEvent(time.time(), "gripper", data))
+        self._context.bus.publish(DeviceEvent(time.time(), "gripper", data))
 
     def _report(self, event: str, width: float | None = None) -> None:
         """Remember and publish (recorder topic ``/gripper``, the daemon's stream) the state."""
         self.last.update(event=event, holding=self._holding)
         if width is not None:
             self.last["width"] = width
-        self._cell.bus.publish(DeviceEvent(time.time(), "gripper", dict(self.last)))
+        self._context.bus.publish(DeviceEvent(time.time(), "gripper", dict(self.last)))
 
     def _io(self) -> URCapGripperClient:
-        host = self._cell.host
+        host = self._context.host()
         if host is None:
             raise ConnectionLostError("the cell is not open (use `async with Cell(...)`)")
         if self._client is None or self._client.host != host:
@@ -132,7 +132,7 @@ class Gripper:
         return self._client
 
     def _check_power(self, command: str) -> None:
-        sample = self._cell.robot_state
+        sample = self._context.latest()
         mode = sample.robot_mode if sample is not None else RobotMode.DISCONNECTED
         if mode not in _POWERED:
             self.machine.fire("unpowered")
@@ -152,7 +152,7 @@ class Gripper:
 
     async def activate(self, *, timeout: float = ACTIVATION_TIMEOUT) -> None:  # noqa: ASYNC109
         """Activate (reset, then ``ACT 1``) unless already active without a fault."""
-        async with self._cell._command("gripper_activate"), self._lock:
+        async with self._context.record("gripper_activate"), self._lock:
             self._check_power("gripper_activate")
             io = self._io()
             if await io.get("STA") == 3 and await io.get("FLT") == 0:
@@ -224,7 +224,7 @@ class Gripper:
         self, name: str, width: float, speed: float, force: float, *, expect_object: bool
     ) -> GripResult:
         args = {"width": width, "speed": speed, "force": force, "expect_object": expect_object}
-        async with self._cell._command(name, **args) as outcome, self._lock:
+        async with self._context.record(name, **args) as outcome, self._lock:
             for label, value, (lo, hi) in (
                 ("width", width, (0.0, STROKE)),
                 ("speed", speed, SPEED_RANGE),
@@ -264,7 +264,7 @@ class Gripper:
             FOR=_register(force, *FORCE_RANGE),
             GTO=1,
         )
-        deadline = time.monotonic() + self._cell.command_timeout
+        deadline = time.monotonic() + self._context.timeout()
         while True:
             fault = await io.get("FLT")
             if fault:
@@ -278,7 +278,7 @@ class Gripper:
                     break
             if time.monotonic() > deadline:
                 raise RobotTimeoutError(
-                    f"{name}: the fingers did not stop within {self._cell.command_timeout:g} s"
+                    f"{name}: the fingers did not stop within {self._context.timeout():g} s"
                 )
             self._check_power(name)
             await asyncio.sleep(POLL)

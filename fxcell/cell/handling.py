@@ -13,11 +13,11 @@ recorded command of its own (``move_pose``, ``gripper_close``, ...) inside the r
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from fxcell.cell.healing import resilient
+from fxcell.cell.healing import Recoverable, resilient
 from fxcell.errors import (
     FxcellError,
     GripperError,
@@ -26,11 +26,16 @@ from fxcell.errors import (
     NothingGraspedError,
     UnreachableError,
 )
-from fxcell.layout import Station
+from fxcell.geometry import Pose
+from fxcell.layout import Layout, Station
 from fxcell.results import GripResult
 
 if TYPE_CHECKING:
-    from fxcell.cell.cell import Cell
+    from fxcell.cell.context import CellContext
+    from fxcell.cell.gripper import Gripper
+    from fxcell.cell.io import CellIO
+    from fxcell.motion.moves import MotionController
+    from fxcell.results import MoveResult
 
 CLEARANCE = 0.012
 """Finger opening beyond an object's width when approaching or releasing it (m)."""
@@ -39,7 +44,41 @@ SAME_BRANCH = 0.6
 must not need a different arm configuration."""
 
 
-def check_interlock(cell: Cell, station: Station) -> None:
+class SlotCell(Recoverable, Protocol):
+    """The commands and parts of a :class:`~fxcell.cell.Cell` that pick and place are made
+    of (each step is a recorded command of its own); the rest comes through the
+    :class:`~fxcell.cell.context.CellContext`."""
+
+    @property
+    def layout(self) -> Layout: ...
+
+    @property
+    def held(self) -> str | None: ...
+
+    @property
+    def io(self) -> CellIO: ...
+
+    @property
+    def gripper(self) -> Gripper: ...
+
+    @property
+    def motion(self) -> MotionController: ...
+
+    async def move_pose(
+        self,
+        target: Pose,
+        velocity_factor: float | None = None,
+        acceleration_factor: float | None = None,
+        *,
+        linear: bool = False,
+    ) -> MoveResult: ...
+
+    async def gripper_move(self, width: float) -> GripResult: ...
+
+    async def gripper_close(self, *, expect_object: bool = False) -> GripResult: ...
+
+
+def check_interlock(cell: SlotCell, station: Station) -> None:
     """Refuse a move into ``station`` while its zone's interlock signal is on."""
     zone = station.config.zone
     signal = cell.config.io.interlocks.get(zone) if zone else None
@@ -51,7 +90,7 @@ def check_interlock(cell: Cell, station: Station) -> None:
         )
 
 
-def admit_pick(cell: Cell, station_name: str, slot_name: str) -> tuple[Station, str]:
+def admit_pick(cell: SlotCell, station_name: str, slot_name: str) -> tuple[Station, str]:
     """The station and slot of a pick, or the error that refuses it (names, interlock,
     a held object): no IK yet (see :func:`reach_slot`)."""
     station, slot = cell.layout.slot(station_name, slot_name)
@@ -63,7 +102,7 @@ def admit_pick(cell: Cell, station_name: str, slot_name: str) -> tuple[Station, 
     return station, slot
 
 
-def admit_place(cell: Cell, station_name: str, slot_name: str) -> tuple[Station, str]:
+def admit_place(cell: SlotCell, station_name: str, slot_name: str) -> tuple[Station, str]:
     """The station and slot of a place, or the error that refuses it (names, interlock,
     nothing or the wrong kind held)."""
     station, slot = cell.layout.slot(station_name, slot_name)
@@ -79,7 +118,8 @@ def admit_place(cell: Cell, station_name: str, slot_name: str) -> tuple[Station,
 
 
 async def check(
-    cell: Cell,
+    cell: SlotCell,
+    context: CellContext,
     name: str,
     station_name: str,
     slot_name: str,
@@ -90,17 +130,17 @@ async def check(
     interlock, what the gripper holds, factors, reach of the slot's three poses."""
     station, slot = ADMIT[name](cell, station_name, slot_name)
     cell.motion.factors(velocity_factor, acceleration_factor)
-    await reach_slot(cell, station, slot)
+    await reach_slot(cell, context, station, slot)
 
 
-async def reach_slot(cell: Cell, station: Station, slot: str) -> None:
+async def reach_slot(cell: SlotCell, context: CellContext, station: Station, slot: str) -> None:
     """IK for approach, grip and retreat on one configuration, free of collision (in the
     planner's worker thread, one at a time with plans)."""
-    q0 = np.asarray(cell._sample().actual_q, float)
+    q0 = np.asarray(context.sample().actual_q, float)
     await cell.motion.locked(lambda: _reach_slot(cell, station, slot, q0))
 
 
-def _reach_slot(cell: Cell, station: Station, slot: str, q0: np.ndarray) -> None:
+def _reach_slot(cell: SlotCell, station: Station, slot: str, q0: np.ndarray) -> None:
     planner = cell.motion.planner
     what = f"{station.name} {slot}"
     try:
@@ -114,7 +154,8 @@ def _reach_slot(cell: Cell, station: Station, slot: str, q0: np.ndarray) -> None
 
 
 async def pick(
-    cell: Cell,
+    cell: SlotCell,
+    context: CellContext,
     station_name: str,
     slot_name: str,
     velocity_factor: float | None,
@@ -123,7 +164,7 @@ async def pick(
     station, slot = admit_pick(cell, station_name, slot_name)
     cell.motion.factors(velocity_factor, acceleration_factor)
     where = f"{station.name} {slot}"
-    await resilient(cell, f"check {where}", _checked(cell, station, slot))
+    await resilient(cell, f"check {where}", _checked(cell, context, station, slot))
     kind = station.kind
     vf, af = velocity_factor, acceleration_factor
     open_width = min(0.050, kind.width + CLEARANCE)
@@ -151,7 +192,7 @@ async def pick(
         raise NothingGraspedError(
             f"no {station.config.holds} detected in {station.name} slot {slot}"
         ) from None
-    await resilient(cell, "hold", lambda: cell._hold(station.config.holds))
+    await resilient(cell, "hold", lambda: context.hold(station.config.holds))
     await resilient(
         cell,
         f"rise from {where}",
@@ -160,13 +201,14 @@ async def pick(
     try:
         await cell.gripper.check_holding()
     except GripperError:
-        await cell._hold(None)
+        await context.hold(None)
         raise
     return grip
 
 
 async def place(
-    cell: Cell,
+    cell: SlotCell,
+    context: CellContext,
     station_name: str,
     slot_name: str,
     velocity_factor: float | None,
@@ -175,7 +217,7 @@ async def place(
     station, slot = admit_place(cell, station_name, slot_name)
     cell.motion.factors(velocity_factor, acceleration_factor)
     where = f"{station.name} {slot}"
-    await resilient(cell, f"check {where}", _checked(cell, station, slot))
+    await resilient(cell, f"check {where}", _checked(cell, context, station, slot))
     vf, af = velocity_factor, acceleration_factor
     await resilient(
         cell, f"approach {where}", lambda: cell.move_pose(station.approach_pose(slot), vf, af)
@@ -189,7 +231,7 @@ async def place(
     )
     width = min(0.050, station.kind.width + CLEARANCE)
     released = await resilient(cell, f"release at {where}", lambda: cell.gripper_move(width))
-    await resilient(cell, "let go", lambda: cell._hold(None))
+    await resilient(cell, "let go", lambda: context.hold(None))
     await resilient(
         cell,
         f"rise from {where}",
@@ -198,13 +240,15 @@ async def place(
     return released
 
 
-def _checked(cell: Cell, station: Station, slot: str) -> Callable[[], Awaitable[None]]:
+def _checked(
+    cell: SlotCell, context: CellContext, station: Station, slot: str
+) -> Callable[[], Awaitable[None]]:
     """The checks before a pick or place moves (they need the robot's state), repeated
     when a lost link interrupts them."""
 
     async def check() -> None:
         check_interlock(cell, station)
-        await reach_slot(cell, station, slot)
+        await reach_slot(cell, context, station, slot)
 
     return check
 

@@ -37,7 +37,7 @@ from fxcell.errors import (
 )
 
 if TYPE_CHECKING:
-    from fxcell.cell.cell import Cell
+    from fxcell.config import CellConfig
     from fxcell.protocol import RobotState
 
 log = logging.getLogger(__name__)
@@ -62,7 +62,7 @@ HEAL_LISTENER: ContextVar[Callable[[Heal], None] | None] = ContextVar(
 """Called with every :class:`Heal` of the steps run in this context (a job sets it)."""
 
 
-def healable(cell: Cell, error: FxcellError, losses_before: int) -> bool:
+def healable(cell: Recoverable, error: FxcellError, losses_before: int) -> bool:
     """Whether ``error`` came from a lost link (and so needs no human)."""
     if isinstance(error, ConnectionLostError | LinkBrakeError):
         return True  # the link went down, or its guard braked the arm (a paused stream)
@@ -143,6 +143,25 @@ class Arm(Protocol):
     def robot_state(self) -> RobotState | None: ...
 
 
+class Recoverable(Arm, Protocol):
+    """What :func:`resilient` needs of a cell (a :class:`~fxcell.cell.Cell` is one)."""
+
+    @property
+    def config(self) -> CellConfig: ...
+
+    @property
+    def link_losses(self) -> int:
+        """Times the robot link went down after being up."""
+        ...
+
+    @property
+    def link_recovering(self) -> bool:
+        """The link is down, or back but external control not restored yet."""
+        ...
+
+    async def restore_control(self) -> object: ...
+
+
 def arm_moved(cell: Arm) -> Callable[[], bool]:
     """A ``moved`` for :func:`retrying`: whether the arm's joints are more than
     :data:`PROGRESS` from where they were at the previous call (the first: from now; no
@@ -168,7 +187,7 @@ def arm_moved(cell: Arm) -> Callable[[], bool]:
     return moved
 
 
-async def resilient(cell: Cell, what: str, step: Callable[[], Awaitable[T]]) -> T:
+async def resilient(cell: Recoverable, what: str, step: Callable[[], Awaitable[T]]) -> T:
     """Run ``step`` of a cell; after a failure that a lost link caused, restore control and
     run it again (within ``robot.heal_attempts``, see :func:`retrying`). ``step`` must be
     safe to repeat from wherever it left the arm (a move to a target, a gripper command, a

@@ -3,8 +3,10 @@
 ``io.signals`` in the configuration maps names to addresses (``machine_done: DI2``); task
 code uses only the names. Outputs are set through RTDE's IO recipe (ur_rtde's
 ``RTDEIOInterface`` in the robot-link process) and confirmed on the state stream; inputs and
-outputs are read from the newest 500 Hz sample. Every set and wait is recorded like an arm
-command; the recorder also logs the IO bits on ``/robot/io`` whenever one changes.
+outputs are read from the newest 500 Hz sample. Every set and wait is the Cell's command of
+that name (``io_set``, ``io_wait_for``): recorded, and refused by the command table's guard
+before anything is sent; the recorder also logs the IO bits on ``/robot/io`` whenever one
+changes.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from fxcell.errors import IOTimeoutError, RobotCommandError, UnknownSignalError
 from fxcell.signals import Signal, parse_signal
 
 if TYPE_CHECKING:
-    from fxcell.cell.cell import Cell
+    from fxcell.cell.context import CellContext
 
 Value = bool | float
 
@@ -25,10 +27,10 @@ Value = bool | float
 class CellIO:
     """The configured IO signals of a :class:`~fxcell.cell.Cell` (``cell.io``)."""
 
-    def __init__(self, cell: Cell) -> None:
-        self._cell = cell
+    def __init__(self, context: CellContext) -> None:
+        self._context = context
         self._signals = {
-            name: parse_signal(address) for name, address in cell.config.io.signals.items()
+            name: parse_signal(address) for name, address in context.config().io.signals.items()
         }
 
     @property
@@ -47,11 +49,11 @@ class CellIO:
     def get(self, name: str) -> Value:
         """The signal's value in the newest state sample (bool, or V/A for analog)."""
         signal = self.signal(name)
-        return signal.read(self._cell._sample())
+        return signal.read(self._context.sample())
 
     def snapshot(self) -> dict[str, Value]:
         """Every configured signal's current value (empty while no state arrives)."""
-        sample = self._cell.robot_state
+        sample = self._context.latest()
         if sample is None:
             return {}
         return {name: s.read(sample) for name, s in sorted(self._signals.items())}
@@ -71,25 +73,22 @@ class CellIO:
     async def set(self, name: str, value: Value) -> None:
         """Set output ``name`` (digital: true/false; analog: fraction 0..1 of its range);
         returns once the controller reports a digital output changed."""
-        cell = self._cell
-        async with cell._command("io_set", signal=name, value=value):
+        cell = self._context
+        async with cell.command("io_set", signal=name, value=value):
             signal, checked = self.check_set(name, value)
-            cell.machine.check("io")
-            ok = await cell._link().set_output(
-                signal.group, signal.index, float(checked), within=cell.command_timeout
+            ok = await cell.link().set_output(
+                signal.group, signal.index, float(checked), within=cell.timeout()
             )
             if not ok:
                 raise RobotCommandError(f"the controller refused to set {name} ({signal.address})")
             if signal.digital:
-                await self._until(
-                    signal, checked, cell.command_timeout, f"{name} to become {checked}"
-                )
+                await self._until(signal, checked, cell.timeout(), f"{name} to become {checked}")
 
     async def wait_for(self, name: str, value: Value, timeout: float) -> float:  # noqa: ASYNC109
         """Wait until digital signal ``name`` reads ``value`` (or an analog one reaches at
         least ``value``); returns the seconds waited, raises :class:`IOTimeoutError`."""
-        cell = self._cell
-        async with cell._command("io_wait_for", signal=name, value=value, timeout=timeout) as out:
+        cell = self._context
+        async with cell.command("io_wait_for", signal=name, value=value, timeout=timeout) as out:
             signal = self.check_wait(name, value)
             started = time.monotonic()
             await self._until(signal, value, timeout, f"{name} to become {value}")
@@ -97,10 +96,10 @@ class CellIO:
             return waited
 
     async def _until(self, signal: Signal, value: Value, limit: float, what: str) -> None:
-        cell = self._cell
+        cell = self._context
 
         def reached() -> bool:
-            sample = cell.robot_state
+            sample = cell.latest()
             if sample is None:
                 return False
             got = signal.read(sample)
@@ -112,7 +111,7 @@ class CellIO:
             return
         try:
             async with asyncio.timeout(limit):
-                with cell.robot_states(maxsize=8) as states:
+                with cell.states(8) as states:
                     async for _ in states:
                         if reached():
                             return

@@ -1,5 +1,9 @@
 """The fusion-machine job in the daemon: one :class:`~fxcell.job.Job` on the daemon's Cell.
 
+It is the library's ``Job(cell, store)`` on the Cell itself (no adapter): what the job does
+after a restart (the recovery questions, confirming a held object with the gripper) lives in
+:mod:`fxcell.job`, so a job run from a script behaves as the daemon's.
+
 The job is created when the Cell is attached and recovers at once whatever run a previous
 daemon left unfinished (it then waits, paused, for the operator's ``resume``, with questions
 where a sample's place is ambiguous). Its events go onto the Cell's event bus as
@@ -14,84 +18,18 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Collection, Mapping
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from fxcell.errors import ConnectionLostError, FxcellError, InvalidArgumentError
 from fxcell.events import DeviceEvent
 from fxcell.job import Job, JobStore
-from fxcell.layout import Layout
 
 if TYPE_CHECKING:
     from fxcell.cell import Cell
-    from fxcell.cell.gripper import Gripper
     from fxcell.config import CellConfig
-    from fxcell.protocol import RobotState
-    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
-
-
-class _CellIO:
-    """The Cell's IO as the job uses it (digital signals by configured name)."""
-
-    def __init__(self, cell: Cell) -> None:
-        self._cell = cell
-
-    async def set(self, signal: str, value: bool) -> None:
-        await self._cell.io_set(signal, value)
-
-    def get(self, signal: str) -> bool:
-        return bool(self._cell.io.get(signal))
-
-    async def wait_for(self, signal: str, value: bool, timeout: float) -> None:  # noqa: ASYNC109
-        await self._cell.io_wait_for(signal, value, timeout)
-
-
-class CellForJob:
-    """A :class:`~fxcell.cell.Cell` as the job's ``JobCell``."""
-
-    def __init__(self, cell: Cell) -> None:
-        self._cell = cell
-        self._io = _CellIO(cell)
-
-    @property
-    def layout(self) -> Layout:
-        return self._cell.layout
-
-    @property
-    def io(self) -> _CellIO:
-        return self._io
-
-    @property
-    def gripper(self) -> Gripper:
-        return self._cell.gripper
-
-    @property
-    def held(self) -> str | None:
-        return self._cell.held
-
-    @property
-    def robot_state(self) -> RobotState | None:
-        return self._cell.robot_state
-
-    async def declare_held(self, kind: str | None = None) -> None:
-        await self._cell.declare_held(kind)
-
-    async def restore_control(self) -> None:
-        await self._cell.restore_control()
-
-    async def pick(self, station: str, slot: str) -> None:
-        await self._cell.pick(station, slot)
-
-    async def place(self, station: str, slot: str) -> None:
-        await self._cell.place(station, slot)
-
-    async def go_home(self) -> None:
-        await self._cell.go_home()
-
-    async def inspect_placement(self, expected: Collection[str]) -> PlacementReport | None:
-        return await self._cell.inspect_placement(expected)
 
 
 class JobService:
@@ -114,7 +52,7 @@ class JobService:
 
         try:
             store = await asyncio.to_thread(JobStore, self.config.job.database)
-            job = Job(CellForJob(cell), store, self.config.job, on_event=publish)
+            job = Job(cell, store, self.config.job, on_event=publish)
             recovered = await job.recover()
         except FxcellError as exc:
             self.error = str(exc)
