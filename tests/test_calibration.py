@@ -156,10 +156,9 @@ def test_not_a_kinematics_info_package_is_refused() -> None:
 @given(joints)
 def test_all_zero_deltas_give_the_nominal_arm(q: tuple[float, ...]) -> None:
     nominal = Kinematics.ur3e(TCP)
-    for backend in ("numpy", "pinocchio"):
-        k = CalibratedKinematics(Calibration.nominal(), TCP, backend=backend)
-        assert np.allclose(k.forward(q).matrix, nominal.forward(q).matrix, atol=1e-14)
-        assert np.allclose(k.jacobian(q), nominal.jacobian(q), atol=1e-13)
+    k = CalibratedKinematics(Calibration.nominal(), TCP)
+    assert np.allclose(k.forward(q).matrix, nominal.forward(q).matrix, atol=1e-14)
+    assert np.allclose(k.jacobian(q), nominal.jacobian(q), atol=1e-13)
 
 
 @settings(max_examples=40, deadline=None)
@@ -186,7 +185,7 @@ def test_calibrated_jacobian_is_the_derivative_of_the_forward_kinematics(
 ) -> None:
     from fxcell.geometry import matrix_to_rotvec
 
-    k = CalibratedKinematics(c, TCP, backend="numpy")
+    k = CalibratedKinematics(c, TCP)
     J = k.jacobian(q)
     p0 = k.forward(q)
     h = 1e-7
@@ -201,11 +200,11 @@ def test_calibrated_jacobian_is_the_derivative_of_the_forward_kinematics(
 
 
 @settings(max_examples=60, deadline=None)
-@given(calibrations, joints, st.sampled_from(["pinocchio", "numpy"]))
+@given(calibrations, joints)
 def test_calibrated_inverse_reaches_poses_the_nominal_inverse_misses(
-    c: Calibration, q: tuple[float, ...], backend: str
+    c: Calibration, q: tuple[float, ...]
 ) -> None:
-    k = CalibratedKinematics(c, TCP, backend=backend)  # type: ignore[arg-type]
+    k = CalibratedKinematics(c, TCP)
     qa = np.array(q)
     if not _away_from_singularities(k, qa):
         return
@@ -270,11 +269,10 @@ def test_a_nearly_stretched_elbow_keeps_the_seeds_branch() -> None:
         (0.0,) * 6,
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.002),
     )
-    for backend in ("numpy", "pinocchio"):
-        k = CalibratedKinematics(c, TCP, backend=backend)
-        q = np.array([1.375, 0.625, 0.125, 1.5, 0.75, -1.0])
-        solution = k.inverse(k.forward(q), q + 0.01)
-        assert np.max(np.abs(solution - q)) < 1e-6
+    k = CalibratedKinematics(c, TCP)
+    q = np.array([1.375, 0.625, 0.125, 1.5, 0.75, -1.0])
+    solution = k.inverse(k.forward(q), q + 0.01)
+    assert np.max(np.abs(solution - q)) < 1e-6
 
 
 def test_nominal_inverse_on_a_calibrated_arm_misses_by_millimetres() -> None:

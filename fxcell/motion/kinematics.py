@@ -82,6 +82,9 @@ _NEAR_MISS = 1e-6
 :func:`_rounding_slack` for how far it is near which singularity."""
 _POLISH_TOL = 1e-10
 """Pose error (m, rad) accepted from a solution polished by Newton steps."""
+_EDGE_C3 = 0.1
+"""How far beyond full stretch or fold (in cos θ3) :meth:`Kinematics.nearest_within` reports
+a missed branch (a calibration's millimetres move cos θ3 by up to ~0.04)."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
 
@@ -962,12 +965,26 @@ class Kinematics:
         return total, out
 
     def _fast_nearest(self, target: Pose, seed: list[float]) -> list[float] | None:
-        """The hot path of :meth:`inverse`: the nearest solution without building every branch.
+        """The hot path of :meth:`inverse`: the nearest solution without building every branch
+        (see :meth:`nearest_and_runner_up`)."""
+        return self.nearest_within(target, seed, 0.0)[0]
+
+    def nearest_within(
+        self, target: Pose, seed: list[float], margin: float
+    ) -> tuple[list[float] | None, list[tuple[float, list[float]]], float, bool]:
+        """The solution nearest ``seed`` (None: see below); with ``margin`` > 0 (rad,
+        Euclidean) also every solution whose distance from the seed is within ``margin`` of
+        the nearest one's, as (distance², joints) nearest first, and a bound: every other
+        solution's distance² is at least the third value; fourth, whether a branch not pruned
+        misses full stretch or fold by less than _EDGE_C3 (in cos θ3): slightly other arm
+        lengths would reach it. ``margin`` 0 is :meth:`inverse`'s
+        hot path. The calibrated inverse (:mod:`fxcell.motion.calibration`) refines the
+        solutions within the margin, which the deltas may reorder.
 
         Same result as ranking :meth:`_branches` with :meth:`_nearest`, with shared terms
         computed once per shoulder and wrist branch, branches pruned as soon as their
-        partial distance exceeds the best, and the 2π shift toward the seed inlined
-        (``_near`` only when the shifted angle leaves the limits); an exactly wrist-singular
+        partial distance exceeds the best (plus the margin), and the 2π shift toward the seed
+        inlined (``_near`` only when the shifted angle leaves the limits); an exactly wrist-singular
         shoulder goes to :meth:`_singular_arms` last, unless the others' best already beats
         its θ1 and θ5 alone. Returns None, to fall back on the general path, next to the
         singularities that need its special handling (polishing) or when nothing fits.
@@ -1006,16 +1023,18 @@ class Kinematics:
         h2 = rho2 - d4 * d4
         if h2 < 0.0:  # beyond the shoulder singularity by rounding, or out of reach
             if h2 < -_CLIP_EPS * d4 * d4:
-                return None
+                return None, [], math.inf, True
             h2 = 0.0
         h = sqrt(h2)
         # (c1, sn1) has norm √((h² + d4²) / rho2): 1 but for a clipped h2
         norm = rho2 if h2 > 1e-12 else sqrt(rho2 * (h2 + d4 * d4))
         k3 = 1.0 / (2.0 * a2 * a3)
         l3 = a2 * a2 + a3 * a3
-        best = math.inf
+        best = cut = math.inf
         best_q: list[float] | None = None
+        found: list[tuple[float, list[float]]] = []
         near_miss = False
+        edge = False
         shoulders = []
         # next to the shoulder singularity θ1 carries rounding error amplified ~1/h, but
         # the pose reached moves only to second order: the two branches nearly coincide
@@ -1033,7 +1052,7 @@ class Kinematics:
             shoulders.reverse()  # nearest θ1 first: the pruning bites early
         singular = []
         for e1, v1, c1, sn1, t1 in shoulders:
-            if e1 >= best:
+            if e1 >= cut:
                 continue
             zx = r00 * sn1 - r10 * c1
             zy = r01 * sn1 - r11 * c1
@@ -1074,7 +1093,7 @@ class Kinematics:
             if len(wrists) == 2 and wrists[1][0] < wrists[0][0]:
                 wrists.reverse()
             for e6, sign, v5, v6 in wrists:
-                if e6 >= best:
+                if e6 >= cut:
                     continue
                 t234 = atan2(sign * x4z, sign * x4p)
                 sd5 = sign * d5
@@ -1083,6 +1102,8 @@ class Kinematics:
                 Y = oz - d1
                 c3 = (X * X + Y * Y - l3) * k3
                 if c3 > 1.0 or c3 < -1.0:
+                    if margin > 0.0 and abs(c3) < 1.0 + _EDGE_C3:
+                        edge = True
                     if abs(c3) > 1.0 + _CLIP_EPS:
                         miss = abs(c3) - 1.0
                         near_miss = near_miss or miss <= slack
@@ -1099,7 +1120,7 @@ class Kinematics:
                         if v2 != v2:
                             continue
                     e = e6 + (v2 - s1_) * (v2 - s1_)
-                    if e >= best:
+                    if e >= cut:
                         continue
                     v3 = t3e + tau * (((s2 - t3e) * inv + 0.5) // 1.0)
                     if not lo2 <= v3 <= hi2:
@@ -1113,28 +1134,39 @@ class Kinematics:
                         if v4 != v4:
                             continue
                     e += (v3 - s2) * (v3 - s2) + (v4 - s3) * (v4 - s3)
-                    if e < best:
-                        best = e
-                        best_q = [v1, v2, v3, v4, v5, v6]
+                    if e < cut:
+                        sol = [v1, v2, v3, v4, v5, v6]
+                        if margin > 0.0:
+                            found.append((e, sol))
+                        if e < best:
+                            best, best_q = e, sol
+                            cut = best if margin == 0.0 else (sqrt(best) + margin) ** 2
         if near_miss:
-            return None
+            return None, found, math.inf, True
         # exactly wrist singular (θ5 = 0 or π, θ6 free), last: the others' best prunes it
         for e1, t1, c1, sn1, c5 in singular:
             v5 = _near(0.0 if c5 > 0.0 else math.pi, s4, lo4, hi4)
             if v5 != v5:
                 continue
             e5 = e1 + (v5 - s4) * (v5 - s4)
-            if e5 >= best:
+            if e5 >= cut:
                 continue
             f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
             sols = self._singular_arms(
-                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, best - e5, nearest_only=True
+                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=True
             )
             for sol in sols:
                 ranked = self._nearest(sol, seed)
-                if ranked is not None and ranked[0] < best:
+                if ranked is None or ranked[0] >= cut:
+                    continue
+                if margin > 0.0:
+                    found.append(ranked)
+                if ranked[0] < best:
                     best, best_q = ranked
-        return best_q
+                    cut = best if margin == 0.0 else (sqrt(best) + margin) ** 2
+        if margin > 0.0:
+            found = sorted(c for c in found if c[0] < cut)
+        return best_q, found, cut, edge
 
     def inverse(
         self,
@@ -1236,6 +1268,234 @@ class Kinematics:
                 if lam > 1.0:
                     return qq
         return qq
+
+
+class DHChain:
+    """A 6R arm's standard DH chain with per-joint θ offsets (a calibrated UR arm) and a TCP:
+    forward kinematics, geometric Jacobian and Newton steps, in plain floats.
+
+    ``T_j = Rz(q_j + θ_j)·Tz(d_j)·Tx(a_j)·Rx(α_j)``; ``tcp`` is 12 floats (rotation row-major,
+    then position) in the flange frame. The calibrated inverse
+    (:class:`fxcell.motion.calibration.CalibratedKinematics`) refines the nominal closed form
+    with :meth:`newton`: from a start a few millimetres off, three or four steps reach the
+    rounding floor (~1e-15), about a microsecond each compiled.
+    """
+
+    def __init__(
+        self,
+        theta: Sequence[float],
+        a: Sequence[float],
+        d: Sequence[float],
+        alpha: Sequence[float],
+        tcp: Sequence[float],
+    ) -> None:
+        self._theta = [float(v) for v in theta]
+        self._a = [float(v) for v in a]
+        self._d = [float(v) for v in d]
+        self._ca = [math.cos(float(v)) for v in alpha]
+        self._sa = [math.sin(float(v)) for v in alpha]
+        self._tcp = [float(v) for v in tcp]
+
+    def frame(self, q: Sequence[float]) -> list[float]:
+        """The TCP frame at ``q`` as 12 floats (rotation row-major, then position)."""
+        return self._evaluate(q, None)
+
+    def frame_and_jacobian(self, q: Sequence[float]) -> tuple[list[float], list[float]]:
+        """The TCP frame (as :meth:`frame`) and the geometric Jacobian in the base frame,
+        36 floats row-major (rows vx, vy, vz, wx, wy, wz)."""
+        jac = [0.0] * 36
+        return self._evaluate(q, jac), jac
+
+    def _evaluate(self, q: Sequence[float], jac: list[float] | None) -> list[float]:
+        # frame axes X, Y, Z and origin O, as columns; joint j turns about Z of frame j-1
+        xx, xy, xz = 1.0, 0.0, 0.0
+        yx, yy, yz = 0.0, 1.0, 0.0
+        zx, zy, zz = 0.0, 0.0, 1.0
+        ox, oy, oz = 0.0, 0.0, 0.0
+        axes = [0.0] * 36  # z and origin of frame j-1 per joint (for the Jacobian)
+        cos, sin = math.cos, math.sin
+        for j in range(6):
+            k = 6 * j
+            axes[k] = zx
+            axes[k + 1] = zy
+            axes[k + 2] = zz
+            axes[k + 3] = ox
+            axes[k + 4] = oy
+            axes[k + 5] = oz
+            t = q[j] + self._theta[j]
+            ct, st = cos(t), sin(t)
+            ca, sa, a, d = self._ca[j], self._sa[j], self._a[j], self._d[j]
+            ux, uy, uz = ct * xx + st * yx, ct * xy + st * yy, ct * xz + st * yz
+            vx, vy, vz = ct * yx - st * xx, ct * yy - st * xy, ct * yz - st * xz
+            ox, oy, oz = ox + a * ux + d * zx, oy + a * uy + d * zy, oz + a * uz + d * zz
+            xx, xy, xz = ux, uy, uz
+            yx, yy, yz, zx, zy, zz = (
+                ca * vx + sa * zx,
+                ca * vy + sa * zy,
+                ca * vz + sa * zz,
+                ca * zx - sa * vx,
+                ca * zy - sa * vy,
+                ca * zz - sa * vz,
+            )
+        t00, t01, t02, t10, t11, t12, t20, t21, t22, tx, ty, tz = self._tcp
+        px = ox + xx * tx + yx * ty + zx * tz
+        py = oy + xy * tx + yy * ty + zy * tz
+        pz = oz + xz * tx + yz * ty + zz * tz
+        out = [
+            xx * t00 + yx * t10 + zx * t20,
+            xx * t01 + yx * t11 + zx * t21,
+            xx * t02 + yx * t12 + zx * t22,
+            xy * t00 + yy * t10 + zy * t20,
+            xy * t01 + yy * t11 + zy * t21,
+            xy * t02 + yy * t12 + zy * t22,
+            xz * t00 + yz * t10 + zz * t20,
+            xz * t01 + yz * t11 + zz * t21,
+            xz * t02 + yz * t12 + zz * t22,
+            px,
+            py,
+            pz,
+        ]
+        if jac is not None:
+            for j in range(6):
+                k = 6 * j
+                ax, ay, az = axes[k], axes[k + 1], axes[k + 2]
+                rx, ry, rz = px - axes[k + 3], py - axes[k + 4], pz - axes[k + 5]
+                jac[j] = ay * rz - az * ry
+                jac[6 + j] = az * rx - ax * rz
+                jac[12 + j] = ax * ry - ay * rx
+                jac[18 + j] = ax
+                jac[24 + j] = ay
+                jac[30 + j] = az
+        return out
+
+    def newton(
+        self,
+        q: Sequence[float],
+        target: Sequence[float],
+        iterations: int = 20,
+        converged: float = 1e-12,
+        rounding: float = 1e-11,
+    ) -> tuple[list[float], float]:
+        """Newton steps on the TCP pose error (position, rotation vector) from ``q`` toward
+        ``target`` (12 floats as :meth:`frame`): the joints and the error norm left (m and
+        rad together). A step that does not lower the error is retried damped
+        (Levenberg-Marquardt), as next to a singularity; the steps stop below ``converged``,
+        or below ``rounding`` when no step improves."""
+        qq = [float(v) for v in q]
+        frame, jac = self.frame_and_jacobian(qq)
+        err = _twist_to(frame, target)
+        norm = _norm6(err)
+        lam = 0.0
+        for _ in range(iterations):
+            if norm < converged:
+                break
+            step = _solve6(jac, err, lam)
+            if step is None:
+                lam = max(lam, 1e-9)
+                continue
+            trial = [qq[0] + step[0], qq[1] + step[1], qq[2] + step[2]]
+            trial += [qq[3] + step[3], qq[4] + step[4], qq[5] + step[5]]
+            frame, trial_jac = self.frame_and_jacobian(trial)
+            trial_err = _twist_to(frame, target)
+            trial_norm = _norm6(trial_err)
+            if trial_norm < norm:
+                qq, jac, err, norm = trial, trial_jac, trial_err, trial_norm
+                lam = lam * 0.1 if lam > 1e-9 else 0.0
+            else:
+                if norm < rounding:  # at the rounding floor: no better step exists
+                    break
+                lam = 1e-6 if lam == 0.0 else lam * 10.0
+                if lam > 1.0:
+                    break
+        return qq, norm
+
+
+def _twist_to(frame: list[float], target: Sequence[float]) -> list[float]:
+    """Position difference and rotation vector (base frame) from ``frame`` to ``target``
+    (12 floats each, rotation row-major then position)."""
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = frame[0:9]
+    b00, b01, b02, b10, b11, b12, b20, b21, b22 = target[0:9]
+    # E = B·Aᵀ: its skew part and trace give the rotation vector
+    e01 = b00 * a10 + b01 * a11 + b02 * a12
+    e02 = b00 * a20 + b01 * a21 + b02 * a22
+    e10 = b10 * a00 + b11 * a01 + b12 * a02
+    e12 = b10 * a20 + b11 * a21 + b12 * a22
+    e20 = b20 * a00 + b21 * a01 + b22 * a02
+    e21 = b20 * a10 + b21 * a11 + b22 * a12
+    trace = (
+        b00 * a00 + b01 * a01 + b02 * a02
+        + b10 * a10 + b11 * a11 + b12 * a12
+        + b20 * a20 + b21 * a21 + b22 * a22
+    )  # fmt: skip
+    wx, wy, wz = 0.5 * (e21 - e12), 0.5 * (e02 - e20), 0.5 * (e10 - e01)
+    s = math.sqrt(wx * wx + wy * wy + wz * wz)  # sin of the angle
+    scale = math.atan2(s, 0.5 * (trace - 1.0)) / s if s > 1e-300 else 1.0
+    return [
+        target[9] - frame[9],
+        target[10] - frame[10],
+        target[11] - frame[11],
+        scale * wx,
+        scale * wy,
+        scale * wz,
+    ]
+
+
+def _norm6(v: list[float]) -> float:
+    a, b, c, d, e, f = v
+    return math.sqrt(a * a + b * b + c * c + d * d + e * e + f * f)
+
+
+def _solve6(jac: list[float], rhs: list[float], lam: float) -> list[float] | None:
+    """``J·x = rhs`` (``lam`` 0), or the damped least squares ``(JᵀJ + lam·I)·x = Jᵀ·rhs``,
+    by Gaussian elimination with partial pivoting on a flat 6×7 array; None if singular to
+    rounding."""
+    m = [0.0] * 42
+    if lam == 0.0:
+        for i in range(6):
+            for k in range(6):
+                m[7 * i + k] = jac[6 * i + k]
+            m[7 * i + 6] = rhs[i]
+    else:
+        for i in range(6):
+            for k in range(i, 6):
+                acc = 0.0
+                for r in range(6):
+                    acc += jac[6 * r + i] * jac[6 * r + k]
+                m[7 * i + k] = acc
+                m[7 * k + i] = acc
+            m[7 * i + i] += lam
+            acc = 0.0
+            for r in range(6):
+                acc += jac[6 * r + i] * rhs[r]
+            m[7 * i + 6] = acc
+    for c in range(6):
+        p = c
+        big = abs(m[7 * c + c])
+        for r in range(c + 1, 6):
+            v = abs(m[7 * r + c])
+            if v > big:
+                p, big = r, v
+        if big < 1e-300:
+            return None
+        if p != c:
+            for k in range(c, 7):
+                m[7 * c + k], m[7 * p + k] = m[7 * p + k], m[7 * c + k]
+        inv_p = 1.0 / m[7 * c + c]
+        for r in range(c + 1, 6):
+            f = m[7 * r + c] * inv_p
+            if f != 0.0:
+                for k in range(c + 1, 7):
+                    m[7 * r + k] -= f * m[7 * c + k]
+    x = [0.0] * 6
+    for c in range(5, -1, -1):
+        acc = m[7 * c + 6]
+        for k in range(c + 1, 6):
+            acc -= m[7 * c + k] * x[k]
+        v = acc / m[7 * c + c]
+        if v - v != 0.0:  # NaN or inf
+            return None
+        x[c] = v
+    return x
 
 
 def _rounding_slack(s5: float, h: float) -> float:

@@ -207,7 +207,7 @@ class SimServer:
             if cal.is_nominal:
                 return Kinematics.ur3e(tcp, limits)
             # the controller's FK, actual_TCP_pose and its own moves use the calibrated model
-            return CalibratedKinematics(cal, tcp, limits, backend="numpy")
+            return CalibratedKinematics(cal, tcp, limits)
 
         table = next((o for o in self.config.scene.objects if o.name == "table"), None)
         guard = TableGuard(table.position, table.size) if table is not None else None
