@@ -95,3 +95,28 @@ def test_compiled_and_interpreted_kinematics_find_the_same_solutions(
         got, want = fast.inverse(pose, seed), slow.inverse(pose, seed)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12, err_msg=f"q={q!r} seed={seed!r}")
         assert len(fast.inverse_all(pose)) == len(slow.inverse_all(pose)), f"q={q!r}"
+
+
+def test_compiled_and_interpreted_calibrated_chains_agree() -> None:
+    # DHChain (the calibrated inverse's Newton steps) lives in the compiled module too
+    _require_compiled()
+    interpreted = _load("fxcell_kinematics_interpreted", SOURCE)
+    rng = np.random.default_rng(26)
+    dh = [
+        rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.a) + rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.d) + rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.alpha) + rng.uniform(-2e-3, 2e-3, 6),
+    ]
+    tcp = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.146]
+    fast = kinematics.DHChain(*dh, tcp)
+    slow = interpreted.DHChain(*dh, tcp)
+    for _ in range(200):
+        q = rng.uniform(-math.pi, math.pi, 6).tolist()
+        goal = fast.frame(q)
+        np.testing.assert_allclose(slow.frame(q), goal, rtol=0, atol=1e-15)
+        start = (np.array(q) + rng.uniform(-0.05, 0.05, 6)).tolist()
+        got, err = fast.newton(start, goal)
+        want, err_slow = slow.newton(start, goal)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        assert err == pytest.approx(err_slow, abs=1e-12)

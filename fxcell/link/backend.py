@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
+    from fxcell.calibration import Calibration
     from fxcell.config import RobotConfig
     from fxcell.link.client import (
         LinkStatus,
@@ -83,6 +84,10 @@ class LinkBackend(Protocol):
 
     async def dashboard(self, command: str, within: float = 5.0) -> str:
         """Send one Dashboard request line; returns the reply line."""
+
+    async def read_calibration(self) -> Calibration:
+        """The arm's factory calibration as the controller reports it (the primary
+        interface's kinematics info); CalibrationError when it cannot be read."""
 
     async def start_control(self, mode: str, program: str, within: float) -> None:
         """Start external control: ``script`` upload or ``urcap`` program."""

@@ -54,6 +54,7 @@ from fxcell.link.process import Guard, stop_reason
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
 if TYPE_CHECKING:
+    from fxcell.calibration import Calibration
     from fxcell.config import RobotConfig
 
 log = logging.getLogger(__name__)
@@ -862,6 +863,13 @@ class LinkClient:
         """Send one dashboard request line; returns the reply line."""
         reply: str = await self.call("dashboard", within, command=command)
         return reply
+
+    async def read_calibration(self) -> Calibration:
+        """The arm's calibration from the controller's primary interface (port 30001), read
+        in a thread; CalibrationError when it cannot be read within 3 s."""
+        from fxcell.link.primary import read_calibration
+
+        return await asyncio.to_thread(read_calibration, self.host)
 
     async def start_control(self, mode: str, program: str, within: float) -> None:
         """Start external control: ``script`` upload or ``urcap`` program."""

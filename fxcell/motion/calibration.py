@@ -62,6 +62,9 @@ _RIVAL_MARGIN = 1.0
 seed within which the hot path of :meth:`CalibratedKinematics.inverse` looks for a rival."""
 _RIVAL_FACTOR = 3.0
 """How much farther than the refined branch moved a rival branch is assumed to move."""
+_NEAR_SEED = 0.2
+"""Radians (Euclidean) from the seed within which the hot path trusts the nominal branches of
+the target alone (beyond, it also refines the branch of the seed-corrected target)."""
 
 
 BRANCH_TOLERANCE = 0.05
@@ -297,6 +300,20 @@ class CalibratedKinematics(Kinematics):
         reach = math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
         if math.sqrt(min(bound, unrefined)) <= reach:
             return None
+        if best_d > _NEAR_SEED * _NEAR_SEED:
+            # Next to a singularity the deltas can take the seed's own branch out of the
+            # nominal solutions of the target (a wrist near θ5 = 0 turns by tenths of a
+            # radian per millimetre); the target corrected by the offset at the seed has it.
+            try:
+                own = self.nominal.inverse(self.nominal_target(target, seed), seed)
+            except UnreachableError:
+                return np.array(best)
+            q, err = self._chain.newton(own.tolist(), goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
+            shifted = self._shifted(q, seed) if err <= ACCEPTED else None
+            if shifted is not None:
+                d = sum((a - b) * (a - b) for a, b in zip(shifted, seed, strict=True))
+                if d < best_d - 1e-12:
+                    return np.array(shifted)
         return np.array(best)
 
     def inverse(
@@ -413,15 +430,18 @@ def calibrated_model(calibration: Calibration, tcp: Pose | None = None) -> Any:
 
 
 CONTROLLER = "controller"
-"""``robot.calibration`` value: read the calibration from the controller at connect."""
+"""``robot.calibration`` value (the default): read the calibration from the controller at
+connect."""
+NOMINAL = "nominal"
+"""``robot.calibration`` value: UR's nominal model, by explicit choice."""
 
 
 def kinematics_for(config: CellConfig) -> Kinematics:
     """The arm of a configuration: calibrated when ``robot.calibration`` names a file (read
-    here; CalibrationError if it is unreadable), else the nominal UR3e (until the Cell has
-    read the controller's calibration); with the tool's TCP and the joint limits."""
+    here; CalibrationError if it is unreadable), else the nominal UR3e (``nominal``, or until
+    the Cell has read the controller's calibration); with the tool's TCP and the limits."""
     source = config.robot.calibration
-    if source is None or source == CONTROLLER:
+    if source is None or source in (CONTROLLER, NOMINAL):
         return Kinematics.ur3e(config.tool.tcp, config.limits)
     return calibrated_kinematics(config, Calibration.load(source))
 
