@@ -32,6 +32,7 @@ from fxcell.motion.kinematics import (
     FloatArray,
     JointValidity,
     Kinematics,
+    _compose,
     _joints,
     _near,
     _twist_to,
@@ -282,6 +283,10 @@ class CalibratedKinematics(Kinematics):
         moved = 0.0
         unrefined = math.inf  # the nearest nominal solution that did not converge
         for d_nominal, start in candidates:
+            if best is not None and math.sqrt(d_nominal) > (
+                math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
+            ):
+                break  # this one and the rest (farther) cannot come nearer
             q, err = self._chain.newton(start, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
             if err > ACCEPTED:
                 unrefined = min(unrefined, d_nominal)
@@ -304,11 +309,20 @@ class CalibratedKinematics(Kinematics):
             # Next to a singularity the deltas can take the seed's own branch out of the
             # nominal solutions of the target (a wrist near θ5 = 0 turns by tenths of a
             # radian per millimetre); the target corrected by the offset at the seed has it.
-            try:
-                own = self.nominal.inverse(self.nominal_target(target, seed), seed)
-            except UnreachableError:
-                return np.array(best)
-            q, err = self._chain.newton(own.tolist(), goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
+            corrected = _compose(
+                _compose(self.nominal.forward_rows(seed), _inverse_rows(self._chain.frame(seed))),
+                goal,
+            )
+            own = self.nominal.nearest_within(
+                Pose._raw(np.array(corrected[9:]), np.array(corrected[:9]).reshape(3, 3)),
+                seed,
+                0.0,
+            )[0]
+            if own is None or max(abs(a - b) for a, b in zip(own, best, strict=True)) < (
+                BRANCH_TOLERANCE
+            ):
+                return np.array(best)  # no such branch, or the one found
+            q, err = self._chain.newton(own, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
             shifted = self._shifted(q, seed) if err <= ACCEPTED else None
             if shifted is not None:
                 d = sum((a - b) * (a - b) for a, b in zip(shifted, seed, strict=True))
@@ -402,6 +416,17 @@ class CalibratedKinematics(Kinematics):
                 if lam > 1e8:
                     break
         return q, norm
+
+
+def _inverse_rows(f: list[float]) -> list[float]:
+    """The inverse of a rigid transform given as 12 floats (rotation row-major, position)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z = f
+    return [
+        r00, r10, r20, r01, r11, r21, r02, r12, r22,
+        -(r00 * x + r10 * y + r20 * z),
+        -(r01 * x + r11 * y + r21 * z),
+        -(r02 * x + r12 * y + r22 * z),
+    ]  # fmt: skip
 
 
 def _rows(pose: Pose) -> list[float]:
