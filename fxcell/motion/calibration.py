@@ -58,6 +58,9 @@ _SAME_START = 0.05
 """Radians (per joint) within which two starting points count as one."""
 _EDGE_TURN = 0.02
 """Radians by which a target near a wrist singularity is turned to find starts."""
+_CORRECTIONS = 3
+"""Offset corrections of a start Newton's steps did not bring to a solution (each followed by
+Newton steps again): see :meth:`CalibratedKinematics._corrected_newton`."""
 _RIVAL_MARGIN = 1.0
 """Radians (Euclidean in joint space) beyond the nearest nominal branch's distance from the
 seed within which the hot path of :meth:`CalibratedKinematics.inverse` looks for a rival."""
@@ -93,6 +96,9 @@ class CalibratedKinematics(Kinematics):
         # Rz(q + θ)·Tz(d)·Tx(a)·Rx(α) = Rz(q)·C with C fixed per joint
         self._links = [dh_transform(theta[j], d[j], a[j], alpha[j]) for j in range(6)]
         self._chain = DHChain(theta, a, d, alpha, self._tcp)
+        self.fallbacks = 0
+        """Calls of :meth:`inverse` (without ``valid`` or a margin) that the hot path left to
+        the general one (the benchmark reports it)."""
 
     @classmethod
     def ur3e_calibrated(
@@ -274,8 +280,10 @@ class CalibratedKinematics(Kinematics):
         the margin is assumed to move at most _RIVAL_FACTOR times as far as the farthest
         refined. At the edge of the nominal workspace (arm nearly stretched or folded) the
         deltas can add a branch the nominal arm lacks: the general path looks for it."""
-        nearest, candidates, bound, edge = self.nominal.nearest_within(target, seed, _RIVAL_MARGIN)
-        if nearest is None or edge:
+        nearest, candidates, bound, _ = self.nominal.nearest_within(
+            target, seed, _RIVAL_MARGIN, lenient=True
+        )
+        if nearest is None:
             return None
         goal = _rows(target)
         best: list[float] | None = None
@@ -288,6 +296,8 @@ class CalibratedKinematics(Kinematics):
             ):
                 break  # this one and the rest (farther) cannot come nearer
             q, err = self._chain.newton(start, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
+            if err > ACCEPTED:
+                q, err = self._corrected_newton(start, goal)
             if err > ACCEPTED:
                 unrefined = min(unrefined, d_nominal)
                 continue
@@ -313,22 +323,40 @@ class CalibratedKinematics(Kinematics):
                 _compose(self.nominal.forward_rows(seed), _inverse_rows(self._chain.frame(seed))),
                 goal,
             )
-            own = self.nominal.nearest_within(
-                Pose._raw(np.array(corrected[9:]), np.array(corrected[:9]).reshape(3, 3)),
-                seed,
-                0.0,
-            )[0]
+            own = self.nominal.nearest_within(_pose(corrected), seed, 0.0, lenient=True)[0]
             if own is None or max(abs(a - b) for a, b in zip(own, best, strict=True)) < (
                 BRANCH_TOLERANCE
             ):
                 return np.array(best)  # no such branch, or the one found
             q, err = self._chain.newton(own, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
+            if err > ACCEPTED:
+                q, err = self._corrected_newton(own, goal)
             shifted = self._shifted(q, seed) if err <= ACCEPTED else None
             if shifted is not None:
                 d = sum((a - b) * (a - b) for a, b in zip(shifted, seed, strict=True))
                 if d < best_d - 1e-12:
                     return np.array(shifted)
         return np.array(best)
+
+    def _corrected_newton(self, start: list[float], goal: list[float]) -> tuple[list[float], float]:
+        """Newton steps from ``start`` once it is corrected by the calibration's offset:
+        up to _CORRECTIONS times the nominal solution (lenient, nearest the last) for the goal
+        moved by the calibrated arm's error at the last, ``goal · F_cal(q)⁻¹ · F_nom(q)``;
+        for starts next to a singularity, where the nominal branch is too far for Newton's
+        steps (returns the last joints and the error norm left)."""
+        q, err = start, math.inf
+        for _ in range(_CORRECTIONS):
+            moved = _compose(
+                _compose(goal, _inverse_rows(self._chain.frame(q))), self.nominal.forward_rows(q)
+            )
+            nxt = self.nominal.nearest_within(_pose(moved), q, 0.0, lenient=True)[0]
+            if nxt is None:
+                break
+            q = nxt
+            q, err = self._chain.newton(q, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
+            if err <= ACCEPTED:
+                break
+        return q, err
 
     def inverse(
         self,
@@ -346,6 +374,7 @@ class CalibratedKinematics(Kinematics):
             fast = self._nearest_fast(target, s_list)
             if fast is not None:
                 return fast
+            self.fallbacks += 1
         s = np.array(s_list)
         singular: str | None = None
         rejected = 0
@@ -427,6 +456,11 @@ def _inverse_rows(f: list[float]) -> list[float]:
         -(r01 * x + r11 * y + r21 * z),
         -(r02 * x + r12 * y + r22 * z),
     ]  # fmt: skip
+
+
+def _pose(f: list[float]) -> Pose:
+    """A pose from 12 floats (rotation row-major, then position)."""
+    return Pose._raw(np.array(f[9:]), np.array(f[:9]).reshape(3, 3))
 
 
 def _rows(pose: Pose) -> list[float]:

@@ -85,6 +85,12 @@ _POLISH_TOL = 1e-10
 _EDGE_C3 = 0.1
 """How far beyond full stretch or fold (in cos θ3) :meth:`Kinematics.nearest_within` reports
 a missed branch (a calibration's millimetres move cos θ3 by up to ~0.04)."""
+_LENIENT_BEND = 0.05
+"""rad: how far from straight :meth:`Kinematics.nearest_within` (``lenient``) bends a
+stretched or folded arm, or turns θ1 from the shoulder singularity, for starting points."""
+_LENIENT_C3 = math.cos(_LENIENT_BEND)
+_LENIENT_H2 = math.sin(_LENIENT_BEND) ** 2
+"""(h/d4)² below which a ``lenient`` start is taken at the shoulder singularity's edge."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
 
@@ -970,7 +976,7 @@ class Kinematics:
         return self.nearest_within(target, seed, 0.0)[0]
 
     def nearest_within(
-        self, target: Pose, seed: list[float], margin: float
+        self, target: Pose, seed: list[float], margin: float, lenient: bool = False
     ) -> tuple[list[float] | None, list[tuple[float, list[float]]], float, bool]:
         """The solution nearest ``seed`` (None: see below); with ``margin`` > 0 (rad,
         Euclidean) also every solution whose distance from the seed is within ``margin`` of
@@ -988,6 +994,13 @@ class Kinematics:
         shoulder goes to :meth:`_singular_arms` last, unless the others' best already beats
         its θ1 and θ5 alone. Returns None, to fall back on the general path, next to the
         singularities that need its special handling (polishing) or when nothing fits.
+
+        ``lenient`` (starting points for the calibrated inverse, not solutions): a target
+        a little beyond the nominal reach (within _EDGE_C3·d4² in h² beyond the shoulder
+        singularity, within _EDGE_C3 in cos θ3 beyond full stretch or fold), or next to it,
+        gets branches with the arm bent by _LENIENT_BEND (θ3 ≈ ±_LENIENT_BEND; the wrist
+        centre that far from the shoulder singularity, both sides), so the branches the
+        deltas make on either side each have a start.
         """
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = target._R.tolist()
         px, py, pz = target._p.tolist()
@@ -1021,13 +1034,19 @@ class Kinematics:
         p5x, p5y, p5z = px - d6 * r02, py - d6 * r12, pz - d6 * r22
         rho2 = p5x * p5x + p5y * p5y
         h2 = rho2 - d4 * d4
+        clamped = False
+        if lenient and h2 < _LENIENT_H2 * d4 * d4:
+            if h2 < -_EDGE_C3 * d4 * d4 or rho2 == 0.0:
+                return None, [], math.inf, True
+            h2 = _LENIENT_H2 * d4 * d4
+            clamped = True
         if h2 < 0.0:  # beyond the shoulder singularity by rounding, or out of reach
             if h2 < -_CLIP_EPS * d4 * d4:
                 return None, [], math.inf, True
             h2 = 0.0
         h = sqrt(h2)
         # (c1, sn1) has norm √((h² + d4²) / rho2): 1 but for a clipped h2
-        norm = rho2 if h2 > 1e-12 else sqrt(rho2 * (h2 + d4 * d4))
+        norm = rho2 if h2 > 1e-12 and not clamped else sqrt(rho2 * (h2 + d4 * d4))
         k3 = 1.0 / (2.0 * a2 * a3)
         l3 = a2 * a2 + a3 * a3
         best = cut = math.inf
@@ -1101,6 +1120,10 @@ class Kinematics:
                 X = c1 * ox + sn1 * oy
                 Y = oz - d1
                 c3 = (X * X + Y * Y - l3) * k3
+                if lenient and abs(c3) > _LENIENT_C3:
+                    if abs(c3) >= 1.0 + _EDGE_C3:
+                        continue
+                    c3 = _LENIENT_C3 if c3 > 0.0 else -_LENIENT_C3
                 if c3 > 1.0 or c3 < -1.0:
                     if margin > 0.0 and abs(c3) < 1.0 + _EDGE_C3:
                         edge = True
@@ -1141,7 +1164,7 @@ class Kinematics:
                         if e < best:
                             best, best_q = e, sol
                             cut = best if margin == 0.0 else (sqrt(best) + margin) ** 2
-        if near_miss:
+        if near_miss and not lenient:
             return None, found, math.inf, True
         # exactly wrist singular (θ5 = 0 or π, θ6 free), last: the others' best prunes it
         for e1, t1, c1, sn1, c5 in singular:
