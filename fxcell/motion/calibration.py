@@ -280,40 +280,47 @@ class CalibratedKinematics(Kinematics):
         the margin is assumed to move at most _RIVAL_FACTOR times as far as the farthest
         refined. At the edge of the nominal workspace (arm nearly stretched or folded) the
         deltas can add a branch the nominal arm lacks: the general path looks for it."""
-        nearest, candidates, bound, _ = self.nominal.nearest_within(
-            target, seed, _RIVAL_MARGIN, lenient=True
-        )
-        if nearest is None:
-            return None
         goal = _rows(target)
-        best: list[float] | None = None
-        best_d = math.inf
-        moved = 0.0
-        unrefined = math.inf  # the nearest nominal solution that did not converge
-        for d_nominal, start in candidates:
-            if best is not None and math.sqrt(d_nominal) > (
-                math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
-            ):
-                break  # this one and the rest (farther) cannot come nearer
-            q, err = self._chain.newton(start, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
-            if err > ACCEPTED:
-                q, err = self._corrected_newton(start, goal)
-            if err > ACCEPTED:
-                unrefined = min(unrefined, d_nominal)
-                continue
-            m = sum((a - b) * (a - b) for a, b in zip(q, start, strict=True))
-            moved = max(moved, m)
-            shifted = self._shifted(q, seed)
-            if shifted is None:
-                continue
-            d = sum((a - b) * (a - b) for a, b in zip(shifted, seed, strict=True))
-            if d < best_d:
-                best, best_d = shifted, d
-        if best is None:
-            return None
-        # every branch not refined, moved as far, stays farther than the best found
-        reach = math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
-        if math.sqrt(min(bound, unrefined)) <= reach:
+        # within _RIVAL_MARGIN of the nearest nominal branch first; if a branch beyond could
+        # still come nearer once refined, every branch (still far cheaper than the general path)
+        for margin in (_RIVAL_MARGIN, math.inf):
+            nearest, candidates, bound, _ = self.nominal.nearest_within(
+                target, seed, margin, lenient=True
+            )
+            if nearest is None:
+                return None
+            best: list[float] | None = None
+            best_d = math.inf
+            moved = 0.0
+            unrefined = math.inf  # the nearest nominal solution that did not converge
+            for d_nominal, start in candidates:
+                if best is not None and math.sqrt(d_nominal) > (
+                    math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
+                ):
+                    break  # this one and the rest (farther) cannot come nearer
+                q, err = self._chain.newton(start, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
+                if err > ACCEPTED:
+                    q, err = self._corrected_newton(start, goal)
+                if err > ACCEPTED:
+                    unrefined = min(unrefined, d_nominal)
+                    continue
+                m = sum((a - b) * (a - b) for a, b in zip(q, start, strict=True))
+                moved = max(moved, m)
+                shifted = self._shifted(q, seed)
+                if shifted is None:
+                    continue
+                d = sum((a - b) * (a - b) for a, b in zip(shifted, seed, strict=True))
+                if d < best_d:
+                    best, best_d = shifted, d
+            if best is None:
+                return None
+            # every branch not refined, moved as far, stays farther than the best found
+            reach = math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
+            if math.sqrt(unrefined) <= reach:
+                return None
+            if math.sqrt(bound) > reach:
+                break
+        else:
             return None
         if best_d > _NEAR_SEED * _NEAR_SEED:
             # Next to a singularity the deltas can take the seed's own branch out of the
