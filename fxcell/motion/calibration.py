@@ -281,8 +281,9 @@ class CalibratedKinematics(Kinematics):
         refined. At the edge of the nominal workspace (arm nearly stretched or folded) the
         deltas can add a branch the nominal arm lacks: the general path looks for it."""
         goal = _rows(target)
-        # within _RIVAL_MARGIN of the nearest nominal branch first; if a branch beyond could
-        # still come nearer once refined, every branch (still far cheaper than the general path)
+        # within _RIVAL_MARGIN of the nearest nominal branch first; if none converges or a
+        # branch beyond could still come nearer once refined, every branch (still far cheaper
+        # than the general path)
         for margin in (_RIVAL_MARGIN, math.inf):
             nearest, candidates, bound, _ = self.nominal.nearest_within(
                 target, seed, margin, lenient=True
@@ -313,7 +314,7 @@ class CalibratedKinematics(Kinematics):
                 if d < best_d:
                     best, best_d = shifted, d
             if best is None:
-                return None
+                continue  # none within the margin converged: every branch
             # every branch not refined, moved as far, stays farther than the best found
             reach = math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
             if math.sqrt(unrefined) <= reach:
