@@ -290,6 +290,21 @@ def test_a_nearly_stretched_elbow_keeps_the_seeds_branch() -> None:
     assert np.max(np.abs(solution - q)) < 1e-6
 
 
+def test_a_pose_beyond_the_nominal_reach_is_solved_on_the_hot_path() -> None:
+    # Upper arm and forearm 1.5 mm longer: the nearly stretched arm's pose (θ3 = 0.02) is
+    # out of the nominal arm's reach, so the closed form has no branch there; the lenient
+    # nominal solution (the arm bent a little) is the start, without the general path.
+    c = Calibration(delta_a=(0.0, -0.0015, -0.0015, 0.0, 0.0, 0.0))
+    k = CalibratedKinematics(c, TCP)
+    q = np.array([0.4, -1.2, 0.02, -0.5, 1.1, 0.3])
+    target = k.forward(q)
+    with pytest.raises(UnreachableError):
+        k.nominal.inverse(target, q)
+    solution = k.inverse(target, q + 0.01)
+    assert k.fallbacks == 0
+    assert np.max(np.abs(solution - q)) < 1e-6
+
+
 def test_nominal_inverse_on_a_calibrated_arm_misses_by_millimetres() -> None:
     c = Calibration.parse_conf(UR_CONF)
     k = CalibratedKinematics(c, TCP)
