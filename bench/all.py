@@ -24,14 +24,17 @@ HERE = Path(__file__).resolve().parent
 # The load bench runs CPU burners: last, so that it disturbs no other bench.
 BENCHES = (
     "ik",
+    "ik_ned2",
     "planning",
     "trajectory",
     "stop",
     "sim_stream",
     "loop_lag",
     "api",
+    "sila",
     "recorder",
     "moves",
+    "placement",
     "load",
 )
 LONG = {"recorder", "moves"}

@@ -6,7 +6,10 @@ machine), a client polling ``GET /api/state`` at 200 req/s and a WebSocket watch
 500 Hz, all for the whole run.
 
 1. **Moves**: 50 joint moves (±0.3 rad of the base, velocity factor 0.5) over HTTP, each
-   awaited (``wait=true``). Target: 50 of 50 reach their goal.
+   awaited (``wait=true``). Target: 50 of 50 reach their goal. The daemon records them,
+   and every cycle of the recorded state stream is judged
+   (:mod:`fxcell.testing.setpoint_steps`): the worst commanded acceleration (servoJ's
+   target velocity, cycle to cycle) over the braking acceleration. Target: <= 1.05x.
 2. **STOP under a hostile upload**: while connections keep trying to upload 100 MB bodies
    (half with a wrong token, half with the right one), ``POST /api/cell/stop`` is timed 50
    times. Target: p99 <= 50 ms.
@@ -40,8 +43,10 @@ import httpx
 import websockets
 from _harness import Targets
 
+from fxcell.config import CellConfig
 from fxcell.daemon.process import DaemonProcess
 from fxcell.testing import simulator
+from fxcell.testing.setpoint_steps import Report
 
 TOKEN = "bench-token-0123456789abcdef0123"
 MOVES = 50
@@ -167,6 +172,7 @@ async def run(daemon: DaemonProcess, sim: Any) -> dict[str, Any]:
         q0 = (await http.get("/api/state")).json()["robot"]["q"]
 
         # 1. moves
+        moves_from = time.time_ns()
         completed = 0
         failures: list[str] = []
         for k in range(MOVES):
@@ -186,6 +192,7 @@ async def run(daemon: DaemonProcess, sim: Any) -> dict[str, Any]:
                 await http.post("/api/cell/init")  # recover (e.g. after a stop)
         out["moves_completed"] = completed
         out["move_failures"] = failures
+        out["moves_window"] = (moves_from, time.time_ns())
 
         # 2. STOP under hostile uploads
         host, port = daemon.url.removeprefix("http://").split(":")
@@ -246,11 +253,31 @@ async def run(daemon: DaemonProcess, sim: Any) -> dict[str, Any]:
     return out
 
 
+def judge_steps(logs: Path, window: tuple[int, int]) -> Report:
+    """Every cycle of the moves phase in the daemon's record, against the limits."""
+    from fxcell.recorder import topics
+    from fxcell.recorder.reading import LogReader
+    from fxcell.testing.setpoint_steps import check_states
+
+    limits = CellConfig.load().limits
+    states = [
+        state
+        for path in sorted(logs.glob(f"*{topics.FILE_SUFFIX}"))
+        for _, state in LogReader(path).decoded(
+            [topics.ROBOT_STATE], start=window[0], end=window[1]
+        )
+    ]
+    return check_states(states, limits.braking_acceleration, limits.velocity)
+
+
 def main() -> int:
     print(f"load average {os.getloadavg()[0]:.2f} before the run", flush=True)
     with tempfile.TemporaryDirectory() as tmp, simulator() as sim:
         config = Path(tmp) / "cell.yaml"
-        config.write_text(f"robot:\n  host: {sim.host}\ndaemon:\n  token_file: {tmp}/token\n")
+        config.write_text(
+            f"robot:\n  host: {sim.host}\ndaemon:\n  token_file: {tmp}/token\n"
+            f"recorder:\n  enabled: true\n  directory: {tmp}/logs\n"
+        )
         procs = burners(2)
         try:
             with DaemonProcess.start(config, token=TOKEN) as daemon:
@@ -261,6 +288,7 @@ def main() -> int:
         finally:
             for p in procs:
                 p.kill()
+        steps = judge_steps(Path(tmp) / "logs", out["moves_window"])
     stop_p50, stop_p99 = statistics.median(out["stop_ms"]), pct(out["stop_ms"], 0.99)
     worst_after = max(out["motion_after_abort_ms"])
     print(f"run: {elapsed:.0f} s under 2 CPU burners and {out['state_requests']} state requests")
@@ -277,10 +305,16 @@ def main() -> int:
         + " ms (simulator's own joints)"
     )
     print(f"  state stream delivery      {100 * out['stream_delivery']:.1f} % of 500 Hz")
+    print(
+        f"  commanded acceleration     worst {steps.worst_ratio:.2f}x the braking limit over "
+        f"{steps.cycles} cycles of the moves ({len(steps.over)} over 1.05x, "
+        f"{steps.gaps} controller clock gaps, {steps.worst_gap_ratio:.2f}x across them)"
+    )
     targets = Targets("load")
     targets.check("moves completed under load", out["moves_completed"], "==", MOVES)
     targets.check("STOP round trip p99 under uploads", stop_p99, "<=", 50.0, "ms")
     targets.check("motion after an abort, worst", worst_after, "<=", 20.0, "ms")
+    targets.check("commanded acceleration over its limit", steps.worst_ratio, "<=", 1.05, "x")
     return targets.finish()
 
 

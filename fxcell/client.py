@@ -38,6 +38,32 @@ CLIENT_HEADER = "X-Fxcell-Client"
 LEASE_HEADER = "X-Fxcell-Lease"  # = fxcell.daemon.control.LEASE_HEADER (no daemon import here)
 
 
+_EXT_VALUE = "utf-8''"
+
+
+def encode_client_name(name: str) -> str:
+    """``name`` as the value of the ``X-Fxcell-Client`` header: as it is when printable
+    ASCII, else an RFC 8187 ext-value (``UTF-8''`` and the percent-encoded UTF-8 bytes),
+    since header values are bytes that servers and browsers read as Latin-1."""
+    if name.isascii() and name.isprintable() and not name.lower().startswith(_EXT_VALUE):
+        return name
+    return "UTF-8''" + urllib.parse.quote(name, safe="")
+
+
+def decode_client_name(raw: bytes) -> str:
+    """The client name an ``X-Fxcell-Client`` header value carries (see
+    :func:`encode_client_name`); raw UTF-8 bytes are read as UTF-8 too, anything else
+    that is not UTF-8 as Latin-1."""
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")
+    text = text.strip()
+    if text.lower().startswith(_EXT_VALUE):
+        text = urllib.parse.unquote(text[len(_EXT_VALUE) :], errors="replace")
+    return "".join(c for c in text if c.isprintable())
+
+
 def default_client_name(program: str = "RemoteCell") -> str:
     """``user@host (program, pid N)``: how the daemon names this client to others."""
     try:
@@ -159,7 +185,7 @@ class RemoteCell(CellCommands):
         self._http = httpx.AsyncClient(
             base_url=self.url,
             timeout=httpx.Timeout(timeout, connect=5.0),
-            headers={CLIENT_HEADER: self.name},
+            headers={CLIENT_HEADER: encode_client_name(self.name)},
             transport=transport,
         )
 
@@ -218,19 +244,19 @@ class RemoteCell(CellCommands):
     async def _query(self, name: str) -> Any:
         return (await self._request("GET", f"/api/cell/{name}"))["result"]
 
-    async def start(self, name: str, **args: Any) -> RemoteOperation:
-        """Start command ``name`` as an operation and return at once."""
+    async def start(self, command: str, /, **args: Any) -> RemoteOperation:
+        """Start ``command`` as an operation and return at once."""
         record = await self._request(
             "POST",
-            f"/api/cell/{name}",
+            f"/api/cell/{command}",
             json_body=args,
             params={"wait": "false"},
             auth=True,
         )
         return RemoteOperation(self, record)
 
-    async def _command(self, name: str, **args: Any) -> Any:
-        op = await self.start(name, **args)
+    async def _command(self, command: str, /, **args: Any) -> Any:
+        op = await self.start(command, **args)
         return await op.wait()
 
     # ------------------------------------------------------------- daemon
@@ -360,16 +386,16 @@ class RemoteCell(CellCommands):
     # whose default bodies call run_command: the command table says how each goes over
     # HTTP and how its answer decodes.
 
-    async def run_command(self, name: str, **args: Any) -> Any:
-        """Run command ``name`` of :data:`fxcell.commands.COMMANDS` in the daemon; its
+    async def run_command(self, command: str, /, **args: Any) -> Any:
+        """Run ``command`` of :data:`fxcell.commands.COMMANDS` in the daemon; its
         result decoded into the type the Cell returns."""
-        entry = get_command(name)
+        entry = get_command(command)
         entry.check_args(args)
         if entry.kind == "query":
-            value = await self._query(name)
+            value = await self._query(command)
         else:
             value = await self._command(
-                name, **{k: _plain(v) for k, v in args.items() if v is not None}
+                command, **{k: _plain(v) for k, v in args.items() if v is not None}
             )
         return entry.result.decode(value)
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import inspect
+import math
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
@@ -61,6 +62,8 @@ class ArgType:
     scalar: Literal["float", "bool", "str", "level"] = "float"
     """``level``: a flag or a number (an IO value: digital true/false, analog 0..1)."""
     bounds: tuple[float, float] | None = None
+    closed: bool = False
+    """``bounds`` include ``low`` too."""
 
 
 FACTOR = ArgType("factor", "scale of the joint limits, in (0, 1]", "", bounds=(0.0, 1.0))
@@ -75,9 +78,22 @@ VECTOR3 = ArgType("vector3", "displacement along the base axes (x, y, z)", "m", 
 FLAG = ArgType("flag", "true or false", scalar="bool")
 SECONDS = ArgType("seconds", "time limit", "s", bounds=(0.0, 3600.0))
 
-GRIP_WIDTH = ArgType("grip_width", "finger opening, 0 (closed) to 0.050 (open)", "m")
-GRIP_SPEED = ArgType("grip_speed", "finger speed, 0.020 to 0.150", "m/s")
-GRIP_FORCE = ArgType("grip_force", "grip force, 20 to 185", "N")
+GRIP_WIDTH_RANGE = (0.0, 0.050)
+"""The Hand-E's finger opening, closed to fully open (m)."""
+GRIP_SPEED_RANGE = (0.020, 0.150)
+"""The Hand-E's finger speeds (m/s)."""
+GRIP_FORCE_RANGE = (20.0, 185.0)
+"""The Hand-E's grip forces (N)."""
+GRIP_WIDTH = ArgType(
+    "grip_width", "finger opening, 0 (closed) to 0.050 (open)", "m", bounds=GRIP_WIDTH_RANGE,
+    closed=True,
+)  # fmt: skip
+GRIP_SPEED = ArgType(
+    "grip_speed", "finger speed, 0.020 to 0.150", "m/s", bounds=GRIP_SPEED_RANGE, closed=True
+)
+GRIP_FORCE = ArgType(
+    "grip_force", "grip force, 20 to 185", "N", bounds=GRIP_FORCE_RANGE, closed=True
+)
 
 NAME = ArgType("name", "a name (letters, digits, '_', '-')", scalar="str")
 SIGNAL = ArgType("signal", "an IO signal name of the configuration (io.signals)", scalar="str")
@@ -87,10 +103,17 @@ LEVEL = ArgType(
 STATION = ArgType("station", "a station of the layout (rack, tray, machine, moulds)", scalar="str")
 SLOT = ArgType("slot", "a slot of the station: row letter and column number, e.g. B3", scalar="str")
 FRAME_POINT = ArgType("frame_point", "origin, x_point or xy_point", scalar="str")
+SLOTS = ArgType(
+    "slots",
+    "positions that must hold a seated crucible, comma-separated (e.g. A1,A2); '-': none; "
+    "empty: each position seated or empty",
+    scalar="str",
+)
+OBJECT_KIND = ArgType("object_kind", "an object kind of the layout (crucible, bead)", scalar="str")
 
 ARG_TYPES: tuple[ArgType, ...] = (
     FACTOR, JOINTS, POSE, VECTOR3, FLAG, SECONDS, GRIP_WIDTH, GRIP_SPEED, GRIP_FORCE,
-    NAME, SIGNAL, LEVEL, STATION, SLOT, FRAME_POINT,
+    NAME, SIGNAL, LEVEL, STATION, SLOT, FRAME_POINT, SLOTS, OBJECT_KIND,
 )  # fmt: skip
 
 
@@ -178,10 +201,70 @@ class Command:
                 f"{self.name}() takes no argument {', '.join(sorted(unknown))}"
             )
 
+    def check_values(self, args: Mapping[str, Any]) -> None:
+        """Raise :class:`InvalidArgumentError` for a required argument left out or a value
+        its :class:`ArgType` refuses: a number that is not finite or outside the type's
+        bounds, a list of another length or with an element that is not a finite number,
+        a flag that is not a bool, an empty name. (``None`` is the default of an optional
+        argument; poses may also be ``Pose`` objects, checked where they are used.)"""
+        for arg in self.args:
+            value = args.get(arg.name)
+            if value is None:
+                if arg.required:
+                    raise InvalidArgumentError(f"{self.name}() needs {arg.name}")
+                continue
+            problem = _problem(arg.type, value)
+            if problem:
+                raise InvalidArgumentError(f"{self.name}(): {arg.name} {problem}")
+
     def known_args(self, args: Mapping[str, Any]) -> dict[str, Any]:
         """``args`` restricted to the command's parameters (recorded extras dropped)."""
         names = {a.name for a in self.args}
         return {k: v for k, v in args.items() if k in names}
+
+
+def _finite(value: Any) -> bool:
+    """A finite real number (numpy scalars too), not a bool nor a string."""
+    return _number(value) and math.isfinite(float(value))
+
+
+def _problem(kind: ArgType, value: Any) -> str:
+    """What is wrong with ``value`` as a ``kind`` ("" if nothing)."""
+    if kind.scalar == "bool":
+        return "" if isinstance(value, bool) else f"must be true or false, got {value!r}"
+    if kind.scalar == "str":
+        return "" if isinstance(value, str) and value else f"must be a name, got {value!r}"
+    if kind.scalar == "level":
+        ok = isinstance(value, bool) or _finite(value)
+        return "" if ok else f"must be true, false or a finite number, got {value!r}"
+    if kind.length is not None:
+        if not isinstance(value, list | tuple):
+            return ""  # a Pose or an array: the command checks it
+        low, high = kind.length
+        if not low <= len(value) <= high:
+            count = str(low) if low == high else f"{low} to {high}"
+            return f"must be {count} numbers ({kind.unit}), got {len(value)}"
+        ok = all(_finite(v) for v in value)
+        return "" if ok else f"must be finite numbers, got {list(value)!r}"
+    if not _finite(value):
+        return f"must be a finite number, got {value!r}"
+    if kind.bounds is not None:
+        bottom, top = kind.bounds
+        above = bottom <= float(value) if kind.closed else bottom < float(value)
+        if not (above and float(value) <= top):
+            return f"must be in {'[' if kind.closed else '('}{bottom:g}, {top:g}], got {value!r}"
+    return ""
+
+
+def _number(value: Any) -> bool:
+    """A real number (numpy scalars too), not a bool."""
+    if isinstance(value, bool):
+        return False
+    try:
+        float(value)
+    except (TypeError, ValueError, OverflowError):
+        return False
+    return not isinstance(value, str | bytes)
 
 
 @dataclass(frozen=True)
@@ -225,6 +308,7 @@ _DOCS = {
     "queue": "wait for a running move to end instead of failing with MoveInProgressError",
     "timeout": "time limit (default: the cell's command timeout)",
 }
+_HEAL_DOCS = {"timeout": "time limit (default: robot.heal_timeout)"}
 _GRIP_DOCS = {"expect_object": "raise NothingGraspedError if the fingers close on nothing"}
 _MOVE = {"velocity_factor": FACTOR, "acceleration_factor": FACTOR, "queue": FLAG}
 _AT_SLOT = {
@@ -242,8 +326,9 @@ class CellCommands(Protocol):
     ``RemoteCell`` implements them all); ``Cell`` implements each one.
     """
 
-    async def run_command(self, name: str, **args: Any) -> Any:
-        """Run command ``name`` of :data:`COMMANDS` with keyword arguments."""
+    async def run_command(self, command: str, /, **args: Any) -> Any:
+        """Run ``command`` of :data:`COMMANDS` with keyword arguments (positional-only: a
+        command may have an argument called ``name``)."""
         ...
 
     # ------------------------------------------------------------- general
@@ -283,6 +368,18 @@ class CellCommands(Protocol):
     async def stop_external_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         """Stop the control program; returns when no program is playing."""
         return await self.run_command("stop_external_control", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"timeout": SECONDS}, guard=None, docs=_HEAL_DOCS)
+    async def restore_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        """After the robot link dropped or restarted: wait until it is up and the arm is seen
+        at rest, then take external control back (and set the tool again).
+
+        A safety stop raises its error (``ProtectiveStopError``, ...); an arm that is not
+        running (powered off, brakes engaged) raises ``InvalidStateError``; nothing within
+        ``timeout`` raises ``RobotTimeoutError``. What pick, place and the job do by
+        themselves before they go on.
+        """
+        return await self.run_command("restore_control", **_given(locals()))  # type: ignore[no-any-return]
 
     @command(
         "command",
@@ -642,6 +739,32 @@ class CellCommands(Protocol):
     ) -> GripResult:
         """Place the held object in a slot: approach, descend straight, release, rise."""
         return await self.run_command("place", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command(
+        "command",
+        MAPPING,
+        args={"expected": SLOTS},
+        guard=None,
+        needs_control=False,
+        docs={"expected": SLOTS.doc},
+    )
+    async def check_placement(self, expected: str = "") -> dict[str, Any]:
+        """Look at the fusion machine's crucible positions with the camera: each is
+        ``empty``, ``seated``, ``offset``, ``tilted`` or ``foreign``, with a confidence and
+        the measured offset (mm); anything on the holder outside them is an obstruction.
+
+        Returns ``{"ok", "reason", "positions", "obstructions", ...}``; the annotated image
+        is recorded (MCAP ``/camera/placement``) and served by the daemon
+        (``/api/camera/placement.jpg``). Raises ``CameraError`` when no frame comes.
+        """
+        return await self.run_command("check_placement", **_given(locals()))  # type: ignore[no-any-return]
+
+    @command("command", NONE, args={"kind": OBJECT_KIND}, guard=None)
+    async def declare_held(self, kind: str | None = None) -> None:
+        """Tell the cell what the gripper holds: an object kind of the layout (``crucible``,
+        ``bead``), or nothing when left out (e.g. after a restart, when a job knows it).
+        Collision checking and the payload set on the controller follow."""
+        return await self.run_command("declare_held", **_given(locals()))  # type: ignore[no-any-return]
 
     @command("command", BOOL, needs_control=False)
     async def stop(self) -> bool:

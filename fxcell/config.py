@@ -59,6 +59,15 @@ class RobotConfig(_Model):
     """Seconds a general command waits for the robot to confirm its effect."""
     connect_timeout: float = Field(10.0, gt=0)
     reconnect_backoff_max: float = Field(5.0, gt=0)
+    realtime_priority: int = Field(80, ge=0, le=99)
+    """SCHED_FIFO priority the robot-link process asks for (where the user may: see the
+    real-robot guide); 0 keeps it at normal scheduling."""
+    heal_attempts: int = Field(5, ge=0, le=20)
+    """Times in a row a pick, place or job step goes on by itself after the robot link
+    dropped or restarted under it (the arm at rest or braked) without the arm getting any
+    further, before it stops for the operator (and four times as many in all)."""
+    heal_timeout: float = Field(30.0, gt=0)
+    """Seconds such a recovery waits for the link, the arm at rest and external control."""
     heartbeat_timeout: float = Field(0.1, ge=0.02, le=1.0)
     """The link process brakes a running move by itself when it has heard nothing from
     the cell for this long (s): a thread of the cell process beats every 10 ms while a move
@@ -143,6 +152,24 @@ class RecorderConfig(_Model):
     """Seconds after which a log is removed (``null``: kept for ever)."""
 
 
+class SilaConfig(_Model):
+    """The SiLA 2 server beside the daemon's HTTP API (``fxcell daemon --sila``; guide:
+    docs/guides/sila.md)."""
+
+    enabled: bool = False
+    """Serve SiLA 2 (``--sila`` turns it on for one start)."""
+    port: int = Field(50052, ge=1, le=65535)
+    """gRPC port, on the daemon's address (daemon.host)."""
+    server_name: str = Field("fxcell cell", min_length=1, max_length=255)
+    """The SiLA Server Name schedulers show and discover the cell by (one per cell)."""
+    insecure: bool = False
+    """Plain (unencrypted) gRPC: development only; SiLA 2 expects TLS."""
+    discovery: bool = True
+    """Announce the server over zeroconf (mDNS, ``_sila._tcp``) on the daemon's address."""
+    state_dir: Path | None = None
+    """Where the server UUID, certificate and key are kept; default: beside the token file."""
+
+
 class DaemonConfig(_Model):
     host: str = "127.0.0.1"
     port: int = Field(8040, ge=1, le=65535)
@@ -154,6 +181,14 @@ class DaemonConfig(_Model):
     allowed_hosts: tuple[str, ...] = ()
     """Host names (besides localhost, the bind address and any IP address) under which
     the daemon may be reached; other names are refused (DNS-rebinding protection)."""
+    header_timeout: float = Field(3.0, gt=0, le=60)
+    """Seconds a client has to send a request's headers; a slower connection is closed."""
+    body_timeout: float = Field(10.0, gt=0, le=600)
+    """Seconds a client has to send a request's body once its headers are in."""
+    idle_timeout: int = Field(5, ge=1, le=3600)
+    """Seconds a kept-alive connection may stay idle between requests before it is closed."""
+    sila: SilaConfig = SilaConfig()
+    """The SiLA 2 server (off by default)."""
 
 
 class IOConfig(_Model):
@@ -210,6 +245,110 @@ class JobConfig(_Model):
     cycle_estimate: float = Field(900.0, gt=0)
     """Seconds a fusion cycle is expected to take, for the time-left estimate until one has
     been measured."""
+    heal_attempts: int = Field(5, ge=0, le=20)
+    """Times a step that is safe to repeat (go home, the machine's start pulse) is run again
+    after the robot link dropped under it, before the job stops for the operator (pick and
+    place go on by themselves within, see ``robot.heal_attempts``)."""
+
+
+class CameraConfig(_Model):
+    """A camera of the cell: where its frames come from, its intrinsics and where it is.
+
+    The camera frame is OpenCV's: z along the optical axis, x to the image's right, y down.
+    """
+
+    source: str | int | None = "simulator"
+    """Where frames come from: ``null`` (no camera: the placement check is unavailable), a
+    V4L2/USB index (``0``), a stream URL OpenCV opens (``rtsp://...``, ``http://.../mjpg``),
+    ``snapshot:http://...`` (one JPEG per HTTP GET, as network cameras offer), or
+    ``simulator``: the camera the simulator renders (the controller's address, port
+    :data:`SIMULATOR_CAMERA_PORT`)."""
+    width: int = Field(1280, ge=16, le=8192)
+    height: int = Field(960, ge=16, le=8192)
+    fx: float = Field(1100.0, gt=0)
+    """Focal length in pixels (from a calibration: docs/guides/vision.md)."""
+    fy: float = Field(1100.0, gt=0)
+    cx: float = 639.5
+    cy: float = 479.5
+    distortion: tuple[float, ...] = ()
+    """OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]); empty: none."""
+    mount: Literal["base", "flange"] = "base"
+    """What :attr:`pose` is relative to: the robot base, or the flange (a wrist camera)."""
+    pose: Vector6 = (0.0, 0.33, 0.60, 3.0414, 0.0, 0.0)
+    """The camera frame in the base (or flange) frame: x, y, z (m), rotation vector (rad)."""
+    timeout: float = Field(5.0, gt=0)
+    """Seconds a frame may take to arrive."""
+
+    @field_validator("distortion")
+    @classmethod
+    def _distortion_length(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if len(v) not in (0, 4, 5, 8, 12, 14):
+            raise ValueError("OpenCV takes 4, 5, 8, 12 or 14 distortion coefficients")
+        return v
+
+
+SIMULATOR_CAMERA_PORT = 8089
+"""The simulator serves its rendered camera on this port of its address (``GET /snapshot.jpg``)."""
+
+
+class FiducialConfig(_Model):
+    """One ArUco marker on the crucible holder: its id and centre in the station frame (m)."""
+
+    id: int = Field(ge=0)
+    position: tuple[float, float]
+
+
+class PlacementThresholds(_Model):
+    """Where the placement check draws its lines (chosen from measured data: bench/placement.py)."""
+
+    offset: float = Field(0.0012, gt=0)
+    """A crucible whose rim centre is farther than this (m) from its position is ``offset``."""
+    tilt_ratio: float = Field(0.972, gt=0, le=1)
+    """A rim whose minor/major axis ratio is below this is ``tilted`` (cos 13.6° ≈ 0.972)."""
+    diameter: float = Field(0.0012, gt=0)
+    """A top disc whose minor axis differs from the crucible's width by more than this (m) is
+    not a crucible (``foreign``)."""
+    rectangularity: float = Field(0.88, gt=0, le=1)
+    """A top whose area fills more of its bounding rectangle than this is boxy: ``foreign``."""
+    saturation: float = Field(60.0, gt=0, le=255)
+    """A top whose mean colour saturation (0-255) exceeds this is not platinum: ``foreign``."""
+    presence: float = Field(0.12, gt=0, le=1)
+    """A position whose foreground covers less than this fraction of a crucible's disc is
+    ``empty``."""
+    obstruction: float = Field(2.0e-5, gt=0)
+    """Foreground of more than this area (m²) on the holder outside the positions is an
+    obstruction (something left in the gripper's path)."""
+
+
+class VisionConfig(_Model):
+    """The camera and the placement check of the fusion machine's crucible positions."""
+
+    camera: CameraConfig = CameraConfig()
+    station: str = "machine"
+    """The layout station whose positions the check judges (its slots, its object kind)."""
+    dictionary: str = "DICT_4X4_50"
+    """The ArUco dictionary of the holder's markers (``cv2.aruco`` name)."""
+    marker_size: float = Field(0.028, gt=0)
+    """Side of each marker's black square (m)."""
+    markers: tuple[FiducialConfig, ...] = (
+        FiducialConfig(id=0, position=(-0.045, -0.042)),
+        FiducialConfig(id=1, position=(0.225, -0.042)),
+        FiducialConfig(id=2, position=(0.225, 0.042)),
+        FiducialConfig(id=3, position=(-0.045, 0.042)),
+    )
+    """The holder's markers, on the seat plane (z = 0 of the station frame)."""
+    holder: tuple[float, float, float, float] = (-0.078, -0.068, 0.258, 0.068)
+    """The holder's top plate in the station frame: x min, y min, x max, y max (m)."""
+    thresholds: PlacementThresholds = PlacementThresholds()
+    check_before_start: bool = True
+    """The job checks the positions before it starts the machine (when a camera is set)."""
+
+    @field_validator("markers")
+    @classmethod
+    def _enough_markers(cls, v: tuple[FiducialConfig, ...]) -> tuple[FiducialConfig, ...]:
+        if len(v) < 2 or len({m.id for m in v}) != len(v):
+            raise ValueError("give at least two markers with distinct ids")
+        return v
 
 
 class CellConfig(_Model):
@@ -229,6 +368,7 @@ class CellConfig(_Model):
     recorder: RecorderConfig = RecorderConfig()
     daemon: DaemonConfig = DaemonConfig()
     job: JobConfig = JobConfig()
+    vision: VisionConfig = VisionConfig()
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> CellConfig:

@@ -166,6 +166,13 @@ class MoveStoppedError(MoveError):
         super().__init__(message)
 
 
+class LinkBrakeError(MoveStoppedError):
+    """The robot-link process braked the move by itself along its path: the state stream
+    stalled, the cell went silent or the link went down. The arm is at rest where it braked;
+    nothing else happened, so the move can simply be made again (pick, place and the job do
+    that by themselves)."""
+
+
 class MoveInProgressError(MoveError):
     """Another move is already running and the caller did not ask to queue."""
 
@@ -326,3 +333,15 @@ class JobStoreError(JobError):
 
 class MachineError(JobError):
     """The fusion machine reports an error, or did not answer as its protocol requires."""
+
+
+# ----------------------------------------------------------------- camera
+
+
+class CameraError(FxcellError):
+    """The camera gave no frame: not configured, cannot be opened, or too slow (the
+    message says which and where it was looked for)."""
+
+
+class CameraNotConfiguredError(CameraError):
+    """No camera is configured (``vision.camera.source`` is null)."""

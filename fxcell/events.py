@@ -95,6 +95,18 @@ class DeviceEvent:
 
 
 @dataclass(frozen=True, slots=True)
+class PlacementEvent:
+    """A placement check: the annotated camera frame (JPEG) and the verdict (JSON-ready:
+    ``ok``, ``reason``, ``positions``, ``obstructions``, ...); recorded on ``/camera/placement``
+    (``foxglove.CompressedImage``) and ``/camera/placement/verdict``."""
+
+    time: float
+    jpeg: bytes
+    report: Mapping[str, Any] = field(default_factory=dict)
+    frame_id: str = "camera"
+
+
+@dataclass(frozen=True, slots=True)
 class LogEvent:
     """A log record worth keeping with the session (warnings, errors, notices)."""
 
@@ -106,7 +118,15 @@ class LogEvent:
     line: int = 0
 
 
-Event = CommandEvent | TransitionEvent | StateEvent | MotionEvent | DeviceEvent | LogEvent
+Event = (
+    CommandEvent
+    | TransitionEvent
+    | StateEvent
+    | MotionEvent
+    | DeviceEvent
+    | PlacementEvent
+    | LogEvent
+)
 Subscriber = Callable[[Event], None]
 
 

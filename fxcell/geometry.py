@@ -39,7 +39,7 @@ def _quaternion_floats(q: ArrayLike) -> tuple[float, float, float, float]:
     arr = np.asarray(q, dtype=np.float64)
     if arr.shape != (4,) or not np.all(np.isfinite(arr)):
         raise InvalidTargetError(f"a quaternion is 4 finite numbers (x, y, z, w), got {q!r}")
-    n = math.sqrt(float(arr @ arr))
+    n = math.hypot(*(float(v) for v in arr))  # no overflow for huge components
     if n < 1e-6:
         raise InvalidTargetError(f"quaternion {q!r} has (almost) zero norm: not a rotation")
     x, y, z, w = (float(v) / n for v in arr)

@@ -45,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
     ]
     print(f"stations: {', '.join(stations) or 'none'}")
     print(f"positions: {config.positions_file}")
+    print(f"robot link scheduling: {link_scheduling(config.robot.realtime_priority)}")
+    print(sila_line(config))
     return 0
 
 
@@ -67,3 +69,32 @@ def _arm_model(config: Any) -> str:
     except CalibrationError as exc:
         return f"calibrated from {source}: UNREADABLE ({exc})"
     return f"calibrated from {source}, checksum {calibration.checksum}"
+
+
+def link_scheduling(priority: int) -> str:
+    """Whether a robot-link process started by this user gets real-time scheduling."""
+    from fxcell.link.realtime import probe
+
+    scheduling = probe(priority)
+    if scheduling.realtime:
+        return f"real time ({scheduling.describe()}): permitted for this user"
+    return f"normal, not real time: {scheduling.detail} (see docs/guides/real-robot.md)"
+
+
+def sila_line(config: Any) -> str:
+    """The SiLA 2 server's address and its certificate's fingerprint (for pinning by eye)."""
+    from fxcell.daemon.sila.identity import CERT_FILE, fingerprint, read_certificate, state_dir
+
+    sila = config.daemon.sila
+    where = f"{config.daemon.host}:{sila.port}"
+    state = "on" if sila.enabled else "off (fxcell daemon --sila)"
+    line = f"sila: {state}, {sila.server_name!r} on {where}"
+    if sila.insecure:
+        return line + ", without TLS (daemon.sila.insecure)"
+    certificate = read_certificate(config)
+    if certificate is None:
+        return line + f"; no certificate yet ({state_dir(config) / CERT_FILE}: made at first start)"
+    try:
+        return line + f"; certificate SHA-256 {fingerprint(certificate)}"
+    except (ImportError, ValueError) as exc:
+        return line + f"; certificate unreadable: {exc}"

@@ -12,6 +12,13 @@ from hypothesis import settings
 
 from fxcell.link import collector
 
+# sila2 compiles SiLAFramework.proto and adds it to protobuf's default pool when it is first
+# imported; with protobuf's upb backend that fails ("duplicate file name
+# SiLAFramework.proto") once google.protobuf.message_factory has been imported, as
+# tests/test_recorder.py does. The daemon never imports that module; here sila2 goes first.
+with contextlib.suppress(ImportError):
+    import sila2.framework  # noqa: F401
+
 pytest_plugins = ["fxcell.testing", "pytester"]
 
 # CI runs the property tests on fixed examples (a red CI run always reproduces); developers'

@@ -23,10 +23,11 @@ from pathlib import Path
 from typing import Any
 
 from fxcell.config import CellConfig, JobConfig
-from fxcell.errors import FxcellError, IOTimeoutError, NothingGraspedError
+from fxcell.errors import FxcellError, GripperError, IOTimeoutError, NothingGraspedError
 from fxcell.job import Job, JobStore, Run
 from fxcell.job.plan import location
 from fxcell.layout import Layout
+from fxcell.protocol import RobotState
 
 GRIPPER = "gripper"
 MACHINE_SIGNALS = ("machine_ready", "machine_busy", "machine_done", "machine_error")
@@ -88,6 +89,8 @@ class FakeIO:
         self.signals: dict[str, bool] = {}
         self._changed = asyncio.Event()
         self.on_set: list[Any] = []
+        self.history: list[tuple[str, bool]] = []
+        """Every ``set`` (signal, value), in order."""
         self.tick: Any = None
         """An async callable awaited first in ``set`` and ``wait_for`` (the cell's crash point)."""
 
@@ -105,6 +108,7 @@ class FakeIO:
         if self.tick is not None:
             await self.tick()
         self.write(signal, value)
+        self.history.append((signal, value))
         for callback in self.on_set:
             callback(signal, value)
 
@@ -191,6 +195,22 @@ class FakeMachine:
             self._timer.cancel()
 
 
+class FakeGripper:
+    """The gripper's object detection over the world; ``readable=False`` (the default):
+    it cannot be read (a fake without a gripper), so the job asks the operator."""
+
+    def __init__(self, world: World) -> None:
+        self.world = world
+        self.readable = False
+        self.holding = False
+
+    async def get_width(self) -> float:
+        if not self.readable:
+            raise GripperError("the fake cell has no gripper to read")
+        self.holding = GRIPPER in self.world.places
+        return 0.0 if self.holding else 0.05
+
+
 class FakeCell:
     """A :class:`fxcell.job.JobCell` over a :class:`World`.
 
@@ -212,6 +232,25 @@ class FakeCell:
         self.in_step = asyncio.Event()
         self.homes = 0
         self.moves: list[tuple[str, str, str]] = []
+        self.camera: Any = None
+        """A ``fxcell.testing.vision.VisionBench``: the machine's positions are looked at
+        (rendered from the world); ``None``: the cell has no camera."""
+        self.robot_state: RobotState | None = None
+        """The arm's latest sample (a fake cell has none unless a test sets one)."""
+        self.faults: dict[str, Any] = {}
+        """Machine slot -> the ``Fault`` its crucible stands in (default: seated)."""
+        self.next_place_fault: Any = None
+        """The next crucible placed in the machine stands like this (e.g. 4 mm off)."""
+        self.checks: list[Any] = []
+        self.gripper = FakeGripper(world)
+        self.held: str | None = None
+        self.restores = 0
+
+    async def declare_held(self, kind: str | None = None) -> None:
+        self.held = kind
+
+    async def restore_control(self) -> None:
+        self.restores += 1
 
     async def _tick(self) -> None:
         self.ticks += 1
@@ -240,6 +279,9 @@ class FakeCell:
         if place not in self.world.places:
             raise NothingGraspedError(f"nothing between the fingers at {place}")
         self.world.move(place, GRIPPER)
+        if station == "machine":
+            self.faults.pop(slot, None)
+        self.held = self.layout.station(station).config.holds
         self.machine.changed()
         await self._tick()  # retreat
 
@@ -253,8 +295,26 @@ class FakeCell:
             await self.gate.wait()
         await self._tick()  # descend, open
         self.world.move(GRIPPER, place)
+        if station == "machine" and self.next_place_fault is not None:
+            self.faults[slot] = self.next_place_fault
+            self.next_place_fault = None
+        self.held = None
         self.machine.changed()
         await self._tick()  # retreat
+
+    async def inspect_placement(self, expected: Any) -> Any:
+        if self.camera is None:
+            return None
+        from fxcell.testing.vision import Fault
+
+        positions = {
+            p.split(":")[1]: self.faults.get(p.split(":")[1], Fault.seated())
+            for p, obj in self.world.places.items()
+            if p.startswith("machine:") and obj.startswith("crucible:")
+        }
+        report = self.camera.check(self.camera.render(positions), set(expected))
+        self.checks.append(report)
+        return report
 
     async def go_home(self) -> None:
         self.homes += 1

@@ -85,6 +85,7 @@ async def _transition_to(cell: Cell, dest: CellState, within: float = 2.0) -> Tr
 # ----------------------------------------------------------------- life cycle
 
 
+@pytest.mark.injects_faults("shutdown takes the controller, and so the link, down")
 async def test_full_life_cycle_from_power_off_to_shutdown(sim: SimulatorHandle) -> None:
     async with Cell(host=sim.host) as cell:
         await cell.wait_for_state(CellState.POWER_OFF)
@@ -215,6 +216,7 @@ def _view(sim: SimulatorHandle, moving: bool = False) -> dict[str, Any]:
     return {k: state[k] for k in keys}
 
 
+@pytest.mark.injects_faults("safety stops and a stalled stream, one per state")
 @pytest.mark.parametrize(
     "state",
     [
@@ -259,6 +261,7 @@ async def test_each_command_is_refused_in_each_wrong_state_without_touching_the_
             await move
 
 
+@pytest.mark.injects_faults("the pendant switched to Local")
 async def test_local_control_refuses_commands_without_changing_the_robot(
     cell: Cell, shared_sim: SimulatorHandle
 ) -> None:
@@ -278,6 +281,7 @@ async def test_local_control_refuses_commands_without_changing_the_robot(
 # ----------------------------------------------------------------- observed events
 
 
+@pytest.mark.injects_faults("each controller event is injected")
 @pytest.mark.parametrize(
     ("fault", "dest", "after"),
     [
@@ -306,6 +310,7 @@ async def test_controller_events_reach_cell_state_within_50_ms(
         await cell.wait_for_state(CellState.PROGRAM_STOPPED, CellState.EXTERNAL_CONTROL_READY)
 
 
+@pytest.mark.injects_faults("a protective stop")
 async def test_protective_stop_recovery_restores_external_control(
     cell: Cell, shared_sim: SimulatorHandle
 ) -> None:
@@ -321,6 +326,7 @@ async def test_protective_stop_recovery_restores_external_control(
     assert shared_sim.state()["safety_mode"] == "NORMAL"
 
 
+@pytest.mark.injects_faults("the link process killed")
 async def test_link_crash_under_external_control_reconnects_and_restores_control(
     cell: Cell,
 ) -> None:
@@ -331,6 +337,7 @@ async def test_link_crash_under_external_control_reconnects_and_restores_control
     assert cell._link().control_ready
 
 
+@pytest.mark.injects_faults("the link process killed")
 async def test_killed_link_process_goes_disconnected_then_reconnects(cell: Cell) -> None:
     await cell.power_on()
     waiter = asyncio.create_task(_transition_to(cell, CellState.DISCONNECTED))
@@ -414,6 +421,7 @@ async def test_moves_are_admitted_only_with_external_control(cell: Cell) -> None
     await cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY, timeout=1)
 
 
+@pytest.mark.injects_faults("a protective stop")
 async def test_protective_stop_cancels_the_running_move_with_its_error(
     cell: Cell, shared_sim: SimulatorHandle
 ) -> None:
@@ -426,6 +434,7 @@ async def test_protective_stop_cancels_the_running_move_with_its_error(
     assert cell.state is CellState.PROTECTIVE_STOP
 
 
+@pytest.mark.injects_faults("the program stopped on the pendant")
 async def test_pendant_program_stop_cancels_the_running_move_with_its_error(
     cell: Cell, shared_sim: SimulatorHandle
 ) -> None:
@@ -438,6 +447,7 @@ async def test_pendant_program_stop_cancels_the_running_move_with_its_error(
     assert cell.state is CellState.PROGRAM_STOPPED
 
 
+@pytest.mark.injects_faults("the link process killed")
 async def test_lost_link_cancels_the_running_move(cell: Cell) -> None:
     await cell.init()
     task = asyncio.create_task(cell.run_move("move_joint", {}, _slow_move(cell)))

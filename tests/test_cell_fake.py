@@ -19,14 +19,17 @@ from fxcell import Cell, CellState, RobotMode
 from fxcell.errors import (
     ConnectionLostError,
     InvalidStateError,
+    LinkBrakeError,
     MoveStoppedError,
     NotInRemoteControlError,
     ProgramStoppedError,
     ProtectiveStopError,
     ProtectiveStopUnlockTooSoonError,
+    TrackingError,
 )
 from fxcell.events import TransitionEvent
 from fxcell.geometry import Pose
+from fxcell.link.embedded import SimulatorState
 from fxcell.protocol import ProgramState, RuntimeState
 from fxcell.testing import FakeLink, FakeRobot
 
@@ -65,6 +68,16 @@ def _at_rest(robot: FakeRobot) -> bool:
 
 
 # ----------------------------------------------------------------- life cycle
+
+
+async def test_the_fakes_state_has_the_simulators_schema(
+    off_cell: Cell, fake_robot: FakeRobot
+) -> None:
+    assert set(fake_robot.state()) == SimulatorState.__required_keys__
+    assert fake_robot.state()["control_script"] is False
+    await off_cell.init()  # ur_rtde's control script running: the same key says so
+    assert fake_robot.state()["control_script"] is True
+    assert fake_robot.state()["robot_mode"] == "RUNNING"
 
 
 async def test_init_walks_the_modes_to_external_control_and_sets_the_tool(
@@ -318,3 +331,65 @@ async def test_an_output_set_by_name_reaches_the_controller_and_an_input_wakes_w
     assert not waiter.done()
     fake_robot.set_input(2, True)  # DI2
     assert await waiter >= 0.0
+
+
+# ----------------------------------------------------------------- races and recovery
+
+
+async def test_a_move_body_that_hears_of_a_stop_before_its_sample_gets_the_stops_error(
+    fake_cell: Cell, fake_robot: FakeRobot
+) -> None:
+    # The link's end report of a refused trajectory can overtake the state sample that
+    # shows the protective stop: the body fails first, the Cell has not seen the stop yet.
+    async def body() -> None:
+        fake_robot.inject("protective_stop")  # on the controller; its sample comes later
+        assert fake_cell.state is not CellState.PROTECTIVE_STOP  # not observed yet
+        raise TrackingError("trajectory failed: protective_stop")
+
+    with pytest.raises(ProtectiveStopError):
+        await fake_cell.run_move("move_joint", {}, body)
+
+
+async def test_a_move_body_that_fails_by_itself_keeps_its_own_error(fake_cell: Cell) -> None:
+    async def body() -> None:
+        raise TrackingError("the body's own failure")
+
+    with pytest.raises(TrackingError, match="own failure"):
+        await fake_cell.run_move("move_joint", {}, body)
+    assert fake_cell.state is CellState.EXTERNAL_CONTROL_READY
+
+
+async def test_restore_control_after_a_lost_link_waits_for_the_arm_at_rest(
+    fake_cell: Cell, fake_robot: FakeRobot
+) -> None:
+    fake_robot.inject("drop_rtde")
+    await fake_cell.wait_for_state(CellState.DISCONNECTED)
+    assert fake_cell.link_losses == 1
+    await fake_cell.restore_control(timeout=10)
+    assert fake_cell.state is CellState.EXTERNAL_CONTROL_READY
+    sample = fake_cell.robot_state
+    assert sample is not None
+    assert max(map(abs, sample.actual_qd)) < 1e-3
+    await fake_cell.move_joint(QUARTER_TURN)  # and it moves again
+
+
+async def test_restore_control_in_a_protective_stop_raises_its_error(
+    fake_cell: Cell, fake_robot: FakeRobot
+) -> None:
+    fake_robot.inject("protective_stop")
+    await fake_cell.wait_for_state(CellState.PROTECTIVE_STOP)
+    with pytest.raises(ProtectiveStopError):
+        await fake_cell.restore_control(timeout=5)
+
+
+async def test_a_move_the_link_brakes_for_a_paused_stream_says_so(
+    fake_cell: Cell, fake_robot: FakeRobot
+) -> None:
+    # 90 ms without state: the link process's guard brakes (80 ms), the link stays up (100 ms)
+    task = asyncio.create_task(fake_cell.move_joint(QUARTER_TURN))
+    await _moving(fake_cell)
+    fake_robot.inject("stall_rtde", 0.09)
+    with pytest.raises(LinkBrakeError, match="stopped at"):
+        await task
+    assert fake_cell.link_losses == 0
+    await fake_cell.move_joint(QUARTER_TURN)  # made again from where it braked: arrives

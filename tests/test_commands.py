@@ -53,6 +53,32 @@ def test_cell_and_remote_cell_have_the_tables_signatures_and_result_types() -> N
     assert table_methods == set(COMMANDS)
 
 
+# Public coroutines of Cell that are the library's own plumbing, not commands: opening and
+# closing the session, waiting on the state machine, running a table command by name, checking
+# whether a table command by name would be admitted, running a caller's coroutine as the
+# Cell's move (it takes a Python callable), and the job's typed view of check_placement.
+NOT_COMMANDS = {
+    "open",
+    "close",
+    "wait_for_state",
+    "run_command",
+    "check_command",
+    "run_move",
+    "inspect_placement",
+}
+
+
+def test_every_public_cell_coroutine_is_a_command_of_the_table() -> None:
+    public = {
+        name
+        for name, fn in inspect.getmembers(Cell, inspect.iscoroutinefunction)
+        if not name.startswith("_")
+    }
+    missing = public - set(COMMANDS) - NOT_COMMANDS
+    assert not missing, f"public Cell coroutines outside the command table: {sorted(missing)}"
+    assert public >= NOT_COMMANDS  # the exceptions still exist (else drop them)
+
+
 def test_cell_checks_the_guard_the_table_names() -> None:
     import ast
     import textwrap
@@ -250,3 +276,15 @@ async def test_gripper_commands_answer_the_same_on_both(api: CellCommands) -> No
         await api.gripper_close(expect_object=True)
     with pytest.raises(InvalidArgumentError):
         await api.gripper_move(0.08)
+
+
+async def test_a_command_whose_argument_is_called_name_runs_through_run_command(
+    fake_cell: Any,
+) -> None:
+    # run_command takes the command's name positionally: move_to's and teach's own argument
+    # is called ``name`` too (the daemon and the SiLA server call them so).
+    await fake_cell.init()
+    taught = await fake_cell.run_command("teach", name="p1")
+    assert taught["joints"]
+    result = await fake_cell.run_command("move_to", name="p1")
+    assert result.target_joints == pytest.approx(taught["joints"])

@@ -3,28 +3,35 @@ decimation, and the HTTP layer's refusals (which happen before any robot is invo
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import platform
 import socket
 import stat
 import time
+import urllib.parse
 from collections.abc import AsyncIterator
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from fxcell import errors
+from fxcell.client import decode_client_name, encode_client_name
 from fxcell.config import CellConfig
 from fxcell.daemon.app import create_app
 from fxcell.daemon.auth import TOKEN_ENV, check_bearer, load_or_create_token, read_token
 from fxcell.daemon.control import ControlLock
 from fxcell.daemon.encoding import http_status
+from fxcell.daemon.guard import same_origin
 from fxcell.daemon.notify import Notifier
 from fxcell.daemon.server import check_bind, fix_mmap_threshold, is_loopback
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import Watcher, parse_rate, parse_topics
 from fxcell.errors import ConfigError, ControlHeldError
+from fxcell.motion.kinematics import Kinematics
 
 TOKEN = "s3cret-token-for-tests-0123456789"
 
@@ -344,6 +351,25 @@ async def test_openapi_documents_every_cell_function(http: httpx.AsyncClient) ->
     assert schema["minItems"] == schema["maxItems"] == 6
 
 
+async def test_the_page_draws_the_arm_with_the_runtimes_kinematics(
+    http: httpx.AsyncClient,
+) -> None:
+    model = (await http.get("/api/robot/model")).json()
+    assert model["robot"] == "UR3e"
+    dh = model["dh"]
+    kinematics = Kinematics.ur3e()
+    for q in ([0.0] * 6, [0.3, -1.2, 1.1, -0.4, 1.3, 0.7], [-2.0, -0.5, -1.9, 2.2, -0.8, 3.0]):
+        frame = np.eye(4)  # the page's chain: standard DH, link by link
+        for i in range(6):
+            ct, st = math.cos(q[i]), math.sin(q[i])
+            ca, sa = math.cos(dh["alpha"][i]), math.sin(dh["alpha"][i])
+            a, d = dh["a"][i], dh["d"][i]
+            link = [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
+                    [0, sa, ca, d], [0, 0, 0, 1]]  # fmt: skip
+            frame = frame @ np.array(link)
+        assert np.allclose(frame[:3, 3], kinematics.forward(np.array(q)).position, atol=1e-12)
+
+
 async def test_page_and_its_assets_are_served_without_external_resources(
     http: httpx.AsyncClient,
 ) -> None:
@@ -519,3 +545,120 @@ def test_job_errors_answer_with_their_own_http_status(error: Exception, status: 
 def test_the_daemon_can_fix_glibcs_mmap_threshold() -> None:
     # serve() calls it first; a threshold set explicitly is one glibc never raises
     assert fix_mmap_threshold()
+
+
+# ----------------------------------------------------------------- the framework's own errors
+
+
+@pytest.mark.parametrize(
+    ("body", "fragment"),
+    [
+        (b'{"target": [0, 0, 0, 0, 0, "\xff\xfe"]}', "not UTF-8"),
+        (b'{"value": ' + b"9" * 5000 + b"}", "too many digits"),
+        (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
+        (b'{"target": [0, 0, 0', "json"),
+    ],
+    ids=["invalid-utf8", "5000-digit-integer", "100000-deep-nesting", "truncated"],
+)
+async def test_bodies_that_do_not_parse_get_a_typed_422(
+    http: httpx.AsyncClient, body: bytes, fragment: str
+) -> None:
+    r = await http.post(
+        "/api/cell/move_joint",
+        content=body,
+        headers={**auth(), "Content-Type": "application/json"},
+    )
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["type"] == "InvalidArgumentError"
+    assert error["status"] == 422
+    assert fragment.lower() in error["message"].lower()
+
+
+async def test_unknown_paths_and_wrong_methods_get_typed_errors(http: httpx.AsyncClient) -> None:
+    r = await http.get("/api/no/such/thing")
+    assert r.status_code == 404
+    assert r.json()["error"] == {
+        "type": "RemoteError",
+        "message": "no such path: GET /api/no/such/thing",
+        "status": 404,
+        "detail": {},
+    }
+    r = await http.delete("/api/state")
+    assert r.status_code == 405
+    assert r.json()["error"]["type"] == "RemoteError"
+    assert r.json()["error"]["status"] == 405
+    assert "GET" in r.headers["Allow"]
+
+
+@pytest.mark.parametrize(
+    ("path", "body"),
+    [
+        ("/api/cell/move_distance", {"distance": [1e400, 0, 0]}),  # inf once parsed
+        ("/api/cell/move_joint", {"target": [0, 0, 0, 0, 0, 10**400]}),
+        ("/api/cell/gripper_move", {"width": 0.2}),
+        ("/api/cell/gripper_move", {"width": 0.02, "grip_force": -1e300}),
+        ("/api/cell/io_wait_for", {"signal": "x", "timeout": 1e300}),
+    ],
+)
+async def test_numbers_out_of_their_range_are_refused_before_a_cell_is_needed(
+    http: httpx.AsyncClient, path: str, body: dict[str, object]
+) -> None:
+    content = json.dumps(body).replace("Infinity", "1e400").encode()
+    r = await http.post(
+        path, content=content, headers={**auth(), "Content-Type": "application/json"}
+    )
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["type"] == "InvalidArgumentError"
+
+
+# ----------------------------------------------------------------- client names, origins
+
+
+NAME = "bétà-☺"
+
+
+@pytest.mark.parametrize(
+    "header",
+    [NAME.encode(), b"UTF-8''" + urllib.parse.quote(NAME).encode(), encode_client_name(NAME)],
+    ids=["raw-utf8", "rfc8187", "as-remotecell-sends-it"],
+)
+async def test_client_names_are_utf8_end_to_end(http: httpx.AsyncClient, header: object) -> None:
+    r = await http.post(
+        "/api/control",
+        headers={"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": header},  # type: ignore[arg-type]
+    )
+    assert r.status_code == 200, r.text
+    assert r.json()["client"] == NAME
+    assert (await http.get("/api/control")).json()["client"] == NAME
+
+
+def test_client_names_round_trip_through_the_header() -> None:
+    for name in (NAME, "plain@host (RemoteCell, pid 7)", "utf-8''x", "tab\there", "日本語"):
+        value = encode_client_name(name)
+        assert value.isascii()
+        assert decode_client_name(value.encode()) == name.replace("\t", "")
+    assert decode_client_name(b"caf\xe9") == "café"  # not UTF-8: read as Latin-1
+
+
+@pytest.mark.parametrize(
+    ("origin", "scheme", "host", "same"),
+    [
+        ("http://127.0.0.1:8040", "ws", "127.0.0.1:8040", True),
+        ("https://127.0.0.1:8040", "ws", "127.0.0.1:8040", False),  # another scheme
+        ("http://127.0.0.1:8040", "wss", "127.0.0.1:8040", False),
+        ("https://cell.lab", "wss", "cell.lab", True),
+        ("https://cell.lab:443", "wss", "cell.lab", True),
+        ("http://cell.lab", "ws", "cell.lab:80", True),
+        ("http://CELL.lab", "ws", "cell.LAB", True),
+        ("http://127.0.0.1:8041", "ws", "127.0.0.1:8040", False),
+        ("http://evil.example", "ws", "127.0.0.1:8040", False),
+        ("null", "ws", "127.0.0.1:8040", False),
+        ("http://127.0.0.1:99999", "ws", "127.0.0.1:8040", False),
+        ("http://127.0.0.1:8040", "ws", None, False),
+    ],
+)
+def test_the_stream_is_open_only_to_pages_of_the_same_origin(
+    origin: str, scheme: str, host: str | None, same: bool
+) -> None:
+    assert same_origin(origin, scheme, host) is same

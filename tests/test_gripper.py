@@ -20,7 +20,7 @@ from fxcell.errors import (
     ObjectLostError,
 )
 from fxcell.events import DeviceEvent
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, injected_faults, simulator
 
 PICK = [0.0, -1.2, 1.2, -1.57, -1.57, 0.0]
 PLACE = [0.4, -1.1, 1.1, -1.57, -1.57, 0.0]
@@ -128,7 +128,8 @@ async def test_a_fault_mid_grasp_is_a_typed_error(sim: SimulatorHandle, cell: Ce
     await cell.gripper.open()
     grasp = asyncio.create_task(cell.gripper.close(speed=0.02))
     await asyncio.sleep(0.1)
-    await asyncio.to_thread(sim.inject, "gripper_fault", "0x0E")
+    with injected_faults("a gripper fault"):
+        await asyncio.to_thread(sim.inject, "gripper_fault", "0x0E")
     with pytest.raises(GripperFaultError) as info:
         await grasp
     assert info.value.code == 0x0E
@@ -149,7 +150,8 @@ async def test_a_slipped_object_is_reported_lost(sim: SimulatorHandle, cell: Cel
         position=tcp(sim),
     )  # fmt: skip
     await cell.gripper.close(expect_object=True)
-    await asyncio.to_thread(sim.inject, "gripper_drop")
+    with injected_faults("the held object slips out"):
+        await asyncio.to_thread(sim.inject, "gripper_drop")
     with pytest.raises(ObjectLostError):
         await cell.gripper.check_holding()
     await cell.gripper.open()

@@ -174,8 +174,12 @@ async def test_a_crash_at_any_write_resumes_to_the_same_end(tmp_path: Path, afte
     assert write > 70  # every step's start and end of a two-cycle run
 
 
-async def crashed_mid_step(tmp_path: Path, action: str, moved: bool) -> tuple[Job, FakeCell, Run]:
-    """Crash in the first ``action`` (pick/place), before or after its object moved."""
+async def crashed_mid_step(
+    tmp_path: Path, action: str, moved: bool, *, gripper: bool = False
+) -> tuple[Job, FakeCell, Run]:
+    """Crash in the first ``action`` (pick/place), before or after its object moved;
+    ``gripper``: the restarted job can read the gripper's object detection (a new process:
+    the cell does not know what it holds)."""
     run = sample_run(1)
     world = World.for_run(run)
     cell = FakeCell(world)
@@ -190,6 +194,9 @@ async def crashed_mid_step(tmp_path: Path, action: str, moved: bool) -> tuple[Jo
     first.close()
     cell.crash_at = None
     cell.crashed = False
+    if gripper:
+        cell.gripper.readable = True
+        cell.held = None
     recovered = Job(cell, JobStore(tmp_path / "job.sqlite3"))
     await recovered.recover()
     return recovered, cell, run
@@ -323,3 +330,18 @@ def test_sigkill_at_random_points_then_restart_ends_with_every_sample_home(tmp_p
     assert store.unfinished_run() is None
     assert store.locations(1) == final_locations(run)
     store.close()
+
+
+@pytest.mark.parametrize(("action", "moved"), [("pick", True), ("pick", False), ("place", False)])
+async def test_the_grippers_object_detection_answers_where_the_object_is(
+    tmp_path: Path, action: str, moved: bool
+) -> None:
+    job, cell, run = await crashed_mid_step(tmp_path, action, moved, gripper=True)
+    assert job.questions == {}  # nothing to ask: the gripper said it
+    assert job.locations[(0, "crucible")] == cell.world.where("crucible:S1")
+    assert "answer where" not in job.message
+    await job.resume()
+    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "done"
+    assert cell.world.places == expected_world(run)
+    job.store.close()
+    cell.machine.close()

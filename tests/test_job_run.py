@@ -14,6 +14,7 @@ from job_fakes import FakeCell, World, expected_world, sample_run
 from fxcell.cell.statemachine import diagram_path, read_statechart, to_mermaid
 from fxcell.config import JobConfig
 from fxcell.errors import (
+    ConnectionLostError,
     JobAnswerError,
     JobError,
     JobSpecError,
@@ -23,6 +24,7 @@ from fxcell.errors import (
 )
 from fxcell.job import Job, JobStore, Run, final_locations, make_plan
 from fxcell.job.runner import CHART
+from fxcell.protocol import RobotState
 
 TIMEOUT = 30.0  # generous: a busy 2-core machine
 
@@ -411,3 +413,90 @@ async def test_two_starts_at_once_make_one_run(bench: Bench) -> None:
     assert sorted(type(r).__name__ for r in results) == ["JobStateError", "int"]
     assert bench.store.unfinished_run() == bench.job.run_id
     await bench.job.abort()
+
+
+class FlakyLinkCell(FakeCell):
+    """A cell whose robot link drops under the first ``drops`` go-home moves."""
+
+    def __init__(self, world: World, drops: int) -> None:
+        super().__init__(world)
+        self.drops = drops
+
+    async def go_home(self) -> None:
+        if self.drops:
+            self.drops -= 1
+            raise ConnectionLostError("move aborted: robot went to disconnected")
+        await super().go_home()
+
+
+async def test_a_step_the_lost_link_interrupted_goes_on_by_itself_and_is_shown(
+    store: JobStore,
+) -> None:
+    run = sample_run(1)
+    world = World.for_run(run)
+    cell = FlakyLinkCell(world, drops=2)
+    events: list[dict[str, Any]] = []
+    job = Job(cell, store, on_event=events.append)
+    await job.start(run)
+    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "done"
+    assert world.places == expected_world(run)
+    assert cell.restores == 2  # control restored before each new attempt
+    heals = [e for e in events if e["event"] == "heal"]
+    assert [(h["phase"], h["attempt"]) for h in heals] == [("start", 1), ("start", 2), ("done", 2)]
+    assert heals[0]["what"] == "go home"
+    assert heals[0]["step"] == "go home"
+    assert job.status()["heals"]["count"] == 2
+    assert job.run_id is not None
+    home = next(r for r in store.steps(job.run_id) if r.kind == "home")
+    assert home.detail == "went on by itself after 2 lost robot link(s)"  # recorded
+    cell.machine.close()
+
+
+async def test_a_link_that_keeps_dropping_stops_the_job_for_the_operator(store: JobStore) -> None:
+    run = sample_run(1)
+    world = World.for_run(run)
+    cell = FlakyLinkCell(world, drops=100)
+    job = Job(cell, store, JobConfig(heal_attempts=2))
+    await job.start(run)
+    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "fault"
+    assert "disconnected" in job.message
+    assert cell.restores == 2
+    assert [h["phase"] for h in job.heals] == ["start", "start", "failed"]
+    cell.machine.close()
+
+
+class DriftingFlakyLinkCell(FlakyLinkCell):
+    """Each go-home move the lost link interrupts got the arm 0.01 rad further."""
+
+    async def go_home(self) -> None:
+        q = self.robot_state.actual_q[0] if self.robot_state else 0.0
+        self.robot_state = RobotState(actual_q=(q + 0.01, 0.0, 0.0, 0.0, 0.0, 0.0))
+        await super().go_home()
+
+
+async def test_a_move_interrupted_more_often_than_the_budget_goes_on_while_it_gets_further(
+    store: JobStore,
+) -> None:
+    run = sample_run(1)
+    world = World.for_run(run)
+    cell = DriftingFlakyLinkCell(world, drops=5)
+    job = Job(cell, store, JobConfig(heal_attempts=2))
+    await job.start(run)
+    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "done"
+    assert cell.restores == 5
+    assert [h["phase"] for h in job.heals][-1] == "done"
+    cell.machine.close()
+
+
+async def test_a_move_that_gets_further_each_time_still_stops_after_four_budgets(
+    store: JobStore,
+) -> None:
+    run = sample_run(1)
+    world = World.for_run(run)
+    cell = DriftingFlakyLinkCell(world, drops=100)
+    job = Job(cell, store, JobConfig(heal_attempts=2))
+    await job.start(run)
+    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "fault"
+    assert cell.restores == 8
+    assert [h["phase"] for h in job.heals][-1] == "failed"
+    cell.machine.close()

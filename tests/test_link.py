@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import os
 import time
 from collections.abc import AsyncIterator, Iterator
 from typing import Any
@@ -13,6 +14,7 @@ import pytest
 
 from fxcell.errors import InvalidArgumentError, RobotLinkError
 from fxcell.link import LinkClient, LinkStatus, collector
+from fxcell.link.realtime import probe
 from fxcell.protocol import CONTROL_PERIOD, RobotMode, RuntimeState
 from fxcell.testing import simulator
 
@@ -70,6 +72,15 @@ async def test_state_stream_delivers_every_sample_the_controller_sent(
     assert int(np.sum(steps - 1)) <= late
 
 
+async def test_the_link_process_says_how_it_is_scheduled(link: LinkClient) -> None:
+    # SCHED_FIFO where this user may (the probe asks the same of a short-lived thread)
+    assert link.scheduling is not None
+    assert link.scheduling.realtime == probe(link.realtime_priority).realtime
+    assert link.pid is not None
+    policy = os.sched_getscheduler(link.pid)
+    assert policy == (os.SCHED_FIFO if link.scheduling.realtime else os.SCHED_OTHER)
+
+
 async def test_dashboard_call_returns_the_reply_line(link: LinkClient) -> None:
     reply = await link.dashboard("robotmode")
     assert reply.startswith("Robotmode: ")
@@ -91,6 +102,7 @@ async def test_unreachable_controller_reports_each_failed_client() -> None:
         await client.close()
 
 
+@pytest.mark.injects_faults("the link process killed")
 async def test_killed_link_process_is_detected_and_restarted(link: LinkClient) -> None:
     old_pid = link.pid
     seen: list[LinkStatus] = []
@@ -106,6 +118,7 @@ async def test_killed_link_process_is_detected_and_restarted(link: LinkClient) -
     assert link.latest is not None
 
 
+@pytest.mark.injects_faults("a stalled state stream")
 async def test_stalled_rtde_marks_the_link_down_then_up(sim: Any) -> None:
     down_at: list[float] = []
 
@@ -121,6 +134,7 @@ async def test_stalled_rtde_marks_the_link_down_then_up(sim: Any) -> None:
         await link.wait_up(10)
 
 
+@pytest.mark.injects_faults("a stalled state stream")
 async def test_a_link_mute_for_seconds_is_restarted(link: LinkClient, sim: Any) -> None:
     restarts, pid = link.restarts, link.pid
     await asyncio.to_thread(sim.inject, "stall_rtde", "3.5")
@@ -130,6 +144,7 @@ async def test_a_link_mute_for_seconds_is_restarted(link: LinkClient, sim: Any) 
     assert link.restarts == restarts + 1
 
 
+@pytest.mark.injects_faults("the control program stopped")
 async def test_control_ready_follows_the_control_program(link: LinkClient, sim: Any) -> None:
     await _ready_for_control(link)
     await asyncio.to_thread(sim.inject, "stop_program")
@@ -180,6 +195,7 @@ async def test_trajectory_streams_to_its_target_with_progress(link: LinkClient) 
     )
 
 
+@pytest.mark.injects_faults("the link process killed mid-trajectory")
 async def test_the_garbage_collector_waits_while_a_trajectory_streams(link: LinkClient) -> None:
     # A full collection in a big heap stops the process for 100-300 ms, longer than the
     # link process waits for a beat: it must not run mid-move, and must run again after.
@@ -216,6 +232,7 @@ async def test_replace_remaining_ends_the_trajectory_early(link: LinkClient) -> 
     assert result.duration < 1.5
 
 
+@pytest.mark.injects_faults("a protective stop")
 async def test_trajectory_fails_on_protective_stop(link: LinkClient, sim: Any) -> None:
     await _ready_for_control(link)
     assert link.latest is not None

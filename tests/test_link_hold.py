@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from fxcell.link import process, wire
+from fxcell.link.follower import servo_omega
 from fxcell.link.process import Guard, _Trajectory
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
@@ -66,6 +67,22 @@ class Control:
             return self.changed.wait_for(lambda: self.calls.count(name) >= n, timeout)
 
 
+OMEGA = servo_omega(0.03, 2000.0)
+
+
+def _track(
+    q: tuple[float, ...], qd: tuple[float, ...], setpoint: tuple[float, ...], cycles: int
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """servoJ's target after ``cycles`` control cycles towards ``setpoint`` (the
+    critically damped tracker the follower and the simulator assume)."""
+    x, v = list(q), list(qd)
+    for _ in range(cycles):
+        for j, s in enumerate(setpoint):
+            v[j] += (OMEGA * OMEGA * (s - x[j]) - 2 * OMEGA * v[j]) * CONTROL_PERIOD
+            x[j] += v[j] * CONTROL_PERIOD
+    return tuple(x), tuple(v)
+
+
 class Link:
     """The attributes of fxcell.link.process.Link a trajectory reads, with a sample clock:
     the controller's time is the wall clock's, in 2 ms cycles, and a sample comes every
@@ -76,7 +93,7 @@ class Link:
         self.control = Control()
         self.control.clock = lambda: self.latest.timestamp if self.latest else 0.0
         self.latest: RobotState | None = RobotState(
-            runtime_state=RuntimeState.PLAYING, actual_q=TARGET
+            runtime_state=RuntimeState.PLAYING, actual_q=TARGET, target_q=TARGET
         )
         self.last_heard = self.last_state_at = time.monotonic()
         self.sample_walls: list[float] = []  # time.monotonic() of each sample
@@ -101,17 +118,31 @@ class Link:
             self.publish(cycle * CONTROL_PERIOD, now)
 
     def publish(self, stamp: float, now: float) -> None:
-        """A state sample of controller time ``stamp`` arrives at ``now``."""
+        """A state sample of controller time ``stamp`` arrives at ``now``: servoJ's target
+        has tracked the newest setpoint for the cycles since the last sample."""
         self.last_heard = self.last_state_at = now
         self.sample_walls.append(now)
         with self._tick:
             if self.latest is not None:
-                self.latest = dataclasses.replace(self.latest, timestamp=stamp)
+                q, qd = self.latest.target_q, self.latest.target_qd
+                if self.control.targets:
+                    last = self.latest.timestamp
+                    cycles = max(round((stamp - last) / CONTROL_PERIOD), 1) if last else 1
+                    q, qd = _track(q, qd, self.control.targets[-1], cycles)
+                self.latest = dataclasses.replace(
+                    self.latest, timestamp=stamp, target_q=q, target_qd=qd
+                )
             self._samples += 1
             self._tick.notify_all()
 
     def heard_within(self, timeout: float, now: float) -> bool:
         return now - self.last_heard <= timeout
+
+    def place(self, q: tuple[float, ...]) -> None:
+        """The arm rests at ``q`` (where the next trajectory starts)."""
+        with self._tick:
+            assert self.latest is not None
+            self.latest = dataclasses.replace(self.latest, target_q=q, actual_q=q)
 
     next_sample = process.Link.next_sample
 
@@ -135,6 +166,7 @@ def link() -> Iterator[Link]:
 
 def _run(link: Link, traj_id: int = 1) -> _Trajectory:
     samples = [tuple(v) for v in np.linspace(np.subtract(TARGET, 0.001), TARGET, 10)]
+    link.place(samples[0])
     traj = _Trajectory(link, traj_id, samples, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
     link._traj = traj
     traj.thread.start()
@@ -250,6 +282,7 @@ def test_a_move_that_ends_away_from_its_target_is_not_taken_over_after_its_repor
     link = EndHeld()
     try:
         path = [tuple(v) for v in np.linspace(np.subtract(TARGET, 0.1), TARGET, 400)]
+        link.place(path[0])
         traj = _Trajectory(link, 1, path, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
         traj.thread.start()
         assert link.control.wait_for("servoJ", 3)
@@ -273,6 +306,7 @@ def test_only_a_stop_away_from_the_target_warns_that_the_link_brakes(
 ) -> None:
     # a slow tail still in motion: the cell may see the robot settled before it streams
     tail = np.linspace(np.subtract(TARGET, 1e-5), TARGET, 400)
+    link.place(tuple(tail[0]))
     traj = _Trajectory(link, 1, [tuple(v) for v in tail], 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
     traj.thread.start()
     assert link.control.wait_for("servoJ", 3)
@@ -297,6 +331,7 @@ RAMP = [tuple(np.add(TARGET, (k * 1e-4,) * 6)) for k in range(-200, 1)]
 def _ramp_on(link: Link) -> Link:
     """Stream RAMP on ``link`` to its end (then close the stand-in)."""
     try:
+        link.place(RAMP[0])
         traj = _Trajectory(link, 1, RAMP, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
         traj.thread.start()
         _wait_ended(traj)

@@ -86,6 +86,7 @@ def _sim_motion(handle: SimulatorHandle, over: float = 0.05) -> float:
     return float(np.max(np.abs(np.array(handle.state()["q"]) - q0)))
 
 
+@pytest.mark.injects_faults("a stalled state stream")
 async def test_a_stalled_state_stream_brakes_the_move_before_its_caller_hears(
     shared: SimulatorHandle, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -165,6 +166,7 @@ async def test_a_link_process_frozen_mid_move_resumes_without_a_setpoint_jump(
         assert await asyncio.to_thread(_sim_motion, shared, 0.05) < 1e-4
 
 
+@pytest.mark.injects_faults("the cell's side of the link closed mid-move")
 async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandle) -> None:
     # The cell side vanishes mid-move (its socket to the link process closes): the link
     # brakes the trajectory along its path before it exits.
@@ -181,6 +183,7 @@ async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandl
         assert abs(shared.state()["q"][0] - FAR[0]) > 0.5
 
 
+@pytest.mark.injects_faults("the pendant switched to Local")
 async def test_local_control_brakes_a_running_move_and_refuses_new_ones(
     shared: SimulatorHandle,
 ) -> None:

@@ -356,20 +356,24 @@ def test_slow_disk_drops_and_counts_instead_of_blocking_the_caller(tmp_path: Pat
             return Stream()  # type: ignore[return-value]
 
     rec = Stalled(tmp_path, chunk_duration=0.05, max_queue=200, tf_rate=0)
-    stall.set()  # the disk hangs from now on
-    bus = EventBus()
-    rec.attach(bus)
-    worst = 0.0
-    for i in range(2000):
-        t = time.perf_counter()
-        bus.publish(StateEvent(RobotState(timestamp=i * 0.002)))
-        worst = max(worst, time.perf_counter() - t)
-        if i % 100 == 0:
-            time.sleep(0.005)
-    assert worst < 0.05  # the publisher never waits for the disk
-    wait_for(lambda: rec.stats.messages_dropped > 0)
-    release.set()
-    rec.close()
+    try:
+        stall.set()  # the disk hangs from now on (for 20 s unless released)
+        bus = EventBus()
+        rec.attach(bus)
+        worst = 0.0
+        for i in range(2000):
+            t = time.perf_counter()
+            bus.publish(StateEvent(RobotState(timestamp=i * 0.002)))
+            worst = max(worst, time.perf_counter() - t)
+            if i % 100 == 0:
+                time.sleep(0.005)
+        # the publisher never waits for the disk (that would be the 20 s hang); a busy
+        # machine may still deschedule it for a few hundred milliseconds
+        assert worst < 2.0
+        wait_for(lambda: rec.stats.messages_dropped > 0)
+    finally:
+        release.set()
+        rec.close()
     stats = rec.stats
     assert stats.queue_high_water >= 190
     states = stats.per_topic[topics.ROBOT_STATE]

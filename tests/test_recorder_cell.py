@@ -144,12 +144,7 @@ def test_a_scripted_cell_session_is_recorded_completely(session: Session) -> Non
 
 
 async def _reexecute(path: Path, config: CellConfig) -> ReexecuteReport:
-    """Re-execute; once more if the robot link dropped (a starved CPU, not a deviation)."""
-    for _ in range(2):
-        report = await reexecute(path, config=config, time_scale=TIME_SCALE)
-        if not any("ConnectionLostError" in c.outcome for c in report.comparisons):
-            break
-    return report
+    return await reexecute(path, config=config, time_scale=TIME_SCALE)
 
 
 async def test_reexecuting_a_session_reproduces_it(session: Session) -> None:

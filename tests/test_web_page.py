@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import io
 import itertools
 import json
@@ -137,34 +138,32 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
 
 @pytest.fixture
 async def browser(daemon: DaemonProcess, tmp_path: Path) -> AsyncIterator[Browser]:
+    async with headless_chromium(tmp_path / "profile", 1440, 1100) as b:
+        yield b
+
+
+@contextlib.asynccontextmanager
+async def headless_chromium(profile: Path, width: int, height: int) -> AsyncIterator[Browser]:
+    """Debian's headless Chromium on a page of ``width`` × ``height`` pixels, driven over
+    its DevTools protocol; skipped without Chromium (a failure with
+    ``FXCELL_REQUIRE_BROWSER``, as in CI)."""
     chromium = find_chromium()
     if chromium is None:
         if os.environ.get("FXCELL_REQUIRE_BROWSER"):
             pytest.fail("no Chromium found (apt-get install chromium)")
         pytest.skip("no Chromium found (apt-get install chromium); set FXCELL_CHROMIUM")
-    profile = tmp_path / "profile"
     proc = subprocess.Popen(  # noqa: ASYNC220 - started once, before the loop is busy
         [
-            chromium,
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            "--disable-dev-shm-usage",
-            "--hide-scrollbars",
-            f"--user-data-dir={profile}",
-            "--remote-debugging-port=0",
-            "--window-size=1440,1100",
-            "about:blank",
+            chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+            "--no-first-run", "--disable-background-networking", "--disable-component-update",
+            "--disable-sync", "--disable-dev-shm-usage", "--hide-scrollbars",
+            f"--user-data-dir={profile}", "--remote-debugging-port=0",
+            f"--window-size={width},{height}", "about:blank",
         ],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
-    )
+    )  # fmt: skip
     try:
         port_file = profile / "DevToolsActivePort"
         deadline = time.monotonic() + 30
@@ -180,7 +179,7 @@ async def browser(daemon: DaemonProcess, tmp_path: Path) -> AsyncIterator[Browse
             await browser.call("Runtime.enable")
             await browser.call("Page.enable")
             await browser.call(
-                "Emulation.setDeviceMetricsOverride", width=1440, height=1100,
+                "Emulation.setDeviceMetricsOverride", width=width, height=height,
                 deviceScaleFactor=1, mobile=False,
             )  # fmt: skip
             yield browser

@@ -16,16 +16,25 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Mapping, Sequence
+from collections.abc import (
+    AsyncIterator,
+    Awaitable,
+    Callable,
+    Collection,
+    Coroutine,
+    Mapping,
+    Sequence,
+)
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from fxcell.calibration import Calibration
-from fxcell.cell import handling
+from fxcell.cell import handling, healing
+from fxcell.cell.camera import CellCamera
 from fxcell.cell.gripper import Gripper
 from fxcell.cell.io import CellIO
 from fxcell.cell.statemachine import CellState, RobotStateMachine, observed_state
-from fxcell.cell.teach import TaughtStore
+from fxcell.cell.teach import TaughtStore, check_frame_point
 from fxcell.cell.teach import check_name as check_position_name
 from fxcell.commands import CellCommands, get_command
 from fxcell.config import CellConfig
@@ -35,6 +44,7 @@ from fxcell.errors import (
     EmergencyStopError,
     FxcellError,
     InvalidArgumentError,
+    InvalidStateError,
     MoveInProgressError,
     MoveStoppedError,
     NotInRemoteControlError,
@@ -61,7 +71,7 @@ from fxcell.jsonable import to_jsonable
 from fxcell.layout import Layout, LayoutConfig, layout_data
 from fxcell.link import LinkStatus, StateSubscription
 from fxcell.link.backend import LinkBackend, LinkFactory
-from fxcell.link.client import process_link
+from fxcell.link.client import LinkClient, process_link
 from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.motion.runner import (
     DistanceTarget,
@@ -73,9 +83,11 @@ from fxcell.motion.runner import (
 )
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.results import GripResult, MoveResult, ProgramStatus
+from fxcell.settling import REST_VELOCITY
 
 if TYPE_CHECKING:
     from fxcell.motion.moves import MotionController
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 
@@ -94,8 +106,18 @@ _FAILURE_STATES: dict[CellState, type[FxcellError]] = {
     CellState.EMERGENCY_STOP: EmergencyStopError,
     CellState.FAULT: RobotFaultError,
 }
+EXPLAIN_SAMPLES = 25
+"""State samples a failed move waits for the one that shows why (a safety or program stop)..."""
+EXPLAIN_WITHIN = 0.25
+"""...and seconds at most (the state stream may have stopped)."""
+REST_SAMPLES = 25
+"""State samples in a row (50 ms at 500 Hz) that must show the arm at rest before a
+recovery takes control back or a move is sent again."""
 REMOTE_POLL = 0.25
-"""Seconds between two queries of the pendant's Local/Remote switch."""
+"""Seconds between two queries of the pendant's Local/Remote switch while no move runs."""
+REMOTE_POLL_MOVING = 0.02
+"""... and while a move runs: a switch to Local brakes it within this plus a dashboard
+round trip (neither RTDE nor the primary interface streams the switch)."""
 _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
     **_FAILURE_STATES,
     CellState.PROGRAM_STOPPED: ProgramStoppedError,
@@ -172,15 +194,22 @@ class Cell(CellCommands):
         """The arm's calibration the planner uses (None: not read, or unreadable)."""
         self._restore: asyncio.Task[None] | None = None
         self._remote_watch: asyncio.Task[None] | None = None
+        self._move_started = asyncio.Event()
+        """Set when a move starts: the remote watch polls fast from then on."""
         self.local_control = False
-        """The teach pendant is in Local control (polled every 0.25 s): moves are refused
-        and a running move brakes."""
+        """The teach pendant is in Local control (polled every 0.25 s, every 0.02 s while a
+        move runs): moves are refused and a running move brakes."""
         self._opened = False
         self._gripper: Gripper | None = None
         self._io: CellIO | None = None
+        self._camera: CellCamera | None = None
         self._freedrive = False
         self.held: str | None = None
         """The kind of object the gripper holds after a pick (None: nothing)."""
+        self.link_losses = 0
+        """Times the robot link went down after being up (a dropped or restarted link
+        process, a paused state stream): each one is a warning in the log."""
+        self._link_was_up = False
 
     @classmethod
     def from_config(cls, config: str | Path | CellConfig | None = None, **kwargs: Any) -> Cell:
@@ -204,6 +233,13 @@ class Cell(CellCommands):
         if self._io is None:
             self._io = CellIO(self)
         return self._io
+
+    @property
+    def camera(self) -> CellCamera:
+        """The cell's camera and the placement check (``vision`` in the configuration)."""
+        if self._camera is None:
+            self._camera = CellCamera(self)
+        return self._camera
 
     @property
     def host(self) -> str | None:
@@ -237,6 +273,8 @@ class Cell(CellCommands):
             await self.link.start(wait=True)
             await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
             self.controller_info = await self._read_controller_info()
+            if isinstance(self.link, LinkClient) and self.link.scheduling is not None:
+                self.controller_info["link_scheduling"] = self.link.scheduling.describe()
             self.controller_info.update(await self._use_calibration())
             if self._recorder is not None:
                 self._recorder.update_metadata(self.controller_info)
@@ -260,6 +298,8 @@ class Cell(CellCommands):
             self._restore = None
         if self._gripper is not None:
             await self._gripper.close_connection()
+        if self._camera is not None:
+            await self._camera.close()
         if self.link is not None:
             await self.link.close()
         if self._machine_task is not None:
@@ -402,9 +442,14 @@ class Cell(CellCommands):
 
     def _on_link_status(self, status: LinkStatus, reason: str) -> None:
         if status is not LinkStatus.UP:
+            if self._link_was_up and status is LinkStatus.DOWN:
+                self.link_losses += 1
+            self._link_was_up = False
             self._shutting_down = False
             self._observe(None, reason)
-        elif self._control_wanted and (self._restore is None or self._restore.done()):
+            return
+        self._link_was_up = True
+        if self._control_wanted and (self._restore is None or self._restore.done()):
             self._restore = asyncio.create_task(self._restore_control(), name="restore control")
 
     async def _restore_control(self) -> None:
@@ -417,6 +462,10 @@ class Cell(CellCommands):
         """
         try:
             await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
+            if self._control_wanted and self.state is CellState.PROGRAM_STOPPED:
+                # the arm may still be braking after the old link's last setpoint: a new
+                # control script is started only once it is seen at rest
+                await self._wait_at_rest(self.command_timeout, "restore_external_control")
             sample = self.robot_state
             if (
                 self._control_wanted
@@ -436,6 +485,71 @@ class Cell(CellCommands):
                     await self._send_tool()
         except FxcellError as exc:
             log.warning("could not restore external control after reconnecting: %s", exc)
+
+    @property
+    def link_recovering(self) -> bool:
+        """The link is down, or back but external control not restored yet."""
+        return self.state is CellState.DISCONNECTED or (
+            self._restore is not None and not self._restore.done()
+        )
+
+    async def _wait_at_rest(self, within: float, command: str) -> None:
+        """Return once :data:`REST_SAMPLES` state samples in a row show every joint slower
+        than ``REST_VELOCITY`` (the controller's own joint speeds)."""
+        quiet = 0
+        try:
+            async with asyncio.timeout(within):
+                with self._link().subscribe(256) as samples:
+                    latest = self.robot_state
+                    if latest is not None and _at_rest(latest):
+                        quiet = 1
+                    async for sample in samples:
+                        quiet = quiet + 1 if _at_rest(sample) else 0
+                        if quiet >= REST_SAMPLES:
+                            return
+        except TimeoutError:
+            raise RobotTimeoutError(
+                f"{command}(): the arm was not seen at rest within {within:g} s"
+            ) from None
+
+    async def restore_control(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
+        async with self._command("restore_control"):
+            limit = timeout if timeout is not None else self.config.robot.heal_timeout
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + limit
+
+            def left() -> float:
+                return max(0.0, deadline - loop.time())
+
+            connected = [s for s in CellState if s is not CellState.DISCONNECTED]
+            await self.wait_for_state(*connected, timeout=left())
+            restore = self._restore
+            if restore is not None and not restore.done():
+                # the automatic take-over after the reconnect finishes first
+                with contextlib.suppress(Exception):
+                    async with asyncio.timeout(left()):
+                        await asyncio.shield(restore)
+            await self._move_landed()
+            state = self.state
+            error = _FAILURE_STATES.get(state)
+            if error is not None:
+                raise error(f"restore_control(): the robot is in {state.value}")
+            if not state.is_running or state is CellState.FREEDRIVE:
+                raise InvalidStateError(
+                    "restore_control",
+                    state.value,
+                    sorted(s.value for s in _running_states() if s is not CellState.FREEDRIVE),
+                    "init the robot (power on, brake release) first",
+                )
+            await self._wait_at_rest(left(), "restore_control")
+            if self.state is CellState.PROGRAM_STOPPED:
+                await self._require_remote()
+                self._control_wanted = True
+                await self._link().start_control(
+                    self.external_control, self.config.robot.urcap_program, left()
+                )
+            await self._await_effect("restore_control", {CellState.EXTERNAL_CONTROL_READY}, left())
+            await self._send_tool()
 
     def _on_control(self, ready: bool, reason: str) -> None:
         if self.link is not None:
@@ -467,15 +581,116 @@ class Cell(CellCommands):
 
     # ------------------------------------------------------------- commands
 
-    async def run_command(self, name: str, **args: Any) -> Any:
-        """Run command ``name`` of :data:`fxcell.commands.COMMANDS` with keyword arguments
+    async def run_command(self, command: str, /, **args: Any) -> Any:
+        """Run ``command`` of :data:`fxcell.commands.COMMANDS` with keyword arguments
         (how the daemon and replay call the Cell)."""
-        entry = get_command(name)
+        entry = get_command(command)
         entry.check_args(args)
-        method = getattr(type(self), name)
-        if method is getattr(CellCommands, name):
-            raise NotImplementedError(f"Cell does not implement {name}()")
-        return await getattr(self, name)(**args)
+        method = getattr(type(self), command)
+        if method is getattr(CellCommands, command):
+            raise NotImplementedError(f"Cell does not implement {command}()")
+        return await getattr(self, command)(**args)
+
+    async def check_command(self, command: str, /, **args: Any) -> None:
+        """Raise now what ``command`` with ``args`` would be refused with before it starts,
+        without starting it (nothing is sent to the robot).
+
+        The checks are those the command itself makes before it acts: the arguments
+        against the table (names, finite numbers, bounds, lengths), the state machine's
+        guard, for moves a running move (unless ``queue``), Local control, the factors
+        and the target (within the joint limits, a pose, within reach, a collision-free
+        IK solution; for ``pick``/``place`` names, interlock, what the gripper holds and
+        the slot's poses). The daemon calls it before an operation exists, so a refusal
+        is the request's answer whether or not the client waits. A refusal is recorded
+        as the command's error.
+        """
+        entry = get_command(command)
+        try:
+            entry.check_args(args)
+            entry.check_values(args)
+            self._check_arguments(command, args)
+            await self._move_landed()
+            if entry.kind != "move":
+                if entry.guard is not None:
+                    self.machine.check(entry.guard, command)
+                return
+            await self._admit_move(command, args, queue=bool(args.get("queue")))
+        except FxcellError as exc:
+            self._record_refusal(command, args, exc)
+            raise
+
+    def _check_arguments(self, command: str, args: Mapping[str, Any]) -> None:
+        """The checks of arguments against the cell's configuration that commands other
+        than moves make before they act (moves: :meth:`_admit_move`)."""
+        checks: dict[str, Callable[[], object]] = {
+            "io_set": lambda: self.io.check_set(args["signal"], args["value"]),
+            "io_wait_for": lambda: self.io.check_wait(args["signal"], args.get("value", True)),
+            "teach": lambda: check_position_name(args["name"]),
+            "teach_frame_point": lambda: check_frame_point(
+                self.layout.station(args["station"]).name, args["point"]
+            ),
+        }
+        check = checks.get(command)
+        if check is not None:
+            check()
+
+    def _record_refusal(self, name: str, args: Mapping[str, Any], exc: FxcellError) -> None:
+        """Record a command refused before it started, as one that failed at once."""
+        command_id = self.bus.next_command_id()
+        started = time.time()
+        origin = COMMAND_ORIGIN.get() or self._origin
+        recorded = {k: to_jsonable(v) for k, v in args.items()}
+        self.bus.publish(CommandEvent(command_id, name, recorded, origin, started))
+        self.bus.publish(
+            CommandEvent(
+                command_id, name, recorded, origin, started, time.time(), "error",
+                type(exc).__name__, str(exc),
+            )
+        )  # fmt: skip
+
+    async def _admit_move(self, name: str, args: Mapping[str, Any], *, queue: bool) -> None:
+        """Raise what refuses move ``name`` before it exists: another move running
+        (unless ``queue``: it waits its turn), the guard, Local control, then the factors
+        and the target, or for ``pick``/``place`` the slot."""
+        if not (queue and self._moving()):
+            if self._moving():
+                raise MoveInProgressError(f"{name}(): another move is running")
+            self.machine.check("move", name)
+        self._check_remote(name)
+        vf, af = args.get("velocity_factor"), args.get("acceleration_factor")
+        if name in handling.ADMIT:
+            await handling.check(self, name, args["station"], args["slot"], vf, af)
+            return
+        target = self._move_target(name, args)
+        await self._moves().check(target, self._sample().actual_q, vf, af)
+
+    def _move_target(self, name: str, args: Mapping[str, Any]) -> MoveTarget:
+        """The target of move command ``name`` (the move methods and :meth:`check_command`
+        build it here, so both check the same thing)."""
+        targets: dict[str, Callable[[], MoveTarget]] = {
+            "move_joint": lambda: JointTarget(args["target"]),
+            "go_home": lambda: JointTarget(self.config.home),
+            "move_pose": lambda: PoseTarget(args["target"], bool(args.get("linear", False))),
+            "move_distance": lambda: DistanceTarget(args["distance"]),
+            "move_relative": lambda: RelativeTarget(args["start_pose"], args["target_pose"]),
+            "move_to": lambda: JointTarget(self._position_joints(args["name"])),
+        }
+        return targets[name]()
+
+    def _position_joints(self, name: str) -> Sequence[float]:
+        """The joints of taught position ``name`` (``home``: the configured home);
+        UnknownPositionError for an unknown name."""
+        if name == "home":
+            return self.config.home
+        joints: Sequence[float] = self.taught.position(name)["joints"]
+        return joints
+
+    def _check_remote(self, name: str) -> None:
+        if self.local_control:
+            raise NotInRemoteControlError(
+                f"{name}() refused: the teach pendant is in Local control; "
+                "switch it to Remote Control"
+            )
 
     @contextlib.asynccontextmanager
     async def _command(self, name: str, /, **args: Any) -> AsyncIterator[dict[str, Any]]:
@@ -522,7 +737,11 @@ class Cell(CellCommands):
     async def _watch_remote(self) -> None:
         """Follow the pendant's Local/Remote switch: Local brakes a running move."""
         while True:
-            await asyncio.sleep(REMOTE_POLL)
+            period = REMOTE_POLL_MOVING if self._moving() else REMOTE_POLL
+            with contextlib.suppress(TimeoutError):  # a move starting ends the wait
+                async with asyncio.timeout(period):
+                    await self._move_started.wait()
+            self._move_started.clear()
             link = self.link
             if link is None or not link.up:
                 continue
@@ -795,14 +1014,11 @@ class Cell(CellCommands):
             if self._runner is not None and self._runner.running:
                 raise MoveInProgressError(f"{name}(): another move is running")
             self.machine.check("move", name)
-            if self.local_control:
-                raise NotInRemoteControlError(
-                    f"{name}() refused: the teach pendant is in Local control; "
-                    "switch it to Remote Control"
-                )
+            self._check_remote(name)
             runner = make()
             self._runner = runner
             task = runner.start()
+            self._move_started.set()
             self._observe(self.robot_state, name)
             try:
                 out["result"] = result = await asyncio.shield(task)
@@ -822,8 +1038,42 @@ class Cell(CellCommands):
                 if runner.error is not None:
                     raise runner.error from None
                 raise
+            except FxcellError as exc:
+                if runner.error is not None:
+                    raise runner.error from None
+                # the body may have heard of a stop (the link's end report) before the
+                # state sample that shows it: that sample names the error
+                explained = await self._stop_behind(name)
+                if explained is not None:
+                    raise explained from exc
+                raise
             finally:
                 self._observe(self.robot_state, f"{name} ended")
+
+    async def _stop_behind(self, name: str) -> FxcellError | None:
+        """The stop that ended a failed move, once the state shows it (within
+        :data:`EXPLAIN_SAMPLES` samples or :data:`EXPLAIN_WITHIN` s); None if none shows."""
+
+        def seen() -> FxcellError | None:
+            error = _MOVE_ABORT_STATES.get(self._observed)
+            if error is None:
+                return None
+            return error(f"move aborted: robot went to {self._observed.value}")
+
+        found = seen()
+        link = self.link
+        if found is not None or link is None:
+            return found
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(EXPLAIN_WITHIN):
+                with link.subscribe(EXPLAIN_SAMPLES + 1) as samples:
+                    count = 0
+                    async for _ in samples:  # each was observed before it got here
+                        found = seen()
+                        count += 1
+                        if found is not None or count >= EXPLAIN_SAMPLES:
+                            break
+        return found
 
     def _moving(self) -> bool:
         return self._runner is not None and self._runner.running
@@ -862,7 +1112,18 @@ class Cell(CellCommands):
         running execution."""
         return self._moves()
 
-    async def _move(
+    async def _move(self, name: str, args: dict[str, Any], *, queue: bool = False) -> MoveResult:
+        """Run move command ``name``: its target checked before the move exists (a
+        refusal is recorded), then planned and executed as the Cell's one move."""
+        try:
+            await self._move_landed()
+            await self._admit_move(name, args, queue=queue)
+        except FxcellError as exc:
+            self._record_refusal(name, {**args, "queue": queue}, exc)
+            raise
+        return await self._run_checked(name, args, self._move_target(name, args), queue=queue)
+
+    async def _run_checked(
         self, name: str, args: dict[str, Any], target: MoveTarget, *, queue: bool = False
     ) -> MoveResult:
         if queue:
@@ -878,7 +1139,7 @@ class Cell(CellCommands):
                     recorded = {k: to_jsonable(v) for k, v in args.items()}
                     async with self._command(name, **recorded, queue=True):
                         raise MoveStoppedError(f"{name}() was waiting in the queue: stopped")
-                return await self._move(name, {**args, "queue": True}, target)
+                return await self._run_checked(name, {**args, "queue": True}, target)
         await self._move_landed()
 
         def make() -> MoveRunner:
@@ -914,7 +1175,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_joint", args, JointTarget(target), queue=queue)
+        return await self._move("move_joint", args, queue=queue)
 
     async def go_home(
         self,
@@ -924,7 +1185,7 @@ class Cell(CellCommands):
         queue: bool = False,
     ) -> MoveResult:
         args = {"velocity_factor": velocity_factor, "acceleration_factor": acceleration_factor}
-        return await self._move("go_home", args, JointTarget(self.config.home), queue=queue)
+        return await self._move("go_home", args, queue=queue)
 
     async def move_pose(
         self,
@@ -937,7 +1198,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         args = {"target": target, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor, "linear": linear}  # fmt: skip
-        return await self._move("move_pose", args, PoseTarget(target, linear), queue=queue)
+        return await self._move("move_pose", args, queue=queue)
 
     async def move_distance(
         self,
@@ -949,7 +1210,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         args = {"distance": distance, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        return await self._move("move_distance", args, DistanceTarget(distance), queue=queue)
+        return await self._move("move_distance", args, queue=queue)
 
     async def move_relative(
         self,
@@ -963,8 +1224,7 @@ class Cell(CellCommands):
         args = {"start_pose": start_pose, "target_pose": target_pose,
                 "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        target = RelativeTarget(start_pose, target_pose)
-        return await self._move("move_relative", args, target, queue=queue)
+        return await self._move("move_relative", args, queue=queue)
 
     async def set_velocity_factor(self, value: float) -> None:
         async with self._command("set_velocity_factor", value=to_jsonable(value)):
@@ -1042,13 +1302,12 @@ class Cell(CellCommands):
                 cog=list(tool.payload_cog),
             )
 
-    async def declare_held(self, kind: str | None) -> None:
-        """Tell the cell what the gripper holds (an object kind of the layout, or None), e.g.
-        after a restart when a job knows it; collision checking and the payload follow."""
-        if kind is not None and kind not in self.config.layout.objects:
-            known = ", ".join(sorted(self.config.layout.objects))
-            raise InvalidArgumentError(f"no object kind {kind!r} (known: {known})")
-        await self._hold(kind)
+    async def declare_held(self, kind: str | None = None) -> None:
+        async with self._command("declare_held", kind=kind):
+            if kind is not None and kind not in self.config.layout.objects:
+                known = ", ".join(sorted(self.config.layout.objects))
+                raise InvalidArgumentError(f"no object kind {kind!r} (known: {known})")
+            await self._hold(kind)
 
     async def _hold(self, kind: str | None) -> None:
         """The gripper now holds an object of ``kind`` (None: nothing): collision checking
@@ -1139,8 +1398,7 @@ class Cell(CellCommands):
     ) -> MoveResult:
         args = {"name": name, "velocity_factor": velocity_factor,
                 "acceleration_factor": acceleration_factor}  # fmt: skip
-        joints = self.config.home if name == "home" else self.taught.position(name)["joints"]
-        return await self._move("move_to", args, JointTarget(joints), queue=queue)
+        return await self._move("move_to", args, queue=queue)
 
     # ------------------------------------------------------------- layout, pick and place
 
@@ -1212,18 +1470,50 @@ class Cell(CellCommands):
     ) -> GripResult:
         """Run ``handling.pick`` or ``handling.place`` as the recorded command of its name."""
         name = action.__name__
-        async with self._command(name, station=station, slot=slot) as out:
+
+        async def admitted() -> None:
             await self._move_landed()
             self.machine.check("move", name)
+
+        async with self._command(name, station=station, slot=slot) as out:
+            # a link that dropped just before is waited for, as within the steps
+            await healing.resilient(self, f"start {name}", admitted)
             out["result"] = result = await action(
                 self, station, slot, velocity_factor, acceleration_factor
             )
             return result
 
+    async def check_placement(self, expected: str = "") -> dict[str, Any]:
+        async with self._command("check_placement", expected=expected) as out:
+            text = expected.strip()
+            slots: set[str] | None
+            if not text:
+                slots = None
+            elif text == "-":
+                slots = set()
+            else:
+                slots = {s.strip().upper() for s in text.split(",") if s.strip()}
+            report = await self.camera.check(slots)
+            out["result"] = result = report.as_dict()
+            return result
+
+    async def inspect_placement(self, expected: Collection[str]) -> PlacementReport | None:
+        """The job's check before it starts the machine: ``expected`` must hold seated
+        crucibles, the other positions be empty (recorded as ``check_placement``). ``None``
+        when no camera is configured or ``vision.check_before_start`` is off."""
+        if not (self.camera.configured and self.config.vision.check_before_start):
+            return None
+        await self.check_placement(",".join(sorted(expected)) or "-")
+        return self.camera.last
+
     async def get_max_acceleration(self) -> tuple[float, ...]:
         async with self._command("get_max_acceleration") as out:
             out["result"] = limits = self._moves().max_acceleration
             return limits
+
+
+def _at_rest(sample: RobotState) -> bool:
+    return max(map(abs, sample.actual_qd)) < REST_VELOCITY
 
 
 def _running_states() -> set[CellState]:

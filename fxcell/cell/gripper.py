@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from transitions import Machine
 
 from fxcell.cell.statemachine import STATECHART_DIR, machine_states, read_statechart
+from fxcell.commands import GRIP_FORCE_RANGE, GRIP_SPEED_RANGE, GRIP_WIDTH_RANGE
 from fxcell.errors import (
     ConnectionLostError,
     GripperFaultError,
@@ -36,9 +37,9 @@ from fxcell.results import GripResult
 if TYPE_CHECKING:
     from fxcell.cell.cell import Cell
 
-STROKE = 0.050  # m, Hand-E fully open
-SPEED_RANGE = (0.020, 0.150)  # m/s
-FORCE_RANGE = (20.0, 185.0)  # N
+STROKE = GRIP_WIDTH_RANGE[1]  # m, Hand-E fully open (0.050)
+SPEED_RANGE = GRIP_SPEED_RANGE  # m/s
+FORCE_RANGE = GRIP_FORCE_RANGE  # N
 POLL = 0.01  # s between two status reads while the fingers move
 ACTIVATION_TIMEOUT = 10.0  # s
 _POWERED = (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)

@@ -1,6 +1,9 @@
 """Pick and place at the layout's slots: approach, descend straight, grip or release, rise.
 
-Everything that can be checked is checked before the arm moves: the station and slot names,
+A step that fails because the robot link dropped or restarted under it is done again once
+the link, the arm at rest and external control are back (:mod:`fxcell.cell.healing`):
+each is a move to a fixed target or a gripper command, so it goes on from wherever the arm
+braked. Everything that can be checked is checked before the arm moves: the station and slot names,
 the zone's interlock, the gripper's readiness and what it holds, and that the approach, grip
 and retreat poses have collision-free IK solutions on one arm configuration. Each step is a
 recorded command of its own (``move_pose``, ``gripper_close``, ...) inside the recorded
@@ -9,10 +12,12 @@ recorded command of its own (``move_pose``, ``gripper_close``, ...) inside the r
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from fxcell.cell.healing import resilient
 from fxcell.errors import (
     FxcellError,
     GripperError,
@@ -46,10 +51,57 @@ def check_interlock(cell: Cell, station: Station) -> None:
         )
 
 
-def _precheck(cell: Cell, station: Station, slot: str) -> None:
-    """IK for approach, grip and retreat on one configuration, free of collision."""
-    planner = cell.motion.planner
+def admit_pick(cell: Cell, station_name: str, slot_name: str) -> tuple[Station, str]:
+    """The station and slot of a pick, or the error that refuses it (names, interlock,
+    a held object): no IK yet (see :func:`reach_slot`)."""
+    station, slot = cell.layout.slot(station_name, slot_name)
+    check_interlock(cell, station)
+    if cell.held is not None:
+        raise HoldingError(
+            f"pick refused: the gripper holds a {cell.held}; place or release it first"
+        )
+    return station, slot
+
+
+def admit_place(cell: Cell, station_name: str, slot_name: str) -> tuple[Station, str]:
+    """The station and slot of a place, or the error that refuses it (names, interlock,
+    nothing or the wrong kind held)."""
+    station, slot = cell.layout.slot(station_name, slot_name)
+    check_interlock(cell, station)
+    if cell.held is None:
+        raise HoldingError("place refused: the gripper holds nothing; pick an object first")
+    if cell.held != station.config.holds:
+        raise HoldingError(
+            f"place refused: {station.name} takes {station.config.holds}s, "
+            f"the gripper holds a {cell.held}"
+        )
+    return station, slot
+
+
+async def check(
+    cell: Cell,
+    name: str,
+    station_name: str,
+    slot_name: str,
+    velocity_factor: float | None,
+    acceleration_factor: float | None,
+) -> None:
+    """Raise what refuses ``pick`` or ``place`` (``name``) before anything moves: names,
+    interlock, what the gripper holds, factors, reach of the slot's three poses."""
+    station, slot = ADMIT[name](cell, station_name, slot_name)
+    cell.motion.factors(velocity_factor, acceleration_factor)
+    await reach_slot(cell, station, slot)
+
+
+async def reach_slot(cell: Cell, station: Station, slot: str) -> None:
+    """IK for approach, grip and retreat on one configuration, free of collision (in the
+    planner's worker thread, one at a time with plans)."""
     q0 = np.asarray(cell._sample().actual_q, float)
+    await cell.motion.locked(lambda: _reach_slot(cell, station, slot, q0))
+
+
+def _reach_slot(cell: Cell, station: Station, slot: str, q0: np.ndarray) -> None:
+    planner = cell.motion.planner
     what = f"{station.name} {slot}"
     try:
         q_above = planner.solve(station.approach_pose(slot), q0)
@@ -68,29 +120,43 @@ async def pick(
     velocity_factor: float | None,
     acceleration_factor: float | None,
 ) -> GripResult:
-    station, slot = cell.layout.slot(station_name, slot_name)
-    check_interlock(cell, station)
-    if cell.held is not None:
-        raise HoldingError(
-            f"pick refused: the gripper holds a {cell.held}; place or release it first"
-        )
-    _precheck(cell, station, slot)
+    station, slot = admit_pick(cell, station_name, slot_name)
+    cell.motion.factors(velocity_factor, acceleration_factor)
+    where = f"{station.name} {slot}"
+    await resilient(cell, f"check {where}", _checked(cell, station, slot))
     kind = station.kind
     vf, af = velocity_factor, acceleration_factor
-    await cell.gripper_move(min(0.050, kind.width + CLEARANCE))
-    await cell.move_pose(station.approach_pose(slot), vf, af)
+    open_width = min(0.050, kind.width + CLEARANCE)
+    await resilient(cell, "open the gripper", lambda: cell.gripper_move(open_width))
+    await resilient(
+        cell, f"approach {where}", lambda: cell.move_pose(station.approach_pose(slot), vf, af)
+    )
     check_interlock(cell, station)
-    await cell.move_pose(station.grip_pose(slot), vf, af, linear=True)
+    await resilient(
+        cell,
+        f"descend to {where}",
+        lambda: cell.move_pose(station.grip_pose(slot), vf, af, linear=True),
+    )
     try:
-        grip = await cell.gripper_close(expect_object=True)
+        grip = await resilient(
+            cell, f"grip at {where}", lambda: cell.gripper_close(expect_object=True)
+        )
     except NothingGraspedError:
-        await cell.gripper_move(min(0.050, kind.width + CLEARANCE))
-        await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+        await resilient(cell, "open the gripper", lambda: cell.gripper_move(open_width))
+        await resilient(
+            cell,
+            f"rise from {where}",
+            lambda: cell.move_pose(station.retreat_pose(slot), vf, af, linear=True),
+        )
         raise NothingGraspedError(
             f"no {station.config.holds} detected in {station.name} slot {slot}"
         ) from None
-    await cell._hold(station.config.holds)
-    await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+    await resilient(cell, "hold", lambda: cell._hold(station.config.holds))
+    await resilient(
+        cell,
+        f"rise from {where}",
+        lambda: cell.move_pose(station.retreat_pose(slot), vf, af, linear=True),
+    )
     try:
         await cell.gripper.check_holding()
     except GripperError:
@@ -106,22 +172,42 @@ async def place(
     velocity_factor: float | None,
     acceleration_factor: float | None,
 ) -> GripResult:
-    station, slot = cell.layout.slot(station_name, slot_name)
-    check_interlock(cell, station)
-    if cell.held is None:
-        raise HoldingError("place refused: the gripper holds nothing; pick an object first")
-    if cell.held != station.config.holds:
-        raise HoldingError(
-            f"place refused: {station.name} takes {station.config.holds}s, "
-            f"the gripper holds a {cell.held}"
-        )
-    _precheck(cell, station, slot)
+    station, slot = admit_place(cell, station_name, slot_name)
+    cell.motion.factors(velocity_factor, acceleration_factor)
+    where = f"{station.name} {slot}"
+    await resilient(cell, f"check {where}", _checked(cell, station, slot))
     vf, af = velocity_factor, acceleration_factor
-    await cell.move_pose(station.approach_pose(slot), vf, af)
+    await resilient(
+        cell, f"approach {where}", lambda: cell.move_pose(station.approach_pose(slot), vf, af)
+    )
     check_interlock(cell, station)
     await cell.gripper.check_holding()
-    await cell.move_pose(station.grip_pose(slot), vf, af, linear=True)
-    released = await cell.gripper_move(min(0.050, station.kind.width + CLEARANCE))
-    await cell._hold(None)
-    await cell.move_pose(station.retreat_pose(slot), vf, af, linear=True)
+    await resilient(
+        cell,
+        f"descend to {where}",
+        lambda: cell.move_pose(station.grip_pose(slot), vf, af, linear=True),
+    )
+    width = min(0.050, station.kind.width + CLEARANCE)
+    released = await resilient(cell, f"release at {where}", lambda: cell.gripper_move(width))
+    await resilient(cell, "let go", lambda: cell._hold(None))
+    await resilient(
+        cell,
+        f"rise from {where}",
+        lambda: cell.move_pose(station.retreat_pose(slot), vf, af, linear=True),
+    )
     return released
+
+
+def _checked(cell: Cell, station: Station, slot: str) -> Callable[[], Awaitable[None]]:
+    """The checks before a pick or place moves (they need the robot's state), repeated
+    when a lost link interrupts them."""
+
+    async def check() -> None:
+        check_interlock(cell, station)
+        await reach_slot(cell, station, slot)
+
+    return check
+
+
+ADMIT = {"pick": admit_pick, "place": admit_place}
+"""The admission check of each slot command (see :func:`check`)."""

@@ -56,13 +56,24 @@ class CellIO:
             return {}
         return {name: s.read(sample) for name, s in sorted(self._signals.items())}
 
+    def check_set(self, name: str, value: object) -> tuple[Signal, bool | float]:
+        """The output ``name`` and ``value`` as it takes it, or the error refusing them."""
+        signal = self.signal(name)
+        return signal, signal.check_value(value)
+
+    def check_wait(self, name: str, value: object) -> Signal:
+        """The signal ``name`` if it can be waited for at ``value``, else the error."""
+        signal = self.signal(name)
+        if not signal.digital and isinstance(value, bool):
+            raise UnknownSignalError(f"{name} ({signal.address}) is analog: wait for a number")
+        return signal
+
     async def set(self, name: str, value: Value) -> None:
         """Set output ``name`` (digital: true/false; analog: fraction 0..1 of its range);
         returns once the controller reports a digital output changed."""
         cell = self._cell
         async with cell._command("io_set", signal=name, value=value):
-            signal = self.signal(name)
-            checked = signal.check_value(value)
+            signal, checked = self.check_set(name, value)
             cell.machine.check("io")
             ok = await cell._link().call(
                 "set_output",
@@ -83,9 +94,7 @@ class CellIO:
         least ``value``); returns the seconds waited, raises :class:`IOTimeoutError`."""
         cell = self._cell
         async with cell._command("io_wait_for", signal=name, value=value, timeout=timeout) as out:
-            signal = self.signal(name)
-            if not signal.digital and isinstance(value, bool):
-                raise UnknownSignalError(f"{name} ({signal.address}) is analog: wait for a number")
+            signal = self.check_wait(name, value)
             started = time.monotonic()
             await self._until(signal, value, timeout, f"{name} to become {value}")
             out["result"] = waited = time.monotonic() - started

@@ -118,8 +118,7 @@ class TaughtStore:
         three have been re-taught (in any order), so that planning never uses a frame made of
         old and new points; ``current`` is the frame in use. Returns ``{"applied": bool,
         "pending": [points still to teach], "frame": the frame in use afterwards}``."""
-        if point not in FRAME_POINTS:
-            raise InvalidArgumentError(f"frame point must be one of {', '.join(FRAME_POINTS)}")
+        check_frame_point(station, point)
         entry = dict(self.frames.get(station) or {k: list(current[k]) for k in FRAME_POINTS})
         pending = dict(entry.get("pending") or {})
         pending[point] = [float(v) for v in position]
@@ -149,6 +148,15 @@ class TaughtStore:
             return LayoutConfig.model_validate(data)
         except ValueError as exc:
             raise ConfigError(f"{self.path}: taught frames: {exc}") from None
+
+
+def check_frame_point(station: str, point: str) -> str:
+    """``point`` if it names a point of a station frame, else InvalidArgumentError."""
+    if point not in FRAME_POINTS:
+        raise InvalidArgumentError(
+            f"{station}: frame point must be one of {', '.join(FRAME_POINTS)}, not {point!r}"
+        )
+    return point
 
 
 def check_name(name: str) -> str:

@@ -7,8 +7,10 @@ Layout of the API (the OpenAPI document is at ``/api/openapi.json``, browsable a
   from the newest 500 Hz sample — no robot round trip.
 - ``GET /api/cell/<query>``: the Cell's general and kinematic queries (``get_robot_mode``, ...).
 - ``POST /api/cell/<command>``: commands that change the robot. They need the bearer token
-  and control; each runs as an operation. General commands answer when done (``wait``
-  defaults to true), moves answer at once with 202 and the operation (``wait=true`` to block).
+  and control; each runs as an operation, once the Cell's admission
+  (``Cell.check_command``) has passed: a refusal is the answer (409/422) whatever ``wait``
+  is. General commands answer when done (``wait`` defaults to true), moves answer at once
+  with 202 and the operation (``wait=true`` to block).
 - ``/api/operations``: list, get, wait on and cancel operations (cancel = stop).
 - ``/api/control``: who controls the cell; take (``force`` to take over) and release it.
 - ``/api/statechart``: the robot-mode state machine as data, with the states each command needs.
@@ -21,7 +23,6 @@ import asyncio
 import contextlib
 import json
 import time
-import urllib.parse
 from collections.abc import Awaitable, Callable
 from importlib import resources
 from typing import Any
@@ -30,20 +31,23 @@ from fastapi import APIRouter, Body, FastAPI, Query, Request, WebSocket, WebSock
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fxcell._version import __version__
+from fxcell.calibration import nominal_model
+from fxcell.client import CLIENT_HEADER, decode_client_name
 from fxcell.commands import COMMANDS, Command
 from fxcell.daemon import models
 from fxcell.daemon.control import LEASE_HEADER
 from fxcell.daemon.encoding import error_info, jsonable
-from fxcell.daemon.guard import RequestGuard
+from fxcell.daemon.guard import RequestGuard, same_origin
 from fxcell.daemon.jobs import JOB_COMMANDS
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import PING_PERIOD, parse_rate, parse_topics
 from fxcell.errors import FxcellError, NotAuthorizedError, RemoteError
 from fxcell.events import COMMAND_ORIGIN
 
-CLIENT_HEADER = "X-Fxcell-Client"
+CLIENT_KEY = CLIENT_HEADER.lower().encode()
 STATIC = resources.files("fxcell.daemon") / "static"
 
 
@@ -53,6 +57,21 @@ def _validation_message(exc: RequestValidationError) -> str:
         loc = ".".join(str(p) for p in err.get("loc", ()) if p != "body") or "body"
         parts.append(f"{loc}: {err.get('msg', 'invalid')}")
     return "invalid request: " + "; ".join(parts)
+
+
+def _unparsable(cause: BaseException | None) -> str:
+    """Why a request body could not be decoded (FastAPI's parse error names no cause)."""
+    if isinstance(cause, UnicodeDecodeError):
+        return f"the body is not UTF-8 (byte 0x{cause.object[cause.start]:02x} at {cause.start})"
+    if isinstance(cause, RecursionError):
+        return "the body is nested too deeply"
+    if isinstance(cause, ValueError) and "digits" in str(cause):
+        return "a number in the body has too many digits"
+    return "the body is not valid JSON"
+
+
+def _error_body(kind: str, message: str, status: int) -> dict[str, Any]:
+    return {"error": {"type": kind, "message": message, "status": status, "detail": {}}}
 
 
 def _arguments(body: Any) -> dict[str, Any]:
@@ -92,11 +111,35 @@ def create_app(service: CellService) -> FastAPI:
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         message = _validation_message(exc)
-        body = {"type": "InvalidArgumentError", "message": message, "status": 422, "detail": {}}
-        return JSONResponse({"error": body}, status_code=422)
+        return JSONResponse(_error_body("InvalidArgumentError", message, 422), status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _framework(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        # The framework's own refusals, in the same typed form as every other error.
+        if exc.status_code == 400:  # a body FastAPI could not decode (bad UTF-8, ...)
+            message = "invalid request: " + _unparsable(exc.__cause__)
+            return JSONResponse(_error_body("InvalidArgumentError", message, 422), status_code=422)
+        if exc.status_code == 404:
+            message = f"no such path: {request.method} {request.url.path}"
+        elif exc.status_code == 405:
+            message = f"{request.url.path} does not take {request.method}"
+        else:
+            message = str(exc.detail)
+        return JSONResponse(
+            _error_body("RemoteError", message, exc.status_code),
+            status_code=exc.status_code,
+            headers=exc.headers,
+        )
+
+    @app.exception_handler(Exception)
+    async def _bug(request: Request, exc: Exception) -> JSONResponse:
+        info = error_info(exc)  # a bug: typed too, with the exception named
+        return JSONResponse({"error": info}, status_code=500)
 
     def client_of(request: Request) -> str:
-        name = request.headers.get(CLIENT_HEADER, "").strip()
+        # From the raw bytes: Starlette reads header values as Latin-1, which garbles UTF-8.
+        raw = next((v for k, v in request.scope["headers"] if k.lower() == CLIENT_KEY), b"")
+        name = decode_client_name(raw)
         if name:
             return name[:200]
         host = request.client.host if request.client else "unknown"
@@ -132,9 +175,15 @@ def create_app(service: CellService) -> FastAPI:
         lease = None
         if needs_control:  # refuse a second client before anything else
             lease = service.control.acquire(client, request.headers.get(LEASE_HEADER)).lease
-        await service.wait_cell()
-        op = service.start_operation(name, args, client, call, lease=lease)
         headers = {LEASE_HEADER: lease} if lease else None
+        try:
+            # Everything knowable before the operation exists is the answer (409/422),
+            # whatever ``wait`` is: arguments, guard, Local control, factors, reach.
+            await service.check(name, args, client)
+            op = service.start_operation(name, args, client, call, lease=lease)
+        except FxcellError as exc:  # refused: the client still learns its lease
+            info = error_info(exc)
+            return JSONResponse({"error": info}, status_code=info["status"], headers=headers)
         if not wait:
             return JSONResponse(op.describe(), status_code=202, headers=headers)
         # The operation is its own task: a client that hangs up does not cancel it.
@@ -162,6 +211,10 @@ def create_app(service: CellService) -> FastAPI:
     @api.get("/info", summary="Daemon version, robot and configuration")
     async def get_info() -> dict[str, Any]:
         return service.info()
+
+    @api.get("/robot/model", summary="The arm's kinematic model: UR's nominal DH table (m, rad)")
+    async def get_robot_model() -> dict[str, object]:
+        return nominal_model()
 
     @api.get("/statechart", summary="The robot-mode state machine as data")
     async def get_statechart() -> dict[str, Any]:
@@ -280,6 +333,37 @@ def create_app(service: CellService) -> FastAPI:
     for job_command in JOB_COMMANDS:
         add_job_command(job_command)
 
+    # ------------------------------------------------------------- the camera
+
+    jpeg: dict[int | str, dict[str, Any]] = {200: {"content": {"image/jpeg": {}}}}
+
+    @api.get(
+        "/job/placement/{check_id}.jpg",
+        summary="The annotated image of a placement check the job made (its job database)",
+        response_class=Response,
+        responses=jpeg,
+    )
+    async def job_placement_image(check_id: int) -> Response:
+        job = await service.jobs.require()
+        try:
+            data = await asyncio.to_thread(job.store.placement_image, check_id)
+        except FxcellError as exc:
+            raise RemoteError(str(exc), status=404) from None
+        return Response(data, media_type="image/jpeg", headers={"Cache-Control": "no-store"})
+
+    @api.get(
+        "/camera/placement.jpg",
+        summary="The annotated image of the cell's last placement check",
+        response_class=Response,
+        responses=jpeg,
+    )
+    async def camera_placement_image() -> Response:
+        cell = service.cell
+        last = None if cell is None else cell.camera.last
+        if last is None:
+            raise RemoteError("no placement check yet: run check_placement", status=404)
+        return Response(last.image, media_type="image/jpeg", headers={"Cache-Control": "no-store"})
+
     @api.get("/cell/state", summary="The state machine's current state")
     async def cell_state() -> dict[str, Any]:
         return {"result": service.machine_state()}
@@ -357,8 +441,9 @@ def create_app(service: CellService) -> FastAPI:
     async def stream(websocket: WebSocket) -> None:
         params = websocket.query_params
         origin = websocket.headers.get("origin")
-        if origin and urllib.parse.urlsplit(origin).netloc != websocket.headers.get("host"):
-            # Browsers send Origin: another site's page must not watch the robot.
+        if origin and not same_origin(origin, websocket.url.scheme, websocket.headers.get("host")):
+            # Browsers send Origin: another site's page (or the same host and port under
+            # another scheme) must not watch the robot.
             await websocket.close(code=1008, reason="cross-origin stream refused")
             return
         try:
@@ -374,7 +459,10 @@ def create_app(service: CellService) -> FastAPI:
         async def receive() -> None:
             while True:
                 text = await websocket.receive_text()
-                with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
+                # a client's malformed message is ignored (too deep or huge numbers too)
+                with contextlib.suppress(
+                    ValueError, TypeError, KeyError, AttributeError, RecursionError, OverflowError
+                ):
                     message = json.loads(text)
                     if message.get("type") == "pong":
                         watcher.last_pong = time.monotonic()

@@ -70,6 +70,23 @@ def register(sub: Any) -> None:
         metavar="S",
         help="embedded simulator only: the fusion machine's cooling time (default 30 s)",
     )
+    p.add_argument(
+        "--sila",
+        action="store_true",
+        help="also serve SiLA 2 (gRPC, TLS) for lab schedulers (daemon.sila.enabled; "
+        "docs/guides/sila.md)",
+    )
+    p.add_argument(
+        "--sila-port", type=int, metavar="PORT", help="SiLA 2 port (default: daemon.sila.port)"
+    )
+    p.add_argument(
+        "--sila-name", metavar="NAME", help="SiLA server name (default: daemon.sila.server_name)"
+    )
+    p.add_argument(
+        "--sila-insecure",
+        action="store_true",
+        help="SiLA 2 without TLS: development only, against the standard",
+    )
     p.add_argument("--no-record", action="store_true", help="do not record MCAP logs")
     p.add_argument(
         "--no-simulator",
@@ -210,6 +227,14 @@ def _run_daemon(args: argparse.Namespace) -> int:
         data["daemon"]["allow_remote"] = True
     if args.robot:
         data["robot"]["host"] = args.robot
+    sila = data["daemon"]["sila"]
+    if args.sila:
+        sila["enabled"] = True
+    for key, value in (("port", args.sila_port), ("server_name", args.sila_name)):
+        if value is not None:
+            sila[key] = value
+    if args.sila_insecure:
+        sila["insecure"] = True
     config = CellConfig.from_dict(data, source="command line")
     if getattr(args, "no_simulator", False) and config.robot.host is None:
         raise FxcellError(

@@ -20,6 +20,16 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.MoveError, 409),  # did not reach its goal (e.g. TrackingError)
     (errors.SafetyStopError, 409),
     (errors.PlanningError, 422),
+    # refused for the state of the cell, its gripper or a zone: nothing moved
+    (errors.HoldingError, 409),
+    (errors.GripperNotPoweredError, 409),
+    (errors.GripperNotActivatedError, 409),
+    (errors.NothingGraspedError, 409),
+    (errors.ObjectLostError, 409),
+    (errors.InterlockError, 409),
+    (errors.UncalibratedError, 409),
+    (errors.GripperError, 502),  # the gripper failed (a fault): the device's doing
+    (errors.IOTimeoutError, 504),
     (errors.RobotTimeoutError, 504),
     (errors.ConnectionLostError, 503),
     (errors.RobotCommandError, 502),
@@ -28,6 +38,8 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.MachineError, 502),
     (errors.JobStoreError, 500),  # the job database is unreadable: the daemon's fault
     (errors.JobError, 409),  # e.g. an unfinished run blocks a new one
+    (errors.CameraNotConfiguredError, 409),
+    (errors.CameraError, 502),
     (errors.FxcellError, 500),
 )
 _DETAIL_ATTRS = ("command", "state", "allowed", "next_step", "remaining", "failures")

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import urllib.parse
 from collections.abc import Awaitable, Callable, Iterable, MutableMapping
 from typing import Any
 
@@ -41,6 +42,30 @@ def host_name(header: str) -> str:
     if header.startswith("["):
         return header[1 : header.find("]")] if "]" in header else header[1:]
     return header.rsplit(":", 1)[0] if header.count(":") == 1 else header
+
+
+_DEFAULT_PORTS = {"http": 80, "https": 443}
+_PAGE_SCHEME = {"ws": "http", "wss": "https", "http": "http", "https": "https"}
+
+
+def same_origin(origin: str, scheme: str, host: str | None) -> bool:
+    """Whether a browser's ``Origin`` is the daemon's own: the page's scheme (``http`` for
+    a ``ws`` connection, ``https`` for ``wss``, as uvicorn sees it, a TLS proxy's
+    ``X-Forwarded-Proto`` included), host and port (default ports filled in) all equal."""
+    try:
+        page = urllib.parse.urlsplit(origin)
+        page_port = page.port
+        ours = urllib.parse.urlsplit(f"//{host or ''}")
+        our_port = ours.port
+    except ValueError:
+        return False
+    want = _PAGE_SCHEME.get(scheme)
+    if want is None or page.scheme.lower() != want or not page.hostname or not ours.hostname:
+        return False
+    default = _DEFAULT_PORTS[want]
+    return page.hostname.lower() == ours.hostname.lower() and (page_port or default) == (
+        our_port or default
+    )
 
 
 def _is_ip(name: str) -> bool:

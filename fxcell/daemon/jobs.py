@@ -14,7 +14,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import TYPE_CHECKING, Any
 
 from fxcell.errors import ConnectionLostError, FxcellError, InvalidArgumentError
@@ -24,7 +24,10 @@ from fxcell.layout import Layout
 
 if TYPE_CHECKING:
     from fxcell.cell import Cell
+    from fxcell.cell.gripper import Gripper
     from fxcell.config import CellConfig
+    from fxcell.protocol import RobotState
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 
@@ -60,21 +63,35 @@ class CellForJob:
     def io(self) -> _CellIO:
         return self._io
 
+    @property
+    def gripper(self) -> Gripper:
+        return self._cell.gripper
+
+    @property
+    def held(self) -> str | None:
+        return self._cell.held
+
+    @property
+    def robot_state(self) -> RobotState | None:
+        return self._cell.robot_state
+
+    async def declare_held(self, kind: str | None = None) -> None:
+        await self._cell.declare_held(kind)
+
+    async def restore_control(self) -> None:
+        await self._cell.restore_control()
+
     async def pick(self, station: str, slot: str) -> None:
         await self._cell.pick(station, slot)
 
     async def place(self, station: str, slot: str) -> None:
-        cell = self._cell
-        if cell.held is None:
-            # After a restart the new Cell does not know what the gripper holds: the job
-            # does, and the gripper's object detection confirms it.
-            await cell.gripper.get_width()
-            if cell.gripper.holding:
-                await cell.declare_held(cell.layout.station(station).config.holds)
-        await cell.place(station, slot)
+        await self._cell.place(station, slot)
 
     async def go_home(self) -> None:
         await self._cell.go_home()
+
+    async def inspect_placement(self, expected: Collection[str]) -> PlacementReport | None:
+        return await self._cell.inspect_placement(expected)
 
 
 class JobService:

@@ -34,7 +34,9 @@ def field_type(kind: commands.ArgType) -> Any:
         low, high = kind.length
         return Annotated[list[Finite], Field(min_length=low, max_length=high)]
     if kind.bounds is not None:
-        return Annotated[Finite, Field(gt=kind.bounds[0], le=kind.bounds[1])]
+        bottom, top = kind.bounds
+        bound = Field(ge=bottom, le=top) if kind.closed else Field(gt=bottom, le=top)
+        return Annotated[Finite, bound]
     return Finite
 
 

@@ -16,9 +16,10 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
+from typing import ClassVar
 
 from fxcell.errors import FxcellError
 
@@ -41,6 +42,9 @@ def _die_with_parent() -> None:
 
 class DaemonProcess:
     """A running ``fxcell daemon`` child process."""
+
+    observers: ClassVar[list[Callable[[DaemonProcess], None]]] = []
+    """Called with every daemon once it serves (``fxcell.testing`` watches their logs)."""
 
     def __init__(self, proc: subprocess.Popen[str], url: str, token: str) -> None:
         self.proc = proc
@@ -95,6 +99,8 @@ class DaemonProcess:
                 match = _SERVING.search(line.strip())
                 if match:
                     daemon.url = match.group(1)
+                    for observer in tuple(DaemonProcess.observers):
+                        observer(daemon)
                     return daemon
         except BaseException:  # e.g. a test timeout: leave no daemon behind
             daemon.stop(signal.SIGKILL, timeout=5)

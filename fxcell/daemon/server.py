@@ -30,6 +30,7 @@ import uvicorn
 from fxcell.config import CellConfig
 from fxcell.daemon.app import create_app
 from fxcell.daemon.auth import MIN_REMOTE_TOKEN_LENGTH, load_or_create_token
+from fxcell.daemon.connection import guarded_protocol
 from fxcell.daemon.notify import Notifier
 from fxcell.daemon.service import CellService
 from fxcell.errors import ConfigError, FxcellError
@@ -97,21 +98,42 @@ class Daemon:
         self._ready_how: str | None = None
         self._ready_sent = False
         self._cell: Any = None
+        self.sila: Any = None
+        """The SiLA 2 server (daemon.sila.enabled), a fxcell.daemon.sila.server.SilaCellServer."""
+
+    async def _start_sila(self) -> None:
+        from fxcell.daemon.sila.server import SilaCellServer
+
+        sila = SilaCellServer(self.service, self.config, self.token)
+        await sila.start()
+        self.sila = sila
+        how = "plain gRPC, daemon.sila.insecure" if self.config.daemon.sila.insecure else "TLS"
+        identity = sila.identity
+        print(
+            f"fxcell daemon: SiLA 2 server {self.config.daemon.sila.server_name!r} on "
+            f"{sila.address} ({how}; server UUID {identity.server_uuid if identity else '?'}; "
+            f"certificate SHA-256 {identity.fingerprint if identity else '?'})",
+            flush=True,
+        )
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self._on_signal, sig)
+        daemon = self.config.daemon
         server = _Server(
             uvicorn.Config(
                 self.app,
-                host=self.config.daemon.host,
-                port=self.config.daemon.port,
+                host=daemon.host,
+                port=daemon.port,
                 log_level="warning",
                 lifespan="off",
                 ws="websockets-sansio",
                 ws_ping_interval=None,
                 timeout_graceful_shutdown=1,
+                # half-open connections are closed (fxcell.daemon.connection)
+                http=guarded_protocol(daemon.header_timeout, daemon.body_timeout),
+                timeout_keep_alive=daemon.idle_timeout,
             )
         )
         sock = self._bind()
@@ -124,6 +146,8 @@ class Daemon:
                     server_task.result()
                     raise FxcellError("the HTTP server stopped while starting")
                 await asyncio.sleep(0.01)
+            if self.config.daemon.sila.enabled:
+                await self._start_sila()
             url = f"http://{self.config.daemon.host}:{sock.getsockname()[1]}/"
             log.info("fxcell daemon serving %s (robot: %s)", url, self.service.robot_description)
             print(f"fxcell daemon: serving {url}", flush=True)
@@ -144,6 +168,9 @@ class Daemon:
         finally:
             deadline = time.monotonic() + SHUTDOWN_BUDGET
             self.notifier.stopping()
+            sila, self.sila = self.sila, None
+            if sila is not None:  # no new SiLA calls; running ones end (runs stay resumable)
+                await sila.stop(within=0.5)
             await self._shutdown(deadline)
             server.should_exit = True
             with contextlib.suppress(TimeoutError, asyncio.CancelledError):

@@ -24,7 +24,7 @@ from fxcell.daemon.encoding import jsonable
 from fxcell.daemon.jobs import JobService
 from fxcell.daemon.operations import Operation, OperationRegistry
 from fxcell.daemon.stream import StreamHub
-from fxcell.errors import ConnectionLostError
+from fxcell.errors import ConnectionLostError, MoveInProgressError
 from fxcell.events import COMMAND_ORIGIN, Event, EventBus, StateEvent, TransitionEvent
 from fxcell.protocol import RobotState
 
@@ -60,6 +60,8 @@ class CellService:
         )
         self.jobs = JobService(config)
         """The fusion-machine job on the attached Cell (the supervisor attaches it)."""
+        self.lease_keepers: list[Callable[[Holder], bool]] = []
+        """More reasons a control lease stays alive (the SiLA server's lock)."""
 
     # ------------------------------------------------------------- the cell
 
@@ -138,9 +140,25 @@ class CellService:
         finally:
             COMMAND_ORIGIN.reset(token)
 
-    async def call(self, name: str, **kwargs: Any) -> Any:
+    async def check(self, command: str, args: Mapping[str, Any], client: str) -> None:
+        """Raise what ``command`` would be refused with before it starts (the Cell's
+        :meth:`~fxcell.cell.Cell.check_command`; a refusal is recorded as ``client``'s)."""
         cell = await self.wait_cell()
-        return await cell.run_command(name, **kwargs)
+        token = COMMAND_ORIGIN.set(client)
+        try:
+            if (
+                get_command(command).kind == "move"
+                and not args.get("queue")
+                and any(op.move for op in self.operations.running())
+            ):  # one that has not reached the Cell yet counts too
+                raise MoveInProgressError(f"{command}(): another move is running")
+            await cell.check_command(command, **args)
+        finally:
+            COMMAND_ORIGIN.reset(token)
+
+    async def call(self, command: str, /, **kwargs: Any) -> Any:
+        cell = await self.wait_cell()
+        return await cell.run_command(command, **kwargs)
 
     async def query(self, name: str) -> Any:
         cell = await self.wait_cell()
@@ -258,7 +276,11 @@ class CellService:
     # ------------------------------------------------------------- notifications
 
     def _keeps_alive(self, holder: Holder) -> bool:
-        return self.hub.watches(holder.lease) or bool(self.operations.running(holder.lease))
+        return (
+            self.hub.watches(holder.lease)
+            or bool(self.operations.running(holder.lease))
+            or any(keeps(holder) for keeps in self.lease_keepers)
+        )
 
     def _operation_changed(self, op: Operation) -> None:
         if self.hub.watchers:  # no description (nor its JSON) when nobody watches

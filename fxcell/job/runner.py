@@ -22,21 +22,33 @@ import contextlib
 import functools
 import logging
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Mapping, Sequence
+from collections.abc import (
+    AsyncIterator,
+    Awaitable,
+    Callable,
+    Collection,
+    Coroutine,
+    Mapping,
+    Sequence,
+)
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Concatenate, ParamSpec, Protocol, TypeVar
 
 from transitions import Machine
 
+from fxcell.cell.healing import HEAL_LISTENER, Heal, announce, arm_moved, retrying
 from fxcell.cell.statemachine import Statechart, machine_states, read_statechart
 from fxcell.config import JobConfig
 from fxcell.errors import (
+    ConnectionLostError,
     FxcellError,
+    InvalidStateError,
     IOTimeoutError,
     JobAnswerError,
     JobError,
     JobStateError,
+    LinkBrakeError,
     MachineError,
     NothingGraspedError,
 )
@@ -52,12 +64,23 @@ from fxcell.job.plan import (
     make_plan,
 )
 from fxcell.job.spec import MOULDS, Run, RunSpec, load_run, validate_run
-from fxcell.job.store import BEAD, CRUCIBLE, Change, JobStore, Key, StepRecord
+from fxcell.job.store import (
+    BEAD,
+    CRUCIBLE,
+    GRIPPER,
+    Change,
+    JobStore,
+    Key,
+    PlacementRecord,
+    StepRecord,
+)
 from fxcell.layout import Layout
 from fxcell.resources import resource_dir
 
 if TYPE_CHECKING:
     from fxcell.cell.cell import Cell
+    from fxcell.protocol import RobotState
+    from fxcell.vision.placement import PlacementReport
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +124,19 @@ class JobIO(Protocol):
         ...
 
 
+class JobGripper(Protocol):
+    """The gripper's object detection, as the job asks it."""
+
+    async def get_width(self) -> object:
+        """Read the fingers (and refresh :attr:`holding`)."""
+        ...
+
+    @property
+    def holding(self) -> bool:
+        """Whether the last read found an object between the fingers."""
+        ...
+
+
 class JobCell(Protocol):
     """What the job needs of a cell; :class:`fxcell.cell.cell.Cell` satisfies it."""
 
@@ -112,6 +148,29 @@ class JobCell(Protocol):
     @property
     def io(self) -> JobIO: ...
 
+    @property
+    def gripper(self) -> JobGripper: ...
+
+    @property
+    def held(self) -> str | None:
+        """The kind of object the cell knows the gripper holds (None: nothing known)."""
+        ...
+
+    @property
+    def robot_state(self) -> RobotState | None:
+        """The arm's latest sample (None while disconnected): a recovery that got the arm
+        further does not count against ``heal_attempts``."""
+        ...
+
+    async def declare_held(self, kind: str | None = None, /) -> object:
+        """The gripper holds an object of ``kind`` (after a restart, when the job knows)."""
+        ...
+
+    async def restore_control(self) -> object:
+        """Wait for the robot link, the arm at rest and external control (after a lost link);
+        a safety stop raises its error."""
+        ...
+
     async def pick(self, station: str, slot: str, /) -> object:
         """Approach, descend, close, verify, retreat; :class:`NothingGraspedError` when the
         gripper closes on nothing (the arm is back above the slot, gripper open)."""
@@ -120,6 +179,12 @@ class JobCell(Protocol):
     async def place(self, station: str, slot: str, /) -> object: ...
 
     async def go_home(self) -> object: ...
+
+    async def inspect_placement(self, expected: Collection[str], /) -> PlacementReport | None:
+        """Look at the machine's positions: ``expected`` must hold seated crucibles, the
+        others be empty. ``None``: no camera (the job starts the machine unchecked);
+        :class:`~fxcell.errors.CameraError` when the camera gives no frame."""
+        ...
 
 
 if TYPE_CHECKING:  # mypy proves that the real Cell is a JobCell
@@ -141,6 +206,16 @@ class Question:
 
 class _Model:
     state: str
+
+
+def _link_lost(error: FxcellError) -> bool:
+    """A failure a lost (or just restored) robot link explains: nothing for the operator."""
+    if isinstance(error, ConnectionLostError | LinkBrakeError):
+        return True
+    return isinstance(error, InvalidStateError) and error.state in _LINK_STATES
+
+
+_LINK_STATES = frozenset({"disconnected", "running.program_stopped", "running.stopping"})
 
 
 def _one_at_a_time(
@@ -203,6 +278,12 @@ class Job:
         self._durations: dict[str, tuple[float, int]] = {}
         self.locations: dict[Key, str] = {}
         """Where each object of the run is, as recorded: (sample index, object) -> place."""
+        self.placement: dict[str, Any] | None = None
+        """The run's last placement check: ``check`` (its id in the store), ``time``, ``ok``,
+        ``reason``, ``cycle``, ``positions`` (slot → verdict, offset)."""
+        self.heals: list[Event] = []
+        """The run's recoveries from a lost robot link (this process), each an event."""
+        self._step_heals = 0
 
     # ------------------------------------------------------------- state
 
@@ -318,7 +399,12 @@ class Job:
             "progress": self.progress() if self.run else None,
             "questions": [asdict(q) for q in self.questions.values()],
             "prompt": self.prompt,
+            "heals": {
+                "count": sum(1 for h in self.heals if h["phase"] == "start"),
+                "recent": self.heals[-5:],
+            },
             "samples": samples,
+            "placement": self.placement,
         }
 
     # ------------------------------------------------------------- database
@@ -348,6 +434,7 @@ class Job:
             return self.status()
         await self._load(run_id)
         interrupted = self._analyse(await self._db(self.store.steps, run_id))
+        await self._settle_by_gripper()
         what = f"step {self._next + 1}/{len(self.plan)}"
         if self._next < len(self.plan) and self.run is not None:
             what += f" ({self.plan[self._next].describe(self.run)})"
@@ -367,6 +454,9 @@ class Job:
         self.run = record.run
         self.plan = make_plan(record.run)
         self.locations = await self._db(self.store.locations, run_id)
+        checks = await self._db(self.store.placement_checks, run_id)
+        self.placement = _placement_summary(checks[-1]) if checks else None
+        self.heals = []
         self._durations = {
             kind: (mean, 1) for kind, mean in (await self._db(self.store.mean_durations)).items()
         }
@@ -399,6 +489,55 @@ class Job:
             self.questions[qid] = Question(qid, text, (src, dst), sample.id, step.obj)
         self._home_first = interrupted
         return interrupted
+
+    async def _record_answers(self, answers: Mapping[str, str], who: str) -> None:
+        """Record where each questioned object is (answers checked against the choices)."""
+        if not self.questions:
+            return
+        assert self.run_id is not None
+        step = self.plan[self._next]
+        for qid, question in self.questions.items():
+            assert step.idx is not None
+            assert step.obj is not None
+            answer = answers[qid].strip()
+            changes = []
+            if answer != step.source:
+                changes = [Change((step.idx, step.obj), step.source, answer)]
+            await self._db(
+                self.store.record_answer,
+                self.run_id,
+                step.seq,
+                step.kind,
+                step.idx,
+                changes,
+                f"{who}: {question.object} of sample {question.sample} is at {answer}",
+            )
+        self._analyse(await self._db(self.store.steps, self.run_id))
+        self.locations = await self._db(self.store.locations, self.run_id)
+        self._home_first = True
+
+    async def _settle_by_gripper(self) -> None:
+        """Answer the questions the gripper's object detection settles: an object of an
+        interrupted pick or place is in the gripper exactly when the fingers hold one, else
+        in the slot (the other choice). Unanswered when the gripper cannot be read."""
+        if not self.questions:
+            return
+        try:
+            await self.cell.gripper.get_width()
+        except FxcellError as exc:
+            log.info("job: the gripper cannot settle the questions: %s", exc)
+            return
+        holding = self.cell.gripper.holding
+        answers = {
+            qid: GRIPPER if holding else next(c for c in q.choices if c != GRIPPER)
+            for qid, q in self.questions.items()
+            if GRIPPER in q.choices
+        }
+        if len(answers) != len(self.questions):
+            return
+        log.info("job: the gripper settles where the objects are: %s", answers)
+        await self._record_answers(answers, "the gripper's object detection")
+        self.questions = {}
 
     def _announce_questions(self) -> None:
         if self.questions:
@@ -458,6 +597,8 @@ class Job:
         records = await self._db(self.store.steps, self.run_id)
         self._analyse(records)
         answers = dict(answers or {})
+        if not answers:
+            await self._settle_by_gripper()
         unknown = set(answers) - set(self.questions)
         if unknown:
             raise JobAnswerError(f"no such question: {', '.join(sorted(unknown))}")
@@ -472,28 +613,7 @@ class Job:
                 raise JobAnswerError(
                     f"{qid}: {answer!r} is not one of {', '.join(question.choices)}"
                 )
-        step = self.plan[self._next] if self.questions else None
-        for qid, question in self.questions.items():
-            assert step is not None
-            assert step.idx is not None
-            assert step.obj is not None
-            answer = answers[qid].strip()
-            changes = []
-            if answer != step.source:
-                changes = [Change((step.idx, step.obj), step.source, answer)]
-            await self._db(
-                self.store.record_answer,
-                self.run_id,
-                step.seq,
-                step.kind,
-                step.idx,
-                changes,
-                f"operator: {question.object} of sample {question.sample} is at {answer}",
-            )
-        if self.questions:
-            self._analyse(await self._db(self.store.steps, self.run_id))
-            self.locations = await self._db(self.store.locations, self.run_id)
-            self._home_first = True
+        await self._record_answers(answers, "operator")
         self.questions = {}
         self._pause_requested.clear()
         await self._db(self._set_state_now, self._dest("resume"), "resumed")
@@ -549,6 +669,7 @@ class Job:
         self.plan = []
         self.questions = {}
         self.locations = {}
+        self.placement = None
 
     async def close(self) -> None:
         """Stop the job's task (as :meth:`abort` when it runs); the store stays open."""
@@ -561,6 +682,7 @@ class Job:
         self._task = asyncio.get_running_loop().create_task(self._guarded(), name="fxcell-job")
 
     async def _guarded(self) -> None:
+        HEAL_LISTENER.set(self._on_heal)  # this task's context: the cell's steps report here
         try:
             await self._work()
         except Exception as exc:  # a bug or a dead database: stop, and say so
@@ -577,7 +699,7 @@ class Job:
         assert self.run is not None
         if self._home_first:
             try:
-                await self.cell.go_home()
+                await self._healing("go home", self.cell.go_home)
             except FxcellError as exc:
                 await self._fault_now(f"going home after the interruption failed: {exc}")
                 return
@@ -605,10 +727,24 @@ class Job:
         self._fire("fail", message)
         self._announce_questions()
 
+    async def _signal(self, signal: str) -> bool:
+        """A machine signal now (read again once a lost robot link is back)."""
+
+        async def read() -> bool:
+            return bool(self.cell.io.get(signal))
+
+        return await self._healing(f"read {signal}", read)
+
     async def _step(self, step: Step) -> bool:
-        if not self.config.manual and self.cell.io.get(ERROR):
-            await self._fault_now("the fusion machine reports an error")
-            return False
+        if not self.config.manual:
+            try:
+                error = await self._signal(ERROR)
+            except FxcellError as exc:
+                await self._fault_now(f"the machine's signals cannot be read: {exc}")
+                return False
+            if error:
+                await self._fault_now("the fusion machine reports an error")
+                return False
         if step.action == HOME:
             return await self._home(step)
         if step.action == START:
@@ -624,6 +760,7 @@ class Job:
             self.store.begin_step, self.run_id, step.seq, step.kind, step.idx, state
         )
         self._current = step
+        self._step_heals = 0
         event: Event = {"event": "step", "phase": "start", "seq": step.seq, "kind": step.kind}
         event["text"] = step.describe(self.run)
         if step.moves_object:
@@ -654,6 +791,8 @@ class Job:
         assert self.run is not None
         duration = None if started is None else time.monotonic() - started
         state = None if trigger is None else (self._dest(trigger), message)
+        if self._step_heals and not detail:  # the store keeps it with the step
+            detail = f"went on by itself after {self._step_heals} lost robot link(s)"
         await self._db(
             self.store.end_step,
             step_id,
@@ -711,6 +850,7 @@ class Job:
             if step.action == PICK:
                 await self.cell.pick(step.station, step.slot)
             else:
+                await self._healing("the gripper's object", lambda: self._know_held(step))
                 await self.cell.place(step.station, step.slot)
         except NothingGraspedError:
             msg = f"no {step.obj} detected in {describe_location(step.source)}"
@@ -747,11 +887,58 @@ class Job:
         await self._end(step_id, step, "done", [change], started=started)
         return True
 
+    def _on_heal(self, heal: Heal) -> None:
+        """A step went on by itself after a lost robot link: record and show it."""
+        step = self._current
+        event: Event = {
+            "event": "heal",
+            "seq": step.seq if step else None,
+            "step": step.describe(self.run) if step and self.run else None,
+            "what": heal.what,
+            "attempt": heal.attempt,
+            "phase": heal.phase,
+            "reason": heal.reason,
+        }
+        if heal.phase == "start":
+            self._step_heals += 1
+        self.heals.append({"time": time.time(), **event})
+        self._emit(event)
+
+    async def _healing(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
+        """Run a step that is safe to repeat; after a lost robot link, wait for the cell to
+        restore control and run it again (``job.heal_attempts``)."""
+        return await retrying(
+            what,
+            call,
+            attempts=self.config.heal_attempts,
+            healable=_link_lost,
+            restore=self.cell.restore_control,
+            announce=self._announce_heal,
+            moved=arm_moved(self.cell),
+        )
+
+    def _announce_heal(self, heal: Heal) -> None:
+        announce(heal)  # logged as the cell's own are, and told to the listener (_on_heal)
+
+    async def _know_held(self, step: Step) -> None:
+        """Before a place: if the cell does not know it holds the object (a new process after
+        a restart), the gripper's object detection confirms what the job recorded."""
+        cell = self.cell
+        if cell.held is not None or step.station is None:
+            return
+        try:
+            await cell.gripper.get_width()
+        except FxcellError as exc:  # the place itself then says what stops it
+            log.info("job: the gripper cannot confirm what it holds: %s", exc)
+            return
+        if cell.gripper.holding:
+            await cell.declare_held(cell.layout.station(step.station).config.holds)
+
     async def _home(self, step: Step) -> bool:
         step_id = await self._begin(step)
         started = time.monotonic()
         try:
-            await self.cell.go_home()
+            await self._healing("go home", self.cell.go_home)
         except FxcellError as exc:
             await self._end(
                 step_id, step, "failed", detail=str(exc), trigger="fail", message=f"go home: {exc}"
@@ -823,8 +1010,54 @@ class Job:
         """``machine_done`` while waiting; none while pausing (the loop then pauses)."""
         return "machine_done" if self.state == "waiting_for_machine" else None
 
+    async def _placement_checked(self, step: Step) -> bool:
+        """Before the machine starts: are the cycle's crucibles seated, the other positions
+        empty, nothing on the holder? If not, hold (paused) with the reason; resuming runs
+        this step, and so the check, again. True when the machine may start."""
+        assert self.run is not None
+        assert self.run_id is not None
+        io = self.cell.io
+        if not self.config.manual and (io.get(BUSY) or io.get(DONE)):
+            return True  # after a restart: the machine started already, too late to look
+        expected = {s.machine for s in self.run.samples if s.cycle == step.cycle}
+        try:
+            report = await self.cell.inspect_placement(expected)
+        except FxcellError as exc:
+            await self._fault_now(f"placement check before fusion cycle {step.cycle + 1}: {exc}")
+            return False
+        if report is None:
+            return True
+        verdict = report.as_dict()
+        check_id = await self._db(
+            self.store.add_placement_check, self.run_id, step.seq, verdict, report.image
+        )
+        self.placement = {
+            "check": check_id,
+            "cycle": step.cycle + 1,
+            "time": report.time,
+            "ok": report.ok,
+            "reason": report.reason,
+            "positions": {
+                p.slot: {"verdict": p.verdict, "ok": p.ok, "offset_mm": p.offset_mm}
+                for p in report.positions
+            },
+        }
+        self._emit({"event": "placement", **self.placement})
+        if report.ok:
+            return True
+        message = (
+            f"placement check before fusion cycle {step.cycle + 1}: {report.reason}. "
+            "Seat the crucibles in their positions and clear the holder, then resume "
+            "(the check runs again)"
+        )
+        await self._db(self._set_state_now, self._dest("hold"), message)
+        self._fire("hold", message)
+        return False
+
     async def _start_machine(self, step: Step) -> bool:
         io = self.cell.io
+        if not await self._placement_checked(step):
+            return False
         if self.config.manual:
             step_id = await self._begin_waiting(step, "start the fusion machine, then confirm")
             ok = await self._ask(PROMPT_STARTED, "Start the fusion machine, then confirm.")
@@ -839,14 +1072,14 @@ class Job:
         started = time.monotonic()
         try:
             # After a restart the machine may have started already: then only end the pulse.
-            if not (io.get(BUSY) or io.get(DONE)):
-                await io.set(START_SIGNAL, True)
+            if not (await self._signal(BUSY) or await self._signal(DONE)):
+                await self._healing("start pulse", lambda: io.set(START_SIGNAL, True))
                 fired = await self._wait_any(
                     [(BUSY, True), (DONE, True), (ERROR, True)], self.config.start_timeout
                 )
                 if fired == ERROR:
                     raise MachineError("the fusion machine reports an error after the start pulse")
-            await io.set(START_SIGNAL, False)
+            await self._healing("end the start pulse", lambda: io.set(START_SIGNAL, False))
         except FxcellError as exc:
             with contextlib.suppress(FxcellError):  # never leave the start signal on
                 await io.set(START_SIGNAL, False)
@@ -903,3 +1136,18 @@ class Job:
             message=f"fusion cycle {step.cycle + 1} done",
         )
         return True
+
+
+def _placement_summary(record: PlacementRecord) -> dict[str, Any]:
+    """The status form of a stored check."""
+    return {
+        "check": record.id,
+        "cycle": None,
+        "time": record.time,
+        "ok": record.ok,
+        "reason": record.reason,
+        "positions": {
+            p["slot"]: {"verdict": p["verdict"], "ok": p["ok"], "offset_mm": p.get("offset_mm")}
+            for p in record.verdict.get("positions", ())
+        },
+    }

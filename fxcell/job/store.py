@@ -30,7 +30,8 @@ from typing import Any
 from fxcell.errors import JobStoreError
 from fxcell.job.spec import Run, Sample
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+"""1: runs, samples, locations, steps; 2: placement_checks (migrated by creating it)."""
 CRUCIBLE = "crucible"
 BEAD = "bead"
 GRIPPER = "gripper"
@@ -79,6 +80,17 @@ CREATE TABLE IF NOT EXISTS steps (
     detail TEXT NOT NULL DEFAULT ''
 );
 CREATE INDEX IF NOT EXISTS steps_by_run ON steps (run_id, seq);
+CREATE TABLE IF NOT EXISTS placement_checks (
+    id INTEGER PRIMARY KEY,
+    run_id INTEGER NOT NULL REFERENCES runs(id),
+    seq INTEGER NOT NULL,
+    time REAL NOT NULL,
+    ok INTEGER NOT NULL,
+    reason TEXT NOT NULL,
+    verdict TEXT NOT NULL,
+    image BLOB NOT NULL
+);
+CREATE INDEX IF NOT EXISTS placement_checks_by_run ON placement_checks (run_id, id);
 """
 
 Key = tuple[int, str]
@@ -110,6 +122,20 @@ class StepRecord:
 
 
 @dataclass(frozen=True)
+class PlacementRecord:
+    """A placement check the job made before starting the machine (its image apart)."""
+
+    id: int
+    run_id: int
+    seq: int
+    """The plan step it guarded (the machine's start)."""
+    time: float
+    ok: bool
+    reason: str
+    verdict: dict[str, Any]
+
+
+@dataclass(frozen=True)
 class RunRecord:
     id: int
     run: Run
@@ -137,6 +163,11 @@ class JobStore:
             row = self._db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
             if row is None:
                 self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
+            elif int(row[0]) < SCHEMA_VERSION:
+                # 1 -> 2: the placement_checks table, created by the script above
+                self._db.execute(
+                    "UPDATE meta SET value=? WHERE key='schema'", (str(SCHEMA_VERSION),)
+                )
             elif int(row[0]) != SCHEMA_VERSION:
                 raise JobStoreError(
                     f"{self.path}: job database schema {row[0]}, this fxcell reads {SCHEMA_VERSION}"
@@ -401,3 +432,44 @@ class JobStore:
                     " WHERE run_id=? AND seq=?)",
                     (detail, run_id, seq),
                 )
+
+    # -- placement checks
+
+    def add_placement_check(
+        self, run_id: int, seq: int, verdict: Mapping[str, Any], image: bytes
+    ) -> int:
+        """Keep a check's verdict (JSON) and annotated image (JPEG) beside the run."""
+        with self._tx() as db:
+            cur = db.execute(
+                "INSERT INTO placement_checks (run_id, seq, time, ok, reason, verdict, image) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    run_id,
+                    seq,
+                    float(verdict.get("time", time.time())),
+                    int(bool(verdict.get("ok"))),
+                    str(verdict.get("reason", "")),
+                    json.dumps(verdict),
+                    image,
+                ),
+            )
+            return int(cur.lastrowid or 0)
+
+    def placement_checks(self, run_id: int) -> list[PlacementRecord]:
+        """The run's checks, oldest first."""
+        rows = self._query(
+            "SELECT id, run_id, seq, time, ok, reason, verdict FROM placement_checks "
+            "WHERE run_id=? ORDER BY id",
+            (run_id,),
+        )
+        return [
+            PlacementRecord(i, r, q, t, bool(ok), reason, json.loads(v))
+            for i, r, q, t, ok, reason, v in rows
+        ]
+
+    def placement_image(self, check_id: int) -> bytes:
+        """The annotated image of check ``check_id``."""
+        rows = self._query("SELECT image FROM placement_checks WHERE id=?", (check_id,))
+        if not rows:
+            raise JobStoreError(f"no placement check {check_id} in {self.path}")
+        return bytes(rows[0][0])

@@ -51,6 +51,7 @@ from fxcell.errors import (
 )
 from fxcell.link import collector, wire
 from fxcell.link.process import Guard, stop_reason
+from fxcell.link.realtime import LINK_PRIORITY, Scheduling, request_realtime
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
 if TYPE_CHECKING:
@@ -69,6 +70,8 @@ BEAT_PERIOD = 0.01
 LOOP_STALL_AFTER = 0.5
 """Seconds the event loop may go without running before the beats stop (and the link
 process brakes): nothing supervises a move while the loop stands still."""
+BEAT_PRIORITY_BELOW = 5
+"""The beat thread's SCHED_FIFO priority is the link process's less this (where permitted)."""
 WATCHDOG_LATE = 0.1
 """Seconds beyond which the watchdog's wake-up counts as late (its sleeps are ≤ 50 ms)."""
 GAP_REPORT = 0.02
@@ -378,6 +381,7 @@ class LinkClient:
         backoff_max: float = 5.0,
         urcap_port: int = URCAP_SCRIPT_PORT,
         receiver: Literal["stream", "ur_rtde"] = "stream",
+        realtime_priority: int = LINK_PRIORITY,
         on_state: Callable[[RobotState], None] | None = None,
         on_status: Callable[[LinkStatus, str], None] | None = None,
         on_control: Callable[[bool, str], None] | None = None,
@@ -388,6 +392,7 @@ class LinkClient:
         self.backoff_max = backoff_max
         self.urcap_port = urcap_port
         self.receiver = receiver
+        self.realtime_priority = realtime_priority
         self._on_state = on_state
         self._on_status = on_status
         self._on_control = on_control
@@ -412,8 +417,11 @@ class LinkClient:
         self._last_sample = 0.0
         self._last_message = 0.0  # time.monotonic() of the newest message of any kind
         self._link_fresh = 0.0  # time.monotonic() (system-wide) of the link's newest sample
+        self._link_said = 0.0  # time.monotonic() of the link process's newest pulse
         self._last_timestamp: float | None = None  # controller time of the newest sample
         self._loop_ran = 0.0  # time.monotonic() when the event loop last ran the beat task
+        self.scheduling: Scheduling | None = None
+        """How the link process is scheduled (SCHED_FIFO where permitted), once it said so."""
         self.gaps = 0
         """State-stream gaps seen (each logged as a warning, so recorded in the MCAP /log)."""
         self._status_changed = asyncio.Event()
@@ -545,6 +553,8 @@ class LinkClient:
                         self.receiver,
                         "--beat-fd",
                         str(beats_child.fileno()),
+                        "--rt-priority",
+                        str(self.realtime_priority),
                     ],
                     pass_fds=(child.fileno(), beats_child.fileno()),
                     stdin=subprocess.DEVNULL,
@@ -614,7 +624,8 @@ class LinkClient:
 
         The state stream is judged by the link process's pulses (its own clock): a pulse
         saying its newest sample is STALE_AFTER old means the controller stopped sending.
-        Silence of the process itself for MUTE_AFTER means it hangs. A loop that runs late
+        Silence of the process itself for MUTE_AFTER means it hangs (a process frozen right
+        after a pulse is not a silent controller). A loop that runs late
         reads everything that arrived meanwhile before this task runs again, so it never
         mistakes its own lateness for a dead link.
         """
@@ -646,12 +657,14 @@ class LinkClient:
                     self._down(f"no robot state for {silent:.1f} s")
                 await asyncio.sleep(0.05)
                 continue
-            # The link process's clock is this one (CLOCK_MONOTONIC is system-wide): while
-            # it talks (pulses), its newest sample tells the state stream's age now.
+            # The link process's clock is this one (CLOCK_MONOTONIC is system-wide): its
+            # newest pulse tells how old the state stream was when it last spoke. Only its
+            # own word counts: a process that stopped talking (a ur_rtde call holding its
+            # GIL) says nothing of the controller, and gets MUTE_AFTER.
             mute = now - self._last_message
-            age = now - max(self._link_fresh, self._last_sample)
-            if age >= STALE_AFTER and mute < STALE_AFTER:
-                self._down(f"no robot state for {age * 1000:.0f} ms")
+            said = self._link_said - max(self._link_fresh, self._last_sample)
+            if said >= STALE_AFTER:
+                self._down(f"no robot state for {said * 1000:.0f} ms")
             elif mute >= MUTE_AFTER:
                 self._down(f"the link process has been silent for {mute * 1000:.0f} ms")
             else:
@@ -676,7 +689,13 @@ class LinkClient:
         A thread, not a task: a late event loop (a busy machine, a long callback) must not
         brake a healthy move; a frozen process, or a loop stalled for LOOP_STALL_AFTER,
         must. Only the trajectory count and a timestamp are read here, without locks.
+
+        It runs real time just below the link process where permitted: a link process that
+        keeps its 2 ms while this thread waits for a CPU would take a busy machine for a
+        frozen cell and brake healthy moves.
         """
+        if self.realtime_priority > 0:
+            request_realtime(max(1, self.realtime_priority - BEAT_PRIORITY_BELOW))
         channel.setblocking(False)
         with channel:
             while not done.wait(BEAT_PERIOD):
@@ -763,8 +782,9 @@ class LinkClient:
             if self._on_control is not None:
                 self._on_control(self.control_ready, str(reason))
         elif kind == wire.PULSE:
-            _, _link_now, last_state_at = message
+            _, link_now, last_state_at = message
             self._link_fresh = max(self._link_fresh, last_state_at)
+            self._link_said = max(self._link_said, link_now)
         elif kind == wire.HOLD:
             self._hold = bool(message[1])
             self._last_sample = self._link_fresh = time.monotonic()
@@ -773,6 +793,21 @@ class LinkClient:
             self.last_failure = str(RobotLinkError(text, failures))
         elif kind == wire.LOG:
             log.log(int(message[1]), "link: %s", message[2])
+        elif kind == wire.HELLO:
+            self._hello(message[1])
+
+    def _hello(self, data: dict[str, Any]) -> None:
+        info = data.get("scheduling")
+        if not isinstance(info, dict):
+            return
+        first = self.scheduling is None
+        self.scheduling = Scheduling(**info)
+        if first and not self.scheduling.realtime:
+            log.warning(
+                "robot link process without real-time scheduling: %s (see the real-robot "
+                "guide: LimitRTPRIO)",
+                self.scheduling.detail,
+            )
 
     def _handle_trajectory(self, traj_id: int, kind: str, data: dict[str, Any]) -> None:
         handle = self._trajectories.get(traj_id)
@@ -952,6 +987,7 @@ def process_link(
         receiver=robot.receiver,
         connect_timeout=robot.connect_timeout,
         backoff_max=robot.reconnect_backoff_max,
+        realtime_priority=robot.realtime_priority,
         on_state=on_state,
         on_status=on_status,
         on_control=on_control,

@@ -21,16 +21,18 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, ClassVar, TypedDict, cast
 
+from fxcell.config import SIMULATOR_CAMERA_PORT
 from fxcell.errors import InvalidArgumentError, SimulatorError
 
 SIM_MODULE = "fxcell.sim"
 CONTROL_PORT = 29990  # the simulator's control port (fault injection, state)
-PORTS = (29999, 30004, 30001, 30002, 30003, 63352, CONTROL_PORT)  # 63352: Robotiq URCap gripper
+# 63352: Robotiq URCap gripper; SIMULATOR_CAMERA_PORT: the rendered camera (GET /snapshot.jpg)
+PORTS = (29999, 30004, 30001, 30002, 30003, 63352, CONTROL_PORT, SIMULATOR_CAMERA_PORT)
 FAULTS = (
     "protective_stop",
     "emergency_stop",
@@ -49,6 +51,7 @@ FAULTS = (
     "machine_reset",  # clears the fusion machine's error
     "door_open",  # the fusion machine's door opens: error, not ready (aborts a cycle)
     "door_close",
+    "place_offset",  # DX DY: the next object the gripper releases lands that far off (m)
     "hide_kinematics_info",  # the primary interface's robot state lacks the calibration
     "show_kinematics_info",
 )
@@ -103,14 +106,38 @@ def inject(host: str, fault: str, *args: object, timeout: float = 5.0) -> str:
     return answer[3:].strip()
 
 
-def state(host: str, timeout: float = 5.0) -> dict[str, Any]:
+class SimulatorState(TypedDict):
+    """The simulator's own view of the robot: the control port's ``state`` reply, and what
+    the in-process fake robot's ``state()`` returns (one schema, built in one place:
+    ``fxcell.sim.controller.Controller.state``)."""
+
+    time: float  # controller time, s
+    robot_mode: str  # a RobotMode name
+    safety_mode: str  # a SafetyMode name
+    runtime_state: str  # a RuntimeState name
+    remote_control: bool
+    q: list[float]  # rad
+    qd: list[float]  # rad/s
+    tcp: list[float]  # the TCP offset set by the program (x y z rx ry rz)
+    payload: float  # kg
+    teach_mode: bool  # freedrive
+    program: str | None  # the loaded program
+    control_script: bool  # ur_rtde's control script is running
+    last_stop_reason: str
+    late_cycles: int  # control cycles the simulator ran late (0 in the fake)
+    stalls: list[list[float]]  # [wall time it ended (s), length (s)] of its newest stalls
+    log: list[str]  # the newest controller log lines
+    faults: list[str]  # every fault of the session (tests count the ones they did not inject)
+
+
+def state(host: str, timeout: float = 5.0) -> SimulatorState:
     """The simulator's own view of the robot (modes, joints, recent log)."""
     answer = _request(host, "state", timeout)
     try:
-        result: dict[str, Any] = json.loads(answer)
+        result = json.loads(answer)
     except ValueError:
         raise SimulatorError(f"simulator at {host} sent a bad state reply: {answer!r}") from None
-    return result
+    return cast(SimulatorState, result)
 
 
 def stats(host: str, *, reset: bool = False, timeout: float = 5.0) -> dict[str, Any]:
@@ -180,6 +207,24 @@ def place_object(
     return answer[3:].strip()
 
 
+def offset_object(
+    host: str,
+    name: str,
+    dx: float,
+    dy: float,
+    tilt_deg: float = 0.0,
+    azimuth_deg: float = 0.0,
+    timeout: float = 5.0,
+) -> str:
+    """Shift a standing object by (dx, dy) m along the base axes and lean it ``tilt_deg``
+    towards ``azimuth_deg`` (a misplaced crucible, for the camera's placement check)."""
+    line = f"offset_object {name} {dx!r} {dy!r} {tilt_deg!r} {azimuth_deg!r}"
+    answer = _request(host, line, timeout)
+    if not answer.startswith("ok"):
+        raise SimulatorError(f"simulator refused offset_object: {answer}")
+    return answer[3:].strip()
+
+
 def set_input(host: str, signal: str, value: object, timeout: float = 5.0) -> str:
     """Set a controller input (``DI5``/``5``, ``CI2``, ``TI0``: 0 or 1; ``AI0``, ``TAI1``: a
     number) as a wired device would; inputs the fusion machine drives are refused."""
@@ -224,6 +269,10 @@ class EmbeddedSimulator:
     before the simulator binds it). ``time_scale`` shortens controller delays.
     """
 
+    observers: ClassVar[list[Callable[[EmbeddedSimulator, str], None]]] = []
+    """Called with each simulator and ``started`` or ``stopping`` (``fxcell.testing`` counts
+    the faults of a test's simulators)."""
+
     def __init__(
         self,
         host: str | None = None,
@@ -234,6 +283,7 @@ class EmbeddedSimulator:
         startup_timeout: float = 30.0,
         python: str | None = None,
         extra_args: Sequence[str] = (),
+        programs: str | Path | None = None,
     ) -> None:
         if not time_scale > 0:
             raise InvalidArgumentError(f"time_scale must be > 0, got {time_scale!r}")
@@ -245,6 +295,7 @@ class EmbeddedSimulator:
         self.startup_timeout = startup_timeout
         self.python = python or sys.executable
         self.extra_args = list(extra_args)
+        self.programs = programs  # the controller's program directory (default: shipped)
         self.process: subprocess.Popen[bytes] | None = None
         self._lines: queue.Queue[bytes] = queue.Queue()
         self._drainer: threading.Thread | None = None
@@ -264,6 +315,8 @@ class EmbeddedSimulator:
             cmd += ["--config", str(self.config)]
         if self.joints is not None:
             cmd += ["--joints", ",".join(repr(v) for v in self.joints)]
+        if self.programs is not None:
+            cmd += ["--programs", str(self.programs)]
         return cmd + self.extra_args
 
     def start(self) -> str:
@@ -277,6 +330,8 @@ class EmbeddedSimulator:
             ok, last = self._launch(host)
             if ok:
                 self.host = host
+                for observer in tuple(EmbeddedSimulator.observers):
+                    observer(self, "started")
                 return host
         raise SimulatorError(f"simulator did not start: {last}")
 
@@ -327,6 +382,9 @@ class EmbeddedSimulator:
 
     def stop(self, timeout: float = 10.0) -> None:
         """Terminate the process (SIGTERM, then SIGKILL after ``timeout``)."""
+        if self.process is not None:
+            for observer in tuple(EmbeddedSimulator.observers):
+                observer(self, "stopping")
         proc, self.process = self.process, None
         if proc is None:
             return
@@ -356,7 +414,7 @@ class EmbeddedSimulator:
     def inject(self, fault: str, *args: object) -> str:
         return inject(self._host(), fault, *args)
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> SimulatorState:
         return state(self._host())
 
     def set_joints(self, q: Sequence[float]) -> None:

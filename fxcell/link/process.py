@@ -22,15 +22,11 @@ mode, without needing anything from the client or the state stream.
 
 The trajectory thread sends one setpoint per state sample, as each sample arrives: locked
 to the controller's clock rather than to a timer of its own (two free-running 2 ms clocks
-beat, so that some controller cycles got two setpoints and some none); a sample a few
-cycles after the previous one (cycles the controller skipped, or samples lost) advances the
-path by those cycles, up to ``_Trajectory.CATCH_UP``, so the path keeps the controller's
-time. The advance is also bounded by the link's own clock: samples that queued up while
-the process was starved arrive in a burst, and a setpoint for each would move the target
-by the whole backlog within one controller cycle (the controller reads only the newest
-setpoint per cycle, and refuses such a jump with a protective stop). It never uses
-ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which starved
-the state pump for up to 20 ms per period.
+beat, so that some controller cycles got two setpoints and some none). Which setpoint, and
+when to brake or end, is the pure :class:`~fxcell.link.follower.Follower`'s (path advance
+and catch-up, braking, splicing, the limit check); this module adds only the I/O. It never
+uses ur_rtde's ``initPeriod``/``waitPeriod``: ``waitPeriod`` spins holding the GIL, which
+starved the state pump for up to 20 ms per period.
 """
 
 from __future__ import annotations
@@ -39,33 +35,25 @@ import argparse
 import contextlib
 import gc
 import logging
-import math
 import os
 import queue
 import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import asdict
 from typing import Any
 
 from fxcell.link import wire
-from fxcell.link.rtde_stream import RTDEStream
-from fxcell.protocol import CONTROL_PERIOD, SAFETY_STOPS, RobotState, RuntimeState
-from fxcell.settling import ARRIVE_TOLERANCE, SETTLE_VELOCITY
+from fxcell.link.follower import Follower, Guard, brake_duration, stop_reason
+from fxcell.link.realtime import LINK_PRIORITY, request_realtime
+from fxcell.link.rtde_stream import UR_RTDE_GETTERS, RTDEStream
+from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
 log = logging.getLogger("fxcell.link.process")
 
-
-def stop_reason(safety_mode: int, runtime_state: int) -> str | None:
-    """Why a trajectory cannot continue, from one state sample (``None``: it can)."""
-    stop = SAFETY_STOPS.get(safety_mode)
-    if stop is not None:
-        return stop
-    if runtime_state != RuntimeState.PLAYING:
-        return "program_stopped"
-    return None
+__all__ = ["CallError", "Guard", "Link", "brake_duration", "main", "stop_reason"]
 
 
 class CallError(Exception):
@@ -74,6 +62,10 @@ class CallError(Exception):
     def __init__(self, kind: str, message: str) -> None:
         self.kind = kind
         super().__init__(message)
+
+
+HOLD_FLUSH = 0.05
+"""s: the longest wait for the client to be told of a hold before the call goes ahead."""
 
 
 class _Outbox:
@@ -209,7 +201,11 @@ class Link:
         return True
 
     def run(self) -> int:
-        self.send(wire.HELLO, {"pid": os.getpid()})
+        scheduling = getattr(self.args, "scheduling", None)
+        hello: dict[str, Any] = {"pid": os.getpid()}
+        if scheduling is not None:
+            hello["scheduling"] = asdict(scheduling)
+        self.send(wire.HELLO, hello)
         if not self.connect():
             return 2
         # ur_rtde and the imports are loaded for good: no full collection need scan them
@@ -383,30 +379,13 @@ class Link:
 
     @staticmethod
     def _sample(r: Any, ts: float) -> RobotState:
-        return RobotState(
-            timestamp=ts,
-            robot_mode=r.getRobotMode(),
-            safety_mode=r.getSafetyMode(),
-            runtime_state=r.getRuntimeState(),
-            robot_status_bits=r.getRobotStatus(),
-            safety_status_bits=r.getSafetyStatusBits(),
-            target_q=tuple(r.getTargetQ()),
-            target_qd=tuple(r.getTargetQd()),
-            target_qdd=tuple(r.getTargetQdd()),
-            actual_q=tuple(r.getActualQ()),
-            actual_qd=tuple(r.getActualQd()),
-            actual_current=tuple(r.getActualCurrent()),
-            target_tcp_pose=tuple(r.getTargetTCPPose()),
-            actual_tcp_pose=tuple(r.getActualTCPPose()),
-            actual_tcp_speed=tuple(r.getActualTCPSpeed()),
-            speed_scaling=r.getSpeedScaling(),
-            digital_input_bits=r.getActualDigitalInputBits(),
-            digital_output_bits=r.getActualDigitalOutputBits(),
-            standard_analog_input0=r.getStandardAnalogInput0(),
-            standard_analog_input1=r.getStandardAnalogInput1(),
-            standard_analog_output0=r.getStandardAnalogOutput0(),
-            standard_analog_output1=r.getStandardAnalogOutput1(),
-        )
+        """One sample from ur_rtde's getters (``ts`` is the one already read)."""
+        values: dict[str, Any] = {}
+        for attr, getter in UR_RTDE_GETTERS:
+            value = getattr(r, getter)()
+            values[attr] = tuple(value) if isinstance(value, list) else value
+        values["timestamp"] = ts
+        return RobotState(**values)
 
     def next_sample(
         self, seen: int, timeout: float, woken: Callable[[], bool] | None = None
@@ -496,7 +475,7 @@ class Link:
             self._drop_control("reconnecting control interface")
         self._stop_leftover_program()
         try:
-            self.send(wire.HOLD, True)
+            self._hold_stream()
             if mode == "urcap":
                 c = rtde_control.RTDEControlInterface(
                     self.host,
@@ -582,10 +561,16 @@ class Link:
                 del c
         self.send(wire.CONTROL, False, reason)
 
+    def _hold_stream(self) -> None:
+        """Tell the client the state stream may pause, and wait until it has been told: the
+        call that follows may hold the GIL, and the writer thread needs it to send."""
+        self.send(wire.HOLD, True)
+        self.outbox.flush(HOLD_FLUSH)
+
     @contextlib.contextmanager
     def held(self) -> Iterator[None]:
         """Tell the client the state stream may pause: a ur_rtde call may hold the GIL."""
-        self.send(wire.HOLD, True)
+        self._hold_stream()
         try:
             yield
         finally:
@@ -687,74 +672,16 @@ class Link:
 PULSE_PERIOD = 0.01  # s between two PULSE messages to the client
 
 
-@dataclass(frozen=True)
-class Guard:
-    """When and how a trajectory brakes by itself (sent with each trajectory)."""
-
-    brake_acceleration: tuple[float, ...] = (4.0, 4.0, 4.0, 8.0, 8.0, 8.0)
-    """Per-joint deceleration limit of a self-initiated stop (rad/s²)."""
-    brake_jerk: float = 40.0
-    """Jerk limit of a self-initiated stop (rad/s³)."""
-    cell_timeout: float | None = 0.1
-    """Brake when the client has sent nothing for this long (s; None: never)."""
-    stall_timeout: float = 0.08
-    """Brake when no state sample has arrived for this long (s)."""
-
-
-def brake_duration(velocity: Sequence[float], guard: Guard) -> float:
-    """How long the path-preserving stop from ``velocity`` (rad/s per joint) takes.
-
-    The path's time rate falls as ``(1 + cos(π t / T)) / 2``: a joint at speed v then
-    decelerates at most at ``π v / (2 T)`` with jerk at most ``π² v / (2 T²)``; ``T`` is
-    the shortest time that keeps every joint within the braking limits.
-    """
-    duration = 2 * CONTROL_PERIOD
-    for v, a in zip(velocity, guard.brake_acceleration, strict=False):
-        speed = abs(v)
-        if speed > 0:
-            duration = max(
-                duration,
-                math.pi * speed / (2 * a),
-                math.pi * math.sqrt(speed / (2 * guard.brake_jerk)),
-            )
-    return duration
-
-
-def _at(samples: wire.Samples, u: float) -> tuple[float, ...]:
-    """The path at fractional sample index ``u`` (linear between samples)."""
-    last = len(samples) - 1
-    if u >= last:
-        return samples[last]
-    k = int(u)
-    f = u - k
-    if f == 0.0:
-        return samples[k]
-    a, b = samples[k], samples[k + 1]
-    return tuple(x + (y - x) * f for x, y in zip(a, b, strict=True))
-
-
-def _velocity(samples: wire.Samples, u: float) -> tuple[float, ...]:
-    """The planned joint velocity at ``u`` (rad/s), from neighbouring samples."""
-    last = len(samples) - 1
-    if last < 1:
-        return (0.0,) * 6
-    k = min(int(u), last - 1)
-    return tuple((y - x) / CONTROL_PERIOD for x, y in zip(samples[k], samples[k + 1], strict=True))
-
-
 class _Trajectory:
-    """Streams one (N, 6) joint trajectory with servoJ at 500 Hz; brakes by itself."""
+    """Streams one (N, 6) joint trajectory with servoJ, one setpoint per controller cycle;
+    brakes by itself. What to send and when to stop is the :class:`~fxcell.link.follower.
+    Follower`'s; this thread adds the I/O: ur_rtde's servoJ, the state samples and the
+    clock, and the messages to the client."""
 
-    PROGRESS_EVERY = 10  # samples (20 ms)
-    CATCH_UP = 4
-    """Most samples one setpoint advances: a state sample ``k`` controller cycles after the
-    previous one (the controller skipped cycles, or their samples were lost) advances the
-    path by ``min(k, CATCH_UP)`` samples, so the path keeps the controller's time instead
-    of stretching by the missed cycles. Longer gaps stretch it: catching up a longer lag in
-    one setpoint would be a jump the servo loop turns into an acceleration spike. It is also
-    the most the path may run ahead of the link's own clock (a burst of queued samples)."""
-    HOLD = 0.1  # s a completed trajectory keeps servo mode for a next one
-    SETTLE_MAX = 0.3  # s, beyond twice the lookahead time, to settle on the last sample
+    PROGRESS_EVERY = Follower.PROGRESS_EVERY
+    CATCH_UP = Follower.CATCH_UP
+    HOLD = Follower.HOLD
+    SETTLE_MAX = Follower.SETTLE_MAX
 
     def __init__(
         self,
@@ -820,96 +747,55 @@ class _Trajectory:
             self.link._tick.notify_all()  # wake the hold now, not at the next sample
         return True
 
-    def _abort_reason(self, now: float) -> str | None:
-        """Why the trajectory must brake now by itself (``None``: it may go on)."""
+    def _take_requests(self, follower: Follower) -> None:
+        """Hand the stop request and a replacement that came since the last cycle on."""
         with self._lock:
-            if self._stop_reason is not None:
-                return self._stop_reason
-        guard, link = self.guard, self.link
-        if guard.cell_timeout is not None and not link.heard_within(guard.cell_timeout, now):
-            return "cell_silent"
-        if now - link.last_state_at > guard.stall_timeout:
-            return "state_stalled"
-        return None
+            replacement, self._replacement = self._replacement, None
+            reason = self._stop_reason
+        if reason is not None:
+            follower.stop(reason)
+        if replacement is not None:
+            follower.replace(*replacement)
 
     def _run(self) -> None:
         link = self.link
         started = time.monotonic()
         c = link.control
-        samples = self.samples
-        u = 0.0  # position along the path, in samples (fractional while braking)
-        braking: tuple[str, float, float] | None = None  # reason, started, duration
-        settle_until: float | None = None
         seen = link._samples
         clock = link.latest.timestamp if link.latest is not None else None
-        next_progress = 0
-        paced = 0  # setpoints the 3 ms timer sent since the last sample
-        # samples of path the wall clock allows now (one per CONTROL_PERIOD, at most CATCH_UP)
-        budget, budget_at = float(self.CATCH_UP), started
-        status, reason = "completed", ""
+        follower = Follower(
+            self.samples, self.guard, self.lookahead, gain=self.gain, now=started, clock=clock
+        )
+        status: str = "completed"
+        reason = ""
+        cycled = started  # time.monotonic() of this thread's previous cycle
         if c is None:
             status, reason = "failed", "no_external_control"
         else:
+            cell_timeout = self.guard.cell_timeout
             try:
                 while True:
                     now = time.monotonic()
-                    if braking is None:
-                        why = self._abort_reason(now)
-                        if why is not None:
-                            velocity = _velocity(samples, u) if u < len(samples) else (0.0,) * 6
-                            if max(map(abs, velocity)) > 0:  # not a stop at the target
-                                duration = brake_duration(velocity, self.guard)
-                                silent = f" for {now - link.last_heard:.3f} s"
-                                said = why + (silent if why == "cell_silent" else "")
-                                # settled: the cell saw the robot at the target, stopped and
-                                # past the plan by its clock, a few samples of the slow tail
-                                # before this stream: a normal end, not worth a warning
-                                level = logging.DEBUG if why == wire.SETTLED else logging.WARNING
-                                link.send(wire.LOG, level, f"braking to rest: {said}")
-                            else:  # holding the target: nothing to brake
-                                duration = 0.0
-                            braking = (why, now, duration)
-                    with self._lock:
-                        replacement, self._replacement = self._replacement, None
-                    if replacement is not None:
-                        if braking is not None:  # already braking by itself: keep that
-                            link.send(wire.TRAJ, self.id, "replaced", {"ok": False})
-                        else:
-                            new, at = replacement
-                            i = int(u)
-                            late = at is not None and at < i
-                            if at is None:
-                                samples, u = new, 0.0
-                            elif not late:
-                                samples, u = samples[i:at] + new, 0.0
-                            else:  # already past it: join the new samples where we are
-                                samples, u = new, float(min(i - at, len(new) - 1))
-                            settle_until = None
-                            link.send(wire.TRAJ, self.id, "replaced", {"ok": True, "late": late})
-                    state = link.latest
-                    rate = 1.0
-                    if braking is not None:
-                        elapsed = now - braking[1]
-                        if elapsed >= braking[2]:
-                            status, reason = "stopped", braking[0]
-                            break
-                        rate = 0.5 * (1.0 + math.cos(math.pi * elapsed / braking[2]))
-                    elif u >= len(samples):
-                        # hold the last sample until the robot settles on it (servoJ lags
-                        # by about the lookahead time), then leave servo mode
-                        if settle_until is None:
-                            settle_until = now + self.SETTLE_MAX + 2 * self.lookahead
-                        if now > settle_until or (
-                            state is not None and _settled(state, samples[-1])
-                        ):
-                            break
-                    if state is not None:
-                        why = stop_reason(state.safety_mode, state.runtime_state)
-                        if why is not None:
-                            status, reason = "failed", why
-                            break
-                    target = _at(samples, u)
-                    ok = c.servoJ(list(target), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain)
+                    self._take_requests(follower)
+                    if cell_timeout is not None:
+                        link.heard_within(cell_timeout, now)  # reads beats still waiting
+                    braking = follower.braking
+                    out = follower.cycle(
+                        now,
+                        link.latest,
+                        heard_at=link.last_heard if cell_timeout is not None else None,
+                        state_at=link.last_state_at,
+                    )
+                    if braking is None and follower.braking is not None:
+                        self._explain_stall(now, cycled)
+                    cycled = now
+                    self._tell(follower)
+                    if out.target is None:
+                        status, reason = out.status or "completed", out.reason
+                        break
+                    ok = c.servoJ(
+                        list(out.target), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain
+                    )
                     if not ok:
                         state = link.latest
                         why = None
@@ -917,49 +803,21 @@ class _Trajectory:
                             why = stop_reason(state.safety_mode, state.runtime_state)
                         status, reason = "failed", why or "servoj_refused"
                         break
-                    if u < len(samples):
-                        i = int(u)
-                        if braking is None and i >= next_progress:
-                            # the controller time this setpoint answers: the sample's, plus
-                            # the cycles the timer paced since (None before any sample)
-                            answered = None if clock is None else clock + paced * CONTROL_PERIOD
-                            self._progress(i, len(samples), samples[i], answered)
-                            next_progress = (i // self.PROGRESS_EVERY + 1) * self.PROGRESS_EVERY
+                    if out.progress is not None:
+                        self._progress(
+                            out.progress, len(follower.samples), out.target, out.answered
+                        )
                     # One setpoint per controller cycle, sent when the cycle's state sample
-                    # arrives: locked to the controller's clock, the setpoints never meet
-                    # its cycle in pairs or not at all (two free-running 2 ms clocks beat,
-                    # which made acceleration spikes). Without samples, a 3 ms timer paces
-                    # the stream until the stall brakes it. Late (a busy machine): never a
-                    # burst of setpoints; a sample a few cycles on advances the path by
-                    # those cycles (CATCH_UP), a longer gap stretches it.
+                    # arrives (locked to the controller's clock); without samples a 3 ms
+                    # timer paces the stream until the stall brakes it.
                     before = seen
                     seen, latest = link.next_sample(seen, 1.5 * CONTROL_PERIOD, self._is_poked)
                     # (a poke lost to a stop() between these two lines waits for the sample)
                     poked, self._poked = self._poked, False
-                    if seen == before and poked:
-                        steps = 0  # woken by stop(): brake from here at once
-                    elif seen == before or latest is None:  # no sample for 3 ms: the timer
-                        steps = 1
-                        paced += 1
-                    elif clock is not None and latest.timestamp > clock:
-                        # the controller cycles since the last sample, less those the timer
-                        # already paced
-                        cycles = round((latest.timestamp - clock) / CONTROL_PERIOD)
-                        steps = max(min(cycles, self.CATCH_UP) - paced, 0)
-                        clock, paced = latest.timestamp, 0
-                    else:  # no earlier time to count from (or the clock went back)
-                        steps = 1
-                        clock, paced = latest.timestamp, 0
-                    # never faster than the wall clock (a burst of queued samples): the
-                    # path may run at most CATCH_UP samples ahead of it, then waits
-                    t = time.monotonic()
-                    budget = min(budget + (t - budget_at) / CONTROL_PERIOD, self.CATCH_UP)
-                    budget_at = t
-                    if steps > budget:
-                        steps = max(int(budget), 0)
-                    budget -= steps
-                    if u < len(samples):
-                        u = min(u + rate * steps, float(len(samples)))
+                    new = seen != before and latest is not None
+                    follower.advance(
+                        time.monotonic(), latest.timestamp if new and latest else None, poked=poked
+                    )
             except Exception as exc:
                 status, reason = "failed", f"link_error: {exc}"
         state = link.latest
@@ -976,14 +834,14 @@ class _Trajectory:
             {
                 "status": status,
                 "reason": reason,
-                "index": int(u),
-                "total": len(samples),
+                "index": follower.index,
+                "total": len(follower.samples),
                 "actual_q": state.actual_q if state is not None else None,
                 "duration": time.monotonic() - started,
             },
         )
         self.ended.set()
-        if c is not None and at_target and self._hold(c, samples[-1]):
+        if c is not None and at_target and self._hold(c, follower):
             self.servo_kept = True
         elif c is not None:
             with contextlib.suppress(Exception):
@@ -992,7 +850,34 @@ class _Trajectory:
             if link._traj is self:
                 link._traj = None
 
-    def _hold(self, c: Any, target: tuple[float, ...]) -> bool:
+    def _explain_stall(self, now: float, cycled: float) -> None:
+        """Log where a stalled state stream stalled: in the controller (nothing unread)
+        or in this process (samples waiting in the socket while its threads waited for a
+        CPU)."""
+        link = self.link
+        if now - link.last_state_at <= self.guard.stall_timeout:
+            return  # it brakes for another reason
+        unread = link.stream.unread() if link.stream is not None else -1
+        self.link.send(
+            wire.LOG,
+            logging.WARNING,
+            f"state stalled: newest sample {1e3 * (now - link.last_state_at):.1f} ms old, "
+            f"{unread} bytes unread from the controller, this thread's previous cycle "
+            f"{1e3 * (now - cycled):.1f} ms ago",
+        )
+
+    def _tell(self, follower: Follower) -> None:
+        """Send what the follower has to say (a braking warning, a splice's outcome)."""
+        if not follower.notices:
+            return
+        for notice in follower.notices:
+            if notice.kind == "log":
+                self.link.send(wire.LOG, notice.level, notice.text)
+            else:
+                self.link.send(wire.TRAJ, self.id, notice.kind, dict(notice.data))
+        follower.notices.clear()
+
+    def _hold(self, c: Any, follower: Follower) -> bool:
         """Keep servoing the target for up to ``HOLD`` s after a completed trajectory;
         True if the next trajectory takes servo mode over. Leaving servo mode and entering
         it again cost 7-9 ms and 3-5 ms of controller round trips, which back-to-back
@@ -1004,16 +889,16 @@ class _Trajectory:
             self._holding = True
             if self._stop_reason == wire.SETTLED:
                 self._stop_reason = None  # the stop that ended it; any other ends the hold
+        follower.begin_hold()
         self.hold_started.set()
         try:
             while time.monotonic() < until:
                 if self._released.is_set():
                     with self._lock:
                         return self._keep_servo
-                if self._stop_requested():
-                    return False
-                state = link.latest
-                if state is not None and stop_reason(state.safety_mode, state.runtime_state):
+                self._take_requests(follower)
+                target = follower.hold_target(link.latest)
+                if target is None:
                     return False
                 if not c.servoJ(list(target), 0.0, 0.0, CONTROL_PERIOD, self.lookahead, self.gain):
                     return False
@@ -1025,10 +910,6 @@ class _Trajectory:
                 self._holding = self._will_hold = False
                 self._released.set()  # too late to take over now
         return False
-
-    def _stop_requested(self) -> bool:
-        with self._lock:
-            return self._stop_reason is not None
 
     def _next_sample_or_release(self, seen: int) -> int:
         link = self.link
@@ -1058,12 +939,6 @@ class _Trajectory:
         )  # fmt: skip
 
 
-def _settled(state: RobotState, target: tuple[float, ...]) -> bool:
-    error = wire.max_abs_difference(state.actual_q, target)
-    speed = max(abs(v) for v in state.actual_qd)
-    return error < ARRIVE_TOLERANCE and speed < SETTLE_VELOCITY
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m fxcell.link.process")
     parser.add_argument("--fd", type=int, required=True)
@@ -1072,6 +947,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frequency", type=float, default=500.0)
     parser.add_argument("--timeout", type=float, default=2.0)
     parser.add_argument("--urcap-port", type=int, default=50002)
+    parser.add_argument("--rt-priority", type=int, default=LINK_PRIORITY)
     parser.add_argument(
         "--receiver",
         choices=("stream", "ur_rtde"),
@@ -1080,6 +956,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
+    # before any thread starts (ur_rtde's included): they inherit the policy
+    args.scheduling = request_realtime(args.rt_priority)
     sock = socket.socket(fileno=args.fd)
     link = Link(sock, args)
     code = link.run()

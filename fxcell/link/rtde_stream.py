@@ -9,8 +9,12 @@ forwards each controller cycle exactly once. It runs in the robot-link process o
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import socket
 import struct
+import sys
+import termios
 from collections.abc import Iterator
 
 from fxcell.protocol import RTDE_PORT, RTDE_STATE_OUTPUTS, RobotState
@@ -21,6 +25,25 @@ _V, _O, _S, _U, _M = ord("V"), ord("O"), ord("S"), ord("U"), ord("M")
 
 _ATTRS: tuple[str, ...] = tuple(attr for attr, _ in RTDE_STATE_OUTPUTS)
 FIELDS: tuple[str, ...] = tuple(output for _, output in RTDE_STATE_OUTPUTS)
+
+# ur_rtde names its RTDEReceiveInterface getters after the outputs ("actual_TCP_pose" ->
+# ``getActualTCPPose``), with these exceptions.
+_UR_RTDE_EXCEPTIONS = {"robot_status_bits": "getRobotStatus"}
+
+
+def ur_rtde_getter(output: str) -> str:
+    """The name of ur_rtde's ``RTDEReceiveInterface`` getter for an RTDE output."""
+    exception = _UR_RTDE_EXCEPTIONS.get(output)
+    if exception is not None:
+        return exception
+    return "get" + "".join(word[:1].upper() + word[1:] for word in output.split("_"))
+
+
+UR_RTDE_GETTERS: tuple[tuple[str, str], ...] = tuple(
+    (attr, ur_rtde_getter(output)) for attr, output in RTDE_STATE_OUTPUTS
+)
+"""The :class:`RobotState` fields with the ur_rtde getter each is polled from when the link
+reads through ur_rtde instead of :class:`RTDEStream`: derived from the one list of outputs."""
 _CODES = {
     "BOOL": ("?", 1),
     "UINT8": ("B", 1),
@@ -75,6 +98,18 @@ class RTDEStream:
         if not self._reply(_S)[0]:
             raise RTDEError("controller refused to start the RTDE stream")
         sock.settimeout(None)
+
+    def unread(self) -> int:
+        """Bytes the controller sent that the reader has not taken yet (the kernel's
+        receive queue and this reader's partial packet; any thread may ask): a stream
+        that stalled with bytes unread stalled in this process, not in the controller."""
+        sock = self._sock
+        waiting = 0
+        if sock is not None:
+            with contextlib.suppress(OSError, ValueError):
+                raw = fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0" * 4)
+                waiting = int.from_bytes(raw, sys.byteorder, signed=True)
+        return waiting + len(self._buffer)
 
     def close(self) -> None:
         if self._sock is not None:

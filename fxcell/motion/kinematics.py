@@ -33,6 +33,7 @@ import numpy as np
 from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike, NDArray
 
+from fxcell.calibration import UR3E_NOMINAL_A, UR3E_NOMINAL_ALPHA, UR3E_NOMINAL_D
 from fxcell.errors import (
     InvalidArgumentError,
     InvalidTargetError,
@@ -104,12 +105,8 @@ class DH:
     alpha: tuple[float, float, float, float, float, float]
 
 
-UR3E_DH = DH(
-    d=(0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921),
-    a=(0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0),
-    alpha=(math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0),
-)
-"""UR's published UR3e parameters (the seed thesis's table has d5/d6 wrong)."""
+UR3E_DH = DH(d=UR3E_NOMINAL_D, a=UR3E_NOMINAL_A, alpha=UR3E_NOMINAL_ALPHA)
+"""UR's published UR3e parameters (the one table is :mod:`fxcell.calibration`'s)."""
 
 # UR's joint and link names (as in UR's URDFs), base to wrist 3. Link k moves with joint k.
 JOINT_NAMES = (

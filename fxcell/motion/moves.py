@@ -19,7 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,6 +32,7 @@ from fxcell.errors import (
     EmergencyStopError,
     InvalidArgumentError,
     InvalidTargetError,
+    LinkBrakeError,
     MoveError,
     MoveStoppedError,
     PlanningError,
@@ -114,6 +115,18 @@ class MovePlan:
         return self.trajectory.duration
 
 
+T = TypeVar("T")
+
+MAX_ANGLE = 2 * math.pi
+"""Largest roll, pitch or yaw (rad) a pose's 6-list may give."""
+
+
+def _reach(kinematics: Any) -> float:
+    dh = kinematics.dh
+    tcp = float(np.linalg.norm(kinematics.tcp.position))
+    return float(sum(abs(v) for v in (*dh.a, *dh.d))) + tcp + 0.01
+
+
 def _vector(value: object, n: int, what: str) -> Array:
     try:
         arr = np.asarray(value, dtype=float)
@@ -158,6 +171,9 @@ class MotionPlanner:
         )
         self._lower = np.asarray(config.limits.position_min, float)
         self._upper = np.asarray(config.limits.position_max, float)
+        self.reach = _reach(self.kinematics)
+        """No TCP position farther than this from the base origin is reachable (m; the sum
+        of the DH lengths and the TCP offset, plus a margin for calibration deltas)."""
 
     @property
     def max_acceleration(self) -> tuple[float, ...]:
@@ -196,19 +212,66 @@ class MotionPlanner:
         if len(outside):
             j = int(outside[0])
             raise InvalidTargetError(
-                f"{what}: joint {j + 1} = {q[j]:.4f} rad is outside "
+                f"{what}: joint {j + 1} = {q[j]:.6g} rad is outside "
                 f"[{self._lower[j]:.4f}, {self._upper[j]:.4f}]"
             )
         return q
 
     def parse_pose(self, target: object) -> Pose:
-        """A Pose, 7-list (quaternion) or 6-list (RPY) as :meth:`Pose.parse`; InvalidTargetError."""
+        """A Pose, 7-list (quaternion) or 6-list (RPY) as :meth:`Pose.parse`; InvalidTargetError.
+
+        Roll, pitch and yaw must lie in [-2π, 2π]: a larger angle is a mistake (a unit or a
+        typo), not a rotation anybody means."""
         try:
-            return target if isinstance(target, Pose) else Pose.parse(target)
+            pose = target if isinstance(target, Pose) else Pose.parse(target)
         except InvalidTargetError:
             raise
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise InvalidTargetError(f"not a pose: {target!r} ({exc})") from None
+        if not isinstance(target, Pose) and len(target) == 6:  # type: ignore[arg-type]
+            for axis, angle in zip(("roll", "pitch", "yaw"), list(target)[3:], strict=True):  # type: ignore[call-overload]
+                if not abs(float(angle)) <= MAX_ANGLE:
+                    raise InvalidTargetError(
+                        f"{axis} {float(angle):.6g} rad is not an angle in [-2π, 2π]"
+                    )
+        return pose
+
+    def check_reach(self, pose: Pose, what: str = "target") -> None:
+        """UnreachableError for a TCP position beyond the arm's reach, before IK or a
+        straight line is computed (a huge target would overflow them)."""
+        distance = math.hypot(*(float(v) for v in pose.position))
+        if not distance <= self.reach:  # also inf and nan
+            raise UnreachableError(
+                f"the {what} is {distance:.4g} m from the base; the arm reaches "
+                f"{self.reach:.3f} m at most"
+            )
+
+    def distance_target(self, start: ArrayLike, distance: object) -> Pose:
+        """The TCP pose ``distance`` (x, y, z, m, base axes; finite) away from the pose at
+        ``start`` joints, orientation kept; InvalidArgumentError for a bad vector."""
+        try:
+            d = _vector(distance, 3, "distance vector")
+        except InvalidTargetError as exc:
+            raise InvalidArgumentError(str(exc)) from None
+        here = self.tcp_pose(_vector(start, 6, "start joints"))
+        return Pose(here.position + d, here.rotation)
+
+    def check(self, target: MoveTarget, start: ArrayLike) -> None:
+        """Raise what can be known of a move before it is planned: a target that is not
+        finite, outside the joint limits, no pose, beyond reach, or with no collision-free
+        IK solution (each leg of a relative move). No path is searched."""
+        self._check_calibrated(target)
+        q0 = _vector(start, 6, "start joints")
+        match target:
+            case JointTarget(joints):
+                self.check_joints(joints)
+            case PoseTarget(pose, _):
+                self.solve(self.parse_pose(pose), q0)
+            case DistanceTarget(distance):
+                self.solve(self.distance_target(q0, distance), q0)
+            case RelativeTarget(start_pose, target_pose):
+                q1 = self.solve(self.parse_pose(start_pose), q0)
+                self.solve(self.parse_pose(target_pose), q1)
 
     def solve(self, pose: Pose, seed: Array) -> Array:
         """IK nearest ``seed`` among the collision-free solutions.
@@ -216,6 +279,7 @@ class MotionPlanner:
         UnreachableError when no solution is within the limits, CollisionError when
         every solution collides.
         """
+        self.check_reach(pose)
         solutions = self.kinematics.inverse_all(pose, seed=seed)
         if not solutions:
             raise UnreachableError(f"no inverse-kinematics solution within the limits for {pose!r}")
@@ -239,12 +303,7 @@ class MotionPlanner:
     ) -> list[MovePlan]:
         """The plans (legs) of a move from ``start`` joints to ``target``."""
         vf, af = velocity_factor, acceleration_factor
-        if self.uncalibrated is not None and not isinstance(target, JointTarget):
-            raise UncalibratedError(
-                f"pose moves are refused: {self.uncalibrated}; the nominal model would put the "
-                "TCP millimetres off (set robot.accept_nominal_kinematics to allow it, or give "
-                "robot.calibration a calibration.conf)"
-            )
+        self._check_calibrated(target)
         match target:
             case JointTarget(joints):
                 return [self.plan_joint(start, joints, vf, af)]
@@ -255,6 +314,14 @@ class MotionPlanner:
             case RelativeTarget(start_pose, target_pose):
                 return self.plan_relative(start, start_pose, target_pose, vf, af)
         raise InvalidArgumentError(f"not a move target: {target!r}")
+
+    def _check_calibrated(self, target: MoveTarget) -> None:
+        if self.uncalibrated is not None and not isinstance(target, JointTarget):
+            raise UncalibratedError(
+                f"pose moves are refused: {self.uncalibrated}; the nominal model would put the "
+                "TCP millimetres off (set robot.accept_nominal_kinematics to allow it, or give "
+                "robot.calibration a calibration.conf)"
+            )
 
     def plan_joint(
         self,
@@ -344,13 +411,8 @@ class MotionPlanner:
         keeping the orientation."""
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
-        try:
-            d = _vector(distance, 3, "distance vector")
-        except InvalidTargetError as exc:
-            raise InvalidArgumentError(str(exc)) from None
+        target = self.distance_target(start, distance)
         q0 = _vector(start, 6, "start joints")
-        here = self.tcp_pose(q0)
-        target = Pose(here.position + d, here.rotation)
         return self._plan_line(
             q0, target, limits, t0, "distance", velocity_factor, acceleration_factor
         )
@@ -386,6 +448,7 @@ class MotionPlanner:
         af: float,
     ) -> MovePlan:
         self.checker.check(q0, "start configuration")
+        self.check_reach(target, "line's end")
         line = cartesian_line(self.kinematics, self.checker, q0, target)
         traj = along_path(line.joints, line.knots, limits)
         bad = self.checker.first_collision(traj.positions)
@@ -408,6 +471,8 @@ class MotionPlanner:
 
 # ----------------------------------------------------------------- execution
 
+LINK_BRAKES = frozenset({"state_stalled", "cell_silent", "link_down"})
+"""Why the link process brakes a trajectory by itself (its guard; see fxcell.link.process)."""
 _FAILURES: dict[str, type[Exception]] = {
     "protective_stop": ProtectiveStopError,
     "emergency_stop": EmergencyStopError,
@@ -423,10 +488,14 @@ _FAILURES: dict[str, type[Exception]] = {
 class ExecutionOptions:
     """How a plan is streamed."""
 
-    lookahead_time: float = 0.03
-    """servoJ lookahead (s): the smallest the controller takes, for the least lag."""
-    gain: float = 2000.0
-    """servoJ gain: the stiffest; the samples are already smooth and jerk-limited."""
+    lookahead_time: float = 0.1
+    """servoJ lookahead (s), with ``gain`` UR's defaults: the lag is compensated (below),
+    and a soft tracker turns a setpoint that comes a cycle late (a busy link process) into
+    ``ω²·q̇·Δt`` of acceleration, 0.8 rad/s² per rad/s here, where the stiffest setting
+    (0.03 s, 2000; ω ≈ 107/s) made it 23 rad/s² per rad/s, several times the braking
+    limit (see fxcell.link.follower.servo_omega)."""
+    gain: float = 300.0
+    """servoJ gain (see ``lookahead_time``)."""
     compensate_lag: bool = True
     """Lead the setpoints by servoJ's lag (≈ lookahead·(300/gain)^¼, URCL issue #86),
     so the executed motion equals the planned one; the last sample is unchanged."""
@@ -736,6 +805,8 @@ class MoveExecution:
             brake_jerk=min(limits.braking_jerk),
             cell_timeout=robot.heartbeat_timeout,
             stall_timeout=robot.stall_timeout,
+            velocity=tuple(limits.velocity),
+            path_acceleration=tuple(limits.acceleration),
         )
 
     async def _wait_rest(self, states: StateSubscription) -> None:
@@ -752,7 +823,9 @@ class MoveExecution:
         reached = np.asarray(state.actual_q, float)
         result = self._result(reached, self._settled_at, end)
         if self._braked or (end.status == "stopped" and not self._settled):
-            raise MoveStoppedError(
+            # braked by the link process's own guard (not asked by the cell): LinkBrakeError
+            guarded = not self._braked and end.reason in LINK_BRAKES
+            raise (LinkBrakeError if guarded else MoveStoppedError)(
                 f"the move was stopped at {reached.round(4).tolist()} "
                 f"({result.executed_duration:.3f} s after it started)",
                 result,
@@ -921,6 +994,32 @@ class MotionController:
             finally:
                 self._plan_lock.release()
         return await asyncio.to_thread(locked)
+
+    async def check(
+        self,
+        target: MoveTarget,
+        start: ArrayLike,
+        velocity_factor: object | None = None,
+        acceleration_factor: object | None = None,
+    ) -> None:
+        """Raise now what a move to ``target`` would be refused with before it plans:
+        bad factors, then :meth:`MotionPlanner.check` (IK and collision checks in a worker
+        thread, under the plan lock like a plan; a joint target on the loop)."""
+        self.factors(velocity_factor, acceleration_factor)
+        if isinstance(target, JointTarget):
+            self.planner.check(target, start)
+            return
+        await self.locked(lambda: self.planner.check(target, start))
+
+    async def locked(self, work: Callable[[], T]) -> T:
+        """Run ``work`` (which uses the planner's Pinocchio and collision data) in a worker
+        thread, one at a time with plans."""
+
+        def run() -> T:
+            with self._plan_lock:
+                return work()
+
+        return await asyncio.to_thread(run)
 
     def runner(
         self,

@@ -35,6 +35,7 @@ from fxcell.events import (
     EventBus,
     LogEvent,
     MotionEvent,
+    PlacementEvent,
     StateEvent,
     TransitionEvent,
 )
@@ -44,7 +45,13 @@ from fxcell.recorder.frames import LinkFrames
 from fxcell.recorder.protobuf import encode_robot_state
 from fxcell.recorder.recovery import recover_unfinished
 from fxcell.recorder.retention import Retention, enforce
-from fxcell.recorder.schemas import dumps, foxglove_log_level, timestamp, topic_schemas
+from fxcell.recorder.schemas import (
+    dumps,
+    foxglove_log_level,
+    placement_messages,
+    timestamp,
+    topic_schemas,
+)
 
 log = logging.getLogger(__name__)
 
@@ -453,6 +460,14 @@ class Recorder:
         topic = topics.GRIPPER if e.device == "gripper" else topics.JOB
         self._add(topic, t, dumps(msg), int(e.time * 1e9))
 
+    def _on_placement(self, t: int, e: PlacementEvent) -> None:
+        ns = int(e.time * 1e9)
+        report = to_jsonable(dict(e.report))
+        image, annotations, verdict = placement_messages(ns, e.jpeg, report, e.frame_id)
+        self._add(topics.CAMERA_PLACEMENT, t, image, ns)
+        self._add(topics.CAMERA_PLACEMENT_ANNOTATIONS, t, annotations, ns)
+        self._add(topics.CAMERA_PLACEMENT_VERDICT, t, verdict, ns)
+
     def _on_log(self, t: int, e: LogEvent) -> None:
         ns = int(e.time * 1e9)
         msg = {
@@ -477,6 +492,7 @@ class Recorder:
         TransitionEvent: _on_transition,
         MotionEvent: _on_motion,
         DeviceEvent: _on_device,
+        PlacementEvent: _on_placement,
         LogEvent: _on_log,
         _MetadataUpdate: _on_metadata,
     }

@@ -195,6 +195,93 @@ LOG_SCHEMA: Final = _object(
     ["timestamp", "level", "message", "name", "file", "line"],
 )
 
+_POINT2: Final = {
+    "title": "foxglove.Point2",
+    "type": "object",
+    "properties": {"x": _NUM, "y": _NUM},
+    "required": ["x", "y"],
+}
+_METADATA: Final = {
+    "type": "array",
+    "items": {
+        "title": "foxglove.KeyValuePair",
+        "type": "object",
+        "properties": {"key": _STR, "value": _STR},
+        "required": ["key", "value"],
+    },
+}
+_COLOR: Final = {
+    "title": "foxglove.Color",
+    "type": "object",
+    "properties": {"r": _NUM, "g": _NUM, "b": _NUM, "a": _NUM},
+    "required": ["r", "g", "b", "a"],
+}
+COMPRESSED_IMAGE_SCHEMA: Final = _object(
+    topics.SCHEMA_COMPRESSED_IMAGE,
+    {
+        "timestamp": _TIMESTAMP,
+        "frame_id": _STR,
+        "data": {"type": "string", "contentEncoding": "base64"},
+        "format": _STR,
+    },
+    ["timestamp", "frame_id", "data", "format"],
+)
+IMAGE_ANNOTATIONS_SCHEMA: Final = _object(
+    topics.SCHEMA_IMAGE_ANNOTATIONS,
+    {
+        "timestamp": _TIMESTAMP,
+        "metadata": _METADATA,
+        "circles": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.CircleAnnotation",
+                "type": "object",
+                "properties": {
+                    "timestamp": _TIMESTAMP,
+                    "position": _POINT2,
+                    "diameter": _NUM,
+                    "thickness": _NUM,
+                    "fill_color": _COLOR,
+                    "outline_color": _COLOR,
+                    "metadata": _METADATA,
+                },
+                "required": ["timestamp", "position", "diameter", "thickness"],
+            },
+        },
+        "points": {"type": "array", "items": {"type": "object"}},
+        "texts": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.TextAnnotation",
+                "type": "object",
+                "properties": {
+                    "timestamp": _TIMESTAMP,
+                    "position": _POINT2,
+                    "text": _STR,
+                    "font_size": _NUM,
+                    "text_color": _COLOR,
+                    "background_color": _COLOR,
+                    "metadata": _METADATA,
+                },
+                "required": ["timestamp", "position", "text", "font_size"],
+            },
+        },
+    },
+    ["circles", "points", "texts"],
+)
+PLACEMENT_SCHEMA: Final = _object(
+    topics.SCHEMA_PLACEMENT,
+    {
+        "time": _NUM,
+        "ok": {"type": "boolean"},
+        "reason": _STR,
+        "positions": {"type": "array", "items": {"type": "object"}},
+        "obstructions": {"type": "array", "items": {"type": "object"}},
+        "holder_found": {"type": "boolean"},
+    },
+    ["time", "ok", "reason", "positions"],
+)
+
 # topic -> (schema name, schema encoding, schema data, message encoding)
 SchemaSpec = tuple[str, str, bytes, str]
 
@@ -222,6 +309,9 @@ def topic_schemas() -> dict[str, SchemaSpec]:
         topics.TF: _json_spec(FRAME_TRANSFORMS_SCHEMA),
         topics.LOG: _json_spec(LOG_SCHEMA),
         topics.ROBOT_DESCRIPTION: _json_spec(STRING_SCHEMA),
+        topics.CAMERA_PLACEMENT: _json_spec(COMPRESSED_IMAGE_SCHEMA),
+        topics.CAMERA_PLACEMENT_ANNOTATIONS: _json_spec(IMAGE_ANNOTATIONS_SCHEMA),
+        topics.CAMERA_PLACEMENT_VERDICT: _json_spec(PLACEMENT_SCHEMA),
         topics.RECORDER: _json_spec(RECORDER_SCHEMA),
     }
 
@@ -232,6 +322,57 @@ def topic_schemas() -> dict[str, SchemaSpec]:
 def dumps(message: dict[str, Any]) -> bytes:
     """Compact JSON of a message whose values are already JSON-compatible."""
     return json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
+
+
+def placement_messages(
+    ns: int, jpeg: bytes, report: dict[str, Any], frame_id: str = "camera"
+) -> tuple[bytes, bytes, bytes]:
+    """The ``foxglove.CompressedImage``, ``foxglove.ImageAnnotations`` and verdict messages
+    of one placement check (``report``: :meth:`PlacementReport.as_dict`)."""
+    import base64
+
+    stamp = timestamp(ns)
+    image = {
+        "timestamp": stamp,
+        "frame_id": frame_id,
+        "data": base64.b64encode(jpeg).decode(),
+        "format": "jpeg",
+    }
+    green = {"r": 0.24, "g": 0.75, "b": 0.24, "a": 1.0}
+    red = {"r": 0.9, "g": 0.16, "b": 0.16, "a": 1.0}
+    clear = {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.0}
+    circles, texts = [], []
+    for p in report.get("positions", ()):
+        if p.get("pixel") is None:
+            continue
+        colour = green if p.get("ok") else red
+        x, y = p["pixel"]
+        circles.append(
+            {
+                "timestamp": stamp,
+                "position": {"x": x, "y": y},
+                "diameter": 2 * float(p.get("pixel_radius") or 20.0),
+                "thickness": 3.0,
+                "fill_color": clear,
+                "outline_color": colour,
+            }
+        )
+        label = f"{p['slot']} {p['verdict']}"
+        if p.get("offset_mm") is not None:
+            label += f" {p['offset_mm']:.1f} mm"
+        texts.append(
+            {
+                "timestamp": stamp,
+                "position": {"x": x, "y": y + float(p.get("pixel_radius") or 20.0) + 14},
+                "text": label,
+                "font_size": 14.0,
+                "text_color": colour,
+                "background_color": {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.6},
+            }
+        )
+    annotations = {"timestamp": stamp, "circles": circles, "points": [], "texts": texts}
+    verdict = {"time": ns / 1e9, **report}
+    return dumps(image), dumps(annotations), dumps(verdict)
 
 
 def timestamp(ns: int) -> dict[str, int]:

@@ -34,6 +34,12 @@ LOG: Final = "/log"
 """``foxglove.Log`` records (JSON)."""
 ROBOT_DESCRIPTION: Final = "/robot_description"
 """The UR3e URDF as a string message, published once per file (JSON)."""
+CAMERA_PLACEMENT: Final = "/camera/placement"
+"""Each placement check's annotated frame (``foxglove.CompressedImage``, JPEG, JSON)."""
+CAMERA_PLACEMENT_ANNOTATIONS: Final = "/camera/placement/annotations"
+"""The check's verdicts drawn over that image (``foxglove.ImageAnnotations``, JSON)."""
+CAMERA_PLACEMENT_VERDICT: Final = "/camera/placement/verdict"
+"""The check's verdict: ok, reason, each position's verdict and measures (JSON)."""
 RECORDER: Final = "/fxcell/recorder"
 """The recorder's own notices: drops, disk errors, file rotation (JSON)."""
 
@@ -49,9 +55,22 @@ ALL_TOPICS: Final = (
     TF,
     LOG,
     ROBOT_DESCRIPTION,
+    CAMERA_PLACEMENT,
+    CAMERA_PLACEMENT_ANNOTATIONS,
+    CAMERA_PLACEMENT_VERDICT,
     RECORDER,
 )
-EVENT_TOPICS: Final = (COMMANDS, TRANSITIONS, ROBOT_MODES, IO, GRIPPER, JOB, LOG, RECORDER)
+EVENT_TOPICS: Final = (
+    COMMANDS,
+    TRANSITIONS,
+    ROBOT_MODES,
+    IO,
+    GRIPPER,
+    JOB,
+    CAMERA_PLACEMENT_VERDICT,
+    LOG,
+    RECORDER,
+)
 """The low-rate topics a timeline lists."""
 
 # ----------------------------------------------------------------- schema names
@@ -67,6 +86,9 @@ SCHEMA_RECORDER: Final = "fxcell.RecorderNotice"
 SCHEMA_STRING: Final = "fxcell.String"
 SCHEMA_FRAME_TRANSFORMS: Final = "foxglove.FrameTransforms"
 SCHEMA_LOG: Final = "foxglove.Log"
+SCHEMA_COMPRESSED_IMAGE: Final = "foxglove.CompressedImage"
+SCHEMA_IMAGE_ANNOTATIONS: Final = "foxglove.ImageAnnotations"
+SCHEMA_PLACEMENT: Final = "fxcell.PlacementCheck"
 
 # ----------------------------------------------------------------- encodings
 JSON: Final = "json"

@@ -9,12 +9,12 @@ import argparse
 import logging
 import os
 import sys
-import threading
-import time
 from collections.abc import Sequence
 from typing import Any
 
 from fxcell.link.embedded import FAULTS
+from fxcell.sim.lifetime import watch_parent
+from fxcell.sim.ned2 import FAULTS as NED2_FAULTS
 
 
 def _joints(text: str) -> list[float]:
@@ -50,6 +50,18 @@ def _machine_io(text: str) -> Any:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="loopback address to serve on")
     p.add_argument(
+        "--robot",
+        choices=("ur3e", "ned2"),
+        default="ur3e",
+        help="the controller to simulate: ur3e (default) or ned2 (Niryo's TCP server on "
+        "40001 as pyniryo uses it; only --host, --time-scale and --calibrated apply)",
+    )
+    p.add_argument(
+        "--calibrated",
+        action="store_true",
+        help="ned2: start calibrated (a real Ned2 boots needing calibration)",
+    )
+    p.add_argument(
         "--time-scale",
         type=_positive,
         default=1.0,
@@ -68,6 +80,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=50002,
         help="port the ExternalControl URCap requests its program from",
+    )
+    p.add_argument(
+        "--programs",
+        metavar="DIR",
+        help="the controller's program directory (/programs: .urp programs with the .script "
+        "PolyScope saves next to them, .installation files); default: the shipped store "
+        "(external_control.urp, fxcell.urp, default.urp, default.installation)",
     )
     p.add_argument(
         "--realtime",
@@ -115,13 +134,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: Any) -> None:
-    p = sub.add_parser("sim", help="run the embedded UR3e controller simulator")
+    p = sub.add_parser("sim", help="run the embedded UR3e (or Niryo Ned2) controller simulator")
     add_arguments(p)
     inner = p.add_subparsers(title="simulator commands", metavar="COMMAND")
     i = inner.add_parser("inject", help="inject a fault into a running simulator")
     i.add_argument("--host", default="127.0.0.1", help="the simulator's address")
-    i.add_argument("fault", choices=FAULTS)
-    i.add_argument("args", nargs="*", help="fault arguments (stall_rtde SECONDS)")
+    i.add_argument("--robot", choices=("ur3e", "ned2"), default="ur3e")
+    i.add_argument("fault", choices=sorted({*FAULTS, *NED2_FAULTS}))
+    i.add_argument(
+        "args",
+        nargs="*",
+        help="fault arguments (stall_rtde SECONDS; ned2: stall SECONDS, motor_error JOINT)",
+    )
     i.set_defaults(func=run_inject)
     push = inner.add_parser(
         "push", help="move the arm by hand while it is in freedrive (teach mode)"
@@ -159,6 +183,19 @@ def register(sub: Any) -> None:
     po.add_argument("slot")
     po.add_argument("contents", nargs="?", help="what it carries ('-': nothing)")
     po.set_defaults(func=run_place_object)
+    oo = inner.add_parser(
+        "offset-object",
+        help="misplace a standing object of a running simulator (for the camera's check)",
+        description="Shift it by DX DY (m, base axes) and lean it --tilt degrees towards "
+        "--azimuth (degrees from base +x), turning about its bottom's edge.",
+    )
+    oo.add_argument("--host", default="127.0.0.1", help="the simulator's address")
+    oo.add_argument("name")
+    oo.add_argument("dx", type=float)
+    oo.add_argument("dy", type=float)
+    oo.add_argument("--tilt", type=float, default=0.0, help="degrees")
+    oo.add_argument("--azimuth", type=float, default=0.0, help="degrees")
+    oo.set_defaults(func=run_offset_object)
     m = inner.add_parser("machine", help="print the simulated fusion machine's state (JSON)")
     m.add_argument("--host", default="127.0.0.1", help="the simulator's address")
     m.set_defaults(func=run_machine)
@@ -167,6 +204,22 @@ def register(sub: Any) -> None:
 def run_inject(args: argparse.Namespace) -> int:
     from fxcell.link.embedded import inject
 
+    if args.robot == "ned2":
+        from fxcell.sim.ned2.server import request
+
+        try:
+            answer = request(args.host, " ".join(["inject", args.fault, *args.args]))
+        except OSError as exc:
+            print(
+                f"fxcell sim inject: simulator at {args.host} does not answer: {exc}",
+                file=sys.stderr,
+            )
+            return 1
+        if not answer.startswith("ok"):
+            print(f"fxcell sim inject: {answer}", file=sys.stderr)
+            return 1
+        print(answer[3:].strip())
+        return 0
     print(inject(args.host, args.fault, *args.args))
     return 0
 
@@ -192,6 +245,18 @@ def run_set_input(args: argparse.Namespace) -> int:
         print(set_input(args.host, args.input, args.value))
     except SimulatorError as exc:
         print(f"fxcell sim set-input: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run_offset_object(args: argparse.Namespace) -> int:
+    from fxcell.errors import SimulatorError
+    from fxcell.link.embedded import offset_object
+
+    try:
+        print(offset_object(args.host, args.name, args.dx, args.dy, args.tilt, args.azimuth))
+    except SimulatorError as exc:
+        print(f"fxcell sim offset-object: {exc}", file=sys.stderr)
         return 1
     return 0
 
@@ -222,17 +287,6 @@ def run_machine(args: argparse.Namespace) -> int:
     return 0
 
 
-def _watch_parent() -> None:
-    parent = os.getppid()
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(0)  # the launcher is gone: nobody can stop us any more
-
-    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
-
-
 def run(args: argparse.Namespace) -> int:
     import faulthandler
     import signal
@@ -240,13 +294,20 @@ def run(args: argparse.Namespace) -> int:
     from fxcell.config import CellConfig
 
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # kill -USR1: where is it?
+    if args.robot == "ned2":
+        from fxcell.sim.ned2.server import run as serve_ned2
+
+        return serve_ned2(args)
     from fxcell.sim.server import run as serve
 
     if args.exit_with_parent:
-        _watch_parent()
+        watch_parent()
     from fxcell.calibration import Calibration
     from fxcell.errors import CalibrationError
 
+    if args.programs is not None and not os.path.isdir(args.programs):
+        print(f"fxcell sim: --programs {args.programs}: not a directory", file=sys.stderr)
+        return 2
     config = CellConfig.load(args.config)
     try:
         if args.calibration == "nominal":
@@ -269,6 +330,7 @@ def run(args: argparse.Namespace) -> int:
         fusion_time=args.fusion_time,
         cooling_time=args.cooling_time,
         crucibles=args.crucibles,
+        programs=args.programs,
     )
 
 

@@ -12,12 +12,12 @@ and so does the 5 s protective-stop unlock rule.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from fxcell.errors import InvalidArgumentError
-from fxcell.link.embedded import FAULTS  # one list of faults, shared with the launcher
+from fxcell.link.embedded import FAULTS, SimulatorState  # FAULTS: shared with the launcher
 from fxcell.protocol import (
     CONTROL_PERIOD,
     RobotMode,
@@ -26,33 +26,24 @@ from fxcell.protocol import (
     SafetyMode,
     SafetyStatusBits,
 )
+from fxcell.sim.constants import DELAYS, REGISTER_COUNT, UNLOCK_DELAY
+from fxcell.sim.events import RobotMessage, RuntimeException, TextMessage
+from fxcell.sim.program_store import URCAP_PROGRAM, ProgramStore
+from fxcell.sim.script import ControlScript, is_control_script
 from fxcell.sim.signals import Signal
+from fxcell.sim.urscript import Program, URScriptError
+
+# injections that undo a fault or change no behaviour: not counted as faults
+_NOT_FAULTS = frozenset(
+    {"emergency_stop_release", "safeguard_stop_release", "remote_control", "machine_reset"}
+    | {"door_close", "hide_kinematics_info", "show_kinematics_info"}
+)
 
 if TYPE_CHECKING:
     from fxcell.sim.motion import Arm
-    from fxcell.sim.script import ControlScript
-    from fxcell.sim.urscript import Program
 
 log = logging.getLogger(__name__)
 
-# Real-controller delays in seconds, before time scaling.
-DELAYS = {
-    "boot": 2.0,
-    "power_on": 2.0,  # POWER_ON -> IDLE
-    "brake_release": 1.5,  # IDLE -> RUNNING
-    "program_start": 0.3,  # compile and start a program or an uploaded script
-    "restart_safety": 1.5,
-}
-UNLOCK_DELAY = 5.0  # protective stop: unlock refused until this long after the stop
-
-POLYSCOPE_VERSION = (5, 11, 1, 108318)
-SERIAL_NUMBER = "20235500001"
-ROBOT_MODEL = "UR3"
-PROGRAM_DIR = "/programs"
-URCAP_PROGRAM = "external_control.urp"
-KNOWN_PROGRAMS = frozenset({URCAP_PROGRAM, "fxcell.urp", "default.urp"})
-
-REGISTER_COUNT = 48
 
 # joint_mode values reported per robot mode
 JOINT_MODE = {
@@ -171,8 +162,11 @@ def program_name(path: str | None) -> str:
 class Controller:
     """The state of the simulated robot and its controller."""
 
-    def __init__(self, arm: Arm, *, time_scale: float = 1.0) -> None:
+    def __init__(
+        self, arm: Arm, *, time_scale: float = 1.0, programs: ProgramStore | None = None
+    ) -> None:
         self.arm = arm
+        self.programs = programs or ProgramStore()
         self.time_scale = time_scale
         self.time = 0.0  # controller time, s (ticks x 2 ms)
         self.ticks = 0
@@ -189,14 +183,21 @@ class Controller:
         self.payload_mass = 0.0
         self.payload_cog = (0.0, 0.0, 0.0)
         self.tcp: tuple[float, ...] = (0.0,) * 6  # set by the program (set_tcp)
+        self.gravity: tuple[float, ...] = (0.0, 0.0, 9.82)  # set_gravity: opposing gravity
         self.teach_mode = False  # freedrive: the arm follows a hand (`push` on the control port)
+        self.free_axes: tuple[int, ...] = (1,) * 6  # freedrive_mode's freeAxes (x y z rx ry rz)
+        self.freedrive_feature: tuple[float, ...] = (0.0,) * 6  # the frame those axes are in
         self.script: ControlScript | None = None  # ur_rtde's control script, emulated
         self.program: Program | None = None  # any other URScript program, interpreted
         self.kinematics_info_hidden = False  # fault: no calibration on the primary interface
         self.program_kind: str | None = None  # "urp" | "script" | None
         self.last_stop_reason = ""
         self.log_messages: list[str] = []
+        self.faults: list[str] = []
+        """Every fault of the session: safety stops (injected or the controller's own, such
+        as a violation), injected faults, watchdog stops (tests count the unplanned ones)."""
         self.watchdog: tuple[str, float] | None = None  # (input variable, min frequency)
+        self.watchdog_action = "stop"  # what a starved watchdog does: "stop" or "pause"
         self.watchdog_armed_at = 0.0
         self.input_updated: dict[str, float] = {}  # input variable -> last update time
         self.input_generation = 0  # bumped by every RTDE input packet
@@ -206,7 +207,7 @@ class Controller:
         self.on_drop_rtde: Callable[[], None] = lambda: None
         self.on_shutdown: Callable[[], None] = lambda: None
         self.request_urcap_program: Callable[[], None] = lambda: None
-        self.on_robot_message: Callable[[bytes], None] = lambda message: None
+        self.on_robot_message: Callable[[RobotMessage], None] = lambda message: None
         self._timers: list[tuple[float, int, Callable[[], None]]] = []
         self._timer_seq = 0
         self._pending: dict[str, int] = {}  # name -> timer seq, for cancellable transitions
@@ -371,17 +372,24 @@ class Controller:
 
     # ------------------------------------------------------------------ programs
 
-    def load_program(self, path: str) -> tuple[bool, str]:
-        """Load a ``.urp``; returns (ok, full path)."""
-        full = path if path.startswith("/") else f"{PROGRAM_DIR}/{path}"
-        name = program_name(full)
-        if not name.endswith(".urp") or self.runtime_state != RuntimeState.STOPPED:
-            return False, full
-        if name not in KNOWN_PROGRAMS:
-            return False, full
+    def load_program(self, path: str) -> tuple[str, str]:
+        """Load a ``.urp`` from the program store: ("loaded" | "missing" | "refused", the
+        controller's path). Refused: not a program, or one is running."""
+        full, file = self.programs.find(path)
+        if not full.endswith(".urp") or self.runtime_state != RuntimeState.STOPPED:
+            return "refused", full
+        if file is None:
+            return "missing", full
         self.loaded_program = full
         self.program_saved = True
-        return True, full
+        return "loaded", full
+
+    def load_installation(self, path: str) -> str:
+        """Load an ``.installation`` from the store: "loaded" | "missing" | "refused"."""
+        full, file = self.programs.find(path)
+        if not full.endswith(".installation") or self.runtime_state != RuntimeState.STOPPED:
+            return "refused"
+        return "loaded" if file is not None else "missing"
 
     def play(self) -> bool:
         if self.runtime_state in (RuntimeState.PAUSED, RuntimeState.PAUSING):
@@ -394,9 +402,21 @@ class Controller:
             return False
         if self.runtime_state != RuntimeState.STOPPED:
             return False
+        program = None
+        if program_name(self.loaded_program) != URCAP_PROGRAM:
+            text = self.programs.script(self.loaded_program)
+            if text is not None:  # the URScript PolyScope saved with the program
+                try:
+                    program = Program(self, text)
+                except URScriptError as exc:
+                    self.runtime_error(exc.message, exc.line, exc.column)
+                    return False
         self.program_kind = "urp"
         self.runtime_state = RuntimeState.PLAYING  # PolyScope reports PLAYING at once
-        if program_name(self.loaded_program) == URCAP_PROGRAM:
+        if program is not None:
+            self.program = program
+            log.info("program %s started", self.loaded_program)
+        elif program_name(self.loaded_program) == URCAP_PROGRAM:
             self.after(self.delay("program_start"), self.request_urcap_program, name="program")
         return True
 
@@ -428,9 +448,6 @@ class Controller:
                 self.safety_mode.name,
             )
             return False
-        from fxcell.sim.script import ControlScript, is_control_script
-        from fxcell.sim.urscript import Program, URScriptError
-
         program: Program | None = None
         if not is_control_script(text):
             try:
@@ -468,8 +485,6 @@ class Controller:
 
     def run_secondary(self, text: str) -> bool:
         """A ``sec`` program: runs at once beside the main program (it cannot take time)."""
-        from fxcell.sim.urscript import Program, URScriptError
-
         try:
             program = Program(self, text, secondary=True)
         except URScriptError as exc:
@@ -498,31 +513,39 @@ class Controller:
     ) -> None:
         """A runtime (or compile) error, reported as the controller does: a runtime exception
         message on the primary/secondary interfaces and the log; the program stops."""
-        from fxcell.sim.primary import runtime_exception_message
-
         entry = f"Runtime exception: {text} (line {line}, column {column})"
         log.error("%s", entry)
         self.log_messages.append(entry)
-        self.on_robot_message(runtime_exception_message(text, line, column, self.time))
+        self.on_robot_message(RuntimeException(text, line, column, self.time))
         if stop:
             self._stop_program(f"runtime exception: {text}")
             self.arm.stop_motion()
 
     def report_error(self, text: str) -> None:
         """An error the program survives: the log and a text message to the clients."""
-        from fxcell.sim.primary import text_message
-
         log.error("%s", text)
         self.log_messages.append(f"error: {text}")
-        self.on_robot_message(text_message(text, self.time))
+        self.on_robot_message(TextMessage(text, self.time))
 
     def text_message(self, text: str) -> None:
         """``textmsg``: the log and a text message to the primary/secondary clients."""
-        from fxcell.sim.primary import text_message
-
         log.info("textmsg: %s", text)
         self.log_messages.append(f"textmsg: {text}")
-        self.on_robot_message(text_message(text, self.time))
+        self.on_robot_message(TextMessage(text, self.time))
+
+    def enter_freedrive(
+        self, axes: tuple[int, ...] = (1,) * 6, feature: list[float] | None = None
+    ) -> None:
+        """``teach_mode()`` / ``freedrive_mode(freeAxes, feature)``: the arm gives way to a
+        hand along the free axes of ``feature`` (a pose in the base frame)."""
+        self.teach_mode = True
+        self.free_axes = axes
+        self.freedrive_feature = tuple(feature) if feature is not None else (0.0,) * 6
+
+    def end_freedrive(self) -> None:
+        self.teach_mode = False
+        self.free_axes = (1,) * 6
+        self.freedrive_feature = (0.0,) * 6
 
     def set_digital_output(self, bit: int, value: bool) -> None:
         """Standard outputs are bits 0-7, configurable 8-15, tool 16-17."""
@@ -542,7 +565,7 @@ class Controller:
 
     def _stop_program(self, reason: str) -> None:
         self.cancel("program")
-        self.teach_mode = False  # teach mode ends with the program, as on the controller
+        self.end_freedrive()  # teach mode ends with the program, as on the controller
         if self.program is not None:
             self.program.terminate()
             self.program = None
@@ -562,13 +585,20 @@ class Controller:
         name, frequency = self.watchdog
         last = self.input_updated.get(name, self.watchdog_armed_at)
         if self.time - max(last, self.watchdog_armed_at) > 1.0 / frequency:
-            log.warning("RTDE watchdog on %s starved: stopping the program", name)
-            self.stop("RTDE watchdog timeout")
+            log.warning("RTDE watchdog on %s starved: %s the program", name, self.watchdog_action)
+            self.faults.append(f"RTDE watchdog on {name} starved")
+            if self.watchdog_action == "pause":
+                self.log_messages.append("RTDE watchdog timeout: program paused")
+                self.watchdog_armed_at = self.time  # armed again when the program resumes
+                self.pause()
+            else:
+                self.stop("RTDE watchdog timeout")
 
-    def set_watchdog(self, variable: str, frequency: float) -> None:
-        """``rtde_set_watchdog(variable, frequency, "stop")``: stop the program when the
-        input ``variable`` gets no update for ``1/frequency`` s (while the program runs)."""
+    def set_watchdog(self, variable: str, frequency: float, action: str = "stop") -> None:
+        """``rtde_set_watchdog(variable, frequency, action)``: stop (or pause) the program
+        when the input ``variable`` gets no update for ``1/frequency`` s while it runs."""
         self.watchdog = (variable, max(frequency, 1e-6))
+        self.watchdog_action = action
         self.watchdog_armed_at = self.time
 
     # ------------------------------------------------------------------ safety and faults
@@ -582,16 +612,43 @@ class Controller:
             return
         log.warning("protective stop: %s", reason)
         self.log_messages.append(f"protective stop: {reason}")
+        self.faults.append(f"protective stop: {reason}")
         self.safety_mode = SafetyMode.PROTECTIVE_STOP
         self.protective_stop_time = self.time
         self.cancel("brakes")
         self._stop_program(f"protective stop: {reason}")
         self.arm.safety_stop()
 
+    def state(
+        self, *, late_cycles: int = 0, stalls: Sequence[tuple[float, float]] = ()
+    ) -> SimulatorState:
+        """The controller's own view of the robot: the control port's ``state`` reply."""
+        return {
+            "time": self.time,
+            "robot_mode": self.robot_mode.name,
+            "safety_mode": self.safety_mode.name,
+            "runtime_state": self.runtime_state.name,
+            "remote_control": self.remote_control,
+            "q": self.arm.q.tolist(),
+            "qd": self.arm.qd.tolist(),
+            "tcp": list(self.tcp),
+            "payload": self.payload_mass,
+            "teach_mode": self.teach_mode,
+            "program": self.loaded_program,
+            "control_script": self.script is not None,
+            "last_stop_reason": self.last_stop_reason,
+            "late_cycles": late_cycles,
+            "stalls": [list(stall) for stall in stalls],
+            "log": self.log_messages[-20:],
+            "faults": list(self.faults),
+        }
+
     def inject(self, fault: str, args: list[str]) -> str:
         """Apply a fault injection; returns a short description."""
         if fault not in FAULTS:
             raise FaultError(f"unknown fault {fault!r}; known: {', '.join(FAULTS)}")
+        if fault not in _NOT_FAULTS and fault != "protective_stop":  # that one counts itself
+            self.faults.append(f"injected {fault} {' '.join(args)}".strip())
         if fault == "stall_rtde":
             if len(args) != 1:
                 raise FaultError("stall_rtde needs SECONDS")

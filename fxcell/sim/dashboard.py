@@ -12,12 +12,13 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, ClassVar
 
 from fxcell.protocol import RobotMode, SafetyMode
-from fxcell.sim.controller import (
+from fxcell.sim.constants import (
+    POLYSCOPE_BUILD_DATE,
     POLYSCOPE_VERSION,
     ROBOT_MODEL,
     SERIAL_NUMBER,
-    program_name,
 )
+from fxcell.sim.controller import program_name
 
 if TYPE_CHECKING:
     from fxcell.sim.controller import Controller
@@ -30,7 +31,7 @@ LOCAL_REFUSAL = (
     "mode and reconnect to port 29999"
 )
 VERSION_TEXT = ".".join(str(v) for v in POLYSCOPE_VERSION)
-POLYSCOPE_TEXT = f"URSoftware {VERSION_TEXT} (Mar 22 2021)"
+POLYSCOPE_TEXT = f"URSoftware {VERSION_TEXT} ({POLYSCOPE_BUILD_DATE:%b %d %Y})"
 # Commands refused in Local control (the robot or its program would change).
 REMOTE_ONLY = (
     "power on",
@@ -75,12 +76,18 @@ class Dashboard:
         if handler is not None:
             return handler(self), False
         if lower.startswith("load installation"):
-            return f"Loading installation: {text[len('load installation') :].strip()}", False
+            path = text[len("load installation") :].strip()
+            outcome = c.load_installation(path)
+            if outcome == "loaded":
+                return f"Loading installation: {path}", False
+            if outcome == "missing":
+                return f"File not found: {path}", False
+            return f"Failed to load installation: {path}", False
         if lower.startswith("load "):
-            ok, full = c.load_program(text[5:].strip())
-            if ok:
+            outcome, full = c.load_program(text[5:].strip())
+            if outcome == "loaded":
                 return f"Loading program: {full}", False
-            if program_name(full).endswith(".urp") and program_name(full) not in _known():
+            if outcome == "missing":
                 return f"File not found: {full}", False
             return f"Error while loading program: {full}", False
         if lower == "play":
@@ -180,14 +187,9 @@ class Dashboard:
         "get robot model": lambda self: ROBOT_MODEL,
         "is in remote control": lambda self: "true" if self.c.remote_control else "false",
         "get operational mode": lambda self: self.c.operational_mode,
+        "savelog": lambda self: "Log saved to disk",
         "clear operational mode": _clear_operational_mode,
     }
-
-
-def _known() -> frozenset[str]:
-    from fxcell.sim.controller import KNOWN_PROGRAMS
-
-    return KNOWN_PROGRAMS
 
 
 class DashboardConnection(asyncio.Protocol):

@@ -105,6 +105,9 @@ class HandE:
         self.objects: dict[str, SimObject] = {}
         self.held: SimObject | None = None
         self.slipped: str | None = None  # out of the fingers' reach until they next open
+        self.release_offset: tuple[float, float] | None = None
+        """``inject place_offset DX DY``: the next object released lands this far (m, base x
+        and y) from where the fingers let it go (a crucible that slid on the pocket's edge)."""
         self._time: float | None = None
 
     # ------------------------------------------------------------------ protocol
@@ -278,6 +281,12 @@ class HandE:
         if self.held is not None:
             log.info("gripper: released %s", self.held.name)
             self.held.held_from = None
+            if self.release_offset is not None:
+                dx, dy = self.release_offset
+                self.release_offset = None
+                pose = self.held.pose
+                self.held.pose = type(pose)(pose.position + np.array([dx, dy, 0.0]), pose.rotation)
+                log.info("gripper: %s landed %.1f mm off", self.held.name, 1000 * np.hypot(dx, dy))
             self.held = None
 
     # ------------------------------------------------------------------ faults, world

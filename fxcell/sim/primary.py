@@ -1,7 +1,7 @@
 """The controller's client interfaces: primary 30001, secondary 30002, real-time 30003.
 
-As on a PolyScope 5.11 controller, every client of these ports may send URScript (the
-script text goes to the simulator's program dispatch) and receives state:
+As on a PolyScope 5 controller (``POLYSCOPE_VERSION``), every client of these ports may send
+URScript (the script text goes to the simulator's program dispatch) and receives state:
 
 - 30001 / 30002: a *version message* (type 20, robot message type 3) on connect, then a
   *robot state message* (type 16) at 10 Hz made of sub-packages, each a ``>iB`` length
@@ -10,8 +10,8 @@ script text goes to the simulator's program dispatch) and receives state:
   the calibrated DH parameters, see :mod:`fxcell.calibration`), configuration data (6),
   force mode data (7) and additional info (8), in the e-series 5.x layouts. Runtime
   errors and ``textmsg`` output go out as robot messages (type 20) too.
-- 30003: the real-time packet at 500 Hz, the 5.11 layout: an ``int32`` length (1220) and
-  152 doubles.
+- 30003: the real-time packet at 500 Hz, the layout of 5.10 and later: an ``int32`` length
+  (1220) and 152 doubles.
 
 A client that does not read (ur_rtde's control interface only writes its script to 30003)
 is skipped while its send buffer is full, as the controller drops packets for it. A new
@@ -32,7 +32,8 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from fxcell.protocol import RobotMode, RuntimeState, SafetyMode
-from fxcell.sim.controller import POLYSCOPE_VERSION
+from fxcell.sim.constants import POLYSCOPE_BUILD_DATE, POLYSCOPE_VERSION
+from fxcell.sim.events import RobotMessage, RuntimeException, TextMessage
 
 if TYPE_CHECKING:
     from fxcell.calibration import Calibration
@@ -89,7 +90,7 @@ def version_message(version: tuple[int, int, int, int], timestamp: float = 0.0) 
         struct.pack(">b", len(name))
         + name
         + struct.pack(">BBii", version[0], version[1], version[2], version[3])
-        + b"01-01-2024, 00:00:00"
+        + f"{POLYSCOPE_BUILD_DATE:%d-%m-%Y, %H:%M:%S}".encode()
     )
     return robot_message(MESSAGE_VERSION, body, timestamp)
 
@@ -103,6 +104,15 @@ def runtime_exception_message(text: str, line: int, column: int, timestamp: floa
     """A runtime exception message: script line and column, then the text."""
     body = struct.pack(">ii", line, column) + text.encode("utf-8", "replace")
     return robot_message(MESSAGE_RUNTIME_EXCEPTION, body, timestamp)
+
+
+def encode_robot_message(message: RobotMessage) -> bytes:
+    """The controller's typed message as the primary/secondary interfaces send it."""
+    match message:
+        case TextMessage(text, time):
+            return text_message(text, time)
+        case RuntimeException(text, line, column, time):
+            return runtime_exception_message(text, line, column, time)
 
 
 class StateSource:
@@ -153,7 +163,7 @@ class StateSource:
                 c.runtime_state == RuntimeState.PLAYING,
                 c.runtime_state in (RuntimeState.PAUSED, RuntimeState.PAUSING),
                 int(c.robot_mode) & 0xFF,
-                0,  # control mode: position
+                1 if c.teach_mode else 0,  # control mode: teach (freedrive) or position
                 io.speed_slider,
                 s.speed_scaling,
                 1.0,
@@ -209,7 +219,7 @@ class StateSource:
         return _HEADER.pack(_HEADER.size + len(body), ROBOT_STATE) + body
 
     def realtime(self) -> bytes:
-        """One real-time packet (30003), the 5.11 layout of 152 doubles.
+        """One real-time packet (30003), the 5.10+ layout of 152 doubles.
 
         One ``pack`` call on the fields as they are (struct packs the integer fields as
         doubles, exactly): this runs every cycle.
@@ -347,10 +357,13 @@ class ClientInterfaces:
         self.primary.discard(conn)
         self.realtime.discard(conn)
 
-    def broadcast(self, message: bytes) -> None:
+    def broadcast(self, message: RobotMessage) -> None:
         """A robot message (text, runtime error) to every primary/secondary client."""
+        if not self.primary:
+            return
+        packet = encode_robot_message(message)
         for conn in list(self.primary):
-            conn.send(message)
+            conn.send(packet)
 
     def stream(self) -> None:
         """Send what is due at the controller's current time (call after each advance)."""
@@ -381,6 +394,7 @@ __all__ = [
     "ClientInterfaces",
     "StateConnection",
     "StateSource",
+    "encode_robot_message",
     "robot_message",
     "runtime_exception_message",
     "text_message",

@@ -22,7 +22,8 @@ import struct
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from fxcell.sim.controller import REGISTER_COUNT
+from fxcell.protocol import CONTROL_PERIOD
+from fxcell.sim.constants import POLYSCOPE_VERSION, REGISTER_COUNT
 
 if TYPE_CHECKING:
     from fxcell.sim.controller import Controller
@@ -46,6 +47,7 @@ VECTOR_TYPES = frozenset({"VECTOR3D", "VECTOR6D", "VECTOR6INT32", "VECTOR6UINT32
 MAX_WRITE_BUFFER = 4 * 1024 * 1024  # a client this far behind is dropped
 QUIET_CYCLES = 250  # a started client silent this long is read by the event loop instead
 MAX_RECIPE_NAMES = 2048  # bytes: the RTDE guide's limit on a recipe's list of names
+MAX_RECIPES = 255  # per connection and direction: a recipe id is a uint8 and 0 means "failed"
 V1_FREQUENCY = 125.0  # Hz: protocol version 1 outputs have no frequency of their own
 
 V6 = "VECTOR6D"
@@ -126,7 +128,31 @@ OUTPUTS: dict[str, tuple[str, str]] = {
     "actual_configurable_digital_output_bits": ("UINT64", "(s.digital_output_bits >> 8) & 0xFF"),
     "encoder0_raw": ("INT32", "0"),
     "encoder1_raw": ("INT32", "0"),
+    # Outputs of newer PolyScope 5 versions (see POLYSCOPE_VERSION). The arm has no contact
+    # and a fixed base: the wrench estimated from the currents and the base acceleration are
+    # zero, as a real arm's are when nothing touches it.
+    "target_execution_time": ("DOUBLE", "s.target_execution_time"),
+    "wrench_calc_from_currents": (V6, "s.zero6"),
+    "target_base_acceleration": (V6, "s.zero6"),
+    "target_gravity": ("VECTOR3D", "s.clock.gravity"),
+    "control_step": ("UINT64", "s.clock.ticks"),
+    "actual_robot_energy_consumed": ("DOUBLE", "s.energy_consumed()"),
+    "actual_robot_braking_energy_dissipated": ("DOUBLE", "0.0"),
+    # computed from the arm's dynamic model, only while a recipe asks for them (DYNAMICS)
+    "actual_current_as_torque": (V6, "s.joint_torque"),
+    "actual_TCP_acceleration": (V6, "s.tcp_acceleration"),
+    "target_TCP_acceleration": (V6, "s.tcp_acceleration"),
+    "target_base_wrench": (V6, "s.base_wrench"),
 }
+DYNAMICS = frozenset(
+    {
+        "actual_current_as_torque",
+        "actual_TCP_acceleration",
+        "target_TCP_acceleration",
+        "target_base_wrench",
+    }
+)
+"""Outputs the server computes each cycle only while some recipe holds one of them."""
 for _i in range(REGISTER_COUNT):
     OUTPUTS[f"output_int_register_{_i}"] = ("INT32", f"r.out_int[{_i}]")
     OUTPUTS[f"output_double_register_{_i}"] = ("DOUBLE", f"r.out_double[{_i}]")
@@ -204,6 +230,23 @@ class StreamState:
         self.payload = 0.0
         self.payload_cog = self.zero3
         self.tcp_offset = z6
+        self.target_execution_time = 2.0  # ms: the control cycle's budget
+        self.clock: Any = None  # the Controller (its step counter and gravity), set by the hub
+        self.powered_ticks = 0  # control steps the arm was powered, before ``powered_since``
+        self.powered_since: int | None = None
+        self.power = 0.0  # W drawn by the arm while powered (robot voltage x current)
+        # DYNAMICS, refreshed by the server while some recipe uses them
+        self.joint_torque = z6
+        self.tcp_acceleration = z6
+        self.base_wrench = z6
+
+    def energy_consumed(self) -> float:
+        """``actual_robot_energy_consumed`` (J): the arm's electrical power over the time it
+        has been powered since the controller started."""
+        ticks = self.powered_ticks
+        if self.powered_since is not None and self.clock is not None:
+            ticks += self.clock.ticks - self.powered_since
+        return ticks * CONTROL_PERIOD * self.power
 
 
 def compile_output_recipe(
@@ -296,7 +339,9 @@ def _apply_io(controller: Controller, io: dict[str, Any]) -> None:
             state.tool_digital, "tool_digital_output_mask", "tool_digital_output"
         )
     if "speed_slider_fraction" in io and int(io.get("speed_slider_mask", 1)) & 1:
-        state.speed_slider = min(max(float(io["speed_slider_fraction"]), 0.0), 1.0)
+        fraction = float(io["speed_slider_fraction"])
+        if math.isfinite(fraction):  # a NaN would stop nothing and poison the moves
+            state.speed_slider = min(max(fraction, 0.0), 1.0)
     mask = int(io.get("standard_analog_output_mask", 0))
     for k in (0, 1):
         key = f"standard_analog_output_{k}"
@@ -334,12 +379,25 @@ class RTDEHub:
     def __init__(self, controller: Controller) -> None:
         self.controller = controller
         self.state = StreamState()
+        self.state.clock = controller
+        self.dynamics = False  # some recipe holds an output of DYNAMICS
+        self.dynamics_fields: frozenset[str] = frozenset()  # which ones
         self.connections: set[RTDEConnection] = set()
         self.owners: dict[str, RTDEConnection] = {}
         self.packets_sent = 0
         self.on_activity: Callable[[], None] = lambda: None
+        self.on_dynamics: Callable[[], None] = lambda: None  # DYNAMICS outputs wanted from now
+        # The server loads the dynamic model (Pinocchio) off the loop the first time a recipe
+        # asks for DYNAMICS, then calls back; that connection's setup is answered after it.
+        self.dynamics_ready = False
+        self.load_dynamics: Callable[[Callable[[], None]], None] = self._no_model
         self.loop: asyncio.AbstractEventLoop | None = None
         self.listener: socket.socket | None = None
+
+    def _no_model(self, done: Callable[[], None]) -> None:
+        """Without a server to load the model, the outputs answer with their initial values."""
+        self.dynamics_ready = True
+        done()
 
     @property
     def streaming(self) -> bool:
@@ -415,6 +473,18 @@ class RTDEHub:
         for name in [n for n, c in self.owners.items() if c is conn]:
             del self.owners[name]
         self.connections.discard(conn)
+        self.recipes_changed()
+
+    def recipes_changed(self) -> None:
+        """Recompute whether the server must compute the DYNAMICS outputs each cycle (and
+        compute them now when they were not kept up to date: the next packet has them)."""
+        was = self.dynamics_fields
+        self.dynamics_fields = frozenset(
+            name for conn in self.connections for recipe in conn.outputs for name in recipe.names
+        ).intersection(DYNAMICS)
+        self.dynamics = bool(self.dynamics_fields)
+        if self.dynamics_fields - was:
+            self.on_dynamics()
 
 
 class RTDEConnection:
@@ -432,6 +502,7 @@ class RTDEConnection:
         self.quiet = 0  # cycles without input while started
         self.watched = False  # started but read by the event loop (a silent client)
         self.protocol = 2  # the version the client negotiated (1 or 2)
+        self.deferred: list[tuple[int, bytes]] | None = None  # requests held for a setup
 
     def poll(self) -> None:
         """The cycle's read. A client silent for a while (a receive-only client) is handed
@@ -547,6 +618,9 @@ class RTDEConnection:
                 return
 
     def _handle(self, kind: int, payload: bytes) -> None:
+        if self.deferred is not None:  # a setup waits for the dynamic model: in order after it
+            self.deferred.append((kind, payload))
+            return
         if kind == 85:  # 'U' data from the client
             recipe = self.inputs.get(payload[0]) if payload else None
             if recipe is None:
@@ -571,8 +645,6 @@ class RTDEConnection:
                 self.protocol = version
             self._send(86, bytes([1 if version in (1, 2) else 0]))
         elif kind == 118:  # 'v' controller version
-            from fxcell.sim.controller import POLYSCOPE_VERSION
-
             self._send(118, struct.pack(">IIII", *POLYSCOPE_VERSION))
         elif kind == 79:  # 'O' output setup
             self._setup_outputs(payload)
@@ -607,8 +679,10 @@ class RTDEConnection:
                 77, bytes([len(msg)]) + msg + bytes([len(b"RTDE")]) + b"RTDE" + bytes([level])
             )
 
-    def _too_long(self, kind: int, names: bytes) -> bool:
-        """Refuse a recipe whose list of names exceeds the controller's limit."""
+    def _too_long(self, kind: int, names: bytes, *, with_id: bool = True) -> bool:
+        """Refuse a recipe whose list of names exceeds the controller's limit: explained in an
+        ``M`` message and answered as a failed setup (recipe id 0, ``NOT_FOUND`` for every
+        name: the only failure a setup reply documents, so that clients parse it)."""
         if len(names) <= MAX_RECIPE_NAMES:
             return False
         log.warning("RTDE %s: recipe of %d bytes refused", self.peer, len(names))
@@ -616,8 +690,19 @@ class RTDEConnection:
             f"recipe refused: the list of names is {len(names)} bytes, "
             f"the limit is {MAX_RECIPE_NAMES}"
         )
-        self._send(kind, b"\x00")
+        count = max(1, len([n for n in names.split(b",") if n.strip()]))
+        self._send(kind, (b"\x00" if with_id else b"") + b",".join([b"NOT_FOUND"] * count))
         return True
+
+    def _refuse_recipe(self, kind: int, types: list[str], direction: str) -> None:
+        """A recipe beyond the 255 a connection can number: answered (recipe id 0, the
+        failure id, with the types) and explained in an ``M`` message, never left unanswered."""
+        log.warning("RTDE %s: %s recipe %d refused", self.peer, direction, MAX_RECIPES + 1)
+        self.text_message(
+            f"{direction} recipe refused: this connection already has {MAX_RECIPES} "
+            f"{direction} recipes (recipe ids are 1-{MAX_RECIPES})"
+        )
+        self._send(kind, b"\x00" + ",".join(types).encode())
 
     def _setup_outputs(self, payload: bytes) -> None:
         v1 = self.protocol == 1
@@ -628,7 +713,7 @@ class RTDEConnection:
             return
         else:
             frequency, raw = struct.unpack_from(">d", payload)[0], payload[8:]
-        if self._too_long(79, raw):
+        if self._too_long(79, raw, with_id=not v1):
             return
         names = [n.strip() for n in raw.decode("ascii", "replace").split(",") if n.strip()]
         types = [OUTPUTS[n][0] if n in OUTPUTS else "NOT_FOUND" for n in names]
@@ -636,13 +721,30 @@ class RTDEConnection:
             self._send(79, (b"" if v1 else b"\x00") + ",".join(types).encode())
             return
         frequency = min(frequency, 500.0)
+        if not self.hub.dynamics_ready and not DYNAMICS.isdisjoint(names):
+            self.deferred = []  # answered once the model is loaded, without stalling the cycle
+            self.hub.load_dynamics(lambda: self._resume(79, payload))
+            return
         if v1:
             self.outputs = [OutputRecipe(names, 0, frequency, with_id=False)]
+            self.hub.recipes_changed()
             self._send(79, ",".join(types).encode())
+            return
+        if len(self.outputs) >= MAX_RECIPES:
+            self._refuse_recipe(79, types, "output")
             return
         recipe_id = len(self.outputs) + 1
         self.outputs.append(OutputRecipe(names, recipe_id, frequency))
+        self.hub.recipes_changed()
         self._send(79, bytes([recipe_id]) + ",".join(types).encode())
+
+    def _resume(self, kind: int, payload: bytes) -> None:
+        """Handle the held setup request, then whatever the client sent meanwhile."""
+        held, self.deferred = self.deferred or [], None
+        for k, p in [(kind, payload), *held]:
+            if self.sock is None:
+                return
+            self._handle(k, p)
 
     def _setup_inputs(self, payload: bytes) -> None:
         if self._too_long(73, payload):
@@ -659,6 +761,9 @@ class RTDEConnection:
                 types.append(INPUTS[n])
         if not names or "NOT_FOUND" in types or "IN_USE" in types:
             self._send(73, b"\x00" + ",".join(types).encode())
+            return
+        if len(self.inputs) >= MAX_RECIPES:
+            self._refuse_recipe(73, types, "input")
             return
         for n in names:
             self.hub.owners[n] = self

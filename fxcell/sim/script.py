@@ -44,8 +44,10 @@ REALTIME = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 
 # The commands a client streams, as plain ints: on Python 3.11 an enum attribute lookup
 # costs about as much as the rest of a comparison chain.
 _SERVOJ, _SERVOL, _SPEEDJ, _SPEEDL = int(C.SERVOJ), int(C.SERVOL), int(C.SPEEDJ), int(C.SPEEDL)
-# Commands that only adjust settings without effect here (gravity, dynamics queries).
-NO_OPS = frozenset({59, 67, 68, 69, 70, 71})
+# Commands that only adjust settings without effect here (dynamics queries).
+NO_OPS = frozenset({67, 68, 69, 70, 71})
+# jog features (start_jog's input_double_register_6)
+JOG_BASE, JOG_TOOL, JOG_CUSTOM = 0, 1, 2
 # Commands the simulator cannot model (no force/torque sensing, no contact): refused with a
 # logged error, answered so the client does not hang, and the script stays usable.
 UNMODELLED = {
@@ -119,6 +121,7 @@ class ControlScript:
         self.async_wr_count = 0
         self.async_op_id = 0
         self.target_waypoint: Pose | None = None
+        self.jog_frame: np.ndarray | None = None  # rotation of the jog feature while jogging
         self._generation = -1  # input generation last processed by a real-time command
         self._refused_at: dict[int, float] = {}  # command -> controller time last reported
         self._last_realtime = -1
@@ -282,6 +285,7 @@ class ControlScript:
             q = self._floats(0) if cmd == _SERVOJ else self._ik(self._floats(0))
             self._servo(q, self._float(8), self._float(9), self._float(10))
         elif cmd in (_SPEEDJ, _SPEEDL):
+            self.jog_frame = None  # a speed command ends jogging (its thread is replaced)
             if self.speed is None or arm.generator is not self.speed:
                 self.speed = SpeedTrack(arm)
                 arm.run(self.speed)
@@ -342,11 +346,14 @@ class ControlScript:
         elif cmd == C.SET_PAYLOAD or cmd == 65:  # 65: set_target_payload
             x, y, z = self._floats(1, 3)
             self.c.set_payload(self._float(0), None if x == y == z == 0.0 else (x, y, z))
-        elif cmd == C.TEACH_MODE or cmd == C.END_TEACH_MODE:
+        elif cmd == C.TEACH_MODE:
             self._stop_async_move()
+            self.jog_frame = None
             self.servo = None
             self.speed = None
-            self.c.teach_mode = cmd == C.TEACH_MODE
+            self.c.enter_freedrive()
+        elif cmd == C.END_TEACH_MODE:
+            self.c.end_freedrive()
         elif cmd == C.SET_TCP:
             arm.set_tcp(self._floats(0))
             self.c.tcp = tuple(self._floats(0))
@@ -400,8 +407,29 @@ class ControlScript:
             self.c.set_watchdog(f"input_int_register_{self.oi}", self._float(0))
         elif cmd == C.PROTECTIVE_STOP:
             self.c.protective_stop("protective_stop() called by the program")
-        elif cmd == 42:  # stop_jog
+        elif cmd == 41:  # start_jog
+            self._jog()
+        elif cmd == 42:  # stop_jog: the jog thread is killed, then stopl(1.2)
+            self.jog_frame = None
+            self.servo = None
+            self.speed = None
             self.wait = arm.stop_motion(1.2)
+        elif cmd == 52:  # freedrive_mode(freeAxes, feature)
+            self._stop_async_move()
+            self.jog_frame = None
+            self.servo = None
+            self.speed = None
+            axes = tuple(1 if self._int(k) else 0 for k in range(1, 7))
+            self.c.enter_freedrive(axes, self._floats(0))
+        elif cmd == 53:  # end_freedrive_mode
+            self.c.end_freedrive()
+        elif cmd == 54:  # get_freedrive_status: 0 = normal (no singularity nearby)
+            self._write_int(1, 0)
+        elif cmd == 59:  # set_gravity(direction)
+            g = self._floats(0, 3)
+            if not all(math.isfinite(v) for v in g):
+                raise ScriptError(f"set_gravity: direction {g} is not finite")
+            self.c.gravity = tuple(g)
         elif cmd == C.STOP_SCRIPT:
             log.info("Received stop script!")
             self.terminated = True
@@ -413,6 +441,33 @@ class ControlScript:
         else:
             name = C(cmd).name if cmd in C._value2member_map_ else str(cmd)
             raise ScriptError(f"command {name} is not supported by the simulator")
+
+    def _jog(self) -> None:
+        """start_jog: the jog thread's ``speedl`` of the commanded speed turned from the
+        jog feature (base, the TCP as it was when jogging started, or a custom pose) into
+        the base frame; a new start_jog while jogging changes only speed and acceleration."""
+        arm = self.arm
+        speed = self._floats(0)
+        acceleration = self._float(7)
+        if not all(math.isfinite(v) for v in (*speed, acceleration)):
+            raise ScriptError(f"jog: speed {speed} or acceleration {acceleration} not finite")
+        if self.jog_frame is None or self.speed is None or arm.generator is not self.speed:
+            feature = round(self._float(6))
+            if feature == JOG_TOOL:
+                self.jog_frame = arm.tcp_pose().rotation
+            elif feature == JOG_CUSTOM:
+                custom = self._floats(8)
+                if not all(math.isfinite(v) for v in custom):
+                    raise ScriptError(f"jog: custom feature {custom} is not finite")
+                self.jog_frame = Pose.from_ur(custom).rotation
+            else:
+                self.jog_frame = np.eye(3)
+            self.servo = None
+            self.speed = SpeedTrack(arm)
+            arm.run(self.speed)
+        R = self.jog_frame
+        xd = np.concatenate([R @ np.asarray(speed[:3]), R @ np.asarray(speed[3:])])
+        self.speed.command_tool(arm, xd.tolist(), acceleration)
 
     def _refuse(self, cmd: int) -> None:
         """An unmodelled command: a zero result, an error in the log, the script goes on."""

@@ -13,6 +13,7 @@ socket 63352 (:mod:`fxcell.sim.gripper`), and the simulator's own control port 2
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import gc
 import json
@@ -22,15 +23,17 @@ import os
 import selectors
 import signal
 import sys
+import threading
 import time
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from fxcell.calibration import Calibration
-from fxcell.config import CellConfig
-from fxcell.errors import InvalidArgumentError
+from fxcell.config import SIMULATOR_CAMERA_PORT, CellConfig
+from fxcell.errors import FxcellError, InvalidArgumentError
 from fxcell.geometry import Pose, rows_to_rotvec
 from fxcell.layout import Layout
 from fxcell.link.embedded import CONTROL_PORT
@@ -43,6 +46,7 @@ from fxcell.protocol import (
     URCAP_SCRIPT_PORT,
     RobotMode,
 )
+from fxcell.sim.constants import DELAYS
 from fxcell.sim.controller import Controller, FaultError
 from fxcell.sim.dashboard import Dashboard, DashboardConnection
 from fxcell.sim.fusion import (
@@ -60,8 +64,12 @@ from fxcell.sim.fusion import OWNER as MACHINE_OWNER
 from fxcell.sim.gripper import URCAP_GRIPPER_PORT, GripperConnection, HandE, SimObject
 from fxcell.sim.motion import ZERO6, Arm, TableGuard
 from fxcell.sim.primary import PRIMARY_PORT, ClientInterfaces, StateConnection, StateSource
+from fxcell.sim.program_store import ProgramStore
 from fxcell.sim.rtde import RTDEHub
 from fxcell.sim.signals import Signal, parse_signal, parse_value
+
+if TYPE_CHECKING:
+    from fxcell.sim.dynamics import ArmDynamics
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +82,7 @@ PORTS = (
     SCRIPT_PORT,
     URCAP_GRIPPER_PORT,
     CONTROL_PORT,
+    SIMULATOR_CAMERA_PORT,
 )
 IDLE_PERIOD = 0.02  # s: cycle period while no client streams and nothing moves
 URCAP_TIMEOUT = 5.0
@@ -207,6 +216,7 @@ class SimServer:
         fusion_time: float = FUSION_TIME,
         cooling_time: float = COOLING_TIME,
         crucibles: str | None = None,
+        programs: str | Path | None = None,
     ) -> None:
         from fxcell.motion.calibration import CalibratedKinematics
         from fxcell.motion.kinematics import Kinematics
@@ -229,7 +239,8 @@ class SimServer:
         guard = TableGuard(table.position, table.size) if table is not None else None
         start = joints if joints is not None else self.config.home
         self.arm = Arm(make_kinematics(None), start, table=guard, make_kinematics=make_kinematics)
-        self.controller = Controller(self.arm, time_scale=time_scale)
+        store = ProgramStore(programs) if programs is not None else ProgramStore()
+        self.controller = Controller(self.arm, time_scale=time_scale, programs=store)
         self.controller.client_host = "127.0.0.1"
         self.hub = RTDEHub(self.controller)
         self.dashboard = Dashboard(self.controller)
@@ -246,11 +257,19 @@ class SimServer:
         self._qd_published: object = None
         self._prev_tcp: tuple[list[float], list[float]] | None = None
         self._modes_published: tuple[object, ...] = ()
+        self._dynamics: ArmDynamics | None = None
+        self._dynamics_key: tuple[object, ...] = ()
         self.late_cycles = 0
+        self.stalls: collections.deque[tuple[float, float]] = collections.deque(maxlen=64)
+        """(wall time it ended, length in s) of the newest stalls of the control cycle."""
         self._sends = [0.0] * 16384  # wall times of cycles that sent RTDE packets
         self._send_count = 0
         self._idle = False
         self.hub.on_activity = self.wake
+        self.hub.on_dynamics = lambda: self._publish_dynamics(0)
+        self.hub.load_dynamics = self._load_dynamics
+        self._dynamics_waiting: list[Callable[[], None]] = []
+        self._dynamics_loader: threading.Thread | None = None
         # 30001/30002/30003: primary/secondary state at 10 Hz, real-time packets at 500 Hz
         self.clients = ClientInterfaces(StateSource(self.controller, self.hub.state, cal))
         self.clients.on_activity = self.wake
@@ -290,11 +309,37 @@ class SimServer:
                 POSITIONS_STATION,
                 MOULDS_STATION,
             )
+        self.camera = self._make_camera()
         if crucibles:
             rack = self.layout.station("rack")
             for slot in slots_of(rack, crucibles):
                 self.place_object(f"crucible-{slot}", rack.config.holds, "rack", slot, "sample")
         self.publish_state()
+
+    def _make_camera(self) -> Any:
+        """The configured camera, rendering this world (None when the layout has no holder)."""
+        from fxcell.sim.camera import Renderer, SimCamera
+        from fxcell.vision.model import Deck, Intrinsics
+
+        vision = self.config.vision
+        try:
+            deck = Deck.from_config(vision, self.layout)
+        except FxcellError as exc:
+            log.warning("no camera: %s", exc)
+            return None
+        tcp = self.controller
+
+        def flange() -> Pose:
+            return Pose.from_ur(self.hub.state.actual_tcp_pose) @ Pose.from_ur(tcp.tcp).inverse()
+
+        grips = {name: kind.grip_height for name, kind in self.layout.config.objects.items()}
+        return SimCamera(
+            Renderer(deck, Intrinsics.from_config(vision.camera)),
+            vision.camera,
+            lambda: list(self.gripper.objects.values()),
+            grips,
+            flange,
+        )
 
     # ------------------------------------------------------------------ state
 
@@ -359,6 +404,13 @@ class SimServer:
             s.robot_voltage = 48.0 if powered else 0.0
             s.robot_current = 0.6 if powered else 0.0
             s.joint_voltage = (48.0,) * 6 if powered else s.zero6
+            # the energy meter (actual_robot_energy_consumed) runs while the arm is powered
+            if powered and s.powered_since is None:
+                s.powered_since = c.ticks
+                s.power = s.robot_voltage * s.robot_current
+            elif not powered and s.powered_since is not None:
+                s.powered_ticks += c.ticks - s.powered_since
+                s.powered_since = None
         s.digital_output_bits = c.io.output_bits
         s.digital_input_bits = c.io.input_bits
         s.analog_in = c.io.analog_in
@@ -368,6 +420,69 @@ class SimServer:
         s.payload = c.payload_mass
         s.payload_cog = c.payload_cog
         s.tcp_offset = c.tcp
+
+    def _load_dynamics(self, done: Callable[[], None]) -> None:
+        """Load the dynamic model in a thread (importing Pinocchio takes a few hundred ms:
+        the control cycle must not wait for it), then call ``done`` on the loop."""
+        self._dynamics_waiting.append(done)
+        if self._dynamics_loader is not None:
+            return
+        loop = self._loop
+        assert loop is not None
+
+        def load() -> None:
+            try:
+                from fxcell.sim.dynamics import ArmDynamics
+
+                model: ArmDynamics | None = ArmDynamics()
+            except Exception:
+                log.exception("the arm's dynamic model could not be built: its outputs stay 0")
+                model = None
+            loop.call_soon_threadsafe(self._dynamics_loaded, model)
+
+        self._dynamics_loader = threading.Thread(target=load, name="sim-dynamics", daemon=True)
+        self._dynamics_loader.start()
+
+    def _dynamics_loaded(self, model: ArmDynamics | None) -> None:
+        self._dynamics = model
+        self.hub.dynamics_ready = True
+        waiting, self._dynamics_waiting = self._dynamics_waiting, []
+        for done in waiting:
+            done()
+
+    def _publish_dynamics(self, steps: int) -> None:
+        """The outputs computed from the arm's dynamic model (only while a recipe asks)."""
+        if self._dynamics is None:
+            return
+        dyn, c, s, arm, wanted = (
+            self._dynamics,
+            self.controller,
+            self.hub.state,
+            self.arm,
+            self.hub.dynamics_fields,
+        )
+        # the torques change only with the joint state, the payload and gravity: at rest
+        # nothing is computed
+        # (the arrays are replaced, never changed in place: compared by identity)
+        key = (arm.q, arm.qd, arm.qdd, c.payload_mass, c.payload_cog, c.gravity)
+        last = self._dynamics_key
+        if (
+            steps == 0
+            or not last
+            or key[0] is not last[0]
+            or key[1] is not last[1]
+            or key[2] is not last[2]
+            or key[3:] != last[3:]
+        ):
+            self._dynamics_key = key
+            if not last or key[3:] != last[3:]:
+                dyn.set_payload(c.payload_mass, c.payload_cog)
+                dyn.set_gravity(c.gravity)
+            s.joint_torque = dyn.torques(arm.q, arm.qd, arm.qdd)
+            if "target_base_wrench" in wanted:
+                s.base_wrench = dyn.base_wrench()
+        if "actual_TCP_acceleration" in wanted or "target_TCP_acceleration" in wanted:
+            s.tcp_acceleration = dyn.tcp_acceleration(s.tcp_speed, steps)
 
     # ------------------------------------------------------------------ cycle
 
@@ -390,6 +505,8 @@ class SimServer:
             steps = 1
         elif steps > 1 and not self._idle:
             self.late_cycles += steps - 1
+            if steps * CONTROL_PERIOD >= STALL_REPORTED:
+                self._stalled(steps * CONTROL_PERIOD)
         self.hub.poll()
         sent = self.hub.packets_sent
         self.hub.stream(steps)
@@ -401,6 +518,8 @@ class SimServer:
             if self.machine is not None:
                 self.machine.tick(self.controller.time)
             self.publish_state()
+            if self.hub.dynamics:
+                self._publish_dynamics(steps)
             self.gripper.tick(self.controller.time)
             self.clients.stream()
         # Nobody streaming and nothing moving: wake at 50 Hz (the controller clock catches
@@ -408,6 +527,12 @@ class SimServer:
         self._idle = self.controller.idle and not self.hub.streaming and not self.clients.streaming
         wake_at = self._deadline + (IDLE_PERIOD - CONTROL_PERIOD if self._idle else 0.0)
         self._handle = loop.call_at(wake_at, self._cycle)
+
+    def _stalled(self, seconds: float) -> None:
+        """The control cycle ran ``seconds`` late: this process did not get to run (a busy
+        or frozen host), which a real controller never does. Clients saw no state meanwhile."""
+        self.stalls.append((time.time(), seconds))
+        log.warning("the simulated controller stalled for %.0f ms (its host)", seconds * 1e3)
 
     def wake(self) -> None:
         """Leave the idle rate now (a client started streaming or sent a command)."""
@@ -440,6 +565,10 @@ class SimServer:
             return self._add_object(args)
         if cmd == "place_object":
             return self._place_object(args)
+        if cmd == "offset_object":
+            return self._offset_object(args)
+        if cmd == "inject" and args and args[0].lower() == "place_offset":
+            return self._place_offset(args[1:])
         if cmd == "set_input":
             return self._set_input(args)
         if cmd == "machine":
@@ -452,25 +581,7 @@ class SimServer:
             except FaultError as exc:
                 return f"error: {exc}"
         if cmd == "state":
-            return json.dumps(
-                {
-                    "time": c.time,
-                    "robot_mode": c.robot_mode.name,
-                    "safety_mode": c.safety_mode.name,
-                    "runtime_state": c.runtime_state.name,
-                    "remote_control": c.remote_control,
-                    "q": self.arm.q.tolist(),
-                    "qd": self.arm.qd.tolist(),
-                    "tcp": list(c.tcp),
-                    "payload": c.payload_mass,
-                    "teach_mode": c.teach_mode,
-                    "program": c.loaded_program,
-                    "control_script": c.script is not None,
-                    "last_stop_reason": c.last_stop_reason,
-                    "late_cycles": self.late_cycles,
-                    "log": c.log_messages[-20:],
-                }
-            )
+            return json.dumps(c.state(late_cycles=self.late_cycles, stalls=self.stalls))
         if cmd == "stats":
             if args[:1] == ["reset"]:
                 self._send_count = 0
@@ -508,7 +619,8 @@ class SimServer:
             "set_joints Q*6 | push DX DY DZ | push D1..D6 | gripper | objects | "
             "add_object NAME KIND W H M X Y Z)"
             "set_joints Q*6 | gripper | objects | add_object NAME KIND W H M X Y Z | "
-            "place_object NAME KIND STATION SLOT [CONTENTS] | set_input SIGNAL VALUE | machine)"
+            "place_object NAME KIND STATION SLOT [CONTENTS] | "
+            "offset_object NAME DX DY [TILT [AZ]] | set_input SIGNAL VALUE | machine)"
         )
 
     def _push(self, args: list[str]) -> str:
@@ -526,11 +638,18 @@ class SimServer:
         if self.arm.moving:
             return "error: the arm is moving"
         q = np.asarray(self.arm.q, float)
+        free = self.controller.free_axes
         if len(delta) == 6:
+            if not all(free):
+                return "error: push: freedrive constrains axes, push the TCP (DX DY DZ)"
             target = q + np.asarray(delta)
         else:
+            # freedrive_mode's constraint: only the free translations of its feature frame
+            # follow the hand; the orientation is kept
+            R = Pose.from_ur(self.controller.freedrive_feature).rotation
+            moved = R @ (np.asarray(free[:3], float) * (R.T @ np.asarray(delta)))
             pose = self.arm.kinematics.forward(q)
-            goal = Pose(pose.position + np.asarray(delta), pose.rotation)
+            goal = Pose(pose.position + moved, pose.rotation)
             solutions = self.arm.kinematics.inverse_all(goal)
             if not solutions:
                 return "error: push: the arm cannot reach there"
@@ -638,6 +757,57 @@ class SimServer:
         except InvalidArgumentError as exc:
             return f"error: place_object: {exc}"
 
+    def _offset_object(self, args: list[str]) -> str:
+        """``offset_object NAME DX DY [TILT_DEG [AZIMUTH_DEG]]``: shift a standing object by
+        (dx, dy) m along the base axes and lean it ``TILT_DEG`` towards ``AZIMUTH_DEG`` (from
+        base +x), turning about its bottom's edge (a crucible resting on its pocket's rim)."""
+        usage = "error: offset_object NAME DX DY [TILT_DEG [AZIMUTH_DEG]]"
+        if not 3 <= len(args) <= 5:
+            return usage
+        obj = self.gripper.objects.get(args[0])
+        if obj is None:
+            return f"error: offset_object: no object {args[0]!r}"
+        if obj.held_from is not None:
+            return f"error: offset_object: {args[0]} is in the gripper"
+        try:
+            dx, dy, tilt_deg, azimuth_deg = (float(v) for v in [*args[1:], "0", "0"][:4])
+        except ValueError:
+            return usage
+        if not all(math.isfinite(v) for v in (dx, dy, tilt_deg, azimuth_deg)):
+            return usage
+        if abs(dx) > 0.2 or abs(dy) > 0.2 or not 0 <= tilt_deg < 60:
+            return "error: offset_object: |DX|, |DY| <= 0.2 m and 0 <= TILT_DEG < 60"
+        tilt, az = math.radians(tilt_deg), math.radians(azimuth_deg)
+        grip = (
+            self.layout.config.objects[obj.kind].grip_height
+            if (obj.kind in self.layout.config.objects)
+            else obj.height / 2
+        )
+        down = obj.pose.rotation[:, 2]
+        bottom = obj.pose.position + down * grip + np.array([dx, dy, 0.0])
+        lean = Pose.from_rotvec((0, 0, 0), np.array([-math.sin(az), math.cos(az), 0.0]) * tilt)
+        # turn about the bottom's edge on the lean side: the bottom lifts and slides
+        r = obj.width / 2 * 0.78
+        bottom = bottom + np.array(
+            [math.cos(az) * r * (1 - math.cos(tilt)), math.sin(az) * r * (1 - math.cos(tilt)),
+             r * math.sin(tilt)]
+        )  # fmt: skip
+        rotation = lean.rotation @ obj.pose.rotation
+        obj.pose = Pose(bottom - rotation[:, 2] * grip, rotation)
+        return f"ok: {obj.name} moved by ({dx:g}, {dy:g}) m, leaning {tilt_deg:g}°"
+
+    def _place_offset(self, args: list[str]) -> str:
+        if len(args) != 2:
+            return "error: inject place_offset DX DY (m, base frame)"
+        try:
+            dx, dy = float(args[0]), float(args[1])
+        except ValueError:
+            return "error: inject place_offset DX DY (m, base frame)"
+        if not (math.isfinite(dx) and math.isfinite(dy)) or max(abs(dx), abs(dy)) > 0.05:
+            return "error: place_offset: |DX|, |DY| <= 0.05 m"
+        self.gripper.release_offset = (dx, dy)
+        return f"ok: the next object released lands ({dx:g}, {dy:g}) m off"
+
     def _set_input(self, args: list[str]) -> str:
         if len(args) != 2:
             return "error: set_input SIGNAL VALUE (e.g. DI5 1, CI2 0, TI0 1, AI0 4.2)"
@@ -694,10 +864,22 @@ class SimServer:
         if self._stopping is not None:
             self._stopping.set()
 
-    async def serve(self, *, boot_delay: float = 0.0, announce: bool = True) -> None:
+    async def serve(
+        self,
+        *,
+        boot_delay: float = 0.0,
+        announce: bool = True,
+        handle_signals: bool = True,
+        on_listening: Callable[[], None] | None = None,
+    ) -> None:
+        """Serve until :meth:`request_stop` (SIGINT/SIGTERM with ``handle_signals``, which
+        only the main thread can have); ``on_listening`` is called once every port listens."""
         loop = asyncio.get_running_loop()
         self._loop = loop
         self._stopping = asyncio.Event()
+        # ur_rtde's default receive recipe asks for actual_current_as_torque: load the
+        # dynamic model now, while booting, rather than when the first client asks
+        self._load_dynamics(lambda: None)
         if boot_delay > 0:
             await asyncio.sleep(boot_delay)
         factories: list[tuple[int, Any]] = [
@@ -708,6 +890,11 @@ class SimServer:
             (URCAP_GRIPPER_PORT, lambda: GripperConnection(self.gripper)),
             (CONTROL_PORT, lambda: ControlConnection(self)),
         ]
+        if self.camera is not None:
+            from fxcell.sim.camera import CameraConnection
+
+            camera = self.camera
+            factories.append((SIMULATOR_CAMERA_PORT, lambda: CameraConnection(camera.snapshot)))
         try:
             self.hub.listen(loop, self.host, RTDE_PORT)
             for port, factory in factories:
@@ -718,7 +905,8 @@ class SimServer:
             for srv in self._servers:
                 srv.close()
             raise
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        signals = (signal.SIGINT, signal.SIGTERM) if handle_signals else ()
+        for sig in signals:
             loop.add_signal_handler(sig, self.request_stop)
         self._deadline = loop.time() + CONTROL_PERIOD
         self._handle = loop.call_at(self._deadline, self._cycle)
@@ -727,9 +915,12 @@ class SimServer:
                 f"fxcell sim listening on {self.host}: dashboard {DASHBOARD_PORT}, rtde "
                 f"{RTDE_PORT}, primary/secondary/real-time {PRIMARY_PORT}/{SECONDARY_PORT}/"
                 f"{SCRIPT_PORT}, "
-                f"gripper {URCAP_GRIPPER_PORT}, control {CONTROL_PORT}",
+                f"gripper {URCAP_GRIPPER_PORT}, control {CONTROL_PORT}"
+                + (f", camera {SIMULATOR_CAMERA_PORT}" if self.camera is not None else ""),
                 flush=True,
             )
+        if on_listening is not None:
+            on_listening()
         try:
             await self._stopping.wait()
         finally:
@@ -741,9 +932,15 @@ class SimServer:
             self.clients.close()
             for srv in self._servers:
                 srv.close()
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            if self.camera is not None:
+                self.camera.close()
+            for sig in signals:
                 loop.remove_signal_handler(sig)
 
+
+STALL_REPORTED = 0.05
+"""s: a control cycle that ran this late is a stall of the simulator itself (a real controller
+never has one): logged and kept in the ``state`` reply's ``stalls``."""
 
 PRIORITY_ENV = "FXCELL_SIM_PRIORITY"
 """Set to ``normal`` to keep the simulator at its parent's priority (benchmarks comparing
@@ -789,10 +986,9 @@ def run(
     """Run the simulator until SIGINT/SIGTERM or a dashboard ``shutdown``; exit code.
 
     ``world``: the fusion machine and objects (:class:`SimServer`'s ``machine``,
-    ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``).
+    ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``) and the program
+    store (``programs``).
     """
-    from fxcell.sim.controller import DELAYS
-
     _raise_priority(realtime)
     try:
         sim = SimServer(

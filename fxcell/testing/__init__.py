@@ -12,6 +12,9 @@ to get these fixtures:
   initialised. Fast unit tests of cell behaviour; no gripper (see
   :mod:`fxcell.testing.fake`).
 - ``fxcell_no_leaked_tasks`` (automatic): fails a test that leaves asyncio tasks running.
+- ``fxcell_no_unplanned_faults`` (automatic, system tests): fails a test that saw a robot-link
+  drop or a simulator fault it did not inject (:mod:`fxcell.testing.faults`); declare the
+  test's own with :func:`injected_faults` or ``@pytest.mark.injects_faults("why")``.
 
 This package is test support: the runtime never imports it.
 """
@@ -34,14 +37,16 @@ import pytest
 import pytest_asyncio
 
 from fxcell.link import embedded
-from fxcell.link.embedded import EmbeddedSimulator
+from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 from fxcell.testing.fake import FakeLink, FakeRobot, FakeTrajectory
+from fxcell.testing.faults import injected_faults, watching_test
 
 __all__ = [
     "FakeLink",
     "FakeRobot",
     "FakeTrajectory",
     "SimulatorHandle",
+    "injected_faults",
     "simulator",
     "urcap_port",
 ]
@@ -53,6 +58,33 @@ def _describe(task: asyncio.Task[object]) -> str:
     coro = task.get_coro()
     where = getattr(coro, "__qualname__", repr(coro))
     return f"{task.get_name()} ({where})"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "injects_faults(why): the test drops links or makes the simulator fault on purpose "
+        "(else an unplanned link drop or simulator fault fails a system test)",
+    )
+
+
+@pytest.fixture(autouse=True)
+def fxcell_no_unplanned_faults(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fail a system test that saw a robot-link drop or a simulator fault it did not inject
+    (see :mod:`fxcell.testing.faults`; ``@pytest.mark.injects_faults`` or
+    :func:`injected_faults` declare the test's own)."""
+    node = request.node
+    if node.get_closest_marker("system") is None or node.get_closest_marker("injects_faults"):
+        yield
+        return
+    with watching_test(request) as watch:
+        yield
+        unplanned = watch.unplanned()
+    if unplanned:
+        pytest.fail(
+            "unplanned faults (not injected by the test): " + "; ".join(unplanned[:10]),
+            pytrace=False,
+        )
 
 
 @pytest_asyncio.fixture(autouse=True)
@@ -107,7 +139,7 @@ class SimulatorHandle:
     def inject(self, fault: str, *args: object) -> str:
         return self._sim.inject(fault, *args)
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> SimulatorState:
         return self._sim.state()
 
     def set_joints(self, q: Sequence[float]) -> None:
@@ -211,14 +243,18 @@ def simulator(
     *,
     config: str | Path | None = None,
     joints: Sequence[float] | None = None,
+    programs: str | Path | None = None,
     **options: Any,
 ) -> SimulatorHandle:
     """A simulator on a free loopback address, for ``with`` and ``async with``.
 
+    ``programs``: the controller's program directory (``/programs``, see
+    :mod:`fxcell.sim.program_store`); by default the shipped store.
+
     >>> with simulator() as sim:  # doctest: +SKIP
     ...     DashboardClient(sim.host)
     """
-    return SimulatorHandle(time_scale, config=config, joints=joints, **options)
+    return SimulatorHandle(time_scale, config=config, joints=joints, programs=programs, **options)
 
 
 @pytest.fixture

@@ -14,8 +14,10 @@ Dashboard commands get the simulator's replies and effects (power on, brake rele
 play/stop, Local control); robot and safety modes, protective stops (including the 5 s
 unlock rule and the arm entering the table) and program stops are the simulator's.
 External control runs the simulator's control-script program; trajectories are streamed
-with its servoJ tracker one setpoint per control cycle, brake along the path on stop and
-end as the link process's do (``completed``, ``stopped``, ``failed`` with the reason).
+with its servoJ tracker one setpoint per control cycle by the link process's own
+trajectory follower (:mod:`fxcell.link.follower`): they advance, splice, brake along the
+path and end as the link process's do (``completed``, ``stopped``, ``failed`` with the
+reason).
 
 Differences from the simulator process: no sockets and no ur_rtde (so no GIL stalls and
 no link process to kill); controller time runs ``speed`` times faster than the wall clock
@@ -31,7 +33,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
-import math
+import logging
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, Literal
@@ -54,13 +56,15 @@ from fxcell.link.client import (
     TrajectoryProgress,
     TrajectoryResult,
 )
-from fxcell.link.process import Guard, brake_duration, stop_reason
+from fxcell.link.embedded import SimulatorState
+from fxcell.link.follower import Follower, Guard
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
-from fxcell.settling import ARRIVE_TOLERANCE, SETTLE_VELOCITY
 from fxcell.sim.controller import Controller
 from fxcell.sim.dashboard import Dashboard
 from fxcell.sim.motion import Arm, SafetyLimitError, ServoTrack, TableGuard
 from fxcell.sim.script import SCRIPT_MARKER
+
+log = logging.getLogger("fxcell.testing.fake")
 
 CONTROL_SCRIPT = f"def rtde_control():\n  {SCRIPT_MARKER}\n  end\nend\n"
 """What the fake uploads: the simulator runs it as ur_rtde's control script."""
@@ -73,8 +77,6 @@ STALE_AFTER = 0.1
 RECONNECT_AFTER = 0.05
 """Wall seconds a dropped link stays down (a restarted link process's first backoff)."""
 SERVO_STOP_DECELERATION = 10.0  # rad/s², ur_rtde's servoStop() default
-PROGRESS_EVERY = 10
-SETTLE_MAX = 0.3
 
 
 class FakeRobot:
@@ -148,23 +150,9 @@ class FakeRobot:
         ``stop_program``, ``power_loss``, ``drop_rtde``, ``stall_rtde SECONDS``)."""
         return self.controller.inject(fault, [str(a) for a in args])
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> SimulatorState:
         """Modes by name, joints and program, as the simulator's control port's ``state``."""
-        c = self.controller
-        return {
-            "time": c.time,
-            "robot_mode": c.robot_mode.name,
-            "safety_mode": c.safety_mode.name,
-            "runtime_state": c.runtime_state.name,
-            "remote_control": c.remote_control,
-            "program": c.loaded_program,
-            "script": c.script is not None,
-            "teach_mode": c.teach_mode,
-            "q": self.arm.q.tolist(),
-            "qd": self.arm.qd.tolist(),
-            "tcp": list(c.tcp),
-            "payload": c.payload_mass,
-        }
+        return self.controller.state()
 
     def set_joints(self, q: Sequence[float]) -> None:
         """Place the resting arm."""
@@ -219,6 +207,22 @@ class FakeRobot:
         if self._servo is not None and self.arm.generator is self._servo:
             self.arm.stop_motion(SERVO_STOP_DECELERATION)
         self._servo = None
+
+    def servo_state(self) -> RobotState:
+        """What a trajectory reads of this cycle: modes and joints (cheaper than
+        :meth:`sample`, no forward kinematics)."""
+        c, arm = self.controller, self.arm
+        q, qd, _ = arm.lists()
+        return RobotState(
+            timestamp=c.time,
+            robot_mode=c.robot_mode,
+            safety_mode=c.safety_mode,
+            runtime_state=c.runtime_state,
+            target_q=tuple(q),
+            target_qd=tuple(qd),
+            actual_q=tuple(q),
+            actual_qd=tuple(qd),
+        )
 
     def sample(self) -> RobotState:
         """The state stream's sample of this control cycle."""
@@ -408,7 +412,10 @@ class FakeLink:
             await self._stop_trajectory("teach mode")
             self._require_control("freedrive")
             robot.servo_stop()
-            c.teach_mode = bool(kwargs["on"])
+            if kwargs["on"]:
+                c.enter_freedrive()
+            else:
+                c.end_freedrive()
             return True
         raise RobotCommandError(f"the fake link has no call {method!r}")
 
@@ -635,13 +642,15 @@ class FakeTrajectory:
         self._done: asyncio.Future[TrajectoryResult] = loop.create_future()
         self._progress_event = asyncio.Event()
         self._replaced: asyncio.Future[bool] | None = None
-        self._replacement: tuple[list[tuple[float, ...]], int | None] | None = None
-        self._stop_reason: str | None = None
-        self._u = 0.0
-        self._braking: tuple[str, float, float] | None = None  # reason, start, duration
-        self._settle_until: float | None = None
+        robot = link.robot
+        now = robot.controller.time
+        self._follower = Follower(self.samples, guard, lookahead, gain=gain, now=now, clock=now)
         self._started = time.monotonic()
         self._detached = False  # the client was told it ended; the arm still brakes
+
+    @property
+    def _u(self) -> float:
+        return self._follower.u
 
     @property
     def done(self) -> bool:
@@ -654,7 +663,7 @@ class FakeTrajectory:
         if self.done:
             return False
         self.link._sent += 1
-        self._replacement = ([tuple(r) for r in array.tolist()], at_index)
+        self._follower.replace([tuple(r) for r in array.tolist()], at_index)
         self._replaced = asyncio.get_running_loop().create_future()
         waitables: set[asyncio.Future[Any]] = {self._replaced, self._done}
         finished, _ = await asyncio.wait(waitables, timeout=1.0, return_when="FIRST_COMPLETED")
@@ -684,8 +693,7 @@ class FakeTrajectory:
     # -- the link's side
 
     def _request_stop(self, reason: str) -> None:
-        if self._stop_reason is None:
-            self._stop_reason = reason
+        self._follower.stop(reason)
 
     def finish(
         self,
@@ -702,8 +710,8 @@ class FakeTrajectory:
                 TrajectoryResult(
                     status,
                     reason,
-                    int(self._u),
-                    len(self.samples),
+                    self._follower.index,
+                    len(self._follower.samples),
                     state.actual_q,
                     time.monotonic() - self._started,
                 )
@@ -723,63 +731,27 @@ class FakeTrajectory:
     def step(self) -> None:
         """Send this cycle's setpoint (before the controller's cycle)."""
         robot = self.link.robot
-        now = robot.controller.time
-        samples, u = self.samples, self._u
-        if self._braking is None:
-            why = self._stop_reason
-            if why is None and now - robot.last_published > self.guard.stall_timeout:
-                why = "state_stalled"
-            if why is not None:
-                velocity = _velocity(samples, u) if u < len(samples) else (0.0,) * 6
-                self._braking = (why, now, brake_duration(velocity, self.guard))
-        replacement, self._replacement = self._replacement, None
-        if replacement is not None:
-            ok = self._braking is None
-            if ok:
-                new, at = replacement
-                i = int(u)
-                if at is None:
-                    samples, u = new, 0.0
-                elif at >= i:
-                    samples, u = samples[i:at] + new, 0.0
-                else:  # already past it: join the new samples where we are
-                    samples, u = new, float(min(i - at, len(new) - 1))
-                self._settle_until = None
-            if self._replaced is not None and not self._replaced.done():
-                self._replaced.set_result(ok)
-        rate = 1.0
-        if self._braking is not None:
-            reason, began, duration = self._braking
-            elapsed = now - began
-            if elapsed >= duration:
-                self.samples, self._u = samples, u
-                self._finish_here("stopped", reason)
-                return
-            rate = 0.5 * (1.0 + math.cos(math.pi * elapsed / duration))
-        elif u >= len(samples):
-            if self._settle_until is None:
-                self._settle_until = now + SETTLE_MAX + 2 * self.lookahead
-            state = robot.sample()
-            if now > self._settle_until or _settled(state, samples[-1]):
-                self.samples, self._u = samples, u
-                self._finish_here("completed", "")
-                return
         c = robot.controller
-        why = stop_reason(c.safety_mode, c.runtime_state)
-        if why is not None:
-            self.samples, self._u = samples, u
-            self._finish_here("failed", why)
+        now = c.time
+        follower = self._follower
+        out = follower.cycle(now, robot.servo_state(), state_at=robot.last_published)
+        for notice in follower.notices:
+            replaced = self._replaced
+            if notice.kind == "log":
+                log.log(notice.level, "link: %s", notice.text)  # as the link client logs it
+            elif replaced is not None and not replaced.done():
+                replaced.set_result(bool(notice.data["ok"]))
+        follower.notices.clear()
+        if out.target is None:
+            self._finish_here(out.status or "completed", out.reason)
             return
-        if not robot.servo(_at(samples, u), self.lookahead, self.gain):
-            self.samples, self._u = samples, u
-            self._finish_here("failed", "no_external_control" if self._u == 0 else "servoj_refused")
+        if not robot.servo(out.target, self.lookahead, self.gain):
+            first = follower.u == 0
+            self._finish_here("failed", "no_external_control" if first else "servoj_refused")
             return
-        if u < len(samples):
-            i = int(u)
-            if self._braking is None and i % PROGRESS_EVERY == 0 and i == u:
-                self._report_progress(i, len(samples), samples[i])
-            u = min(u + rate, float(len(samples)))
-        self.samples, self._u = samples, u
+        if out.progress is not None:
+            self._report_progress(out.progress, len(follower.samples), out.target)
+        follower.advance(now, now + CONTROL_PERIOD)
 
     def _finish_here(self, status: Literal["completed", "stopped", "failed"], reason: str) -> None:
         if self._detached:
@@ -798,31 +770,6 @@ class FakeTrajectory:
             index, total, actual, error, time.time(), robot.last_published
         )
         self._progress_event.set()
-
-
-def _at(samples: list[tuple[float, ...]], u: float) -> tuple[float, ...]:
-    last = len(samples) - 1
-    if u >= last:
-        return samples[last]
-    k = int(u)
-    f = u - k
-    if f == 0.0:
-        return samples[k]
-    a, b = samples[k], samples[k + 1]
-    return tuple(x + (y - x) * f for x, y in zip(a, b, strict=True))
-
-
-def _velocity(samples: list[tuple[float, ...]], u: float) -> tuple[float, ...]:
-    last = len(samples) - 1
-    if last < 1:
-        return (0.0,) * 6
-    k = min(int(u), last - 1)
-    return tuple((y - x) / CONTROL_PERIOD for x, y in zip(samples[k], samples[k + 1], strict=True))
-
-
-def _settled(state: RobotState, target: tuple[float, ...]) -> bool:
-    error = max(abs(a - b) for a, b in zip(state.actual_q, target, strict=True))
-    return error < ARRIVE_TOLERANCE and max(map(abs, state.actual_qd)) < SETTLE_VELOCITY
 
 
 if TYPE_CHECKING:

@@ -69,7 +69,7 @@ def test_life_cycle_power_on_brake_release_load_play_pause_stop(sim: SimulatorHa
         d.powerOff()
         assert d.robotmode() == "Robotmode: POWER_OFF"
         assert d.isInRemoteControl()
-        assert d.polyscopeVersion().startswith("5.11.1")
+        assert d.polyscopeVersion().startswith("5.25.1")
         assert d.getSerialNumber() == "20235500001"
         assert d.getRobotModel() == "UR3"
     finally:
@@ -87,7 +87,7 @@ def test_every_reply_form_is_the_polyscope_5_string(sim: SimulatorHandle) -> Non
             "programState": "STOPPED null",
             "running": "Program running: false",
             "get loaded program": "No program loaded",
-            "PolyscopeVersion": "URSoftware 5.11.1.108318 (Mar 22 2021)",
+            "PolyscopeVersion": "URSoftware 5.25.1.1 (Sep 03 2025)",
             "get serial number": "20235500001",
             "get robot model": "UR3",
             "is in remote control": "true",
@@ -115,7 +115,10 @@ def test_every_reply_form_is_the_polyscope_5_string(sim: SimulatorHandle) -> Non
             "load installation default.installation": (
                 "Loading installation: default.installation"
             ),
-            "version": "Version: 5.11.1.108318",
+            "load installation missing.installation": "File not found: missing.installation",
+            "load installation notes.txt": "Failed to load installation: notes.txt",
+            "saveLog": "Log saved to disk",
+            "version": "Version: 5.25.1.1",
             "addToLog": "No log message to add",
             "power on": "Powering on",
             "brake release": "Brake releasing",
@@ -131,6 +134,7 @@ def test_every_reply_form_is_the_polyscope_5_string(sim: SimulatorHandle) -> Non
         d.close()
 
 
+@pytest.mark.injects_faults("the pendant switched to Local control")
 def test_local_control_refuses_robot_commands_but_answers_queries(sim: SimulatorHandle) -> None:
     sim.inject("local_control")
     refusal = sim.dashboard("power on")
@@ -166,6 +170,7 @@ def test_shutdown_ends_the_simulator_process() -> None:
         wait_until(lambda: not sim.running, timeout=10, what="process exit")
 
 
+@pytest.mark.injects_faults("faults injected through the CLI")
 def test_cli_inject_reaches_the_simulator_and_rejects_unknown_faults(
     sim: SimulatorHandle, capsys: pytest.CaptureFixture[str]
 ) -> None:

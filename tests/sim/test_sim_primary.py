@@ -93,7 +93,7 @@ def test_a_client_gets_the_version_message_then_robot_state_at_10_hz(
         assert message_type == 3  # version message
         name = body[11 : 11 + name_size]
         major, minor, bugfix, build = struct.unpack_from(">BBii", body, 11 + name_size)
-        assert (name, major, minor) == (b"URControl", 5, 11)
+        assert (name, major, minor) == (b"URControl", 5, 25)
         assert bugfix >= 0
         assert build > 0
         stamps = []
@@ -247,3 +247,58 @@ def test_urx_reads_joints_and_pose_and_its_movej_moves_the_arm(running: Simulato
         assert time.monotonic() < deadline, f"the arm did not reach {target}: {state['q']}"
         time.sleep(0.02)
     assert math.isclose(running.state()["q"][0], 0.3, abs_tol=1e-3)
+
+
+URX_WAITING_MOVEJ = """
+import json, sys
+import urx
+from urx.urrobot import RobotException
+robot = urx.Robot(sys.argv[1])
+try:
+    mode = robot.secmon.get_all_data()["RobotModeData"]
+    seen = {
+        "size": mode["size"],
+        "robotMode": mode["robotMode"],
+        "version": list(robot.secmon._parser.version),
+        "is_running": robot.is_running(),
+    }
+    try:
+        robot.movej(json.loads(sys.argv[2]), acc=2.0, vel=1.0, wait=True)
+        seen["movej"] = "returned"
+    except RobotException as exc:
+        seen["movej"] = str(exc)
+    print(json.dumps(seen), flush=True)
+finally:
+    robot.close()
+"""
+
+
+def test_urx_waiting_movej_says_robot_stopped_as_on_a_real_e_series_controller(
+    running: SimulatorHandle,
+) -> None:
+    # urx 0.11.0 (PyPI) learns the controller's version from the size of the robot mode
+    # data: 38 bytes is 3.0, 46 bytes is 3.2, anything else "0.0". An e-series controller
+    # sends 47 bytes (5.x adds targetSpeedFractionLimit and a reserved byte), so urx takes
+    # it for a pre-3.0 controller, whose RUNNING mode was 0, and reads mode 7 as "not
+    # running": movej(wait=True) raises "Robot stopped" at its first check, on a real UR3e
+    # as here (SintefManufacturing/python-urx issues 48, 109, 112; fixed on its GitHub
+    # master, never released). The simulator sends what the controller sends; the move runs.
+    running.set_joints(START)
+    target = [0.3, -1.3, 1.25, -1.5, -1.57, 0.2]
+    out = subprocess.run(
+        [sys.executable, "-c", URX_WAITING_MOVEJ, running.host, json.dumps(target)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    assert seen["size"] == 47
+    assert seen["robotMode"] == 7  # RUNNING
+    assert seen["version"] == [0, 0]
+    assert seen["is_running"] is False
+    assert seen["movej"] == "Robot stopped"
+    deadline = time.monotonic() + 20
+    while not np.allclose(running.state()["q"], target, atol=1e-3):
+        assert time.monotonic() < deadline, "the movej urx sent did not run"
+        time.sleep(0.02)

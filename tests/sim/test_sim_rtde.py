@@ -159,7 +159,7 @@ def test_raw_protocol_versions_recipes_and_frequency(sim: SimulatorHandle) -> No
     try:
         assert c.ask(b"V", struct.pack(">H", 3)) == b"\x00"
         assert c.ask(b"V", struct.pack(">H", 2)) == b"\x01"
-        assert struct.unpack(">IIII", c.ask(b"v")) == (5, 11, 1, 108318)
+        assert struct.unpack(">IIII", c.ask(b"v")) == (5, 25, 1, 1)
         out = c.ask(b"O", struct.pack(">d", 125.0) + b"timestamp,actual_q,robot_mode")
         assert out == b"\x01DOUBLE,VECTOR6D,INT32"
         assert c.ask(b"I", b"input_int_register_5") == b"\x01INT32"
@@ -220,6 +220,7 @@ def test_io_interface_sets_outputs_and_owns_its_registers(sim: SimulatorHandle) 
         r.disconnect()
 
 
+@pytest.mark.injects_faults("a stalled and a dropped RTDE stream")
 def test_stall_rtde_pauses_the_stream_and_drop_rtde_closes_it(sim: SimulatorHandle) -> None:
     c = RawRTDE(sim.host)
     try:

@@ -17,6 +17,9 @@ from fxcell.testing import SimulatorHandle
 
 from .test_sim_control import START, fresh, wait_until
 
+# every test here makes a safety stop or a fault of the controller and checks how it is seen
+pytestmark = pytest.mark.injects_faults("the controller's safety stops and faults under test")
+
 PROTECTIVE_STOP, SAFEGUARD_STOP, ROBOT_EMERGENCY_STOP = 3, 5, 7
 POWER_OFF, RUNNING = 3, 7
 STOPPED, PLAYING, PAUSED = 1, 2, 4

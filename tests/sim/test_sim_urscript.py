@@ -14,10 +14,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fxcell.link.embedded import SimulatorState
 from fxcell.motion.kinematics import Kinematics
 from fxcell.protocol import RobotMode, RuntimeState
 from fxcell.sim.controller import Controller
+from fxcell.sim.events import RobotMessage
 from fxcell.sim.motion import Arm
+from fxcell.sim.primary import encode_robot_message
 from fxcell.sim.urscript import (
     BinOp,
     Call,
@@ -280,13 +283,15 @@ def test_stopj_brakes_the_moving_arm() -> None:
 )
 def test_an_unknown_function_stops_the_program_as_a_compile_error(text: str, message: str) -> None:
     c = make_controller()
-    sent: list[bytes] = []
+    sent: list[RobotMessage] = []
     c.on_robot_message = sent.append
     assert not c.run_script(text)
     assert c.runtime_state == RuntimeState.STOPPED
     assert any(message in m for m in c.log_messages)
     assert "textmsg: a" not in c.log_messages  # nothing ran
-    _, kind, _, _, message_type, line, _ = struct.unpack_from(">iBQbbii", sent[-1])
+    _, kind, _, _, message_type, line, _ = struct.unpack_from(
+        ">iBQbbii", encode_robot_message(sent[-1])
+    )
     assert (message_type, kind) == (10, 20)  # runtime exception message
     assert line in (2, 3)
 
@@ -369,8 +374,8 @@ def test_programs_sent_to_the_script_ports_run_on_the_simulator() -> None:
 
 
 def wait(
-    sim: SimulatorHandle, predicate: Callable[[dict[str, object]], bool], timeout: float = 10.0
-) -> dict[str, object]:
+    sim: SimulatorHandle, predicate: Callable[[SimulatorState], bool], timeout: float = 10.0
+) -> SimulatorState:
     deadline = time.monotonic() + timeout
     while True:
         state = sim.state()

@@ -38,8 +38,14 @@ function log(text, kind = "") {
 
 // ------------------------------------------------------------------ HTTP
 
+// Header values are Latin-1 bytes: a name with other characters goes as an RFC 8187
+// ext-value (UTF-8'' and its percent-encoded UTF-8), which the daemon decodes.
+function clientHeader(name) {
+  return /^[\x20-\x7e]*$/.test(name) && !/^utf-8''/i.test(name) ? name : `UTF-8''${encodeURIComponent(name)}`;
+}
+
 async function api(method, path, body) {
-  const headers = { "X-Fxcell-Client": page.client };
+  const headers = { "X-Fxcell-Client": clientHeader(page.client) };
   const token = localStorage.getItem("fxcell-token");
   if (token) headers["Authorization"] = `Bearer ${token}`;
   if (page.lease) headers["X-Fxcell-Lease"] = page.lease;
@@ -311,6 +317,7 @@ function onMessage(m) {
       showRobot(m.snapshot.robot);
       showGripper(m.snapshot.gripper);
       m.snapshot.operations.forEach(updateOperation);
+      loadJob();  // job events sent while the stream was down are not replayed
       log(`connected to the daemon (state ${m.snapshot.state})`);
       break;
     case "state":
@@ -332,6 +339,10 @@ function onMessage(m) {
       else if (m.outcome === "ok") log(`${m.name} done (${m.origin})`);
       if (m.outcome === "ok" && (m.name === "teach")) loadPositions();
       if (m.outcome === "ok" && m.name === "teach_frame_point") loadLayout();
+      if (m.outcome === "ok" && m.name === "check_placement" && m.result) {
+        showPlacement({ ...m.result, time: m.ended }, `/api/camera/placement.jpg?t=${m.ended}`);
+        log(`placement check: ${m.result.ok ? "OK" : "STOP: " + m.result.reason}`, m.result.ok ? "" : "warn");
+      }
       else log(`${m.name} started (${m.origin})`);
       break;
     case "operation":
@@ -445,8 +456,12 @@ $("#copy-pose").addEventListener("click", async () => {
 
 // ------------------------------------------------------------------ arm view (UR3e, DH)
 
-const DH = { d: [0.15185, 0, 0, 0.13105, 0.08535, 0.0921], a: [0, -0.24355, -0.2132, 0, 0, 0],
-  alpha: [Math.PI / 2, 0, 0, Math.PI / 2, -Math.PI / 2, 0] };
+// The arm's DH table (d, a, alpha in m and rad) comes from the daemon: one source in Python.
+let DH = null;
+(async () => {
+  try { DH = (await api("GET", "/api/robot/model")).dh; requestDraw(); }
+  catch (e) { log(`cannot load the robot model: ${e.message}`, "error"); }
+})();
 
 function matMul(A, B) {
   const C = new Array(16).fill(0);
@@ -471,6 +486,7 @@ const P = (T) => [T[3], T[7], T[11]];
 function armPoints(q) {
   let T = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
   const pts = [P(T)];
+  if (!DH) return pts;  // the model has not arrived yet
   for (let i = 0; i < 6; i++) {
     const Tz = matMul(T, dh(q[i], DH.d[i], 0, 0));
     pts.push(P(Tz));
@@ -509,8 +525,9 @@ function drawArm() {
       g.beginPath(); g.moveTo(x1, y1); g.lineTo(x2, y2); g.stroke();
     }
   }
-  // scene boxes (wireframe)
+  // scene boxes (wireframe), the stations' bodies and the objects where the cell believes they are
   for (const o of (page.info && page.info.scene) || []) drawBox(g, project, o);
+  drawStations(g, project);
   // base axes
   const axes = [[[0.15, 0, 0], "#d1242f"], [[0, 0.15, 0], "#1a7f37"], [[0, 0, 0.15], "#1f6feb"]];
   for (const [p, col] of axes) {
@@ -526,6 +543,48 @@ function drawArm() {
   drawChain(g, project, armPoints(page.robot.q), "#3d5a80", 12);
 }
 
+function drawStations(g, project) {
+  const L = page.layout;
+  if (!L) return;
+  for (const [name, st] of Object.entries(L.stations)) {
+    if (st.body) {
+      const [x, y, z] = st.body.pose;
+      drawBox(g, project, { size: st.body.size, position: [x, y, z], rpy: [0, 0, rotZ(st.body.pose.slice(3))] },
+        st.zone ? "#c99a5b" : "#7d8da0");
+    }
+    const kind = L.objects[st.holds];
+    for (const [slot, p] of Object.entries(st.slots)) {
+      const who = page.occupants && page.occupants[`${name}:${slot}`];
+      const [sx, sy] = project(p.seat);
+      if (!who) {  // an empty slot: a small ring on the seat
+        g.strokeStyle = "#b4bfcc"; g.lineWidth = 1; g.beginPath(); g.arc(sx, sy, 2.5, 0, 2 * Math.PI); g.stroke();
+        continue;
+      }
+      drawObject(g, project, p.seat, kind, who);
+    }
+  }
+  // what the gripper holds, at the TCP
+  const held = page.occupants && page.occupants.gripper;
+  if (held && page.robot && page.robot.tcp) {
+    const kind = L.objects[held.kind] || { width: 0.03, height: 0.03, grip_height: 0.02 };
+    const [x, y, z] = page.robot.tcp;
+    drawObject(g, project, [x, y, z - kind.grip_height], kind, held);
+  }
+}
+
+function drawObject(g, project, seat, kind, who) {
+  const [x, y, z] = seat, r = kind.width / 2, h = kind.height;
+  const colour = who.kind === "bead" ? "#4f8fe0" : "#d08a2e";
+  const [bx, by] = project([x, y, z]), [tx, ty] = project([x, y, z + h]);
+  const [rx] = project([x + r, y, z]);
+  const w = Math.max(4, Math.abs(rx - bx) * 1.6);
+  g.strokeStyle = colour; g.lineCap = "butt"; g.lineWidth = w;
+  g.beginPath(); g.moveTo(bx, by); g.lineTo(tx, ty); g.stroke();
+  g.fillStyle = "#1d2733"; g.font = "10px sans-serif"; g.textAlign = "center";
+  if (who.label) g.fillText(who.label, tx, ty - 4);
+  g.textAlign = "left";
+}
+
 function drawChain(g, project, pts, colour, width) {
   const xy = pts.map(project);
   g.lineCap = "round"; g.lineJoin = "round";
@@ -539,7 +598,7 @@ function drawChain(g, project, pts, colour, width) {
   g.fillStyle = "#f08c00"; g.beginPath(); g.arc(tx, ty, 5, 0, 2 * Math.PI); g.fill();
 }
 
-function drawBox(g, project, o) {
+function drawBox(g, project, o, colour = "#9aa7b6") {
   const [sx, sy, sz] = o.size.map((v) => v / 2), [cx, cy, cz] = o.position;
   const yaw = (o.rpy || [0, 0, 0])[2], c = Math.cos(yaw), s = Math.sin(yaw);
   const corner = (i) => {
@@ -547,7 +606,7 @@ function drawBox(g, project, o) {
     return project([cx + c * x - s * y, cy + s * x + c * y, cz + z]);
   };
   const edges = [[0, 1], [1, 3], [3, 2], [2, 0], [4, 5], [5, 7], [7, 6], [6, 4], [0, 4], [1, 5], [2, 6], [3, 7]];
-  g.strokeStyle = "#9aa7b6"; g.lineWidth = 1;
+  g.strokeStyle = colour; g.lineWidth = 1;
   for (const [a, b] of edges) {
     const [x1, y1] = corner(a), [x2, y2] = corner(b);
     g.beginPath(); g.moveTo(x1, y1); g.lineTo(x2, y2); g.stroke();
@@ -833,6 +892,12 @@ function showJob(st) {
     fault: "alarm", paused: "alarm" }[st.state] || "off");
   $("#job-message").textContent = st.message || "";
   $("#job-step").textContent = st.step ? `step: ${st.step}` : "";
+  const heals = st.heals || { count: 0, recent: [] };
+  const last = heals.recent.length ? heals.recent[heals.recent.length - 1] : null;
+  $("#job-heals").textContent = heals.count
+    ? `went on by itself after ${heals.count} lost robot link${heals.count > 1 ? "s" : ""}` +
+      (last ? ` (last: ${last.what}, ${last.phase})` : "")
+    : "";
   const p = st.progress;
   $("#job-progress").max = p ? Math.max(1, p.total) : 1;
   $("#job-progress").value = p ? p.done : 0;
@@ -855,24 +920,123 @@ function showJob(st) {
   page.occupants = {};
   for (const s of st.samples || []) {
     for (const [kind, where] of [["crucible", s.crucible], ["bead", s.bead]]) {
-      if (!where || where === "gripper") continue;
+      if (!where) continue;
+      if (where === "gripper") { page.occupants.gripper = { kind, label: s.id }; continue; }
       const [prefix, slot] = where.split(":");
       page.occupants[`${STATION_OF[prefix] || prefix}:${slot}`] = { kind, label: s.id };
     }
   }
+  showRun(st);
   requestDraw();
 }
 
+// ------------------------------------------------------------------ the run view
+
+function minutes(seconds) {
+  if (seconds === undefined || seconds === null) return "–";
+  const m = Math.ceil(seconds / 60);
+  return m < 60 ? `${m} min` : `${Math.floor(m / 60)} h ${m % 60} min`;
+}
+
+function describePlace(where) {
+  if (!where) return "–";
+  if (where === "gripper") return "in the gripper";
+  const [prefix, slot] = where.split(":");
+  return `${{ rack: "rack", machine: "machine", mould: "mould", tray: "tray" }[prefix] || prefix} ${slot}`;
+}
+
+// What the operator must do now, in one sentence, from the job's status.
+function runNext(st) {
+  const p = st.placement;
+  const msg = (st.message || "").replace(/\.$/, "");
+  if (st.questions && st.questions.length) return ["bad", "Tell the job where the sample is (below), then press Resume."];
+  if (st.prompt) return ["warn", `${st.prompt.text || st.prompt} Then press Confirm.`];
+  if (st.state === "paused" && p && !p.ok && msg.startsWith("placement check"))
+    return ["bad", `Fix the crucibles before the fusion: ${p.reason}. Then press Resume: the camera checks again.`];
+  if (st.state === "fault") return ["bad", `${msg}. Clear the cause, then press Resume.`];
+  if (st.state === "paused") return ["warn", `Paused (${msg}). Press Resume to go on.`];
+  if (st.state === "pausing") return ["info", "Pausing: the current step finishes first."];
+  if (st.state === "waiting_for_machine")
+    return ["info", `Nothing to do: the fusion machine runs. About ${minutes(st.progress && st.progress.eta)} left in the run.`];
+  if (st.state === "running") return ["info", `Nothing to do: the robot works (${st.step || "next step"}). Keep clear of the cell.`];
+  if (st.state === "done") return ["ok", "Run done: every bead is on the tray, every crucible back in the rack."];
+  return ["info", msg || st.state];
+}
+
+function showRun(st) {
+  const box = $("#run");
+  const has = st.run !== null && st.run !== undefined;
+  box.hidden = !has;
+  document.body.classList.toggle("has-run", has);
+  if (!has) return;
+  const [kind, text] = runNext(st);
+  const next = $("#run-next");
+  next.className = `run-next ${kind}`;
+  next.textContent = text;
+  $("#run-name").textContent = `run ${st.run}${st.name ? " · " + st.name : ""}`;
+  const state = $("#run-state");
+  state.textContent = st.state.replaceAll("_", " ");
+  state.className = "big-state " + ({ running: "moving", waiting_for_machine: "moving", done: "ready",
+    fault: "alarm", paused: "alarm" }[st.state] || "off");
+  const p = st.progress;
+  $("#run-progress").max = p ? Math.max(1, p.total) : 1;
+  $("#run-progress").value = p ? p.done : 0;
+  $("#run-eta").textContent = p ? `${p.done} of ${p.total} steps · about ${minutes(p.eta)} left` : "–";
+  $("#run-step").textContent = st.step ? `now: ${st.step}` : "";
+  const qs = $("#run-questions");
+  qs.innerHTML = "";
+  for (const q of st.questions || []) {
+    const div = document.createElement("div");
+    div.className = "small";
+    const b = document.createElement("b"); b.textContent = q.text + " ";
+    const sel = document.createElement("select");
+    sel.dataset.question = q.id;
+    for (const c of q.choices) sel.append(new Option(describePlace(c), c));
+    div.append(b, sel);
+    qs.append(div);
+  }
+  const active = new Set([...(st.step || "").matchAll(/sample (\S+)/g)].map((m) => m[1]));
+  const body = $("#run-samples tbody");
+  body.innerHTML = "";
+  for (const s of st.samples || []) {
+    const tr = document.createElement("tr");
+    if (active.has(s.id)) tr.className = "active";
+    for (const [value, where] of [[s.id], [s.cycle], [s.rack], [s.machine], [s.tray],
+      [describePlace(s.crucible), s.crucible], [describePlace(s.bead), s.bead]]) {
+      const td = document.createElement("td");
+      td.textContent = value;
+      if (where) td.className = `where-${where.split(":")[0]}`;
+      tr.append(td);
+    }
+    body.append(tr);
+  }
+  if (st.placement) showPlacement(st.placement, `/api/job/placement/${st.placement.check}.jpg`);
+}
+
+function showPlacement(p, src) {
+  const img = $("#placement-image"), cap = $("#placement-verdict");
+  if (img.dataset.src !== src) { img.src = src; img.dataset.src = src; }
+  img.className = p.ok ? "ok" : "bad";
+  img.alt = `placement check: ${p.ok ? "OK" : p.reason}`;
+  const when = p.time ? new Date(p.time * 1000).toLocaleTimeString() : "";
+  cap.className = `small ${p.ok ? "ok" : "bad"}`;
+  cap.textContent = `${p.ok ? "Placement OK" : "STOP: " + p.reason} ${when ? "(" + when + ")" : ""}`;
+}
+
+$("#run-stop").addEventListener("click", () => command("stop"));
+$("#run-manual").addEventListener("click", () => $("#commands").scrollIntoView({ behavior: "smooth", block: "start" }));
+
 for (const b of $$("button[data-job]")) {
   b.addEventListener("click", async () => {
-    const name = b.dataset.job, err = $("#job-error");
+    const name = b.dataset.job, err = b.closest("#run") ? $("#run-error") : $("#job-error");
     err.textContent = "";
     let body = {};
     try {
       if (name === "start") body = { run: JSON.parse($("#job-run").value) };
       if (name === "resume") {
         body = { answers: {} };
-        for (const sel of $$("#job-questions select")) body.answers[sel.dataset.question] = sel.value;
+        const box = b.closest("#run") ? "#run-questions" : "#job-questions";
+        for (const sel of $$(`${box} select`)) body.answers[sel.dataset.question] = sel.value;
       }
       if (name === "abort" && !confirm("Abort the current step? The arm brakes; the run can be resumed.")) return;
       if (name === "discard" && !confirm("Forget this run? The samples stay where the job says they are.")) return;

@@ -1,0 +1,3 @@
+from fxcell.sim.ned2.server import main
+
+raise SystemExit(main())

@@ -1,0 +1,365 @@
+"""The simulated Ned2: joints moving at the model's limits, calibration, learning mode,
+collision detection, the tool (Gripper 1) with objects, IO and the hardware status.
+
+Errors the robot's ROS side reports are :class:`RobotError` (a ``CommandStatus`` code
+and a message); the TCP server wraps them as Niryo's server does.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fxcell.motion import ned2
+
+# niryo_robot_msgs/CommandStatus values the simulator reports
+ABORTED = -3
+STOPPED = -4
+INVALID_PARAMETERS = -52
+HARDWARE_NOT_OK = -111
+LEARNING_MODE_ON = -112
+CALIBRATION_NOT_DONE = -113
+CALIBRATION_IN_PROGRESS = -125
+GOAL_STILL_ACTIVE = -221
+INVERT_KINEMATICS_FAILURE = -232
+TOOL_FAILURE = -251
+TOOL_NOT_CONNECTED = -253
+
+CALIBRATION_TIME = 8.0  # s: the arm runs to its end stops and back (x time scale)
+GRIPPER_TIME = 0.5  # s: fingers open or close
+GRIPPER_1_STROKE = 0.027  # m between open and closed fingers
+GRIPPER_TCP = 0.075  # m along tool_link's x: where the fingers close (Gripper 1)
+GRASP_TOLERANCE = 0.01  # m: an object's grip point this close to the fingers is caught
+# Gripper 1 position in motor steps (closed, open): the simulator's assumption
+GRIPPER_STEPS = (1000, 2300)
+TOOLS = {"NONE": 0, "GRIPPER_1": 11}
+DIGITAL_INPUTS = ("DI1", "DI2", "DI3", "DI4", "DI5")
+DIGITAL_OUTPUTS = ("DO1", "DO2", "DO3", "DO4")
+ANALOG_INPUTS = ("AI1", "AI2")
+ANALOG_OUTPUTS = ("AO1", "AO2")
+MOTOR_NAMES = ["joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6", "tool"]
+MOTOR_TYPES = ["NIRYO_STEPPER"] * 3 + ["DXL_XL430"] * 2 + ["DXL_XL330"] * 2
+CYCLE = 0.01  # s of robot time per motion step
+
+
+class RobotError(Exception):
+    """What the robot's ROS side answers: a CommandStatus code and its message."""
+
+    def __init__(self, code: int, message: str) -> None:
+        super().__init__(f"Error Code : {code}\nMessage : {message}")
+        self.code = code
+        self.message = message
+
+
+@dataclass
+class SimObject:
+    name: str
+    position: np.ndarray  # grip point in base_link (m)
+    width: float = 0.02
+
+
+@dataclass
+class Ned2Robot:
+    """The robot's state; moves and calibration are coroutines that take robot time
+    (``time_scale`` x real seconds)."""
+
+    time_scale: float = 1.0
+    joints: np.ndarray = field(default_factory=lambda: ned2.HOME.copy())
+    calibrated: bool = False
+    calibrating: bool = False
+    learning_mode: bool = True  # a Ned2 boots compliant
+    collision_detected: bool = False
+    velocity_percent: float = 100.0
+    motor_error: int = 0  # joint number with a hardware error, 0: none
+    tool: str = "GRIPPER_1"
+    gripper_open: bool = True
+    held: str | None = None
+    objects: dict[str, SimObject] = field(default_factory=dict)
+    digital_out: dict[str, bool] = field(
+        default_factory=lambda: dict.fromkeys(DIGITAL_OUTPUTS, False)
+    )
+    digital_in: dict[str, bool] = field(
+        default_factory=lambda: dict.fromkeys(DIGITAL_INPUTS, False)
+    )
+    analog_out: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ANALOG_OUTPUTS, 0.0))
+    analog_in: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ANALOG_INPUTS, 0.0))
+    moving: bool = False
+    log: list[str] = field(default_factory=list)
+    _abort: tuple[int, str] | None = None
+
+    # ------------------------------------------------------------------ state
+
+    def pose(self) -> list[float]:
+        return ned2.matrix_to_pose(ned2.forward(self.joints))
+
+    def fingers(self) -> np.ndarray:
+        t = ned2.forward(self.joints)
+        return np.asarray(t[:3, 3] + GRIPPER_TCP * t[:3, 0])
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "joints": [float(v) for v in self.joints],
+            "pose": self.pose(),
+            "calibrated": self.calibrated,
+            "calibrating": self.calibrating,
+            "learning_mode": self.learning_mode,
+            "collision_detected": self.collision_detected,
+            "moving": self.moving,
+            "velocity_percent": self.velocity_percent,
+            "motor_error": self.motor_error,
+            "tool": self.tool,
+            "gripper_open": self.gripper_open,
+            "held": self.held,
+            "objects": {n: [float(v) for v in o.position] for n, o in self.objects.items()},
+            "digital_out": dict(self.digital_out),
+            "digital_in": dict(self.digital_in),
+            "log": self.log[-20:],
+        }
+
+    def hardware_status(self) -> list[Any]:
+        error = f"joint_{self.motor_error}: overload" if self.motor_error else ""
+        errors = [0] * 7
+        if self.motor_error:
+            errors[self.motor_error - 1] = 32
+        return [
+            52.0,
+            "ned2",
+            True,
+            f"'{error}'",
+            not self.calibrated,
+            self.calibrating,
+            list(MOTOR_NAMES),
+            list(MOTOR_TYPES),
+            [34.0, 35.0, 35.0, 38.0, 37.0, 36.0, 33.0],
+            [12.1, 12.1, 12.1, 11.9, 11.9, 11.9, 11.9],
+            errors,
+        ]
+
+    # ------------------------------------------------------------------ faults
+
+    def abort(self, code: int, message: str) -> None:
+        """Stop a running move (it fails with ``code``/``message``)."""
+        if self.moving:
+            self._abort = (code, message)
+
+    def collide(self) -> None:
+        self.collision_detected = True
+        self.abort(
+            ABORTED,
+            "Command has been aborted due to a collision or a motor not able to follow the "
+            "given trajectory",
+        )
+        self.log.append("collision detected")
+
+    def power_loss(self) -> None:
+        self.abort(ABORTED, "Command has been aborted: the robot lost power")
+        self.calibrated = False
+        self.calibrating = False
+        self.learning_mode = True
+        self.log.append("power lost")
+
+    def drop_held(self) -> None:
+        if self.held is not None:
+            obj = self.objects[self.held]
+            obj.position = obj.position.copy()
+            obj.position[2] = max(0.0, obj.position[2] - 0.05)  # it falls below the fingers
+            self.log.append(f"{self.held} slipped out of the gripper")
+            self.held = None
+
+    # ------------------------------------------------------------------ commands
+
+    def _check_can_move(self) -> None:
+        if self.calibrating:
+            raise RobotError(CALIBRATION_IN_PROGRESS, "Calibration in progress")
+        if not self.calibrated:
+            raise RobotError(CALIBRATION_NOT_DONE, "Robot not calibrated: calibrate it first")
+        if self.motor_error:
+            raise RobotError(
+                HARDWARE_NOT_OK, f"Hardware error on joint_{self.motor_error}: reboot the motor"
+            )
+        if self.moving:
+            raise RobotError(GOAL_STILL_ACTIVE, "A goal is still active")
+        # the arm commander leaves learning mode (torque on) before it moves
+        self.learning_mode = False
+
+    async def _sleep(self, robot_seconds: float) -> None:
+        await asyncio.sleep(max(0.0, robot_seconds * self.time_scale))
+
+    async def calibrate(self) -> None:
+        if self.calibrated:
+            return  # "auto calibration does nothing if the motors are calibrated"
+        if self.calibrating:
+            raise RobotError(CALIBRATION_IN_PROGRESS, "Calibration in progress")
+        self.calibrating = True
+        self.log.append("calibration started")
+        try:
+            await self._sleep(CALIBRATION_TIME)
+        finally:
+            self.calibrating = False
+        self.calibrated = True
+        self.joints = ned2.HOME.copy()
+        self._carry()
+        self.log.append("calibration done")
+
+    def set_learning_mode(self, on: bool) -> None:
+        if on and self.moving:
+            self.abort(STOPPED, "Command has been stopped: learning mode activated")
+        self.learning_mode = on
+
+    def check_joints(self, q: list[float]) -> np.ndarray:
+        a = np.asarray(q, dtype=float)
+        if a.shape != (6,) or not np.all(np.isfinite(a)):
+            raise RobotError(INVALID_PARAMETERS, "Joints must be 6 finite numbers")
+        for i, (v, lo, hi) in enumerate(zip(a, ned2.LOWER, ned2.UPPER, strict=True)):
+            if not lo <= v <= hi:
+                raise RobotError(
+                    INVALID_PARAMETERS,
+                    f"joint_{i + 1} target {v:.4f} rad is out of its limits [{lo:.4f}, {hi:.4f}]",
+                )
+        return a
+
+    def solve(self, pose: list[float]) -> np.ndarray:
+        p = np.asarray(pose, dtype=float)
+        if p.shape != (6,) or not np.all(np.isfinite(p)) or np.max(np.abs(p[:3])) > 10.0:
+            raise RobotError(INVALID_PARAMETERS, "A pose must be 6 finite numbers")
+        result = ned2.inverse(p, self.joints)
+        if result.q is None:
+            raise RobotError(
+                INVERT_KINEMATICS_FAILURE, "Failed to get inverse kinematics for this pose"
+            )
+        return result.q
+
+    def _profile(self, start: np.ndarray, goal: np.ndarray) -> tuple[float, float, float]:
+        """The path parameter's limits (1/s, 1/s^2) from the joints' (x velocity %) and
+        the segment's duration: every joint follows s(t) at or under its limits."""
+        v = ned2.VELOCITY_LIMITS * (self.velocity_percent / 100.0)
+        a = ned2.ACCELERATION_LIMITS
+        d = np.maximum(np.abs(goal - start), 1e-12)
+        vs = float(np.min(v / d))
+        as_ = float(np.min(a / d))
+        if vs * vs / as_ >= 1.0:  # triangular: never reaches vs
+            vs = math.sqrt(as_)
+            return vs, as_, 2.0 * vs / as_
+        return vs, as_, 1.0 / vs + vs / as_
+
+    async def move_joints(self, goal: np.ndarray) -> None:
+        self._check_can_move()
+        await self._follow([self.joints.copy(), goal])
+
+    async def move_linear(self, pose: list[float]) -> None:
+        self._check_can_move()
+        start = ned2.forward(self.joints)
+        end = ned2.pose_to_matrix(pose)
+        distance = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
+        steps = max(2, math.ceil(distance / 0.005) + 1)
+        path = [self.joints.copy()]
+        r0 = start[:3, :3]
+        rel = r0.T @ end[:3, :3]
+        angle = math.acos(max(-1.0, min(1.0, (np.trace(rel) - 1.0) / 2.0)))
+        axis = np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+        n = np.linalg.norm(axis)
+        axis = axis / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
+        for k in range(1, steps):
+            s = k / (steps - 1)
+            t = np.eye(4)
+            t[:3, 3] = start[:3, 3] + s * (end[:3, 3] - start[:3, 3])
+            t[:3, :3] = r0 @ _axis_angle(axis, s * angle)
+            result = ned2.inverse(t, path[-1], branches=False)
+            if result.q is None:  # the local solve lost the branch: look for all of them
+                result = ned2.inverse(t, path[-1])
+            if result.q is None or np.max(np.abs(result.q - path[-1])) > 0.3:
+                raise RobotError(
+                    INVERT_KINEMATICS_FAILURE,
+                    "Failed to plan a linear trajectory: a point of the line is out of reach",
+                )
+            path.append(result.q)
+        await self._follow(path)
+
+    async def _follow(self, waypoints: list[np.ndarray]) -> None:
+        """Run through joint waypoints, each segment timed at the limits."""
+        self.moving = True
+        self._abort = None
+        try:
+            for a, b in itertools.pairwise(waypoints):
+                vs, as_, duration = self._profile(a, b)
+                clock = time.monotonic()
+                while True:
+                    abort = self._pending_abort()
+                    if abort is not None:
+                        raise RobotError(*abort)
+                    elapsed = (time.monotonic() - clock) / self.time_scale
+                    if elapsed >= duration:
+                        self.joints = b.copy()
+                        self._carry()
+                        break
+                    self.joints = a + (b - a) * _trapezoid(elapsed, vs, as_, duration)
+                    self._carry()
+                    await self._sleep(CYCLE)
+        finally:
+            self.moving = False
+            self._abort = None
+
+    def _pending_abort(self) -> tuple[int, str] | None:
+        return self._abort
+
+    def _carry(self) -> None:
+        if self.held is not None:
+            self.objects[self.held].position = self.fingers()
+
+    # ------------------------------------------------------------------ tool
+
+    def _check_tool(self) -> None:
+        if self.tool == "NONE":
+            raise RobotError(TOOL_NOT_CONNECTED, "No tool connected")
+
+    async def close_gripper(self) -> None:
+        self._check_tool()
+        await self._sleep(GRIPPER_TIME)
+        self.gripper_open = False
+        if self.held is None:
+            fingers = self.fingers()
+            for obj in self.objects.values():
+                if np.linalg.norm(obj.position - fingers) <= GRASP_TOLERANCE:
+                    self.held = obj.name
+                    obj.position = fingers
+                    self.log.append(f"gripped {obj.name}")
+                    break
+
+    async def open_gripper(self) -> None:
+        self._check_tool()
+        await self._sleep(GRIPPER_TIME)
+        self.gripper_open = True
+        if self.held is not None:
+            self.log.append(f"released {self.held}")
+            self.held = None
+
+    def tool_position(self) -> int:
+        closed, opened = GRIPPER_STEPS
+        if self.gripper_open:
+            return opened
+        if self.held is not None:  # the fingers stop on the object
+            width = self.objects[self.held].width
+            return round(closed + (opened - closed) * min(1.0, width / GRIPPER_1_STROKE))
+        return closed
+
+
+def _trapezoid(t: float, vs: float, as_: float, duration: float) -> float:
+    """Progress 0..1 at time ``t`` of a trapezoidal profile (peak ``vs``, accel ``as_``)."""
+    ta = vs / as_
+    if t <= ta:
+        return 0.5 * as_ * t * t
+    if t >= duration - ta:
+        r = max(0.0, duration - t)
+        return 1.0 - 0.5 * as_ * r * r
+    return 0.5 * as_ * ta * ta + vs * (t - ta)
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.asarray(np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k))

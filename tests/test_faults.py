@@ -1,0 +1,45 @@
+"""The unplanned-fault watch of system tests: a link drop nobody injected is reported,
+one inside ``injected_faults`` is the test's own (fxcell.testing.faults)."""
+
+from __future__ import annotations
+
+import logging
+
+from fxcell.testing import injected_faults
+from fxcell.testing.faults import watching
+
+LINK_LOG = logging.getLogger("fxcell.link.client")
+
+
+def _drop(reason: str) -> None:
+    LINK_LOG.warning("robot link to %s down: %s", "127.0.0.9", reason)
+
+
+def test_a_link_drop_nobody_injected_is_reported() -> None:
+    with watching([]) as watch:
+        _drop("no robot state for 104 ms")
+        assert watch.unplanned() == ["link down: no robot state for 104 ms"]
+
+
+def test_a_link_drop_inside_injected_faults_is_the_tests_own() -> None:
+    with watching([]) as watch:
+        with injected_faults("the link process killed", link_losses=1):
+            _drop("link process exited")
+        assert watch.unplanned() == []
+        assert watch.injected == ["link down: link process exited"]
+        _drop("link process exited")  # after the block: unplanned again
+        assert watch.unplanned() == ["link down: link process exited"]
+
+
+def test_a_drop_before_the_block_stays_unplanned() -> None:
+    with watching([]) as watch:
+        _drop("first")
+        with injected_faults("a stall"):
+            _drop("second")
+        assert watch.unplanned() == ["link down: first"]
+
+
+def test_other_warnings_are_not_faults() -> None:
+    with watching([]) as watch:
+        LINK_LOG.warning("robot state stream gap of %.0f ms", 36.0)
+        assert watch.unplanned() == []
