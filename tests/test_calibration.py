@@ -305,6 +305,31 @@ def test_a_pose_beyond_the_nominal_reach_is_solved_on_the_hot_path() -> None:
     assert np.max(np.abs(solution - q)) < 1e-6
 
 
+def test_a_branch_beyond_the_calibrated_reach_does_not_leave_the_hot_path() -> None:
+    # The nearest nominal branches of this pose are the arm stretched (lenient starts, θ3 =
+    # ±0.05): beyond the calibrated arm's reach too, where the error has a local minimum.
+    # Levenberg-Marquardt settles there and the hot path counts the branch absent instead
+    # of handing the pose to the general path; the answer is the nearest solution found by
+    # the thorough search.
+    c = Calibration(
+        delta_theta=(7.71e-4, 1.263e-3, -6.22e-4, -1.821e-3, 2.86e-4, -1.415e-3),
+        delta_a=(8.75e-4, -6.19e-4, -1.72e-4, 1.904e-3, 1.126e-3, 1.375e-3),
+        delta_d=(2.2e-4, 1.766e-3, -1.927e-3, 1.557e-3, -4.41e-4, -1.073e-3),
+        delta_alpha=(1.38e-4, 1.779e-3, -6.76e-4, 1.634e-3, -1.31e-4, 1.869e-3),
+    )
+    k = CalibratedKinematics(c)
+    q = np.array([4.4534, -1.0913, 4.6661, 5.1926, -1.8330, 2.8301])
+    seed = np.array([3.4027, -0.7874, -1.1468, 1.6988, 3.5111, 0.6937])
+    target = k.forward(q)
+    solution = k.inverse(target, seed)
+    assert k.fallbacks == 0
+    assert max(_pose_error(k, solution, target)) < 1e-9
+    nearest = k.inverse_all(target, seed)[0]
+    assert np.linalg.norm(solution - seed) == pytest.approx(
+        np.linalg.norm(nearest - seed), abs=1e-7
+    )
+
+
 def test_nominal_inverse_on_a_calibrated_arm_misses_by_millimetres() -> None:
     c = Calibration.parse_conf(UR_CONF)
     k = CalibratedKinematics(c, TCP)

@@ -61,6 +61,12 @@ _EDGE_TURN = 0.02
 _CORRECTIONS = 3
 """Offset corrections of a start Newton's steps did not bring to a solution (each followed by
 Newton steps again): see :meth:`CalibratedKinematics._corrected_newton`."""
+_SETTLE_ITERATIONS = 60
+"""Levenberg-Marquardt steps the hot path gives a start that Newton's steps and the offset
+corrections did not bring to a solution (see :meth:`DHChain.settle`)."""
+_STATIONARY = 1e-6
+"""``‖Jᵀe‖ / (‖J‖·‖e‖)`` below which a start that did not converge has reached a local minimum
+of the error: the branch has no calibrated solution, and is no rival."""
 _RIVAL_MARGIN = 1.0
 """Radians (Euclidean in joint space) beyond the nearest nominal branch's distance from the
 seed within which the hot path of :meth:`CalibratedKinematics.inverse` looks for a rival."""
@@ -284,6 +290,7 @@ class CalibratedKinematics(Kinematics):
         # within _RIVAL_MARGIN of the nearest nominal branch first; if none converges or a
         # branch beyond could still come nearer once refined, every branch (still far cheaper
         # than the general path)
+        refined: dict[tuple[float, ...], tuple[list[float], float, bool]] = {}
         for margin in (_RIVAL_MARGIN, math.inf):
             nearest, candidates, bound, _ = self.nominal.nearest_within(
                 target, seed, margin, lenient=True
@@ -299,11 +306,13 @@ class CalibratedKinematics(Kinematics):
                     math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
                 ):
                     break  # this one and the rest (farther) cannot come nearer
-                q, err = self._chain.newton(start, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
+                key = tuple(start)
+                if key not in refined:  # the second margin's round refines each start once
+                    refined[key] = self._refine_start(start, goal)
+                q, err, absent = refined[key]
                 if err > ACCEPTED:
-                    q, err = self._corrected_newton(start, goal)
-                if err > ACCEPTED:
-                    unrefined = min(unrefined, d_nominal)
+                    if not absent:
+                        unrefined = min(unrefined, d_nominal)
                     continue
                 m = sum((a - b) * (a - b) for a, b in zip(q, start, strict=True))
                 moved = max(moved, m)
@@ -345,6 +354,23 @@ class CalibratedKinematics(Kinematics):
                 if d < best_d - 1e-12:
                     return np.array(shifted)
         return np.array(best)
+
+    def _refine_start(
+        self, start: list[float], goal: list[float]
+    ) -> tuple[list[float], float, bool]:
+        """A nominal start refined by the hot path: Newton's steps, then the offset
+        corrections, then Levenberg-Marquardt; the joints, the error norm left and, when it
+        did not converge, whether it ended at a local minimum of the error (the branch has no
+        calibrated solution: the target is beyond its reach)."""
+        q, err = self._chain.newton(start, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
+        if err > ACCEPTED:
+            q, err = self._corrected_newton(start, goal)
+        if err <= ACCEPTED:
+            return q, err, False
+        q, err, gradient = self._chain.settle(
+            start, goal, _SETTLE_ITERATIONS, CONVERGED, _STATIONARY
+        )
+        return q, err, err > ACCEPTED and gradient <= _STATIONARY
 
     def _corrected_newton(self, start: list[float], goal: list[float]) -> tuple[list[float], float]:
         """Newton steps from ``start`` once it is corrected by the calibration's offset:

@@ -1429,6 +1429,65 @@ class DHChain:
                     break
         return qq, norm
 
+    def settle(
+        self,
+        q: Sequence[float],
+        target: Sequence[float],
+        iterations: int = 60,
+        converged: float = 1e-12,
+        stationary: float = 1e-6,
+    ) -> tuple[list[float], float, float]:
+        """Levenberg-Marquardt (damping scaled by the diagonal of ``JᵀJ``) from ``q`` toward
+        ``target``, for starts Newton's steps do not bring to a solution (next to a
+        singularity): the joints, the error norm left and how far that point is from
+        stationary, ``‖Jᵀe‖ / (‖J‖·‖e‖)``. A last value below ``stationary`` (where the steps
+        stop) with an error left is a local minimum of the error: no solution near ``q`` (the
+        target beyond this branch's reach, as a stretched arm's)."""
+        qq = [float(v) for v in q]
+        frame, jac = self.frame_and_jacobian(qq)
+        err = _twist_to(frame, target)
+        norm = _norm6(err)
+        gradient = _gradient_ratio(jac, err, norm)
+        lam = 1e-3
+        for _ in range(iterations):
+            if norm < converged or gradient < stationary:
+                break
+            step = _solve6(jac, err, lam, True)
+            if step is None:
+                lam *= 5.0
+                if lam > 1e9:
+                    break
+                continue
+            trial = [qq[0] + step[0], qq[1] + step[1], qq[2] + step[2]]
+            trial += [qq[3] + step[3], qq[4] + step[4], qq[5] + step[5]]
+            frame, trial_jac = self.frame_and_jacobian(trial)
+            trial_err = _twist_to(frame, target)
+            trial_norm = _norm6(trial_err)
+            if trial_norm < norm:
+                qq, jac, err, norm = trial, trial_jac, trial_err, trial_norm
+                gradient = _gradient_ratio(jac, err, norm)
+                lam = max(lam * 0.2, 1e-9)
+            else:
+                lam *= 5.0
+                if lam > 1e9:
+                    break
+        return qq, norm, gradient
+
+
+def _gradient_ratio(jac: list[float], err: list[float], norm: float) -> float:
+    """``‖Jᵀe‖ / (‖J‖_F·‖e‖)``: 0 where the error ``e`` (norm ``norm``) is stationary."""
+    grad = 0.0
+    size = 0.0
+    for k in range(6):
+        acc = 0.0
+        for r in range(6):
+            v = jac[6 * r + k]
+            acc += v * err[r]
+            size += v * v
+        grad += acc * acc
+    scale = math.sqrt(size) * norm
+    return math.sqrt(grad) / scale if scale > 0.0 else 0.0
+
 
 def _twist_to(frame: list[float], target: Sequence[float]) -> list[float]:
     """Position difference and rotation vector (base frame) from ``frame`` to ``target``
@@ -1465,12 +1524,14 @@ def _norm6(v: list[float]) -> float:
     return math.sqrt(a * a + b * b + c * c + d * d + e * e + f * f)
 
 
-def _solve6(jac: list[float], rhs: list[float], lam: float) -> list[float] | None:
-    """``J·x = rhs`` (``lam`` 0), or the damped least squares ``(JᵀJ + lam·I)·x = Jᵀ·rhs``,
-    by Gaussian elimination with partial pivoting on a flat 6×7 array; None if singular to
-    rounding."""
+def _solve6(
+    jac: list[float], rhs: list[float], lam: float, scaled: bool = False
+) -> list[float] | None:
+    """``J·x = rhs`` (``lam`` 0), or the damped least squares ``(JᵀJ + lam·I)·x = Jᵀ·rhs``
+    (``scaled``: Marquardt's ``(JᵀJ + lam·(diag(JᵀJ) + 1e-12))·x = Jᵀ·rhs``), by Gaussian
+    elimination with partial pivoting on a flat 6×7 array; None if singular to rounding."""
     m = [0.0] * 42
-    if lam == 0.0:
+    if lam == 0.0 and not scaled:
         for i in range(6):
             for k in range(6):
                 m[7 * i + k] = jac[6 * i + k]
@@ -1483,7 +1544,7 @@ def _solve6(jac: list[float], rhs: list[float], lam: float) -> list[float] | Non
                     acc += jac[6 * r + i] * jac[6 * r + k]
                 m[7 * i + k] = acc
                 m[7 * k + i] = acc
-            m[7 * i + i] += lam
+            m[7 * i + i] += lam * (m[7 * i + i] + 1e-12) if scaled else lam
             acc = 0.0
             for r in range(6):
                 acc += jac[6 * r + i] * rhs[r]
