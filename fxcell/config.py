@@ -72,7 +72,8 @@ class RobotConfig(_Model):
     """The link process brakes a running move by itself when it has heard nothing from
     the cell for this long (s): a thread of the cell process beats every 10 ms while a move
     runs and its event loop has run within the last 0.5 s (a frozen process is caught
-    within this timeout, a stalled loop within 0.5 s, a late loop never)."""
+    within this timeout, a stalled loop within 0.5 s, a late loop never; a process the
+    kernel shows running but whose beat waits for the GIL gets up to 0.3 s)."""
     stall_timeout: float = Field(0.08, ge=0.01, le=0.09)
     """... and when no robot state has arrived for this long (s); below the 100 ms after
     which the cell declares the link down."""

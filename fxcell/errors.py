@@ -147,6 +147,12 @@ class RobotLinkError(ConnectionLostError):
         super().__init__(f"{message}: {detail}" if detail else message)
 
 
+class LinkContractError(RobotLinkError):
+    """The robot-link process and its client do not speak the same contract: a different
+    wire version (a half-updated install) or a message neither side knows. Nothing was
+    sent to the robot."""
+
+
 # ----------------------------------------------------------------- motion
 
 

@@ -12,6 +12,7 @@ from typing import Any
 
 import httpx
 import pytest
+from waiting import controller_time_passes, until
 
 from fxcell.cell import Cell, CellState
 from fxcell.cell.statemachine import load_statechart
@@ -29,6 +30,7 @@ from fxcell.testing import SimulatorHandle, simulator
 
 TIME_SCALE = 0.05
 TOKEN = "commands-test-token-0123456789"
+CELL = pytest.StashKey[Cell]()
 
 
 # ----------------------------------------------------------------- the table
@@ -194,6 +196,7 @@ async def api(request: pytest.FixtureRequest, shared_sim: SimulatorHandle) -> As
     await asyncio.to_thread(_reset, shared_sim)
     async with Cell(host=shared_sim.host) as cell:
         await cell.wait_for_state(CellState.POWER_OFF)
+        request.node.stash[CELL] = cell
         if request.param == "Cell":
             yield cell
             return
@@ -237,7 +240,7 @@ async def test_refusals_and_stop_without_a_move(api: CellCommands) -> None:
 
 
 async def test_go_home_without_arguments_then_a_stop_ends_the_queued_move(
-    api: CellCommands,
+    api: CellCommands, shared_sim: SimulatorHandle, request: pytest.FixtureRequest
 ) -> None:
     await api.init()
     await api.move_joint([0.2, -1.4, 0.2, -1.6, 0.0, 0.0], 0.5, 0.5)
@@ -247,18 +250,22 @@ async def test_go_home_without_arguments_then_a_stop_ends_the_queued_move(
     assert result.target_joints == pytest.approx((0, -1.5708, 0, -1.5708, 0, 0), abs=1e-4)
 
     first = asyncio.create_task(api.move_joint([0.6, -1.4, 0.2, -1.6, 0.0, 0.0], 0.2, 0.2))
-    for _ in range(1000):  # until the first move streams
-        if max(abs(v) for v in await api.get_velocity()) > 0.01:
-            break
-        await asyncio.sleep(0.01)
+
+    async def streaming() -> bool:
+        return max(abs(v) for v in await api.get_velocity()) > 0.01
+
+    await until(streaming, "the first move to stream")
     queued = asyncio.create_task(api.go_home(queue=True))
-    await asyncio.sleep(0.1)
+    cell = request.node.stash[CELL]  # the Cell behind `api` (itself, or the daemon's)
+    await until(cell._move_queue.locked, "go_home(queue=True) to wait in the Cell's queue")
     assert await api.stop() is True
-    for task in (first, queued):
-        with pytest.raises(MoveStoppedError):
-            await task
-    await asyncio.sleep(0.3)
-    assert max(abs(v) for v in await api.get_velocity()) < 1e-4  # the queued move never ran
+    with pytest.raises(MoveStoppedError):
+        await first
+    with pytest.raises(MoveStoppedError, match="waiting in the queue"):
+        await queued  # ended in the queue: it never started
+    # Nor does anything start later: the arm rests 0.3 s of the simulator's time on.
+    await controller_time_passes(shared_sim, 0.3)
+    assert max(abs(v) for v in await api.get_velocity()) < 1e-4
 
 
 async def test_gripper_commands_answer_the_same_on_both(api: CellCommands) -> None:

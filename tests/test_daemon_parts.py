@@ -9,6 +9,8 @@ import os
 import platform
 import socket
 import stat
+import subprocess
+import sys
 import time
 import urllib.parse
 from collections.abc import AsyncIterator
@@ -27,7 +29,7 @@ from fxcell.daemon.control import ControlLock
 from fxcell.daemon.encoding import http_status
 from fxcell.daemon.guard import same_origin
 from fxcell.daemon.notify import Notifier
-from fxcell.daemon.server import check_bind, fix_mmap_threshold, is_loopback
+from fxcell.daemon.server import check_bind, is_loopback
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import Watcher, parse_rate, parse_topics
 from fxcell.errors import ConfigError, ControlHeldError
@@ -542,9 +544,40 @@ def test_job_errors_answer_with_their_own_http_status(error: Exception, status: 
 @pytest.mark.skipif(
     platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc only"
 )
-def test_the_daemon_can_fix_glibcs_mmap_threshold() -> None:
-    # serve() calls it first; a threshold set explicitly is one glibc never raises
-    assert fix_mmap_threshold()
+def test_after_fixing_the_mmap_threshold_freeing_a_big_block_no_longer_raises_it() -> None:
+    """serve() calls fix_mmap_threshold() first. Its effect, in a fresh interpreter (the
+    threshold is process state): by glibc's own rule, freeing a mapped block raises the
+    threshold to its size, so a block the heap cannot hold is then added to the heap; once
+    the threshold is fixed, such a block is mapped of its own (and given back when freed)."""
+    script = """
+import ctypes
+from fxcell.daemon.server import fix_mmap_threshold
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in (
+        "arena", "ordblks", "smblks", "hblks", "hblkhd",
+        "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+libc = ctypes.CDLL(None)
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.restype, libc.free.argtypes = None, [ctypes.c_void_p]
+libc.mallinfo2.restype, libc.mallinfo2.argtypes = MallInfo2, []
+
+def mapped_after_a_bigger_free():
+    size = libc.mallinfo2().fordblks + (1 << 20)  # more than the heap has free
+    libc.free(libc.malloc(2 * size))  # mapped, then freed
+    before = libc.mallinfo2().hblks  # blocks mapped of their own
+    block = libc.malloc(size)
+    mapped = libc.mallinfo2().hblks > before
+    libc.free(block)
+    return mapped
+
+print(mapped_after_a_bigger_free(), fix_mmap_threshold(), mapped_after_a_bigger_free())
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True
+    ).stdout.split()
+    assert out == ["False", "True", "True"], out
 
 
 # ----------------------------------------------------------------- the framework's own errors

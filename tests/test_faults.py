@@ -43,3 +43,9 @@ def test_other_warnings_are_not_faults() -> None:
     with watching([]) as watch:
         LINK_LOG.warning("robot state stream gap of %.0f ms", 36.0)
         assert watch.unplanned() == []
+
+
+def test_a_move_the_link_braked_by_itself_is_a_fault() -> None:
+    with watching([]) as watch:
+        LINK_LOG.warning("robot link to %s braked a move by itself: %s", "127.0.0.9", "cell_silent")
+        assert watch.unplanned() == ["link braked a move by itself: cell_silent"]

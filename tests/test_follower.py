@@ -15,10 +15,10 @@ import logging
 import math
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from fxcell.link import wire
+from fxcell.link.contract import StopReason
 from fxcell.link.follower import (
     CELL_SILENT,
     STATE_STALLED,
@@ -36,6 +36,7 @@ START = (0.1, -1.2, 1.0, -1.4, -1.57, 0.0)
 STEP = 0.002  # rad per sample on every joint: 1 rad/s
 LOOKAHEAD, GAIN = 0.1, 300.0
 OMEGA = servo_omega(LOOKAHEAD, GAIN)
+JERK = 10.0  # rad/s³: the shipped limits' jerk (config/ur3e_limits.yaml), which Ruckig keeps
 
 
 def ramp(n: int, step: float = STEP) -> list[tuple[float, ...]]:
@@ -216,8 +217,8 @@ def test_a_client_stop_brakes_along_the_path_to_rest() -> None:
     for _ in range(100):
         run.cycle()
         run.advance()
-    run.follower.stop("stop requested")
-    _brakes(run, "stop requested")
+    run.follower.stop(StopReason.STOP_REQUESTED)
+    _brakes(run, StopReason.STOP_REQUESTED)
     _braked_smoothly(run, 100)
     duration = brake_duration(path_velocity(ramp(2000), 100), run.guard)
     assert len(run.sent) - 100 == pytest.approx(duration / DT, abs=2)
@@ -229,7 +230,7 @@ def test_the_client_socket_closing_brakes_the_same_way() -> None:
     for _ in range(50):
         run.cycle()
         run.advance()
-    run.follower.stop("link closing")
+    run.follower.stop(StopReason.LINK_CLOSING)
     _brakes(run, "link closing")
     _braked_smoothly(run, 50)
 
@@ -312,9 +313,9 @@ def test_a_stop_at_the_target_needs_no_braking() -> None:
     run = Run([START] * 50)
     run.cycle()
     run.advance()
-    run.follower.stop(wire.SETTLED)
+    run.follower.stop(StopReason.SETTLED)
     out = run.cycle()
-    assert (out.status, out.reason) == ("stopped", wire.SETTLED)
+    assert (out.status, out.reason) == ("stopped", StopReason.SETTLED)
     assert [n for n in run.follower.notices if n.kind == "log"] == []
 
 
@@ -322,7 +323,7 @@ def test_only_a_stop_away_from_the_target_warns() -> None:
     run = Run(ramp(300))
     run.cycle()
     run.advance()
-    run.follower.stop(wire.SETTLED)
+    run.follower.stop(StopReason.SETTLED)
     run.cycle()
     assert [(n.level, n.text) for n in run.follower.notices] == [
         (logging.DEBUG, "braking to rest: settled")
@@ -389,7 +390,7 @@ def test_a_splice_while_braking_by_itself_is_refused() -> None:
     for _ in range(20):
         run.cycle()
         run.advance()
-    run.follower.stop("stop requested")
+    run.follower.stop(StopReason.STOP_REQUESTED)
     run.cycle()
     run.follower.notices.clear()
     run.follower.replace(ramp(10), at_index=None)
@@ -427,11 +428,11 @@ def test_the_end_comes_after_the_settle_time_even_if_the_robot_never_settles() -
 def test_the_hold_after_the_end_ends_on_a_stop_but_not_on_the_settled_stop() -> None:
     path = ramp(20)
     f = Follower(path, Guard(), 0.1, now=0.0, clock=0.0)
-    f.stop(wire.SETTLED)
+    f.stop(StopReason.SETTLED)
     f.begin_hold()
     assert f.hold_target(state(0.0)) == path[-1]
     assert f.hold_target(state(0.0, safety_mode=SafetyMode.PROTECTIVE_STOP)) is None
-    f.stop("link closing")
+    f.stop(StopReason.LINK_CLOSING)
     assert f.hold_target(state(0.0)) is None
 
 
@@ -440,10 +441,14 @@ def test_the_hold_after_the_end_ends_on_a_stop_but_not_on_the_settled_stop() -> 
 
 def smooth_path(distances: list[float], lag: float) -> list[tuple[float, ...]]:
     """A rest-to-rest move of ``distances`` (rad per joint) within the move limits
-    (0.7 rad/s², ``q = D (t/T - sin(2πt/T)/2π)``), as the motion layer streams it: led by
-    servoJ's lag (``q + lag·q̇ + lag²/4·q̈``)."""
+    (0.7 rad/s² and the jerk ``JERK``, ``q = D (t/T - sin(2πt/T)/2π)``), as the motion layer
+    streams it: led by servoJ's lag (``q + lag·q̇ + lag²/4·q̈``). Without the jerk bound a
+    10 µrad move lasted 10 ms, which no jerk-limited profile makes: its lag lead alone
+    asked for more than the braking acceleration."""
     peak = max(map(abs, distances))
-    duration = max(math.sqrt(2 * math.pi * peak / 0.7), 4 * DT)
+    duration = max(
+        math.sqrt(2 * math.pi * peak / 0.7), (4 * math.pi**2 * peak / JERK) ** (1 / 3), 4 * DT
+    )
     n = round(duration / DT)
     out = []
     for k in range(n + 1):
@@ -466,6 +471,7 @@ gaps = st.lists(st.sampled_from([1] * 12 + [2, 3, 4, 6]), min_size=1, max_size=6
 
 @settings(max_examples=40, deadline=None)
 @given(distances, gaps, st.one_of(st.none(), st.floats(0.05, 0.95)))
+@example([0.0, 0.0, 1e-5, 0.0, 0.0, 0.0], [1], None)  # the shortest moves (10 µrad)
 def test_every_cycle_stays_within_the_limits_across_late_samples_and_stops(
     move: list[float], pattern: list[int], stop_at: float | None
 ) -> None:
@@ -474,7 +480,7 @@ def test_every_cycle_stays_within_the_limits_across_late_samples_and_stops(
     stop_index = None if stop_at is None else stop_at * len(path)
     for k in range(100_000):
         if stop_index is not None and run.follower.u >= stop_index:
-            run.follower.stop("stop requested")
+            run.follower.stop(StopReason.STOP_REQUESTED)
         out = run.cycle()
         if out.target is None:
             break
@@ -511,7 +517,7 @@ def test_a_link_brake_from_a_path_still_accelerating_stays_within_the_braking_li
     for _ in range(len(path) // 8):
         run.cycle()
         run.advance()
-    run.follower.stop("stop requested")
+    run.follower.stop(StopReason.STOP_REQUESTED)
     assert run.run().status == "stopped"
     assert run.follower.limited == []
     assert run.worst() <= 1.0 + 1e-6

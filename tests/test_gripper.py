@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator, Iterator
 
 import numpy as np
 import pytest
+from waiting import controller_time_passes, until
 
 from fxcell import Cell
 from fxcell.cell.gripper import GripResult
@@ -42,6 +43,11 @@ async def cell(sim: SimulatorHandle) -> AsyncIterator[Cell]:
     async with Cell(host=sim.host) as c:
         await c.init()
         yield c
+
+
+async def _closing(sim: SimulatorHandle) -> bool:
+    """Whether the simulated fingers have left the fully open width."""
+    return float((await asyncio.to_thread(sim.gripper))["width"]) < 0.049
 
 
 def tcp(sim: SimulatorHandle) -> np.ndarray:
@@ -127,7 +133,7 @@ async def test_a_fault_mid_grasp_is_a_typed_error(sim: SimulatorHandle, cell: Ce
     await cell.move_joint(EMPTY)
     await cell.gripper.open()
     grasp = asyncio.create_task(cell.gripper.close(speed=0.02))
-    await asyncio.sleep(0.1)
+    await until(lambda: _closing(sim), "the fingers to start closing")
     with injected_faults("a gripper fault"):
         await asyncio.to_thread(sim.inject, "gripper_fault", "0x0E")
     with pytest.raises(GripperFaultError) as info:
@@ -166,10 +172,11 @@ async def test_cancelling_a_grasp_stops_the_fingers(sim: SimulatorHandle, cell: 
     await cell.move_joint(EMPTY)
     await cell.gripper.open()
     grasp = asyncio.create_task(cell.gripper.close(speed=0.02))
-    await asyncio.sleep(0.1)
+    await until(lambda: _closing(sim), "the fingers to start closing")
     grasp.cancel()
     with pytest.raises(asyncio.CancelledError):
         await grasp
     first = await cell.gripper.get_width()
-    await asyncio.sleep(0.1)
+    # Closing on, the fingers would cover 10 mm in 0.1 s of the simulator's time (0.5 s a stroke).
+    await controller_time_passes(sim, 0.1)
     assert await cell.gripper.get_width() == first > 0.0

@@ -139,7 +139,7 @@ async def kill_during(daemon: DaemonProcess, step_prefix: str, nth: int = 0) -> 
         else:
             tail = "\n".join(daemon.output[-20:])
             raise AssertionError(f"no step {step_prefix!r} (#{nth}) came: {status}\n{tail}")
-    await asyncio.sleep(random.uniform(0.1, 0.8))
+    await asyncio.sleep(random.uniform(0.1, 0.8))  # the kill moment, not a wait
     daemon.stop(signal.SIGKILL)
     return seen[-1]
 

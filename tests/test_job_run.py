@@ -474,29 +474,22 @@ class DriftingFlakyLinkCell(FlakyLinkCell):
         await super().go_home()
 
 
-async def test_a_move_interrupted_more_often_than_the_budget_goes_on_while_it_gets_further(
-    store: JobStore,
+@pytest.mark.parametrize(
+    ("drops", "state", "restores", "last"),
+    [
+        (5, "done", 5, "done"),  # interrupted more often than the budget: goes on
+        (100, "fault", 8, "failed"),  # never arrives: stops after four budgets in all
+    ],
+)
+async def test_a_move_that_gets_further_each_time_is_healed_within_four_budgets(
+    store: JobStore, drops: int, state: str, restores: int, last: str
 ) -> None:
     run = sample_run(1)
     world = World.for_run(run)
-    cell = DriftingFlakyLinkCell(world, drops=5)
+    cell = DriftingFlakyLinkCell(world, drops=drops)
     job = Job(cell, store, JobConfig(heal_attempts=2))
     await job.start(run)
-    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "done"
-    assert cell.restores == 5
-    assert [h["phase"] for h in job.heals][-1] == "done"
-    cell.machine.close()
-
-
-async def test_a_move_that_gets_further_each_time_still_stops_after_four_budgets(
-    store: JobStore,
-) -> None:
-    run = sample_run(1)
-    world = World.for_run(run)
-    cell = DriftingFlakyLinkCell(world, drops=100)
-    job = Job(cell, store, JobConfig(heal_attempts=2))
-    await job.start(run)
-    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == "fault"
-    assert cell.restores == 8
-    assert [h["phase"] for h in job.heals][-1] == "failed"
+    assert await job.wait_state("done", "paused", "fault", timeout=TIMEOUT) == state
+    assert cell.restores == restores
+    assert [h["phase"] for h in job.heals][-1] == last
     cell.machine.close()

@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 
 from fxcell.link import process, wire
+from fxcell.link.contract import Guard, StopReason
 from fxcell.link.follower import servo_omega
-from fxcell.link.process import Guard, _Trajectory
+from fxcell.link.process import _Trajectory
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
 pytestmark = pytest.mark.timeout(30)
@@ -215,7 +216,7 @@ def test_an_unclaimed_hold_leaves_servo_mode_after_its_time(link: Link) -> None:
 
 def test_a_move_stopped_away_from_its_target_leaves_servo_mode_at_once(link: Link) -> None:
     traj = _run(link)
-    traj.stop("cell_silent")
+    traj.stop(StopReason.CELL_SILENT)
     traj.thread.join(5.0)
     assert link.ends()[0]["status"] == "stopped"
     assert link.control.calls[-1] == "servoStop"
@@ -227,9 +228,9 @@ def test_a_stop_for_the_settled_robot_keeps_servo_mode_for_the_next_move(link: L
     traj = _Trajectory(link, 1, samples, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
     traj.thread.start()
     assert link.control.wait_for("servoJ", 3)  # a few samples streamed
-    traj.stop(wire.SETTLED)
+    traj.stop(StopReason.SETTLED)
     _wait_ended(traj)
-    assert link.ends()[0]["reason"] == wire.SETTLED
+    assert link.ends()[0]["reason"] == StopReason.SETTLED
     assert traj.hold_started.wait(1.0), "the settled trajectory never held its target"
     assert traj.release(keep_servo=True)
     traj.thread.join(1.0)
@@ -253,7 +254,7 @@ class EndHeld(Link):
             assert self.let_go.wait(5.0)
 
 
-@pytest.mark.parametrize("end", ["completed", wire.SETTLED])
+@pytest.mark.parametrize("end", ["completed", StopReason.SETTLED])
 def test_a_next_move_right_after_the_end_report_takes_servo_mode_over_at_once(end: str) -> None:
     link = EndHeld()
     try:
@@ -263,7 +264,7 @@ def test_a_next_move_right_after_the_end_report_takes_servo_mode_over_at_once(en
             traj = _Trajectory(link, 1, [TARGET] * 200, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
             traj.thread.start()
             assert link.control.wait_for("servoJ", 3)
-            traj.stop(wire.SETTLED)
+            traj.stop(StopReason.SETTLED)
         assert link.end_sent.wait(5.0)
         assert not traj.hold_started.is_set()  # reported, not yet holding
         assert traj.release(keep_servo=True)  # what the next trajectory does
@@ -286,7 +287,7 @@ def test_a_move_that_ends_away_from_its_target_is_not_taken_over_after_its_repor
         traj = _Trajectory(link, 1, path, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
         traj.thread.start()
         assert link.control.wait_for("servoJ", 3)
-        traj.stop("cell_silent")
+        traj.stop(StopReason.CELL_SILENT)
         assert link.end_sent.wait(5.0)
         assert not traj.release(keep_servo=True)  # it leaves servo mode: the next enters it
         link.let_go.set()
@@ -299,10 +300,11 @@ def test_a_move_that_ends_away_from_its_target_is_not_taken_over_after_its_repor
 
 
 @pytest.mark.parametrize(
-    ("reason", "level"), [(wire.SETTLED, logging.DEBUG), ("state_stalled", logging.WARNING)]
+    ("reason", "level"),
+    [(StopReason.SETTLED, logging.DEBUG), (StopReason.STATE_STALLED, logging.WARNING)],
 )
 def test_only_a_stop_away_from_the_target_warns_that_the_link_brakes(
-    link: Link, reason: str, level: int
+    link: Link, reason: StopReason, level: int
 ) -> None:
     # a slow tail still in motion: the cell may see the robot settled before it streams
     tail = np.linspace(np.subtract(TARGET, 1e-5), TARGET, 400)
@@ -319,7 +321,7 @@ def test_only_a_stop_away_from_the_target_warns_that_the_link_brakes(
 def test_a_stop_during_the_hold_leaves_servo_mode(link: Link) -> None:
     traj = _run(link)
     _wait_ended(traj)
-    traj.stop("link closing")
+    traj.stop(StopReason.LINK_CLOSING)
     traj.thread.join(1.0)
     assert not traj.thread.is_alive()
     assert link.control.calls[-1] == "servoStop"
@@ -335,7 +337,7 @@ def _ramp_on(link: Link) -> Link:
         traj = _Trajectory(link, 1, RAMP, 0.03, 2000.0, Guard(cell_timeout=None))  # type: ignore[arg-type]
         traj.thread.start()
         _wait_ended(traj)
-        traj.stop("test over")
+        traj.stop(StopReason.STOP_REQUESTED)
         traj.thread.join(1.0)
     finally:
         link.close()

@@ -11,11 +11,14 @@ import asyncio
 import contextlib
 import os
 import signal
+import subprocess
+import sys
 import time
-from collections.abc import AsyncIterator, Callable, Iterator, Sequence
+from collections.abc import AsyncIterator, Iterator, Sequence
 
 import numpy as np
 import pytest
+from waiting import controller_time_passed, until, wait_until
 
 from fxcell.cell import Cell
 from fxcell.cell.statemachine import CellState
@@ -27,7 +30,9 @@ from fxcell.errors import (
     NotInRemoteControlError,
 )
 from fxcell.link.client import LOOP_STALL_AFTER
-from fxcell.link.process import Guard, brake_duration
+from fxcell.link.contract import Guard
+from fxcell.link.follower import brake_duration
+from fxcell.link.process import BUSY_CLIENT_LIMIT, process_runs
 from fxcell.testing import SimulatorHandle, simulator
 
 CONFIG = CellConfig.load()
@@ -64,13 +69,6 @@ async def _moving(cell: Cell, speed: float = 0.2, within: float = 5.0) -> None:
                     return
 
 
-def _until(condition: Callable[[], bool], within: float) -> None:
-    deadline = time.monotonic() + within
-    while not condition():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
-
-
 def _until_at_rest(handle: SimulatorHandle, within: float = 5.0) -> None:
     """Wait until the simulated arm's own joint speeds are zero."""
     deadline = time.monotonic() + within
@@ -80,9 +78,10 @@ def _until_at_rest(handle: SimulatorHandle, within: float = 5.0) -> None:
 
 
 def _sim_motion(handle: SimulatorHandle, over: float = 0.05) -> float:
-    """How far (rad, largest joint) the simulated arm moves during ``over`` seconds."""
+    """How far (rad, largest joint) the simulated arm moves during ``over`` seconds of its
+    controller's own clock (a simulator starved by a busy machine still gets them)."""
     q0 = np.array(handle.state()["q"])
-    time.sleep(over)
+    controller_time_passed(handle, over)
     return float(np.max(np.abs(np.array(handle.state()["q"]) - q0)))
 
 
@@ -107,8 +106,11 @@ async def test_a_stalled_state_stream_brakes_the_move_before_its_caller_hears(
         await cell.wait_for_state(
             CellState.EXTERNAL_CONTROL_READY, CellState.PROGRAM_STOPPED, timeout=10
         )
-    # the hole in the state stream is on record (the recorder keeps fxcell's log records)
+    # the hole in the state stream is on record (the recorder keeps fxcell's log records),
+    # and so is the link process's own brake (a fault the fault watch counts)
     assert any("state stream gap" in r.getMessage() for r in caplog.records)
+    braked = "braked a move by itself: state_stalled"
+    assert any(braked in r.getMessage() for r in caplog.records)
 
 
 async def test_a_late_event_loop_does_not_stop_a_healthy_move(shared: SimulatorHandle) -> None:
@@ -123,6 +125,53 @@ async def test_a_late_event_loop_does_not_stop_a_healthy_move(shared: SimulatorH
         assert result.joint_error < 1e-3
 
 
+def _hold_the_gil(seconds: float) -> float:
+    """Hold the GIL for about ``seconds`` in one C call (a sort of shuffled numbers); the
+    time it took. The size is calibrated first on this machine."""
+    rng = np.random.default_rng(7)
+    probe = rng.permutation(200_000).tolist()
+    started = time.perf_counter()
+    sorted(probe)
+    per_item = (time.perf_counter() - started) / len(probe)
+    data = rng.permutation(max(len(probe), int(seconds / per_item))).tolist()
+    started = time.perf_counter()
+    sorted(data)
+    return time.perf_counter() - started
+
+
+async def test_a_loop_holding_the_gil_a_while_does_not_stop_a_healthy_move(
+    shared: SimulatorHandle,
+) -> None:
+    # 150 ms in one C call that keeps the GIL (on a busy machine: a thread descheduled while
+    # it holds it): the beat thread cannot beat, but the kernel says the process runs, so
+    # the link process gives it BUSY_CLIENT_LIMIT instead of braking after 100 ms.
+    async with ready_cell(shared) as cell:
+        move = asyncio.create_task(cell.move_joint(FAR))
+        await _moving(cell)
+        held = _hold_the_gil(0.15)
+        assert 0.1 < held < BUSY_CLIENT_LIMIT, f"held the GIL {held:.3f} s"
+        result = await move
+        assert not result.stopped
+        assert result.joint_error < 1e-3
+
+
+def test_a_stopped_process_is_told_from_a_running_one() -> None:
+    assert process_runs(os.getpid())
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        assert process_runs(child.pid)
+        child.send_signal(signal.SIGSTOP)  # delivered asynchronously
+        wait_until(lambda: not process_runs(child.pid), 5.0, "the child shown as stopped")
+        child.send_signal(signal.SIGCONT)
+        child.kill()
+        child.wait(5)
+        assert not process_runs(child.pid)  # reaped: gone
+    finally:
+        child.kill()
+        child.wait(5)
+
+
+@pytest.mark.injects_faults("the cell's event loop frozen for 1.5 s")
 async def test_an_event_loop_stalled_for_long_brakes_the_move_by_itself(
     shared: SimulatorHandle,
 ) -> None:
@@ -176,7 +225,7 @@ async def test_a_killed_cell_process_leaves_no_arm_moving(shared: SimulatorHandl
         link = cell._link()
         assert link._writer is not None
         link._writer.abort()  # as if the process holding it died
-        with contextlib.suppress(Exception):
+        with pytest.raises(ConnectionLostError):  # typed, whatever the link was doing
             await move
         await asyncio.to_thread(_until_at_rest, shared)
         assert await asyncio.to_thread(_sim_motion, shared, 0.05) < 1e-4
@@ -199,7 +248,7 @@ async def test_local_control_brakes_a_running_move_and_refuses_new_ones(
             await cell.move_joint(WORK)
         await asyncio.to_thread(shared.inject, "remote_control")
         # the cell polls the switch every 0.25 s
-        await asyncio.to_thread(_until, lambda: not cell.local_control, 5.0)
+        await until(lambda: not cell.local_control, "the cell to see Remote control", 5.0)
 
 
 def test_the_link_brake_duration_respects_the_braking_limits() -> None:

@@ -17,7 +17,7 @@ import pytest
 from fxcell.config import CellConfig
 from fxcell.errors import ConnectionLostError
 from fxcell.link.client import StateSubscription, TrajectoryProgress, TrajectoryResult
-from fxcell.link.wire import SETTLED
+from fxcell.link.contract import StopReason
 from fxcell.motion.moves import STATE_PATIENCE, MotionPlanner, MoveExecution, MovePlan
 from fxcell.motion.trajectory import DT
 from fxcell.protocol import RobotState
@@ -59,7 +59,7 @@ class StubRun:
     async def replace_remaining(self, samples: Any, at_index: int | None = None) -> bool:
         return False
 
-    async def stop(self, reason: str = "stop requested") -> TrajectoryResult:
+    async def stop(self, reason: StopReason = StopReason.STOP_REQUESTED) -> TrajectoryResult:
         self.stops.append(reason)
         if not self._done.done():
             self._done.set_result(TrajectoryResult("stopped", reason, 0, self.total, None, 0.0))
@@ -241,7 +241,7 @@ async def test_a_move_ends_at_the_sample_where_the_link_sends_the_last_planned_o
             ended_at = k
             break
     assert ended_at == last
-    assert run.stops == [SETTLED]
+    assert run.stops == [StopReason.SETTLED]
     result = await move
     assert not result.stopped
     assert result.joint_error < 1e-9

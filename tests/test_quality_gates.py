@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 import shutil
 import subprocess
-import tomllib
 from pathlib import Path
 
 import pytest
@@ -19,28 +20,105 @@ INNER_OPTS = (
 )
 
 
-def _pyproject() -> dict:  # type: ignore[type-arg]
-    return tomllib.loads((ROOT / "pyproject.toml").read_text())
+def test_the_projects_pytest_settings_run_async_tests_and_fail_on_warnings(
+    pytester: pytest.Pytester,
+) -> None:
+    """The project's own [tool.pytest.ini_options] (no options given here): an unmarked
+    ``async def`` test runs (asyncio_mode auto) and a warning fails its test."""
+    pytester.makepyprojecttoml((ROOT / "pyproject.toml").read_text())
+    path = pytester.makepyfile(
+        """
+        import asyncio
+        import warnings
+
+        async def test_unmarked_coroutine():
+            await asyncio.sleep(0)
+
+        def test_warns():
+            warnings.warn("deprecated thing", DeprecationWarning)
+        """
+    )
+    result = pytester.runpytest(str(path), "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=1, failed=1)
+    result.stdout.fnmatch_lines(["*DeprecationWarning: deprecated thing", "FAILED *::test_warns*"])
+    # The per-test timeout, as pytest-timeout reads it (a hang fails: see below).
+    assert 0 < float(pytester.parseconfig(str(path)).getini("timeout")) <= 120
 
 
-def test_pytest_is_configured_strictly() -> None:
-    opts = _pyproject()["tool"]["pytest"]["ini_options"]
-    assert opts["asyncio_mode"] == "auto"
-    assert opts["filterwarnings"] == ["error"]
-    assert 0 < opts["timeout"] <= 120
+def test_mypy_with_the_projects_configuration_is_strict_over_the_package(tmp_path: Path) -> None:
+    """mypy's own reading of pyproject.toml: it checks the package when run without
+    arguments (as ./dev does), and it refuses an untyped function (strict)."""
+    from mypy import api
+    from mypy.config_parser import parse_config_file
+    from mypy.options import Options
+
+    options = Options()
+    strict: list[bool] = []
+    config = str(ROOT / "pyproject.toml")
+    parse_config_file(options, lambda: strict.append(True), config, io.StringIO(), io.StringIO())
+    assert options.files == ["fxcell"]
+    assert strict == [True]
+    assert options.warn_unreachable
+    untyped = tmp_path / "untyped.py"
+    untyped.write_text("def double(x):\n    return 2 * x\n")
+    out, _, status = api.run(
+        ["--config-file", config, "--cache-dir", str(ROOT / ".mypy_cache"),
+         str(untyped)]
+    )  # fmt: skip
+    assert status == 1, out
+    assert "Function is missing a type annotation" in out
 
 
-def test_type_checker_covers_the_package_strictly() -> None:
-    mypy = _pyproject()["tool"]["mypy"]
-    assert mypy["files"] == ["fxcell"]
-    assert mypy["strict"] is True
+GATES = (
+    ("ruff", "check fxcell tests bench"),
+    ("ruff", "format --check fxcell tests bench"),
+    ("mypy", ""),
+    ("pytest", "-q tests/test_x.py"),
+)
 
 
-def test_the_test_command_runs_every_gate() -> None:
-    script = (ROOT / "dev").read_text()
-    test_section = script.split("test)", 1)[1].split(";;", 1)[0]
-    for gate in ("ruff check", "ruff format --check", "mypy", "pytest"):
-        assert gate in test_section
+def _dev_with_recording_tools(tmp_path: Path, failing: str | None) -> tuple[int, list[str]]:
+    """Run a copy of ./dev's ``test`` command over a .venv of stand-ins that record their
+    arguments (``failing``: the one that exits 1); its exit status and the calls."""
+    shutil.copy(ROOT / "dev", tmp_path / "dev")
+    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
+    venv = tmp_path / ".venv"
+    (venv / "bin").mkdir(parents=True)
+    stamp = hashlib.sha256((ROOT / "pyproject.toml").read_bytes() + (ROOT / "dev").read_bytes())
+    (venv / ".fxcell-installed").write_text(stamp.hexdigest() + "\n")  # no reinstall
+    log = tmp_path / "calls"
+    for tool in ("python", "ruff", "mypy", "pytest"):
+        stand_in = venv / "bin" / tool
+        stand_in.write_text(
+            "#!/usr/bin/env bash\n"
+            f'args="$*"; echo "{tool} ${{args//$\'\\n\'/ }}" >>{log}\n'
+            f'[ "{tool} $1" != "{failing}" ] && [ "{tool}" != "{failing}" ]\n'
+        )
+        stand_in.chmod(0o755)
+    env = {**os.environ, "FXCELL_CHROMIUM": "/bin/true"}  # never install a browser here
+    env.pop("PYTEST_ADDOPTS", None)
+    status = subprocess.run(
+        [str(tmp_path / "dev"), "test", "-q", "tests/test_x.py"],
+        env=env, capture_output=True, timeout=60,
+    ).returncode  # fmt: skip
+    calls = [c.strip() for c in log.read_text().splitlines() if not c.startswith("python")]
+    return status, calls
+
+
+def test_the_test_command_runs_every_gate_then_pytest(tmp_path: Path) -> None:
+    status, calls = _dev_with_recording_tools(tmp_path, failing=None)
+    assert status == 0
+    assert calls == [f"{tool} {args}".strip() for tool, args in GATES]
+
+
+@pytest.mark.parametrize("failing", ["ruff check", "ruff format", "mypy"])
+def test_a_failing_gate_fails_the_test_command_before_pytest_runs(
+    tmp_path: Path, failing: str
+) -> None:
+    status, calls = _dev_with_recording_tools(tmp_path, failing=failing)
+    assert status != 0
+    assert calls[-1].startswith(failing)
+    assert not any(c.startswith("pytest") for c in calls)
 
 
 def test_a_test_that_leaks_a_task_fails(pytester: pytest.Pytester) -> None:
@@ -70,19 +148,6 @@ def test_a_test_that_cleans_up_its_tasks_passes(pytester: pytest.Pytester) -> No
     )
     result = pytester.runpytest("-p", "fxcell.testing", *INNER_OPTS)
     result.assert_outcomes(passed=1)
-
-
-def test_warnings_fail_tests(pytester: pytest.Pytester) -> None:
-    pytester.makepyfile(
-        """
-        import warnings
-
-        def test_warns():
-            warnings.warn("deprecated thing", DeprecationWarning)
-        """
-    )
-    result = pytester.runpytest("-W", "error", *INNER_OPTS)
-    result.assert_outcomes(failed=1)
 
 
 def test_a_hanging_test_times_out(pytester: pytest.Pytester) -> None:

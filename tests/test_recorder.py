@@ -8,7 +8,6 @@ import math
 import threading
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Callable
 from dataclasses import fields
 from pathlib import Path
 from typing import IO, Any
@@ -20,6 +19,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
+from waiting import wait_until
 
 from fxcell.errors import InvalidArgumentError, RecorderError
 from fxcell.events import CommandEvent, EventBus, LogEvent, Origin, StateEvent, TransitionEvent
@@ -44,14 +44,6 @@ def read_all(path: Path) -> list[tuple[str, int, bytes]]:
             (ch.topic, msg.log_time, msg.data)
             for _s, ch, msg in make_reader(f).iter_messages(log_time_order=False)
         ]
-
-
-def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(0.01)
 
 
 @pytest.fixture
@@ -313,12 +305,16 @@ def test_full_disk_is_reported_counted_and_survived(tmp_path: Path) -> None:
     rec = OnDisk(tmp_path, chunk_duration=0.05, retry_interval=0.1, on_error=errors.append)
     session = SyntheticSession(1.0)
     sent = play(session, rec.submit, realtime=True)
-    wait_for(lambda: rec.stats.messages_dropped > 0)
+    wait_until(lambda: rec.stats.messages_dropped > 0, 10.0, "a dropped message")
     assert any("No space left" in e for e in errors)
     assert any("dropped" in e for e in errors)
     with disk.lock:
         disk.budget = 10**9  # space freed: the recorder starts a new file
-    wait_for(lambda: rec.stats.messages_written > 0 and rec.current_file is not None)
+    wait_until(
+        lambda: rec.stats.messages_written > 0 and rec.current_file is not None,
+        10.0,
+        "a written message in an open file",
+    )
     more = play(SyntheticSession(0.3), rec.submit)
     rec.close()
     stats = rec.stats
@@ -370,7 +366,7 @@ def test_slow_disk_drops_and_counts_instead_of_blocking_the_caller(tmp_path: Pat
         # the publisher never waits for the disk (that would be the 20 s hang); a busy
         # machine may still deschedule it for a few hundred milliseconds
         assert worst < 2.0
-        wait_for(lambda: rec.stats.messages_dropped > 0)
+        wait_until(lambda: rec.stats.messages_dropped > 0, 10.0, "a dropped message")
     finally:
         release.set()
         rec.close()

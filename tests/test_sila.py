@@ -15,7 +15,7 @@ import functools
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +35,9 @@ from fxcell.layout import Layout
 from fxcell.testing import SimulatorHandle, simulator
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+RUN_LOCK = 600
+"""s: a lock held through a whole run (SiLA's lock timeout restarts only with a call under
+the lock, and Run Job is one call; 120 s ran out on a busy machine)."""
 
 TOKEN = "sila-test-token-0123456789abcdef"
 LAYOUT = Layout(CellConfig.load().layout)
@@ -144,6 +147,20 @@ def run_to_end(cell: Cell, instance: Any, steps: Any = None) -> tuple[list[Any],
     return seen, instance.get_responses()
 
 
+def until(cell: Cell, stream: Any, condition: Callable[[Any], bool]) -> list[Any]:
+    """Intermediate responses up to the first one that meets ``condition`` (fails on a
+    fault, or when the run ends first)."""
+    seen = []
+    for step in stream:
+        seen.append(step)
+        if step.JobState == "fault":
+            job = httpx.get(f"{cell.daemon.url}/api/job", timeout=10).json()
+            pytest.fail(f"the run faulted at {step.Step!r}: {job['message']}")
+        if condition(step):
+            return seen
+    pytest.fail(f"the run's responses ended first: {[s.Step for s in seen[-3:]]}")
+
+
 # ----------------------------------------------------------------- one cell
 
 
@@ -233,17 +250,28 @@ def test_stop_over_sila_stops_a_move_started_over_http(cell: Cell) -> None:
         http.delete("/api/control").raise_for_status()
 
 
-def test_four_sample_run_to_its_end_with_a_response_per_step(job_cell: Cell) -> None:
+def test_four_sample_run_paused_and_resumed_to_its_end_with_a_response_per_step(
+    job_cell: Cell,
+) -> None:
     cell = job_cell
     samples = [
         {"SampleId": f"S{i}", "RackSlot": f"A{i}", "MachineSlot": f"A{i}", "TraySlot": f"A{i}"}
         for i in range(1, 5)
     ]
-    with cell.client() as client, Locked(client) as md:
+    with cell.client() as client, Locked(client, timeout=RUN_LOCK) as md:
         client.CellController.Init(metadata=md)
         client.CellController.GripperActivate(metadata=md)
         instance = client.JobController.RunJob("four samples", samples, metadata=md)
-        steps, result = run_to_end(cell, instance)
+        stream = instance.subscribe_to_intermediate_responses()
+        steps = until(cell, stream, lambda s: s.Step.startswith("place the crucible of sample S2"))
+        # paused by the scheduler: the step under way ends first, then the run holds
+        client.JobController.Pause(metadata=md)
+        steps += until(cell, stream, lambda s: s.JobState == "paused")
+        assert httpx.get(f"{cell.daemon.url}/api/job", timeout=10).json()["state"] == "paused"
+        assert max(map(abs, cell.sim.state()["qd"])) < 1e-3  # the arm at rest
+        client.JobController.Resume(metadata=md)
+        rest, result = run_to_end(cell, instance, stream)
+        steps += rest
         locations = client.JobController.SampleLocations.get(metadata=token(client))
     assert result.StepsDone == steps[-1].StepsTotal
     assert steps[-1].JobState == "done"
@@ -266,19 +294,13 @@ def test_four_sample_run_to_its_end_with_a_response_per_step(job_cell: Cell) -> 
 def test_paused_run_recovered_through_error_recovery(job_cell: Cell) -> None:
     cell = job_cell
     samples = [{"SampleId": "R1", "RackSlot": "B1", "MachineSlot": "A1", "TraySlot": "B1"}]
-    with cell.client() as client, Locked(client) as md:
+    with cell.client() as client, Locked(client, timeout=RUN_LOCK) as md:
         client.CellController.Init(metadata=md)
         client.CellController.GripperActivate(metadata=md)
         instance = client.JobController.RunJob("recovery", samples, metadata=md)
         steps = instance.subscribe_to_intermediate_responses()
-        for step in steps:  # abort in the middle of carrying the crucible
-            if step.JobState == "fault":
-                job = httpx.get(f"{cell.daemon.url}/api/job", timeout=10).json()
-                pytest.fail(f"the run faulted at {step.Step!r}: {job['message']}")
-            if step.Step.startswith("place the crucible of sample R1"):
-                break
-        else:
-            pytest.fail(f"the run ended before carrying the crucible: {instance.get_responses()}")
+        # abort in the middle of carrying the crucible
+        until(cell, steps, lambda s: s.Step.startswith("place the crucible of sample R1"))
         client.JobController.Abort(metadata=md)
         errors = client.ErrorRecoveryService.RecoverableErrors.subscribe(metadata=token(client))
         pending = next(e for e in errors if e)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import sys
+import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
@@ -91,24 +92,57 @@ async def test_a_second_rtde_io_client_is_refused_as_on_a_real_controller(
     assert "already in use" in await _run_python(code)
 
 
-async def test_wait_for_wakes_when_the_signal_changes(cell: Cell) -> None:
+# A wake-up from the state stream comes within a few 2 ms samples; a waiter that missed it
+# would return only at its 30 s timeout. 2 s is the bound between the two, far above a
+# busy machine's scheduling delays.
+WAKE_UP_WITHIN = 2.0
+
+
+async def _pending_through_samples(cell: Cell, waiting: asyncio.Task[float], name: str) -> None:
+    """Fail unless ``waiting`` is still pending after 10 state samples in which ``name`` read
+    False (the waiter reads every sample: it had 10 chances to return wrongly)."""
+    signal = cell.io.signal(name)
+    with cell.robot_states() as states:
+        for _ in range(10):
+            sample = await states.next_within(5.0)
+            assert signal.read(sample) is False
+            await asyncio.sleep(0)  # let the waiter read the same sample
+    assert not waiting.done(), f"io_wait_for({name!r}, True) returned while it read False"
+
+
+async def _woken_promptly(waiting: asyncio.Task[float]) -> float:
+    """The waiter's result; fails if it needs more than WAKE_UP_WITHIN after the change."""
+    try:
+        return await asyncio.wait_for(asyncio.shield(waiting), WAKE_UP_WITHIN)
+    except TimeoutError:
+        waiting.cancel()
+        await asyncio.gather(waiting, return_exceptions=True)
+        raise AssertionError(
+            f"io_wait_for did not return within {WAKE_UP_WITHIN} s of the signal reading True "
+            "(the change did not wake it)"
+        ) from None
+
+
+async def test_wait_for_waits_while_the_signal_reads_false_and_wakes_when_it_changes(
+    cell: Cell,
+) -> None:
     await cell.io_set("machine_start", False)
+    created = time.monotonic()
     waiting = asyncio.create_task(cell.io_wait_for("machine_start", True, timeout=30.0))
-    await asyncio.sleep(0.05)
-    assert not waiting.done()
-    await cell.io_set("machine_start", True)
-    waited = await asyncio.wait_for(waiting, 30.0)
-    assert 0.0 < waited < 30.0
+    await _pending_through_samples(cell, waiting, "machine_start")
+    await cell.io_set("machine_start", True)  # returns once a sample shows it True
+    waited = await _woken_promptly(waiting)
+    assert 0.0 < waited <= time.monotonic() - created  # the seconds it actually waited
     await cell.io_set("machine_start", False)
 
 
 async def test_an_input_set_from_outside_wakes_wait_for(sim: SimulatorHandle, cell: Cell) -> None:
     await asyncio.to_thread(sim.set_input, "DI5", 0)
+    await cell.io_wait_for("door_sensor", False, timeout=5.0)  # the cell has seen it low
     waiting = asyncio.create_task(cell.io_wait_for("door_sensor", True, timeout=30.0))
-    await asyncio.sleep(0.05)
-    assert not waiting.done()
+    await _pending_through_samples(cell, waiting, "door_sensor")
     await asyncio.to_thread(sim.set_input, "DI5", 1)  # as `fxcell sim set-input DI5 1` does
-    assert 0.0 < await asyncio.wait_for(waiting, 30.0) < 30.0
+    await _woken_promptly(waiting)
     assert cell.io.get("door_sensor") is True
     await asyncio.to_thread(sim.set_input, "DI5", 0)
 

@@ -6,6 +6,7 @@ that are not ideal (exposure, light gradient, noise, defocus, JPEG, a camera kno
 
 from __future__ import annotations
 
+import asyncio
 import math
 import random
 import sqlite3
@@ -340,3 +341,20 @@ def test_the_plane_homography_maps_rectified_pixels_where_the_camera_sees_them(
     in_camera += station_in_cam.position
     expected = (K @ in_camera)[:2] / in_camera[2]
     assert mapped[:2] / mapped[2] == pytest.approx(expected, abs=1e-6)
+
+
+async def test_a_snapshot_camera_that_never_answers_says_why_it_failed() -> None:
+    async def silent(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.read()  # reads the request, never answers
+        writer.close()
+
+    server = await asyncio.start_server(silent, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    camera = SnapshotCamera(f"http://127.0.0.1:{port}/snapshot.jpg", timeout=0.2)
+    try:
+        with pytest.raises(CameraError, match=r"snapshot\.jpg: ReadTimeout$|snapshot\.jpg: \S"):
+            await camera.capture()
+    finally:
+        await camera.close()
+        server.close()
+        await server.wait_closed()

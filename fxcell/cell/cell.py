@@ -41,20 +41,15 @@ from fxcell.config import CellConfig
 from fxcell.errors import (
     CalibrationError,
     ConnectionLostError,
-    EmergencyStopError,
     FxcellError,
     InvalidArgumentError,
     InvalidStateError,
     MoveInProgressError,
     MoveStoppedError,
     NotInRemoteControlError,
-    ProgramStoppedError,
-    ProtectiveStopError,
     ProtectiveStopUnlockTooSoonError,
     RobotCommandError,
-    RobotFaultError,
     RobotTimeoutError,
-    SafeguardStopError,
 )
 from fxcell.events import (
     COMMAND_ORIGIN,
@@ -72,6 +67,7 @@ from fxcell.layout import Layout, LayoutConfig, layout_data
 from fxcell.link import LinkStatus, StateSubscription
 from fxcell.link.backend import LinkBackend, LinkFactory
 from fxcell.link.client import LinkClient, process_link
+from fxcell.link.contract import STOP_ERRORS, StopReason
 from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.motion.runner import (
     DistanceTarget,
@@ -98,13 +94,17 @@ PROTECTIVE_STOP_HOLD = 5.0
 
 _LOCAL_CONTROL_MARKERS = ("remote control", "not allowed due to safety")
 
-# States in which a command waiting for an effect gives up, and the error it raises.
+# States in which a command waiting for an effect gives up, as the stop reason each is: the
+# error it raises comes from the link contract's one table of stop reasons (STOP_ERRORS).
+_STATE_STOPS: dict[CellState, StopReason] = {
+    CellState.DISCONNECTED: StopReason.LINK_LOST,
+    CellState.PROTECTIVE_STOP: StopReason.PROTECTIVE_STOP,
+    CellState.SAFEGUARD_STOP: StopReason.SAFEGUARD_STOP,
+    CellState.EMERGENCY_STOP: StopReason.EMERGENCY_STOP,
+    CellState.FAULT: StopReason.FAULT,
+}
 _FAILURE_STATES: dict[CellState, type[FxcellError]] = {
-    CellState.DISCONNECTED: ConnectionLostError,
-    CellState.PROTECTIVE_STOP: ProtectiveStopError,
-    CellState.SAFEGUARD_STOP: SafeguardStopError,
-    CellState.EMERGENCY_STOP: EmergencyStopError,
-    CellState.FAULT: RobotFaultError,
+    state: STOP_ERRORS[reason] for state, reason in _STATE_STOPS.items()
 }
 EXPLAIN_SAMPLES = 25
 """State samples a failed move waits for the one that shows why (a safety or program stop)..."""
@@ -120,7 +120,7 @@ REMOTE_POLL_MOVING = 0.02
 round trip (neither RTDE nor the primary interface streams the switch)."""
 _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
     **_FAILURE_STATES,
-    CellState.PROGRAM_STOPPED: ProgramStoppedError,
+    CellState.PROGRAM_STOPPED: STOP_ERRORS[StopReason.PROGRAM_STOPPED],
     CellState.IDLE: MoveStoppedError,
     CellState.POWER_OFF: MoveStoppedError,
     CellState.SHUTTING_DOWN: MoveStoppedError,
@@ -1294,12 +1294,8 @@ class Cell(CellCommands):
         held = self.config.layout.objects.get(self.held) if self.held else None
         mass = tool.payload + (held.mass if held is not None else 0.0)
         async with self._command("set_tool", tcp=list(tool.tcp), payload=mass):
-            await self._link().call(
-                "set_tool",
-                within=self.command_timeout,
-                tcp=list(tool.tcp),
-                mass=mass,
-                cog=list(tool.payload_cog),
+            await self._link().set_tool(
+                tuple(tool.tcp), mass, tool.payload_cog, within=self.command_timeout
             )
 
     async def declare_held(self, kind: str | None = None) -> None:
@@ -1352,7 +1348,7 @@ class Cell(CellCommands):
             await self._move_landed()
             self.machine.check("freedrive_start")
             await self._require_remote()
-            await self._link().call("teach_mode", within=self.command_timeout, on=True)
+            await self._link().teach_mode(True, within=self.command_timeout)
             self._freedrive = True
             self._observe(self.robot_state, "freedrive")
             await self.wait_for_state(CellState.FREEDRIVE)
@@ -1363,7 +1359,7 @@ class Cell(CellCommands):
             if not self._freedrive:
                 return
             try:
-                await self._link().call("teach_mode", within=self.command_timeout, on=False)
+                await self._link().teach_mode(False, within=self.command_timeout)
             finally:
                 self._freedrive = False
                 self._observe(self.robot_state, "freedrive ended")

@@ -75,12 +75,8 @@ class CellIO:
         async with cell._command("io_set", signal=name, value=value):
             signal, checked = self.check_set(name, value)
             cell.machine.check("io")
-            ok = await cell._link().call(
-                "set_output",
-                within=cell.command_timeout,
-                group=signal.group,
-                index=signal.index,
-                value=float(checked),
+            ok = await cell._link().set_output(
+                signal.group, signal.index, float(checked), within=cell.command_timeout
             )
             if not ok:
                 raise RobotCommandError(f"the controller refused to set {name} ({signal.address})")

@@ -1,5 +1,8 @@
 """What the Cell and the move runner need from a robot link: :class:`LinkBackend`.
 
+The contract is robot-neutral and typed: one method per operation (never an operation
+named by a string), the value types and the stop reasons of :mod:`fxcell.link.contract`.
+
 :class:`fxcell.link.client.LinkClient` (the supervised ur_rtde process) is the production
 backend; ``fxcell.testing.FakeRobot`` provides an in-process one for fast unit tests. A
 :class:`fxcell.cell.Cell` takes a :class:`LinkFactory` (``Cell(link_factory=...)``) to use
@@ -9,21 +12,36 @@ another backend.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
+
+from fxcell.link.contract import (
+    ControlMode,
+    Guard,
+    LinkStatus,
+    OutputGroup,
+    StopReason,
+    TrajectoryProgress,
+    TrajectoryResult,
+)
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
     from fxcell.calibration import Calibration
     from fxcell.config import RobotConfig
-    from fxcell.link.client import (
-        LinkStatus,
-        StateSubscription,
-        TrajectoryProgress,
-        TrajectoryResult,
-    )
-    from fxcell.link.process import Guard
+    from fxcell.link.subscription import StateSubscription
     from fxcell.protocol import RobotState
+
+__all__ = [
+    "Guard",
+    "LinkBackend",
+    "LinkFactory",
+    "LinkStatus",
+    "StopReason",
+    "TrajectoryProgress",
+    "TrajectoryResult",
+    "TrajectoryRun",
+]
 
 
 class TrajectoryRun(Protocol):
@@ -39,7 +57,7 @@ class TrajectoryRun(Protocol):
     async def replace_remaining(self, samples: ArrayLike, at_index: int | None = None) -> bool:
         """Replace the samples not yet sent (from ``at_index``); False once it has ended."""
 
-    async def stop(self, reason: str = "stop requested") -> TrajectoryResult:
+    async def stop(self, reason: StopReason = StopReason.STOP_REQUESTED) -> TrajectoryResult:
         """Brake to rest along the path and wait for the end report."""
 
     async def wait(self) -> TrajectoryResult:
@@ -78,9 +96,8 @@ class LinkBackend(Protocol):
     async def close(self) -> None:
         """Disconnect for good."""
 
-    async def call(self, method: str, within: float = 5.0, **kwargs: Any) -> Any:
-        """Run ``method`` (``set_tool``, ``teach_mode``, ``set_output``, ``servo_stop``, ...);
-        typed fxcell errors on failure."""
+    # Each request below fails with a typed fxcell error (RobotCommandError,
+    # RobotTimeoutError after ``within`` s, ConnectionLostError, ...).
 
     async def dashboard(self, command: str, within: float = 5.0) -> str:
         """Send one Dashboard request line; returns the reply line."""
@@ -89,11 +106,31 @@ class LinkBackend(Protocol):
         """The arm's factory calibration as the controller reports it (the primary
         interface's kinematics info); CalibrationError when it cannot be read."""
 
-    async def start_control(self, mode: str, program: str, within: float) -> None:
+    async def start_control(self, mode: ControlMode, program: str, within: float) -> None:
         """Start external control: ``script`` upload or ``urcap`` program."""
 
-    async def stop_control(self, mode: str, within: float = 5.0) -> None:
+    async def stop_control(self, mode: ControlMode, within: float = 5.0) -> None:
         """Stop external control."""
+
+    async def servo_stop(self, within: float = 5.0) -> bool:
+        """Brake any streamed trajectory and leave servo mode."""
+
+    async def set_output(
+        self, group: OutputGroup, index: int, value: float, within: float = 5.0
+    ) -> bool:
+        """Set a digital (0/1) or analog (fraction of its range) output; False if refused."""
+
+    async def set_tool(
+        self,
+        tcp: tuple[float, ...],
+        mass: float,
+        cog: tuple[float, float, float],
+        within: float = 5.0,
+    ) -> bool:
+        """Set the TCP (flange frame, UR pose) and the payload (kg, centre of gravity m)."""
+
+    async def teach_mode(self, on: bool, within: float = 5.0) -> bool:
+        """Enter (``on``) or leave teach mode (freedrive: the arm moved by hand)."""
 
     async def execute_trajectory(
         self,

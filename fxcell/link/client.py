@@ -21,10 +21,8 @@ told to brake at once.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import dataclasses
-import enum
 import functools
 import itertools
 import logging
@@ -44,14 +42,38 @@ from fxcell.errors import (
     ConnectionLostError,
     FxcellError,
     InvalidArgumentError,
-    NotInRemoteControlError,
-    RobotCommandError,
+    LinkContractError,
     RobotLinkError,
     RobotTimeoutError,
 )
 from fxcell.link import collector, wire
-from fxcell.link.process import Guard, stop_reason
+from fxcell.link.contract import (
+    STATE_STOPS,
+    WIRE_VERSION,
+    ControlMode,
+    Dashboard,
+    Guard,
+    LeaveServo,
+    LinkStatus,
+    OutputGroup,
+    ReplaceTrajectory,
+    Request,
+    ServoStop,
+    SetOutput,
+    SetTool,
+    StartControl,
+    StartTrajectory,
+    StopControl,
+    StopReason,
+    StopTrajectory,
+    TeachMode,
+    TrajectoryProgress,
+    TrajectoryResult,
+    reply_error,
+    stop_reason,
+)
 from fxcell.link.realtime import LINK_PRIORITY, Scheduling, request_realtime
+from fxcell.link.subscription import StateSubscription
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
 if TYPE_CHECKING:
@@ -78,56 +100,26 @@ GAP_REPORT = 0.02
 """A pause of the state stream longer than this (controller time, s) is logged as a gap."""
 HOLD_STALE_AFTER = 8.0
 """The same while the link process runs a blocking ur_rtde constructor."""
+SELF_BRAKES = frozenset({"state_stalled", "cell_silent"})
+"""End reasons of a trajectory the link process braked on its own guard (a fault: logged)."""
 RESTART_AFTER = 3.0
 """Seconds of silence after which a live but mute link process is killed and restarted."""
 EXPLAIN_SAMPLES = 25
 """State samples a trajectory that failed on the robot's side waits for the one showing why."""
 EXPLAIN_WITHIN = 0.1
 """Seconds the same waits at most (the state stream may be down)."""
-_STATE_FAILURES = frozenset(
-    {"servoj_refused", "program_stopped", "protective_stop", "emergency_stop"}
-    | {"safeguard_stop", "fault", "violation"}
-)
+_STATE_FAILURES = STATE_STOPS | {StopReason.SERVOJ_REFUSED}
+"""Failed ends the client holds until a state sample shows why (see _handle_trajectory)."""
 
-
-class LinkStatus(enum.StrEnum):
-    STARTING = "starting"
-    UP = "up"
-    DOWN = "down"
-    CLOSED = "closed"
-
-
-@dataclass(frozen=True, slots=True)
-class TrajectoryProgress:
-    """Where a streamed trajectory is: sample index reached, actual joints, tracking error."""
-
-    index: int
-    total: int
-    actual_q: tuple[float, ...] | None
-    tracking_error: float
-    time: float
-    """Wall-clock time the report arrived."""
-    timestamp: float | None = None
-    """Controller time of the state sample for which the link sent sample ``index`` (None:
-    not known); at a later sample it sends ``index`` plus the controller cycles between."""
-
-
-@dataclass(frozen=True, slots=True)
-class TrajectoryResult:
-    """How a streamed trajectory ended.
-
-    ``status``: ``completed`` (every sample sent), ``stopped`` (stop requested) or
-    ``failed``; ``reason`` then names why: ``protective_stop``, ``emergency_stop``,
-    ``safeguard_stop``, ``fault``, ``program_stopped``, ``link_lost``,
-    ``no_external_control``, ...
-    """
-
-    status: Literal["completed", "stopped", "failed"]
-    reason: str
-    index: int
-    total: int
-    actual_q: tuple[float, ...] | None
-    duration: float
+__all__ = [
+    "LinkClient",
+    "LinkStatus",
+    "StateSubscription",
+    "TrajectoryHandle",
+    "TrajectoryProgress",
+    "TrajectoryResult",
+    "process_link",
+]
 
 
 @dataclass
@@ -169,10 +161,10 @@ class TrajectoryHandle:
         array = _check_samples(samples)
         if self.done:
             return False
-        if at_index is None:
-            self._link._send(wire.TRAJ_REPLACE, self.id, wire.pack_samples(array))
-        else:
-            self._link._send(wire.TRAJ_REPLACE, self.id, wire.pack_samples(array), int(at_index))
+        at = None if at_index is None else int(at_index)
+        self._link._send(
+            wire.TRAJ_REPLACE, ReplaceTrajectory(self.id, wire.pack_samples(array), at)
+        )
         getter = asyncio.ensure_future(self._replaced.get())
         try:
             waitables: set[asyncio.Future[Any]] = {getter, self._done}
@@ -185,11 +177,13 @@ class TrajectoryHandle:
             return getter.result()
         return False
 
-    async def stop(self, reason: str = "stop requested") -> TrajectoryResult:
+    async def stop(self, reason: StopReason = StopReason.STOP_REQUESTED) -> TrajectoryResult:
         """Brake to rest along the path now (the link process does it by itself, even
         with the state stream down) and wait for the end report."""
         if not self.done:
-            self._link._send_safety(wire.TRAJ_STOP, self.id, reason)
+            self._link._send_safety(
+                wire.TRAJ_STOP, StopTrajectory(self.id, StopReason(reason).value)
+            )
         return await self.wait()
 
     async def wait(self) -> TrajectoryResult:
@@ -215,15 +209,6 @@ def _check_samples(samples: ArrayLike) -> NDArray[np.float64]:
     if not np.all(np.isfinite(array)):
         raise InvalidArgumentError("trajectory samples must be finite")
     return np.ascontiguousarray(array)
-
-
-_ERROR_KINDS: dict[str, type[FxcellError]] = {
-    "robot": RobotCommandError,
-    "timeout": RobotTimeoutError,
-    "connection": ConnectionLostError,
-    "remote": NotInRemoteControlError,
-    "argument": InvalidArgumentError,
-}
 
 
 class _LinkProtocol(asyncio.Protocol):
@@ -272,94 +257,6 @@ class _LinkProtocol(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         if not self.closed.done():
             self.closed.set_result(None)
-
-
-class StateSubscription:
-    """An async iterator over state samples with a bounded buffer (oldest dropped).
-
-    It adds itself to ``subscriptions`` (the link offers each sample to every member)
-    and leaves it on :meth:`close`. Made for 500 Hz: a sample costs a deque append and,
-    when a reader waits, one future; :meth:`next_within` bounds the wait without a timer
-    per sample."""
-
-    def __init__(self, subscriptions: set[StateSubscription], maxsize: int) -> None:
-        self._subscriptions = subscriptions
-        self._buffer: collections.deque[RobotState] = collections.deque(
-            maxlen=maxsize if maxsize > 0 else None
-        )
-        self._waiters: list[asyncio.Future[None]] = []
-        self._timed: asyncio.Future[None] | None = None  # the wait of next_within
-        self._deadline = 0.0  # loop time at which that wait times out
-        self._timer: asyncio.TimerHandle | None = None
-        self.dropped = 0
-        subscriptions.add(self)
-
-    def offer(self, state: RobotState) -> None:
-        """Queue one sample (the oldest is dropped when the buffer is full)."""
-        buffer = self._buffer
-        if len(buffer) == buffer.maxlen:
-            self.dropped += 1  # the append drops the oldest
-        buffer.append(state)
-        if self._waiters:
-            for waiter in self._waiters:
-                if not waiter.done():
-                    waiter.set_result(None)
-            self._waiters.clear()
-
-    def __aiter__(self) -> StateSubscription:
-        return self
-
-    async def __anext__(self) -> RobotState:
-        buffer = self._buffer
-        while not buffer:
-            waiter = asyncio.get_running_loop().create_future()
-            self._waiters.append(waiter)
-            await waiter
-        return buffer.popleft()
-
-    async def next_within(self, timeout: float) -> RobotState:  # noqa: ASYNC109
-        """The next sample; :class:`TimeoutError` if none has come ``timeout`` s after the
-        call (one such reader at a time).
-
-        The same deadline as ``async with asyncio.timeout(timeout)`` around each call, but
-        a reader that calls it for every sample keeps one timer: it is re-armed, when it
-        fires, to the deadline of the call waiting then, instead of a timer per call."""
-        buffer = self._buffer
-        if not buffer:
-            loop = asyncio.get_running_loop()
-            self._deadline = loop.time() + timeout
-            if self._timer is None:
-                self._timer = loop.call_at(self._deadline, self._expire)
-            while not buffer:
-                waiter = self._timed = loop.create_future()
-                self._waiters.append(waiter)
-                await waiter
-        return buffer.popleft()
-
-    def _expire(self) -> None:
-        self._timer = None
-        waiter = self._timed
-        if waiter is None or waiter.done():
-            return  # no bounded wait now: the next one arms the timer again
-        loop = waiter.get_loop()
-        if loop.time() < self._deadline:  # a later wait than the one that armed it
-            self._timer = loop.call_at(self._deadline, self._expire)
-        else:
-            self._timed = None
-            waiter.set_exception(TimeoutError())
-
-    def close(self) -> None:
-        self._subscriptions.discard(self)
-        timed = self._timed
-        if self._timer is not None and (timed is None or timed.done()):
-            self._timer.cancel()  # (a bounded wait still under way keeps its deadline)
-            self._timer = None
-
-    def __enter__(self) -> StateSubscription:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 class LinkClient:
@@ -426,6 +323,8 @@ class LinkClient:
         """State-stream gaps seen (each logged as a warning, so recorded in the MCAP /log)."""
         self._status_changed = asyncio.Event()
         self._closing = False
+        self.contract_error: LinkContractError | None = None
+        """Set when the link process speaks another wire version: the link is refused."""
 
     # -- life cycle
 
@@ -440,6 +339,8 @@ class LinkClient:
         try:
             async with asyncio.timeout(within):
                 while self.status is not LinkStatus.UP:
+                    if self.contract_error is not None:
+                        raise self.contract_error
                     if self.status is LinkStatus.CLOSED:
                         raise ConnectionLostError("the robot link is closed")
                     self._status_changed.clear()
@@ -456,7 +357,7 @@ class LinkClient:
             # the link may still hold servo mode after the last move (for a next one):
             # leave it while the process can, not by killing it
             with contextlib.suppress(FxcellError):
-                await self.call("leave_servo", 0.5)
+                await self._request(LeaveServo(), 0.5)
         self._closing = True
         if self._supervisor is not None:
             self._supervisor.cancel()
@@ -522,6 +423,8 @@ class LinkClient:
             await self._kill()
             self._fail_all(self.last_failure or "link process exited")
             self._set_status(LinkStatus.DOWN, self.last_failure or "link process exited")
+            if self.contract_error is not None:
+                return  # a process of another version: restarting would not help
             if time.monotonic() - started > 5.0:
                 backoff = 0.05
             await asyncio.sleep(backoff)
@@ -674,7 +577,9 @@ class LinkClient:
         """The link is down: brake every running trajectory, then say so."""
         for traj_id, handle in list(self._trajectories.items()):
             if not handle.done:
-                self._send_safety(wire.TRAJ_STOP, traj_id, "link_down")
+                self._send_safety(
+                    wire.TRAJ_STOP, StopTrajectory(traj_id, StopReason.LINK_DOWN.value)
+                )
         self._set_status(LinkStatus.DOWN, reason)
 
     async def _beat(self) -> None:
@@ -728,7 +633,7 @@ class LinkClient:
             handle._end(
                 TrajectoryResult(
                     "failed",
-                    "link_lost",
+                    StopReason.LINK_LOST,
                     handle.progress.index if handle.progress else 0,
                     handle.total,
                     None,
@@ -773,7 +678,7 @@ class LinkClient:
                     future.set_result(value)
                 else:
                     error_kind, text = value
-                    future.set_exception(_ERROR_KINDS.get(error_kind, RobotCommandError)(text))
+                    future.set_exception(reply_error(error_kind, text))
         elif kind == wire.TRAJ:
             self._handle_trajectory(message[1], message[2], message[3])
         elif kind == wire.CONTROL:
@@ -795,8 +700,24 @@ class LinkClient:
             log.log(int(message[1]), "link: %s", message[2])
         elif kind == wire.HELLO:
             self._hello(message[1])
+        elif kind == wire.CONNECTED:
+            pass  # the process reached the controller; its first state sample brings it up
+        else:
+            log.warning("robot link: unknown message %r refused", kind)
 
     def _hello(self, data: dict[str, Any]) -> None:
+        version = data.get("wire")
+        if version != WIRE_VERSION:
+            # the link process is another install's: nothing it says can be trusted
+            self.contract_error = LinkContractError(
+                f"the robot-link process speaks wire version {version}, this client "
+                f"{WIRE_VERSION} (a half-updated install? reinstall fxcell)"
+            )
+            self.last_failure = str(self.contract_error)
+            log.error("robot link refused: %s", self.last_failure)
+            self._status_changed.set()
+            self.kill_process()
+            return
         info = data.get("scheduling")
         if not isinstance(info, dict):
             return
@@ -810,6 +731,9 @@ class LinkClient:
             )
 
     def _handle_trajectory(self, traj_id: int, kind: str, data: dict[str, Any]) -> None:
+        if kind == "end" and data["status"] == "stopped" and data["reason"] in SELF_BRAKES:
+            # a fault whoever still waits for the trajectory (the link may be down already)
+            log.warning("robot link to %s braked a move by itself: %s", self.host, data["reason"])
         handle = self._trajectories.get(traj_id)
         if handle is None:
             return
@@ -829,11 +753,12 @@ class LinkClient:
             self._trajectories.pop(traj_id, None)
             result = TrajectoryResult(
                 data["status"],
-                data["reason"],
+                StopReason(data["reason"]),
                 data["index"],
                 data["total"],
                 data["actual_q"],
                 data["duration"],
+                data.get("detail", ""),
             )
             latest = self.latest
             shown = latest is not None and stop_reason(latest.safety_mode, latest.runtime_state)
@@ -849,13 +774,13 @@ class LinkClient:
             else:
                 handle._end(result)
 
-    def _release_ends(self, why: str | None = None, *, force: bool = False) -> None:
+    def _release_ends(self, why: StopReason | None = None, *, force: bool = False) -> None:
         """End the held failed trajectories: all of them when a sample showed the stop
         (``why``, which then names a refused servoJ's cause) or when ``force``d, else
         those that waited long enough."""
         waiting = []
         for handle, result, samples in self._unexplained:
-            if why is not None and result.reason == "servoj_refused":
+            if why is not None and result.reason is StopReason.SERVOJ_REFUSED:
                 result = dataclasses.replace(result, reason=why)
             if why is not None or force or samples <= 1:
                 handle._end(result)
@@ -878,26 +803,25 @@ class LinkClient:
         self._writer.write(wire.encode(message))
         return True
 
-    async def call(self, method: str, within: float = 5.0, **kwargs: Any) -> Any:
-        """Run ``method`` in the link process; typed fxcell errors on failure."""
+    async def _request(self, request: Request, within: float) -> Any:
+        """Run ``request`` in the link process; typed fxcell errors on failure."""
         request_id = next(self._ids)
         future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._pending[request_id] = future
         try:
-            self._send(wire.CALL, request_id, method, kwargs)
+            self._send(wire.CALL, request_id, request)
             async with asyncio.timeout(within):
                 return await future
         except TimeoutError:
             raise RobotTimeoutError(
-                f"robot link call {method} timed out after {within:g} s"
+                f"robot link request {type(request).__name__} timed out after {within:g} s"
             ) from None
         finally:
             self._pending.pop(request_id, None)
 
     async def dashboard(self, command: str, within: float = 5.0) -> str:
         """Send one dashboard request line; returns the reply line."""
-        reply: str = await self.call("dashboard", within, command=command)
-        return reply
+        return str(await self._request(Dashboard(command), within))
 
     async def read_calibration(self) -> Calibration:
         """The arm's calibration from the controller's primary interface (port 30001), read
@@ -906,12 +830,29 @@ class LinkClient:
 
         return await asyncio.to_thread(read_calibration, self.host)
 
-    async def start_control(self, mode: str, program: str, within: float) -> None:
+    async def start_control(self, mode: ControlMode, program: str, within: float) -> None:
         """Start external control: ``script`` upload or ``urcap`` program."""
-        await self.call("start_control", within + 10.0, mode=mode, program=program, timeout=within)
+        await self._request(StartControl(mode, program, within), within + 10.0)
 
-    async def stop_control(self, mode: str, within: float = 5.0) -> None:
-        await self.call("stop_control", within, mode=mode)
+    async def stop_control(self, mode: ControlMode, within: float = 5.0) -> None:
+        await self._request(StopControl(mode), within)
+
+    async def set_output(
+        self, group: OutputGroup, index: int, value: float, within: float = 5.0
+    ) -> bool:
+        return bool(await self._request(SetOutput(group, int(index), float(value)), within))
+
+    async def set_tool(
+        self,
+        tcp: tuple[float, ...],
+        mass: float,
+        cog: tuple[float, float, float],
+        within: float = 5.0,
+    ) -> bool:
+        return bool(await self._request(SetTool(tuple(tcp), float(mass), cog), within))
+
+    async def teach_mode(self, on: bool, within: float = 5.0) -> bool:
+        return bool(await self._request(TeachMode(bool(on)), within))
 
     async def execute_trajectory(
         self,
@@ -939,23 +880,19 @@ class LinkClient:
         collector.hold()  # released when the trajectory ends, whatever way it ends
         handle._holds_collector = True
         try:
-            self._send(
-                wire.TRAJ_START,
-                traj_id,
-                wire.pack_samples(array),
-                lookahead_time,
-                gain,
-                dataclasses.asdict(guard or Guard()),
+            start = StartTrajectory(
+                traj_id, wire.pack_samples(array), lookahead_time, gain, guard or Guard()
             )
+            self._send(wire.TRAJ_START, start)
         except BaseException:
             self._trajectories.pop(traj_id, None)
             handle._end(None)
             raise
         return handle
 
-    async def servo_stop(self) -> bool:
+    async def servo_stop(self, within: float = 5.0) -> bool:
         """Stop any streamed trajectory and leave servo mode."""
-        return bool(await self.call("servo_stop", 5.0))
+        return bool(await self._request(ServoStop(), within))
 
     # -- state stream
 

@@ -44,44 +44,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
-from fxcell.link.wire import SETTLED
-from fxcell.protocol import CONTROL_PERIOD, SAFETY_STOPS, RobotState, RuntimeState
+from fxcell.link.contract import Guard, StopReason, stop_reason
+from fxcell.protocol import CONTROL_PERIOD, RobotState
 from fxcell.settling import ARRIVE_TOLERANCE, SETTLE_VELOCITY
 
 Samples = Sequence[tuple[float, ...]]
 Status = Literal["completed", "stopped", "failed"]
 
-CELL_SILENT = "cell_silent"
-STATE_STALLED = "state_stalled"
-
-
-@dataclass(frozen=True)
-class Guard:
-    """When and how a trajectory brakes by itself (sent with each trajectory)."""
-
-    brake_acceleration: tuple[float, ...] = (4.0, 4.0, 4.0, 8.0, 8.0, 8.0)
-    """Per-joint deceleration limit of a self-initiated stop (rad/s²)."""
-    brake_jerk: float = 40.0
-    """Jerk limit of a self-initiated stop (rad/s³)."""
-    cell_timeout: float | None = 0.1
-    """Brake when the client has sent nothing for this long (s; None: never)."""
-    stall_timeout: float = 0.08
-    """Brake when no state sample has arrived for this long (s)."""
-    velocity: tuple[float, ...] = (math.pi,) * 3 + (2 * math.pi,) * 3
-    """Per-joint speed limit of every setpoint (rad/s)."""
-    path_acceleration: tuple[float, ...] = (0.7, 0.7, 0.7, 1.4, 1.4, 1.4)
-    """The most the path itself accelerates (the moves' limits, rad/s²): a stop along the
-    path leaves room for it under ``brake_acceleration``."""
-
-
-def stop_reason(safety_mode: int, runtime_state: int) -> str | None:
-    """Why a trajectory cannot continue, from one state sample (``None``: it can)."""
-    stop = SAFETY_STOPS.get(safety_mode)
-    if stop is not None:
-        return stop
-    if runtime_state != RuntimeState.PLAYING:
-        return "program_stopped"
-    return None
+CELL_SILENT = StopReason.CELL_SILENT
+STATE_STALLED = StopReason.STATE_STALLED
+SETTLED = StopReason.SETTLED
 
 
 def brake_duration(velocity: Sequence[float], guard: Guard) -> float:
@@ -168,7 +140,7 @@ class Cycle:
     answered: float | None = None
     """The controller time the setpoint answers (the newest sample's, plus paced cycles)."""
     status: Status | None = None
-    reason: str = ""
+    reason: StopReason = StopReason.NONE
 
 
 @dataclass
@@ -226,12 +198,12 @@ class Follower:
         self.guard = guard
         self.lookahead = lookahead
         self.u = 0.0  # position along the path, in samples (fractional while braking)
-        self.braking: tuple[str, float, float] | None = None  # reason, started, duration
+        self.braking: tuple[StopReason, float, float] | None = None  # reason, started, duration
         self.notices: list[Notice] = []
         """Messages for the client since the caller last emptied the list."""
         self.limited: list[LimitEvent] = []
         """Every setpoint the limit check changed (a regression shows here and in the log)."""
-        self._stop_reason: str | None = None
+        self._stop_reason: StopReason | None = None
         self._replacement: tuple[Samples, int | None] | None = None
         self._settle_until: float | None = None
         self._next_progress = 0
@@ -261,7 +233,7 @@ class Follower:
 
     # -- requests (between cycles)
 
-    def stop(self, reason: str) -> None:
+    def stop(self, reason: StopReason) -> None:
         """Brake to rest along the path from the next cycle (the first reason stays)."""
         if self._stop_reason is None:
             self._stop_reason = reason
@@ -278,7 +250,9 @@ class Follower:
 
     # -- one cycle
 
-    def abort_reason(self, now: float, heard_at: float | None, state_at: float) -> str | None:
+    def abort_reason(
+        self, now: float, heard_at: float | None, state_at: float
+    ) -> StopReason | None:
         """Why the trajectory must brake now by itself (``None``: it may go on)."""
         if self._stop_reason is not None:
             return self._stop_reason
@@ -349,12 +323,12 @@ class Follower:
                 self._next_progress = (i // self.PROGRESS_EVERY + 1) * self.PROGRESS_EVERY
         return out
 
-    def _start_braking(self, why: str, now: float, heard_at: float | None) -> None:
+    def _start_braking(self, why: StopReason, now: float, heard_at: float | None) -> None:
         samples, u = self.samples, self.u
         velocity = path_velocity(samples, u) if u < len(samples) else (0.0,) * 6
         if max(map(abs, velocity)) > 0:  # not a stop at the target
             duration = brake_duration(velocity, self.guard)
-            said = why
+            said = why.value
             if why == CELL_SILENT and heard_at is not None:
                 said += f" for {now - heard_at:.3f} s"
             # settled: the cell saw the robot at the target, stopped and past the plan by

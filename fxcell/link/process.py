@@ -46,22 +46,61 @@ from dataclasses import asdict
 from typing import Any
 
 from fxcell.link import wire
-from fxcell.link.follower import Follower, Guard, brake_duration, stop_reason
+from fxcell.link.contract import (
+    REQUESTS,
+    WIRE_VERSION,
+    Dashboard,
+    ErrorKind,
+    Guard,
+    LeaveServo,
+    Ping,
+    ReplaceTrajectory,
+    Request,
+    ServoStop,
+    SetOutput,
+    SetTool,
+    StartControl,
+    StartTrajectory,
+    StopControl,
+    StopReason,
+    StopTrajectory,
+    TeachMode,
+    TrajectoryStatus,
+    stop_reason,
+)
+from fxcell.link.follower import Follower
 from fxcell.link.realtime import LINK_PRIORITY, request_realtime
 from fxcell.link.rtde_stream import UR_RTDE_GETTERS, RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
 log = logging.getLogger("fxcell.link.process")
 
-__all__ = ["CallError", "Guard", "Link", "brake_duration", "main", "stop_reason"]
+__all__ = ["HANDLERS", "CallError", "Link", "main"]
 
 
 class CallError(Exception):
     """A call failed in a way the client maps to a typed fxcell error."""
 
-    def __init__(self, kind: str, message: str) -> None:
+    def __init__(self, kind: ErrorKind, message: str) -> None:
         self.kind = kind
         super().__init__(message)
+
+
+BUSY_CLIENT_LIMIT = 0.3
+"""s: the longest silence of a client whose process the kernel says runs (see
+:meth:`Link.heard_at`); the client stops beating by itself when its loop stalls 0.5 s."""
+
+
+def process_runs(pid: int) -> bool:
+    """Whether process ``pid`` exists and is neither stopped (SIGSTOP, a debugger) nor a
+    zombie, by ``/proc/PID/stat`` (False where there is no ``/proc``)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    end = stat.rfind(b")")  # the command name may hold spaces and parentheses
+    return end > 0 and stat[end + 2 : end + 3] not in (b"T", b"t", b"Z", b"X", b"")
 
 
 HOLD_FLUSH = 0.05
@@ -148,7 +187,7 @@ class Link:
         self.sock = sock
         self.args = args
         self.host: str = args.host
-        self._calls: queue.Queue[tuple[int, str, dict[str, Any]] | None] = queue.Queue()
+        self._calls: queue.Queue[tuple[int, Request] | None] = queue.Queue()
         self._stop = threading.Event()
         self.dashboard: Any = None
         self.receive: Any = None
@@ -163,6 +202,7 @@ class Link:
         self._tick = threading.Condition()
         self._samples = 0  # state samples received (the controller's clock)
         self.last_heard = time.monotonic()  # ... and of the newest message from the client
+        self.client_pid = os.getppid()  # the cell process that started this one
         # the client's beat channel (one byte per beat, from a thread of the client process)
         self.beats = socket.socket(fileno=args.beat_fd) if args.beat_fd is not None else None
         self.outbox = _Outbox(sock, self._stop)
@@ -202,7 +242,7 @@ class Link:
 
     def run(self) -> int:
         scheduling = getattr(self.args, "scheduling", None)
-        hello: dict[str, Any] = {"pid": os.getpid()}
+        hello: dict[str, Any] = {"pid": os.getpid(), "wire": WIRE_VERSION}
         if scheduling is not None:
             hello["scheduling"] = asdict(scheduling)
         self.send(wire.HELLO, hello)
@@ -222,7 +262,7 @@ class Link:
         for t in threads:
             t.start()
         self._stop.wait()
-        self._stop_trajectory("link closing")
+        self._stop_trajectory(StopReason.LINK_CLOSING)
         return 3
 
     def lost(self, reason: str) -> None:
@@ -264,6 +304,21 @@ class Link:
         self.last_heard = now
         return True
 
+    def heard_at(self, timeout: float, now: float) -> float:
+        """When the client counts as last heard, for a trajectory's ``cell_timeout``.
+
+        Silent for longer than ``timeout`` while the kernel says its process runs (not
+        stopped, not gone), it is not frozen but unscheduled: on a busy machine its beat
+        thread waits for the GIL that a descheduled thread of its own holds. Such a client
+        gets up to :data:`BUSY_CLIENT_LIMIT` before the trajectory brakes; a stopped one
+        (SIGSTOP, a debugger) brakes it after ``timeout`` as before.
+        """
+        if self.heard_within(timeout, now):
+            return self.last_heard
+        if now - self.last_heard < BUSY_CLIENT_LIMIT and process_runs(self.client_pid):
+            return now - 0.5 * timeout  # within it (now - timeout may round beyond it)
+        return self.last_heard
+
     # -- reader
 
     def _reader(self) -> None:
@@ -277,7 +332,13 @@ class Link:
                 if body is None:
                     break
                 self.last_heard = time.monotonic()
-                self._dispatch(wire.decode(body))
+                try:
+                    message = wire.decode(body)
+                except Exception as exc:  # another contract's class, or corrupt
+                    text = f"undecodable message refused: {type(exc).__name__}: {exc}"
+                    self.send(wire.LOG, logging.ERROR, text)
+                    continue
+                self._dispatch(message)
         finally:
             self._stop.set()  # the client went away: exit
 
@@ -295,29 +356,42 @@ class Link:
 
     def _dispatch(self, message: tuple[Any, ...]) -> None:
         kind = message[0]
-        if kind == wire.CALL:
-            _, request_id, method, kwargs = message
-            self._calls.put((request_id, method, kwargs))
+        if kind == wire.CALL and len(message) == 3:
+            _, request_id, request = message
+            self._calls.put((request_id, request))
+        elif kind == wire.CALL and len(message) > 1 and isinstance(message[1], int):
+            text = f"a request of another contract (wire version {WIRE_VERSION} here)"
+            self.send(wire.REPLY, message[1], False, ("contract", text))
         elif kind == wire.BEAT:
             pass  # last_heard is enough
-        elif kind == wire.TRAJ_START:
-            _, traj_id, packed, lookahead, gain = message[:5]
-            guard = Guard(**message[5]) if len(message) > 5 else Guard()
-            self._start_trajectory(traj_id, wire.unpack_samples(packed), lookahead, gain, guard)
-        elif kind == wire.TRAJ_REPLACE:
-            traj_id, samples = message[1], message[2]
-            at_index = message[3] if len(message) > 3 else None
+        elif kind == wire.TRAJ_START and isinstance(message[1], StartTrajectory):
+            start = message[1]
+            samples = wire.unpack_samples(start.samples)
+            self._start_trajectory(start.id, samples, start.lookahead_time, start.gain, start.guard)
+        elif kind == wire.TRAJ_REPLACE and isinstance(message[1], ReplaceTrajectory):
+            replace = message[1]
             with self._traj_lock:
                 traj = self._traj
-            if traj is not None and traj.id == traj_id:
-                traj.replace(wire.unpack_samples(samples), at_index)
+            if traj is not None and traj.id == replace.id:
+                traj.replace(wire.unpack_samples(replace.samples), replace.at_index)
             else:
-                self.send(wire.TRAJ, traj_id, "replaced", {"ok": False})
-        elif kind == wire.TRAJ_STOP:
+                self.send(wire.TRAJ, replace.id, "replaced", {"ok": False})
+        elif kind == wire.TRAJ_STOP and isinstance(message[1], StopTrajectory):
+            stop = message[1]
             with self._traj_lock:
                 traj = self._traj
-            if traj is not None and traj.id == message[1]:
-                traj.stop(str(message[2]) if len(message) > 2 else "stop requested")
+            if traj is not None and traj.id == stop.id:
+                traj.stop(self._reason(stop.reason))
+        else:
+            self.send(wire.LOG, logging.WARNING, f"unknown message {kind!r} refused")
+
+    def _reason(self, text: object) -> StopReason:
+        """A stop's reason from the wire (one the contract does not name still stops)."""
+        try:
+            return StopReason(str(text))
+        except ValueError:
+            self.send(wire.LOG, logging.WARNING, f"unknown stop reason {text!r}: stopping")
+            return StopReason.STOP_REQUESTED
 
     # -- state pump
 
@@ -407,19 +481,32 @@ class Link:
             item = self._calls.get()
             if item is None:
                 return
-            request_id, method, kwargs = item
-            try:
-                if method not in ("dashboard", "ping"):
-                    self._after_trajectory()
-                value = getattr(self, f"call_{method}")(**kwargs)
-            except CallError as exc:
-                self.send(wire.REPLY, request_id, False, (exc.kind, str(exc)))
-            except Exception as exc:
-                self.send(wire.REPLY, request_id, False, ("robot", f"{type(exc).__name__}: {exc}"))
-            else:
-                self.send(wire.REPLY, request_id, True, value)
+            self.answer(*item)
 
-    def call_dashboard(self, command: str) -> str:
+    def answer(self, request_id: int, request: object) -> None:
+        """Run one request (its handler from :data:`HANDLERS`, by its type) and reply."""
+        try:
+            handler = HANDLERS.get(type(request)) if isinstance(request, REQUESTS) else None
+            if handler is None:
+                raise CallError(
+                    "contract",
+                    f"the link process (wire version {WIRE_VERSION}) has no request "
+                    f"{type(request).__name__}",
+                )
+            if not isinstance(request, (Dashboard, Ping)):
+                self._after_trajectory()
+            value = handler(self, request)
+        except CallError as exc:
+            self.send(wire.REPLY, request_id, False, (exc.kind, str(exc)))
+        except Exception as exc:
+            self.send(wire.REPLY, request_id, False, ("robot", f"{type(exc).__name__}: {exc}"))
+        else:
+            self.send(wire.REPLY, request_id, True, value)
+
+    def do_dashboard(self, request: Dashboard) -> str:
+        return self.dashboard_line(request.command)
+
+    def dashboard_line(self, command: str) -> str:
         """One dashboard request line; returns the reply line."""
         try:
             self.dashboard.send(command + "\n")
@@ -428,11 +515,11 @@ class Link:
             raise CallError("connection", f"dashboard {command!r}: {exc}") from None
         return reply.strip()
 
-    def call_leave_servo(self) -> bool:
+    def do_leave_servo(self, request: LeaveServo) -> bool:
         """Leave servo mode: the worker ended a hold before this call (_after_trajectory)."""
         return True
 
-    def call_ping(self) -> str:
+    def do_ping(self, request: Ping) -> str:
         return "pong"
 
     def _wait_playing(self, timeout: float) -> bool:
@@ -444,9 +531,11 @@ class Link:
             time.sleep(0.005)
         return False
 
-    def call_start_control(self, mode: str, program: str, timeout: float) -> bool:
+    def do_start_control(self, request: StartControl) -> bool:
         """Start external control (script upload or URCap program); True when PLAYING."""
         import rtde_control
+
+        mode, program, timeout = request.mode, request.program, request.timeout
 
         flags = rtde_control.RTDEControlInterface.Flags
         c = self.control
@@ -521,7 +610,7 @@ class Link:
         state = self.latest
         if state is None or state.runtime_state == RuntimeState.STOPPED:
             return
-        self.call_dashboard("stop")
+        self.dashboard_line("stop")
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:
             state = self.latest
@@ -530,22 +619,23 @@ class Link:
             time.sleep(0.005)
 
     def _play_urcap(self, program: str, timeout: float) -> None:
-        reply = self.call_dashboard(f"load {program}")
+        reply = self.dashboard_line(f"load {program}")
         if "Loading program" not in reply:
             raise CallError("robot", f"load {program}: {reply}")
-        reply = self.call_dashboard("play")
+        reply = self.dashboard_line("play")
         if reply != "Starting program":
             raise CallError("robot", f"play: {reply}")
         if not self._wait_playing(timeout):
             raise CallError("timeout", f"{program} did not start playing")
 
-    def call_stop_control(self, mode: str) -> bool:
-        self._stop_trajectory("external control stopped")
+    def do_stop_control(self, request: StopControl) -> bool:
+        mode = request.mode
+        self._stop_trajectory(StopReason.EXTERNAL_CONTROL_STOPPED)
         if self.control is not None:
             with self.held(), contextlib.suppress(Exception):
                 self.control.stopScript()
         if mode == "urcap":
-            self.call_dashboard("stop")
+            self.dashboard_line("stop")
         self._drop_control("external control stopped")
         return True
 
@@ -576,16 +666,18 @@ class Link:
         finally:
             self.send(wire.HOLD, False)
 
-    def call_servo_stop(self) -> bool:
-        self._stop_trajectory("servo stop")
+    def do_servo_stop(self, request: ServoStop) -> bool:
+        self._stop_trajectory(StopReason.SERVO_STOP)
         c = self.control
         if c is None:
             return False
         return bool(c.servoStop())
 
-    def call_set_output(self, group: str, index: int, value: float) -> bool:
+    def do_set_output(self, request: SetOutput) -> bool:
         """Set a digital (0/1) or analog (fraction of range) output through RTDE's IO recipe."""
         import rtde_io
+
+        group, index, value = request.group, request.index, request.value
 
         if self.io is None or not self.io.isConnected():
             try:
@@ -614,16 +706,18 @@ class Link:
             )
         return c
 
-    def call_set_tool(self, tcp: list[float], mass: float, cog: list[float]) -> bool:
+    def do_set_tool(self, request: SetTool) -> bool:
         """Set the TCP (flange frame) and the payload on the controller."""
         c = self._require_control("setting the tool")
-        return bool(c.setTcp(tcp)) and bool(c.setPayload(mass, cog))
+        return bool(c.setTcp(list(request.tcp))) and bool(
+            c.setPayload(request.mass, list(request.cog))
+        )
 
-    def call_teach_mode(self, on: bool) -> bool:
+    def do_teach_mode(self, request: TeachMode) -> bool:
         """Enter or leave teach mode (freedrive: the arm can be moved by hand)."""
-        self._stop_trajectory("teach mode")
+        self._stop_trajectory(StopReason.TEACH_MODE)
         c = self._require_control("freedrive")
-        return bool(c.teachMode() if on else c.endTeachMode())
+        return bool(c.teachMode() if request.on else c.endTeachMode())
 
     # -- trajectories
 
@@ -653,14 +747,14 @@ class Link:
         # a trajectory holding its target after a normal end hands servo mode on
         if old is not None:
             if not old.release(keep_servo=True):
-                old.stop("superseded")
+                old.stop(StopReason.SUPERSEDED)
             old.thread.join(5.0)
         traj = _Trajectory(self, traj_id, samples, lookahead, gain, guard or Guard())
         with self._traj_lock:
             self._traj = traj
         traj.thread.start()
 
-    def _stop_trajectory(self, reason: str) -> None:
+    def _stop_trajectory(self, reason: StopReason) -> None:
         with self._traj_lock:
             traj = self._traj
         if traj is not None:
@@ -668,6 +762,21 @@ class Link:
             if traj.thread is not threading.current_thread():
                 traj.thread.join(3.0)  # the longest stop under the braking limits
 
+
+HANDLERS: dict[type[Request], Callable[[Link, Any], object]] = {
+    Dashboard: Link.do_dashboard,
+    Ping: Link.do_ping,
+    LeaveServo: Link.do_leave_servo,
+    StartControl: Link.do_start_control,
+    StopControl: Link.do_stop_control,
+    ServoStop: Link.do_servo_stop,
+    SetOutput: Link.do_set_output,
+    SetTool: Link.do_set_tool,
+    TeachMode: Link.do_teach_mode,
+}
+"""Each request type's handler: the one table the worker dispatches by."""
+if set(HANDLERS) != set(REQUESTS):  # pragma: no cover - caught by the unit tests too
+    raise ImportError(f"link requests without a handler: {set(REQUESTS) - set(HANDLERS)}")
 
 PULSE_PERIOD = 0.01  # s between two PULSE messages to the client
 
@@ -700,7 +809,7 @@ class _Trajectory:
         self.guard = guard
         self._lock = threading.Lock()
         self._replacement: tuple[wire.Samples, int | None] | None = None
-        self._stop_reason: str | None = None
+        self._stop_reason: StopReason | None = None
         self._poked = False  # stop() wants the thread awake now
         self.ended = threading.Event()  # the end is reported; servo mode is being left
         self._holding = False
@@ -718,7 +827,7 @@ class _Trajectory:
         with self._lock:
             self._replacement = (samples, at_index)
 
-    def stop(self, reason: str) -> None:
+    def stop(self, reason: StopReason) -> None:
         """Brake to rest along the path (now: the thread is woken, not left to wait for
         the next state sample)."""
         with self._lock:
@@ -766,24 +875,25 @@ class _Trajectory:
         follower = Follower(
             self.samples, self.guard, self.lookahead, gain=self.gain, now=started, clock=clock
         )
-        status: str = "completed"
-        reason = ""
+        status: TrajectoryStatus = "completed"
+        reason = StopReason.NONE
+        detail = ""
         cycled = started  # time.monotonic() of this thread's previous cycle
         if c is None:
-            status, reason = "failed", "no_external_control"
+            status, reason = "failed", StopReason.NO_EXTERNAL_CONTROL
         else:
             cell_timeout = self.guard.cell_timeout
             try:
                 while True:
                     now = time.monotonic()
                     self._take_requests(follower)
-                    if cell_timeout is not None:
-                        link.heard_within(cell_timeout, now)  # reads beats still waiting
                     braking = follower.braking
                     out = follower.cycle(
                         now,
                         link.latest,
-                        heard_at=link.last_heard if cell_timeout is not None else None,
+                        heard_at=link.heard_at(cell_timeout, now)
+                        if cell_timeout is not None
+                        else None,
                         state_at=link.last_state_at,
                     )
                     if braking is None and follower.braking is not None:
@@ -801,7 +911,7 @@ class _Trajectory:
                         why = None
                         if state is not None:
                             why = stop_reason(state.safety_mode, state.runtime_state)
-                        status, reason = "failed", why or "servoj_refused"
+                        status, reason = "failed", why or StopReason.SERVOJ_REFUSED
                         break
                     if out.progress is not None:
                         self._progress(
@@ -819,9 +929,9 @@ class _Trajectory:
                         time.monotonic(), latest.timestamp if new and latest else None, poked=poked
                     )
             except Exception as exc:
-                status, reason = "failed", f"link_error: {exc}"
+                status, reason, detail = "failed", StopReason.LINK_ERROR, str(exc)
         state = link.latest
-        at_target = status == "completed" or (status == "stopped" and reason == wire.SETTLED)
+        at_target = status == "completed" or (status == "stopped" and reason is StopReason.SETTLED)
         with self._lock:  # before the end report: the next trajectory may follow at once
             self._will_hold = c is not None and at_target
         # The end is reported before servo mode is left (a controller round trip): the
@@ -833,7 +943,8 @@ class _Trajectory:
             "end",
             {
                 "status": status,
-                "reason": reason,
+                "reason": reason.value,
+                "detail": detail,
                 "index": follower.index,
                 "total": len(follower.samples),
                 "actual_q": state.actual_q if state is not None else None,
@@ -887,7 +998,7 @@ class _Trajectory:
         seen = link._samples
         with self._lock:
             self._holding = True
-            if self._stop_reason == wire.SETTLED:
+            if self._stop_reason is StopReason.SETTLED:
                 self._stop_reason = None  # the stop that ended it; any other ends the hold
         follower.begin_hold()
         self.hold_started.set()

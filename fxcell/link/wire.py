@@ -21,19 +21,19 @@ HEADER = struct.Struct(">I")
 MAX_FRAME = 64 * 1024 * 1024
 
 # client -> link process
-CALL = "call"  # (CALL, request_id, method, kwargs)
-TRAJ_START = "traj_start"  # (TRAJ_START, traj_id, samples, lookahead_time, gain, guard)
-TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, traj_id, samples[, at_index])
-TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, traj_id[, reason]): the link brakes to rest itself
-SETTLED = "settled"  # TRAJ_STOP's reason when the robot is at the target: servo mode is kept
+CALL = "call"  # (CALL, request_id, request): a fxcell.link.contract request dataclass
+TRAJ_START = "traj_start"  # (TRAJ_START, contract.StartTrajectory)
+TRAJ_REPLACE = "traj_replace"  # (TRAJ_REPLACE, contract.ReplaceTrajectory)
+TRAJ_STOP = "traj_stop"  # (TRAJ_STOP, contract.StopTrajectory): the link brakes to rest itself
+# (a reason is a contract.StopReason's value; SETTLED, the robot at the target, keeps servo mode)
 BEAT = "beat"  # (BEAT,): the client is alive (sent every 10 ms while a trajectory runs)
 
 # link process -> client
-HELLO = "hello"  # (HELLO, {"pid": ...})
+HELLO = "hello"  # (HELLO, {"pid": ..., "wire": contract.WIRE_VERSION, "scheduling": ...})
 CONNECTED = "connected"  # (CONNECTED, info)
 FATAL = "fatal"  # (FATAL, message, {part: why}) then the process exits
 STATE = "state"  # (STATE, state_tuple)
-REPLY = "reply"  # (REPLY, request_id, ok, value | (error_type, message))
+REPLY = "reply"  # (REPLY, request_id, ok, value | (contract.ErrorKind, message))
 CONTROL = "control"  # (CONTROL, ready: bool, reason)
 HOLD = "hold"  # (HOLD, bool): a blocking ur_rtde constructor runs; the stream pauses
 TRAJ = "traj"  # (TRAJ, traj_id, kind, data) kind: progress | replaced | end

@@ -29,25 +29,18 @@ from fxcell.config import CellConfig
 from fxcell.errors import (
     CollisionError,
     ConnectionLostError,
-    EmergencyStopError,
     InvalidArgumentError,
     InvalidTargetError,
     LinkBrakeError,
-    MoveError,
     MoveStoppedError,
     PlanningError,
-    ProgramStoppedError,
-    ProtectiveStopError,
-    RobotFaultError,
-    SafeguardStopError,
     TrackingError,
     UncalibratedError,
     UnreachableError,
 )
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
-from fxcell.link.process import Guard
-from fxcell.link.wire import SETTLED
+from fxcell.link.contract import LINK_BRAKES, Guard, StopReason
 from fxcell.motion.calibration import calibrated_kinematics, kinematics_for
 from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
 from fxcell.motion.runner import (
@@ -471,18 +464,6 @@ class MotionPlanner:
 
 # ----------------------------------------------------------------- execution
 
-LINK_BRAKES = frozenset({"state_stalled", "cell_silent", "link_down"})
-"""Why the link process brakes a trajectory by itself (its guard; see fxcell.link.process)."""
-_FAILURES: dict[str, type[Exception]] = {
-    "protective_stop": ProtectiveStopError,
-    "emergency_stop": EmergencyStopError,
-    "safeguard_stop": SafeguardStopError,
-    "fault": RobotFaultError,
-    "violation": RobotFaultError,
-    "link_lost": ConnectionLostError,
-    "program_stopped": ProgramStoppedError,
-}
-
 
 @dataclass
 class ExecutionOptions:
@@ -663,7 +644,7 @@ class MoveExecution:
                         await self._braking(handle)
                 if not handle.done and not self._spliced:
                     with contextlib.suppress(Exception):
-                        await handle.stop("move aborted")
+                        await handle.stop(StopReason.MOVE_ABORTED)
                 with contextlib.suppress(Exception):
                     async with asyncio.timeout(self.brake_duration + 3.0):
                         await handle.wait()
@@ -713,7 +694,7 @@ class MoveExecution:
                         self._settled_at = state.received_at
                         self._settled = True
                         if not handle.done:
-                            await handle.stop(SETTLED)
+                            await handle.stop(StopReason.SETTLED)
                         return state
                     elif handle.done:
                         if (
@@ -818,8 +799,8 @@ class MoveExecution:
 
     def _finish(self, end: TrajectoryResult, state: RobotState) -> MoveResult:
         if end.status == "failed":
-            error = _FAILURES.get(end.reason, MoveError)
-            raise error(f"the move failed: {end.reason} (at sample {end.index} of {end.total})")
+            # the reason's error from the contract's one table (fxcell.link.contract)
+            raise end.error()(f"the move failed: {end.why} (at sample {end.index} of {end.total})")
         reached = np.asarray(state.actual_q, float)
         result = self._result(reached, self._settled_at, end)
         if self._braked or (end.status == "stopped" and not self._settled):

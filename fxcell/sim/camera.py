@@ -17,12 +17,9 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import contextlib
 import logging
 import math
-import os
 import random
-import threading
 from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -368,14 +365,6 @@ class CameraConnection(asyncio.Protocol):
 SNAPSHOT_PATH = "/snapshot.jpg"
 
 
-def _lower_thread_priority() -> None:
-    """Rendering is not real-time work: a worker of a SCHED_FIFO simulator drops to normal."""
-    with contextlib.suppress(AttributeError, OSError, PermissionError):
-        os.sched_setscheduler(threading.get_native_id(), os.SCHED_OTHER, os.sched_param(0))
-    with contextlib.suppress(OSError, PermissionError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 5)
-
-
 class SimCamera:
     """The cell's configured camera in the simulated world: renders the simulator's objects
     with mild, varying imaging conditions (each frame a little different, as a real one)."""
@@ -394,9 +383,10 @@ class SimCamera:
         self.grip_heights = grip_heights
         self.flange = flange
         self.frames = 0
-        self._executor = concurrent.futures.ThreadPoolExecutor(
-            1, "fxcell-sim-camera", initializer=_lower_thread_priority
-        )
+        # The renderer keeps the simulator's scheduling: a worker at a lower priority would be
+        # descheduled on a busy machine while it holds the GIL, and the control cycle waiting
+        # for the GIL would stall behind it (and the snapshot would take seconds).
+        self._executor = concurrent.futures.ThreadPoolExecutor(1, "fxcell-sim-camera")
 
     async def snapshot(self) -> bytes:
         """Take a frame (the world as it is now), rendered in the worker thread."""

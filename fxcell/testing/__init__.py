@@ -30,7 +30,6 @@ import tempfile
 import time
 from collections.abc import AsyncIterator, Iterator, Sequence
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import pytest
@@ -40,6 +39,7 @@ from fxcell.link import embedded
 from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 from fxcell.testing.fake import FakeLink, FakeRobot, FakeTrajectory
 from fxcell.testing.faults import injected_faults, watching_test
+from fxcell.testing.handles import ProcessHandle
 
 __all__ = [
     "FakeLink",
@@ -80,9 +80,11 @@ def fxcell_no_unplanned_faults(request: pytest.FixtureRequest) -> Iterator[None]
     with watching_test(request) as watch:
         yield
         unplanned = watch.unplanned()
+        stalls = watch.host_stalls() if unplanned else []
     if unplanned:
+        also = f" (the simulators' own stalls: {', '.join(stalls)})" if stalls else ""
         pytest.fail(
-            "unplanned faults (not injected by the test): " + "; ".join(unplanned[:10]),
+            "unplanned faults (not injected by the test): " + "; ".join(unplanned[:10]) + also,
             pytrace=False,
         )
 
@@ -107,7 +109,7 @@ async def fxcell_no_leaked_tasks() -> AsyncIterator[None]:
 # ----------------------------------------------------------------- the simulator
 
 
-class SimulatorHandle:
+class SimulatorHandle(ProcessHandle):
     """A running simulator subprocess on its own loopback address (``.host``).
 
     Use it with ``with`` or ``async with`` (see :func:`simulator`). ``inject`` triggers
@@ -213,29 +215,6 @@ class SimulatorHandle:
         self.wait_for("robot_mode", "IDLE", timeout)
         self.dashboard("brake release")
         self.wait_for("robot_mode", "RUNNING", timeout)
-
-    def __enter__(self) -> SimulatorHandle:
-        return self.start()
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
-
-    async def __aenter__(self) -> SimulatorHandle:
-        await asyncio.to_thread(self.start)
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await asyncio.to_thread(self.stop)
 
 
 def simulator(

@@ -35,8 +35,8 @@ import contextlib
 import itertools
 import logging
 import time
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from collections.abc import Awaitable, Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -46,21 +46,38 @@ from fxcell.config import CellConfig, RobotConfig
 from fxcell.errors import (
     ConnectionLostError,
     InvalidArgumentError,
+    LinkContractError,
     NotInRemoteControlError,
     RobotCommandError,
     RobotTimeoutError,
 )
-from fxcell.link.client import (
+from fxcell.link.contract import (
+    REQUESTS,
+    ControlMode,
+    Dashboard,
+    Guard,
+    LeaveServo,
     LinkStatus,
-    StateSubscription,
+    OutputGroup,
+    Ping,
+    Request,
+    ServoStop,
+    SetOutput,
+    SetTool,
+    StartControl,
+    StopControl,
+    StopReason,
+    TeachMode,
     TrajectoryProgress,
     TrajectoryResult,
+    TrajectoryStatus,
 )
 from fxcell.link.embedded import SimulatorState
-from fxcell.link.follower import Follower, Guard
+from fxcell.link.follower import Follower
+from fxcell.link.subscription import StateSubscription
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 from fxcell.sim.controller import Controller
-from fxcell.sim.dashboard import Dashboard
+from fxcell.sim.dashboard import Dashboard as DashboardServer
 from fxcell.sim.motion import Arm, SafetyLimitError, ServoTrack, TableGuard
 from fxcell.sim.script import SCRIPT_MARKER
 
@@ -113,7 +130,7 @@ class FakeRobot:
         self.calibration = Calibration.nominal()
         """What the fake controller reports as the arm's calibration (its arm is nominal)."""
         self.controller = Controller(self.arm, time_scale=time_scale)
-        self.dashboard = Dashboard(self.controller)
+        self.dashboard = DashboardServer(self.controller)
         self.controller.on_drop_rtde = self._drop_rtde
         self.controller.on_shutdown = self._shut_down
         self.controller.request_urcap_program = self._urcap_program
@@ -370,59 +387,76 @@ class FakeLink:
 
     async def close(self) -> None:
         if self._trajectory is not None:
-            self._trajectory.finish("failed", "link_lost")
+            self._trajectory.finish("failed", StopReason.LINK_LOST)
         if self in self.robot.links:
             self.robot.links.remove(self)
         await self.robot._stop()
         self._set_status(LinkStatus.CLOSED, "closed")
 
-    async def call(self, method: str, within: float = 5.0, **kwargs: Any) -> Any:
+    async def request(self, request: Request) -> object:
+        """Answer one request of the link contract as the link process would (its handler
+        from :data:`HANDLERS`, by its type)."""
+        handler = HANDLERS.get(type(request))
+        if handler is None:
+            raise LinkContractError(f"the fake link has no request {type(request).__name__}")
         self._check_up()
         self._sent += 1
-        robot = self.robot
-        c = robot.controller
-        if method == "dashboard":
-            return self._dashboard(str(kwargs["command"]))
-        if method == "ping":
-            return "pong"
-        if method == "start_control":
-            await self._start_control(kwargs["mode"], kwargs["program"], kwargs["timeout"])
-            return True
-        if method == "stop_control":
-            await self._stop_trajectory("external control stopped")
-            robot.servo_stop()
-            if c.script is not None or kwargs.get("mode") == "urcap":
-                c.stop("external control stopped")
-            self._set_control(False, "external control stopped")
-            return True
-        if method == "servo_stop":
-            await self._stop_trajectory("servo stop")
-            robot.servo_stop()
-            return self._control
-        if method == "set_output":
-            return self._set_output(kwargs["group"], int(kwargs["index"]), float(kwargs["value"]))
-        if method == "set_tool":
-            self._require_control("setting the tool")
-            robot.arm.set_tcp(kwargs["tcp"])
-            c.tcp = tuple(float(v) for v in kwargs["tcp"])
-            cog = tuple(float(v) for v in kwargs["cog"])
-            c.set_payload(float(kwargs["mass"]), (cog[0], cog[1], cog[2]))
-            return True
-        if method == "teach_mode":
-            await self._stop_trajectory("teach mode")
-            self._require_control("freedrive")
-            robot.servo_stop()
-            if kwargs["on"]:
-                c.enter_freedrive()
-            else:
-                c.end_freedrive()
-            return True
-        raise RobotCommandError(f"the fake link has no call {method!r}")
+        return await handler(self, request)
+
+    async def _do_dashboard(self, request: Dashboard) -> str:
+        return self._dashboard(request.command)
+
+    async def _do_ping(self, request: Ping) -> str:
+        return "pong"
+
+    async def _do_leave_servo(self, request: LeaveServo) -> bool:
+        return True
+
+    async def _do_start_control(self, request: StartControl) -> bool:
+        await self._start_control(request.mode, request.program, request.timeout)
+        return True
+
+    async def _do_stop_control(self, request: StopControl) -> bool:
+        robot, c = self.robot, self.robot.controller
+        await self._stop_trajectory(StopReason.EXTERNAL_CONTROL_STOPPED)
+        robot.servo_stop()
+        if c.script is not None or request.mode == "urcap":
+            c.stop("external control stopped")
+        self._set_control(False, "external control stopped")
+        return True
+
+    async def _do_servo_stop(self, request: ServoStop) -> bool:
+        await self._stop_trajectory(StopReason.SERVO_STOP)
+        self.robot.servo_stop()
+        return self._control
+
+    async def _do_set_output(self, request: SetOutput) -> bool:
+        return self._set_output(request.group, int(request.index), float(request.value))
+
+    async def _do_set_tool(self, request: SetTool) -> bool:
+        robot, c = self.robot, self.robot.controller
+        self._require_control("setting the tool")
+        robot.arm.set_tcp(list(request.tcp))
+        c.tcp = tuple(float(v) for v in request.tcp)
+        cog = tuple(float(v) for v in request.cog)
+        c.set_payload(float(request.mass), (cog[0], cog[1], cog[2]))
+        return True
+
+    async def _do_teach_mode(self, request: TeachMode) -> bool:
+        robot, c = self.robot, self.robot.controller
+        await self._stop_trajectory(StopReason.TEACH_MODE)
+        self._require_control("freedrive")
+        robot.servo_stop()
+        if request.on:
+            c.enter_freedrive()
+        else:
+            c.end_freedrive()
+        return True
 
     async def dashboard(self, command: str, within: float = 5.0) -> str:
-        reply: str = await self.call("dashboard", within, command=command)
-        return reply
+        return str(await self.request(Dashboard(command)))
 
+<<<<<<< HEAD
     async def read_calibration(self) -> Calibration:
         """The fake arm's calibration: all-zero deltas (it moves on the nominal model), as
         the kinematics info of an uncalibrated controller would say."""
@@ -430,9 +464,33 @@ class FakeLink:
 
     async def start_control(self, mode: str, program: str, within: float) -> None:
         await self.call("start_control", within + 10.0, mode=mode, program=program, timeout=within)
+=======
+    async def start_control(self, mode: ControlMode, program: str, within: float) -> None:
+        await self.request(StartControl(mode, program, within))
+>>>>>>> main
 
-    async def stop_control(self, mode: str, within: float = 5.0) -> None:
-        await self.call("stop_control", within, mode=mode)
+    async def stop_control(self, mode: ControlMode, within: float = 5.0) -> None:
+        await self.request(StopControl(mode))
+
+    async def servo_stop(self, within: float = 5.0) -> bool:
+        return bool(await self.request(ServoStop()))
+
+    async def set_output(
+        self, group: OutputGroup, index: int, value: float, within: float = 5.0
+    ) -> bool:
+        return bool(await self.request(SetOutput(group, index, value)))
+
+    async def set_tool(
+        self,
+        tcp: tuple[float, ...],
+        mass: float,
+        cog: tuple[float, float, float],
+        within: float = 5.0,
+    ) -> bool:
+        return bool(await self.request(SetTool(tuple(tcp), mass, cog)))
+
+    async def teach_mode(self, on: bool, within: float = 5.0) -> bool:
+        return bool(await self.request(TeachMode(on)))
 
     async def execute_trajectory(
         self,
@@ -454,7 +512,7 @@ class FakeLink:
         self._check_up()
         self._sent += 1
         if self._trajectory is not None:
-            self._trajectory._request_stop("superseded")
+            self._trajectory._request_stop(StopReason.SUPERSEDED)
         run = FakeTrajectory(self, next(self._ids), array, lookahead_time, gain, guard or Guard())
         self._trajectory = run
         return run
@@ -491,7 +549,7 @@ class FakeLink:
         except TimeoutError:
             raise RobotTimeoutError(f"timed out waiting for {what}") from None
 
-    async def _start_control(self, mode: str, program: str, within: float) -> None:
+    async def _start_control(self, mode: ControlMode, program: str, within: float) -> None:
         robot, c = self.robot, self.robot.controller
         if self._control and robot.control_running:
             self._set_control(True, "already running")
@@ -537,7 +595,7 @@ class FakeLink:
             raise InvalidArgumentError(f"no output group {group!r}")
         return True
 
-    async def _stop_trajectory(self, reason: str) -> None:
+    async def _stop_trajectory(self, reason: StopReason) -> None:
         """Brake a running trajectory to rest along its path and wait for its end (as the
         link process does before these calls)."""
         run = self._trajectory
@@ -574,8 +632,8 @@ class FakeLink:
         if self.status is LinkStatus.CLOSED:
             return
         if self._trajectory is not None:
-            self._trajectory._request_stop("link_down")
-            self._trajectory.finish("failed", "link_lost", keep_braking=True)
+            self._trajectory._request_stop(StopReason.LINK_DOWN)
+            self._trajectory.finish("failed", StopReason.LINK_LOST, keep_braking=True)
         self._down_until = None if back_after is None else time.monotonic() + back_after
         self._set_status(LinkStatus.DOWN, reason)
         self.restarts += 1
@@ -671,7 +729,7 @@ class FakeTrajectory:
             return self._replaced.result()
         return False
 
-    async def stop(self, reason: str = "stop requested") -> TrajectoryResult:
+    async def stop(self, reason: StopReason = StopReason.STOP_REQUESTED) -> TrajectoryResult:
         if not self.done:
             self.link._sent += 1
             self._request_stop(reason)
@@ -692,13 +750,13 @@ class FakeTrajectory:
 
     # -- the link's side
 
-    def _request_stop(self, reason: str) -> None:
+    def _request_stop(self, reason: StopReason) -> None:
         self._follower.stop(reason)
 
     def finish(
         self,
-        status: Literal["completed", "stopped", "failed"],
-        reason: str,
+        status: TrajectoryStatus,
+        reason: StopReason,
         *,
         keep_braking: bool = False,
     ) -> None:
@@ -747,13 +805,16 @@ class FakeTrajectory:
             return
         if not robot.servo(out.target, self.lookahead, self.gain):
             first = follower.u == 0
-            self._finish_here("failed", "no_external_control" if first else "servoj_refused")
+            self._finish_here(
+                "failed",
+                StopReason.NO_EXTERNAL_CONTROL if first else StopReason.SERVOJ_REFUSED,
+            )
             return
         if out.progress is not None:
             self._report_progress(out.progress, len(follower.samples), out.target)
         follower.advance(now, now + CONTROL_PERIOD)
 
-    def _finish_here(self, status: Literal["completed", "stopped", "failed"], reason: str) -> None:
+    def _finish_here(self, status: TrajectoryStatus, reason: StopReason) -> None:
         if self._detached:
             self._end()
         else:
@@ -771,6 +832,21 @@ class FakeTrajectory:
         )
         self._progress_event.set()
 
+
+HANDLERS: dict[type[Request], Callable[[FakeLink, Any], Awaitable[object]]] = {
+    Dashboard: FakeLink._do_dashboard,
+    Ping: FakeLink._do_ping,
+    LeaveServo: FakeLink._do_leave_servo,
+    StartControl: FakeLink._do_start_control,
+    StopControl: FakeLink._do_stop_control,
+    ServoStop: FakeLink._do_servo_stop,
+    SetOutput: FakeLink._do_set_output,
+    SetTool: FakeLink._do_set_tool,
+    TeachMode: FakeLink._do_teach_mode,
+}
+"""Each request type's handler in the fake (the same table as the link process's)."""
+if set(HANDLERS) != set(REQUESTS):  # pragma: no cover - caught by the unit tests too
+    raise ImportError(f"fake link requests without a handler: {set(REQUESTS) - set(HANDLERS)}")
 
 if TYPE_CHECKING:
     from fxcell.link.backend import LinkFactory

@@ -2,7 +2,9 @@
 
 While a system test runs, :class:`FaultWatch` counts
 
-- robot-link losses of this process (the link client's ``robot link to ... down`` warning),
+- robot-link losses of this process (the link client's ``robot link to ... down`` warning)
+  and the moves its link process braked on its own guard (a stalled state stream, a silent
+  cell: ``robot link to ... braked a move by itself``),
 - those of the daemons the test talks to (the same line in their output), and
 - the faults of the simulators it uses (the simulator's own fault log: safety stops, its
   own or injected, watchdog stops, injected faults),
@@ -17,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import re
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,7 +29,7 @@ import pytest
 from fxcell.daemon.process import DaemonProcess
 from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 
-_LINK_DOWN = re.compile(r"robot link to \S+ down: (.*)")
+_LINK_DOWN = re.compile(r"robot link to \S+ (down|braked a move by itself): (.*)")
 
 
 @dataclass
@@ -36,9 +39,9 @@ class _Counts:
     sims: dict[int, list[str]] = field(default_factory=dict)
 
     def total(self) -> list[str]:
-        out = [f"link down: {r}" for r in self.link]
+        out = [f"link {r}" for r in self.link]
         for lines in self.daemons.values():
-            out += [f"daemon's link down: {r}" for r in lines]
+            out += [f"daemon's link {r}" for r in lines]
         for faults in self.sims.values():
             out += [f"simulator: {f}" for f in faults]
         return out
@@ -63,7 +66,7 @@ class FaultWatch(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         match = _LINK_DOWN.match(record.getMessage())
         if match:
-            self._link.append(match.group(1))
+            self._link.append(_fault(match))
 
     def _on_daemon(self, daemon: DaemonProcess) -> None:
         self._daemons[id(daemon)] = daemon
@@ -85,7 +88,7 @@ class FaultWatch(logging.Handler):
     def _counts(self) -> _Counts:
         counts = _Counts(list(self._link))
         for key, daemon in self._daemons.items():
-            lines = [m.group(1) for m in map(_LINK_DOWN.search, list(daemon.output)) if m]
+            lines = [_fault(m) for m in map(_LINK_DOWN.search, list(daemon.output)) if m]
             counts.daemons[key] = lines
         for key, sim in self._sims.items():
             if key in self._sim_final:
@@ -102,9 +105,9 @@ class FaultWatch(logging.Handler):
 
     def _new_since(self, base: _Counts) -> list[str]:
         now = self._counts()
-        new = [f"link down: {r}" for r in now.link[len(base.link) :]]
+        new = [f"link {r}" for r in now.link[len(base.link) :]]
         for key, lines in now.daemons.items():
-            new += [f"daemon's link down: {r}" for r in lines[len(base.daemons.get(key, [])) :]]
+            new += [f"daemon's link {r}" for r in lines[len(base.daemons.get(key, [])) :]]
         for key, faults in now.sims.items():
             new += [f"simulator: {f}" for f in faults[len(base.sims.get(key, [])) :]]
         return new
@@ -121,6 +124,18 @@ class FaultWatch(logging.Handler):
 
     def unplanned(self) -> list[str]:
         return self._unplanned + self._new_since(self._baseline)
+
+    def host_stalls(self) -> list[str]:
+        """The watched simulators' own stalls (a busy host), to explain a fault with."""
+        out = []
+        for sim in self._sims.values():
+            if not sim.running:
+                continue
+            with contextlib.suppress(Exception):
+                for ended, length in sim.state().get("stalls", []):
+                    at = time.strftime("%H:%M:%S", time.localtime(ended))
+                    out.append(f"{length * 1e3:.0f} ms until {at}.{int(ended % 1 * 1e3):03d}")
+        return out
 
     # -- installation
 
@@ -149,6 +164,11 @@ def _watchable(values: list[Any]) -> list[Any]:
 
 
 _HOLDERS = ("handle", "sim", "daemon", "_simulator")
+
+
+def _fault(match: re.Match[str]) -> str:
+    """``down: why`` or ``braked a move by itself: why`` from a link client's warning."""
+    return f"{match.group(1)}: {match.group(2)}"
 
 
 def _faults(state: SimulatorState) -> list[str]:

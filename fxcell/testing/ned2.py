@@ -6,18 +6,17 @@ Test support: the runtime never imports it.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import random
 import time
 from collections.abc import Sequence
-from types import TracebackType
 from typing import Any
 
 from fxcell.errors import InvalidArgumentError, SimulatorError
 from fxcell.link.embedded import EmbeddedSimulator, address_is_free
 from fxcell.sim.ned2 import FAULTS, PORTS
 from fxcell.sim.ned2.server import request
+from fxcell.testing.handles import ProcessHandle
 
 __all__ = ["Ned2SimulatorHandle", "free_ned2_host", "ned2_simulator"]
 
@@ -57,7 +56,7 @@ class _Process(EmbeddedSimulator):
         raise SimulatorError(f"Ned2 simulator did not start: {last}")
 
 
-class Ned2SimulatorHandle:
+class Ned2SimulatorHandle(ProcessHandle):
     """A running Ned2 simulator (``.host``): pyniryo connects to ``host`` on 40001.
 
     ``inject`` a fault (:data:`fxcell.sim.ned2.FAULTS`), read its ``state()``, put an
@@ -114,29 +113,6 @@ class Ned2SimulatorHandle:
             if time.monotonic() > deadline:
                 raise TimeoutError(f"Ned2 simulator {key} is {current!r}, not {value!r}")
             time.sleep(0.01)
-
-    def __enter__(self) -> Ned2SimulatorHandle:
-        return self.start()
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
-
-    async def __aenter__(self) -> Ned2SimulatorHandle:
-        await asyncio.to_thread(self.start)
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await asyncio.to_thread(self.stop)
 
 
 def ned2_simulator(

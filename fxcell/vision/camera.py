@@ -65,7 +65,7 @@ class SnapshotCamera:
         try:
             answer = await self._client.get(self.url)
         except httpx.HTTPError as exc:
-            raise CameraError(f"{self.description}: {exc or type(exc).__name__}") from None
+            raise CameraError(f"{self.description}: {str(exc) or type(exc).__name__}") from None
         if answer.status_code != 200:
             raise CameraError(f"{self.description}: HTTP {answer.status_code}")
         return await asyncio.to_thread(decode_jpeg, answer.content, self.description)

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 import pytest
 from rtde_control import RTDEControlInterface
 from rtde_receive import RTDEReceiveInterface
+from waiting import wait_until
 
 from fxcell.errors import SimulatorError
 from fxcell.link.embedded import SimulatorState
@@ -20,14 +21,6 @@ from .test_sim_primary import Messages
 from .test_sim_rtde import dh_forward, rotvec_matrix
 
 START = [0.0, -1.2, 1.2, -1.57, -1.57, 0.0]  # tool down, well inside the workspace
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 5.0, what: str = "it") -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.002)
 
 
 def fresh(r: RTDEReceiveInterface) -> RTDEReceiveInterface:
@@ -270,7 +263,9 @@ def test_payload_and_steady_state_are_reported(ready: Robot) -> None:
 @pytest.mark.injects_faults("the client starves the RTDE watchdog")
 def test_watchdog_stops_the_program_when_the_client_starves_it(ready: Robot) -> None:
     c = ready.c
-    assert c.setWatchdog(20.0)
+    # 5 Hz: starved after 200 ms without a kick. At 20 Hz (50 ms) a test process descheduled
+    # between two of its kicks on a busy machine starved it while it was still kicking.
+    assert c.setWatchdog(5.0)
     end = time.monotonic() + 0.4
     while time.monotonic() < end:
         assert c.kickWatchdog()

@@ -7,23 +7,15 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 
 import pytest
 from dashboard_client import DashboardClient
+from waiting import wait_until
 
 from fxcell.cli import main
 from fxcell.errors import InvalidArgumentError, SimulatorError
 from fxcell.link.embedded import EmbeddedSimulator, address_is_free, free_loopback_host
 from fxcell.testing import SimulatorHandle, simulator
-
-
-def wait_until(predicate: object, timeout: float = 5.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.01)
 
 
 class RawDashboard:

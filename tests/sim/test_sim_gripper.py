@@ -5,14 +5,15 @@ from __future__ import annotations
 import math
 import socket
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
 from pyrobotiqur import RobotiqGripper
 from pyrobotiqur.enums import GripperStatus, ObjectStatus
+from waiting import controller_time_passed, wait_until
 
-from fxcell.sim.gripper import STROKE, position_of, width_of
+from fxcell.sim.gripper import ACTIVATION_TIME, STROKE, position_of, width_of
 from fxcell.testing import TEST_TIME_SCALE, SimulatorHandle, simulator
 
 PORT = 63352
@@ -21,14 +22,6 @@ CRUCIBLE_WIDTH = 0.032
 PICK = [0.0, -1.2, 1.2, -1.57, -1.57, 0.0]
 PLACE = [0.6, -1.1, 1.1, -1.57, -1.57, 0.0]
 EMPTY = [-0.6, -1.3, 1.3, -1.57, -1.57, 0.0]
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 5.0, what: str = "it") -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.005)
 
 
 class Raw:
@@ -176,7 +169,7 @@ def test_picked_object_moves_with_the_tcp_and_stays_where_released(
     assert raw.wait_stopped() == 3
     assert sim.gripper()["held"] is None
     sim.set_joints(EMPTY)
-    time.sleep(0.05)
+    controller_time_passed(sim, 0.05)  # 25 cycles in which a held crucible would follow
     placed = sim.objects()["crucible_a"]
     assert not placed["held"]
     assert np.linalg.norm(np.array(placed["pose"][:3]) - target) < 1e-3
@@ -187,12 +180,12 @@ def test_injected_fault_stops_the_fingers_until_reactivated(sim: SimulatorHandle
     raw.activate()
     raw.go(0)
     raw.wait_stopped()
-    raw.go(255, spe=0)
-    time.sleep(0.3 * 2.5 * TEST_TIME_SCALE)
+    raw.go(255, spe=0)  # a full stroke takes 2.5 s (scaled)
+    wait_until(lambda: raw.get("POS") > 0, what="the fingers to start closing")
     sim.inject("gripper_fault", "0x0E")
     assert raw.get("FLT") == 0x0E
     stopped = raw.get("POS")
-    time.sleep(2.5 * TEST_TIME_SCALE)
+    controller_time_passed(sim, 2.5 * TEST_TIME_SCALE)  # the rest of the stroke, and more
     assert raw.get("POS") == stopped < 255
     assert raw.get("OBJ") == 0
     raw.activate()
@@ -212,7 +205,7 @@ def test_dropped_object_stays_and_the_fingers_close_on(sim: SimulatorHandle, raw
     assert raw.wait_stopped() == 3
     assert raw.get("POS") == 255
     sim.set_joints(EMPTY)
-    time.sleep(0.05)
+    controller_time_passed(sim, 0.05)  # 25 cycles in which a held bead would follow
     bead = sim.objects()["bead_a"]
     assert not bead["held"]
     assert math.dist(bead["pose"][:3], where) < 1e-6
@@ -229,7 +222,7 @@ def test_without_tool_power_the_gripper_loses_and_cannot_regain_activation(
     sim.wait_for("robot_mode", "POWER_OFF")
     wait_until(lambda: raw.get("STA") == 0, what="the activation to be lost")
     assert raw.ask("SET ACT 1") == "ack"
-    time.sleep(3 * 1.0 * TEST_TIME_SCALE)
+    controller_time_passed(sim, 3 * ACTIVATION_TIME * TEST_TIME_SCALE)  # 3 activations' time
     assert raw.get("STA") != 3
     sim.bring_up()
     raw.activate()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import signal
 import socket
 import struct
 import time
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 from rtde_io import RTDEIOInterface
 from rtde_receive import RTDEReceiveInterface
+from waiting import wait_until
 
 from fxcell.sim.server import default_calibration
 from fxcell.testing import SimulatorHandle
@@ -115,10 +117,14 @@ def test_receive_default_recipe_streams_at_500_hz(sim: SimulatorHandle) -> None:
             if not stamps or t != stamps[-1]:
                 stamps.append(t)
             time.sleep(0.0003)
-        steps = np.diff(stamps)
-        # the client keeps only the newest packet: a busy test process may skip a few
-        assert len(stamps) > 300
-        assert np.median(steps) == pytest.approx(0.002, abs=1e-9)
+        # The client keeps only the newest packet: a test process that a busy machine
+        # deschedules misses some (it saw 248 of 500 once), so the rate is read from the
+        # controller's timestamps: packets one 2 ms cycle apart, gaps only whole cycles,
+        # and a controller clock that kept pace with the second of sampling.
+        cycles = np.diff(stamps) / 0.002
+        assert np.allclose(cycles, np.round(cycles), atol=1e-6)
+        assert cycles.min() == pytest.approx(1.0, abs=1e-6)
+        assert stamps[-1] - stamps[0] > 0.8
         assert r.getRobotMode() == 3
         assert r.getSafetyMode() == 1
         assert r.getRuntimeState() == 1
@@ -192,9 +198,11 @@ def test_raw_protocol_versions_recipes_and_frequency(sim: SimulatorHandle) -> No
             assert struct.unpack_from(">id", payload, 1) == (42, 1.5)
             # the registers belong to the first connection
             assert other.ask(b"I", b"input_int_register_5") == b"\x00IN_USE"
-            c.close()
-            time.sleep(0.1)
-            assert other.ask(b"I", b"input_int_register_5") == b"\x01INT32"
+            c.close()  # the simulator frees them once it sees the connection gone
+            wait_until(
+                lambda: other.ask(b"I", b"input_int_register_5") == b"\x01INT32",
+                what="the closed connection's registers to be free again",
+            )
         finally:
             other.close()
     finally:
@@ -253,3 +261,26 @@ def test_the_simulator_raises_its_priority_unless_told_to_stay_normal(
         monkeypatch.setenv(server.PRIORITY_ENV, env)
     server._raise_priority()
     assert bool(calls) is reniced
+
+
+@pytest.mark.injects_faults("the simulator's process stopped for 0.2 s (SIGSTOP)")
+def test_a_simulator_that_did_not_get_to_run_reports_its_stall(sim: SimulatorHandle) -> None:
+    c = RawRTDE(sim.host)
+    try:
+        assert c.ask(b"V", struct.pack(">H", 2)) == b"\x01"
+        assert c.ask(b"O", struct.pack(">d", 500.0) + b"timestamp") == b"\x01DOUBLE"
+        assert c.ask(b"S") == b"\x01"
+        before = len(sim.state()["stalls"])  # a busy machine may have stalled it already
+        process = sim._sim.process
+        assert process is not None
+        process.send_signal(signal.SIGSTOP)
+        time.sleep(0.2)  # the length of the stall itself
+        process.send_signal(signal.SIGCONT)
+        c.recv()  # the controller runs again
+        stalls = sim.state()["stalls"][before:]
+        assert stalls, "the simulator did not report the 0.2 s it was stopped"
+        ended, length = max(stalls, key=lambda stall: stall[1])
+        assert 0.19 <= length < 2.0
+        assert abs(ended - time.time()) < 5.0
+    finally:
+        c.close()
