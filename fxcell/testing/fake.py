@@ -456,18 +456,13 @@ class FakeLink:
     async def dashboard(self, command: str, within: float = 5.0) -> str:
         return str(await self.request(Dashboard(command)))
 
-<<<<<<< HEAD
     async def read_calibration(self) -> Calibration:
         """The fake arm's calibration: all-zero deltas (it moves on the nominal model), as
         the kinematics info of an uncalibrated controller would say."""
         return self.robot.calibration
 
-    async def start_control(self, mode: str, program: str, within: float) -> None:
-        await self.call("start_control", within + 10.0, mode=mode, program=program, timeout=within)
-=======
     async def start_control(self, mode: ControlMode, program: str, within: float) -> None:
         await self.request(StartControl(mode, program, within))
->>>>>>> main
 
     async def stop_control(self, mode: ControlMode, within: float = 5.0) -> None:
         await self.request(StopControl(mode))
