@@ -35,12 +35,21 @@ from fxcell.motion.kinematics import (
     _compose,
     _joints,
     _near,
-    _twist_to,
     dh_transform,
 )
 
+try:
+    from fxcell.motion._dhchain import Chain
+
+    NATIVE = True
+    """Whether the calibrated chain runs in C (``fxcell/motion/_dhchain.c``, hatch_build.py)."""
+except ImportError:  # not built (no C compiler): the same computations in Python
+    Chain = DHChain  # type: ignore[assignment,misc]
+    NATIVE = False
+
 if TYPE_CHECKING:
     from fxcell.config import CellConfig, JointLimits
+
 
 CONVERGED = 1e-12
 """Pose error norm (m and rad together) at which refinement stops."""
@@ -58,23 +67,22 @@ _SAME_START = 0.05
 """Radians (per joint) within which two starting points count as one."""
 _EDGE_TURN = 0.02
 """Radians by which a target near a wrist singularity is turned to find starts."""
-_CORRECTIONS = 3
-"""Offset corrections of a start Newton's steps did not bring to a solution (each followed by
-Newton steps again): see :meth:`CalibratedKinematics._corrected_newton`."""
-_SETTLE_ITERATIONS = 60
-"""Levenberg-Marquardt steps the hot path gives a start that Newton's steps and the offset
-corrections did not bring to a solution (see :meth:`DHChain.settle`)."""
+_SETTLE_ITERATIONS = 400
+"""Levenberg-Marquardt steps the hot path gives a start that Newton's steps did not bring to a
+solution (see :meth:`DHChain.settle`)."""
 _STATIONARY = 1e-6
 """``‖Jᵀe‖ / (‖J‖·‖e‖)`` below which a start that did not converge has reached a local minimum
 of the error: the branch has no calibrated solution, and is no rival."""
-_RIVAL_MARGIN = 1.0
-"""Radians (Euclidean in joint space) beyond the nearest nominal branch's distance from the
-seed within which the hot path of :meth:`CalibratedKinematics.inverse` looks for a rival."""
-_RIVAL_FACTOR = 3.0
-"""How much farther than the refined branch moved a rival branch is assumed to move."""
-_NEAR_SEED = 0.2
-"""Radians (Euclidean) from the seed within which the hot path trusts the nominal branches of
-the target alone (beyond, it also refines the branch of the seed-corrected target)."""
+_RIVAL_FACTOR = 2.0
+"""How much farther than its first Newton step a nominal start is assumed to move at most
+when refined (see :meth:`DHChain.nearest`)."""
+_BRANCHES = 8
+"""The nominal closed form's branches where none is missing (2 shoulders, 2 wrists, 2 elbows)."""
+_START_SLACK = 0.2
+"""Radians by which the hot path widens the joint limits for its nominal starts."""
+_SINGULAR_MOVE = 0.1
+"""Radians (Euclidean): a nominal start whose first Newton step is longer is next to a
+singularity, where the hot path refines the branches of the seed-corrected target too."""
 
 
 BRANCH_TOLERANCE = 0.05
@@ -98,10 +106,21 @@ class CalibratedKinematics(Kinematics):
         super().__init__(UR3E_DH, tcp, limits)
         self.calibration = calibration
         self.nominal = Kinematics(UR3E_DH, self.tcp, (self.lower, self.upper))
+        # the hot path's starts: the nominal model with the limits widened by _START_SLACK,
+        # so that a branch whose calibrated solution is just inside a limit its nominal one
+        # is just beyond still has its start, at its distance from the seed
+        self._starts = Kinematics(
+            UR3E_DH,
+            self.tcp,
+            (
+                [v - _START_SLACK for v in self.lower],
+                [v + _START_SLACK for v in self.upper],
+            ),
+        )
         theta, a, d, alpha = calibration.dh()
         # Rz(q + θ)·Tz(d)·Tx(a)·Rx(α) = Rz(q)·C with C fixed per joint
         self._links = [dh_transform(theta[j], d[j], a[j], alpha[j]) for j in range(6)]
-        self._chain = DHChain(theta, a, d, alpha, self._tcp)
+        self._chain = Chain(theta, a, d, alpha, self._tcp)
         self.fallbacks = 0
         """Calls of :meth:`inverse` (without ``valid`` or a margin) that the hot path left to
         the general one (the benchmark reports it)."""
@@ -172,8 +191,9 @@ class CalibratedKinematics(Kinematics):
         instead of a few Newton steps (for starts far from a solution)."""
         start = _joints(q_nominal)
         if patient:
-            q, err = self._marquardt(np.array(start), target)
-            qq: list[float] = q.tolist()
+            qq, err, _ = self._chain.settle(
+                start, _rows(target), _PATIENT_ITERATIONS, CONVERGED, 0.0
+            )
         else:
             qq, err = self._chain.newton(start, _rows(target), _ITERATIONS, CONVERGED, _ROUNDING)
         if err > ACCEPTED:
@@ -276,121 +296,60 @@ class CalibratedKinematics(Kinematics):
         yield [seed]
 
     def _nearest_fast(self, target: Pose, seed: list[float]) -> FloatArray | None:
-        """The hot path of :meth:`inverse`: the nominal solutions nearest ``seed`` (within
-        _RIVAL_MARGIN of the nearest) refined by Newton steps, the nearest result if no
-        other branch could come nearer once refined; else None (the general path decides).
+        """The hot path of :meth:`inverse`: every nominal branch refined (in C when
+        :data:`NATIVE`, see :meth:`DHChain.nearest`), the result nearest the seed; None to
+        leave the decision to the general path.
 
         The deltas move a solution by up to a few tenths of a radian (millimetres over the
         UR3e's ~0.1 m lever arms; more next to a singularity), and may so reorder branches
-        that the nominal solution puts about equally far from the seed. Any branch outside
-        the margin is assumed to move at most _RIVAL_FACTOR times as far as the farthest
-        refined. At the edge of the nominal workspace (arm nearly stretched or folded) the
-        deltas can add a branch the nominal arm lacks: the general path looks for it."""
+        that the nominal solution puts about equally far from the seed: each branch's first
+        Newton step bounds how near its solution can come, and only those whose bound beats
+        the best found are refined. Next to a singularity (a first step over
+        _SINGULAR_MOVE), where the nominal arm lacks a branch or at the edge of its
+        workspace, the branches of the target
+        corrected by the offset at the seed are refined too: the deltas can take the seed's
+        own branch out of the nominal solutions of the target (a wrist near θ5 = 0 turns by
+        tenths of a radian per millimetre)."""
         goal = _rows(target)
-        # within _RIVAL_MARGIN of the nearest nominal branch first; if none converges or a
-        # branch beyond could still come nearer once refined, every branch (still far cheaper
-        # than the general path)
-        refined: dict[tuple[float, ...], tuple[list[float], float, bool]] = {}
-        for margin in (_RIVAL_MARGIN, math.inf):
-            nearest, candidates, bound, _ = self.nominal.nearest_within(
-                target, seed, margin, lenient=True
-            )
-            if nearest is None:
-                return None
-            best: list[float] | None = None
-            best_d = math.inf
-            moved = 0.0
-            unrefined = math.inf  # the nearest nominal solution that did not converge
-            for d_nominal, start in candidates:
-                if best is not None and math.sqrt(d_nominal) > (
-                    math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
-                ):
-                    break  # this one and the rest (farther) cannot come nearer
-                key = tuple(start)
-                if key not in refined:  # the second margin's round refines each start once
-                    refined[key] = self._refine_start(start, goal)
-                q, err, absent = refined[key]
-                if err > ACCEPTED:
-                    if not absent:
-                        unrefined = min(unrefined, d_nominal)
-                    continue
-                m = sum((a - b) * (a - b) for a, b in zip(q, start, strict=True))
-                moved = max(moved, m)
-                shifted = self._shifted(q, seed)
-                if shifted is None:
-                    continue
-                d = sum((a - b) * (a - b) for a, b in zip(shifted, seed, strict=True))
-                if d < best_d:
-                    best, best_d = shifted, d
-            if best is None:
-                continue  # none within the margin converged: every branch
-            # every branch not refined, moved as far, stays farther than the best found
-            reach = math.sqrt(best_d) + _RIVAL_FACTOR * math.sqrt(moved) + 1e-9
-            if math.sqrt(unrefined) <= reach:
-                return None
-            if math.sqrt(bound) > reach:
-                break
-        else:
+        starts = self._starts
+        nearest, candidates, _, edge = starts.nearest_within(target, seed, math.inf, lenient=True)
+        if nearest is None:
             return None
-        if best_d > _NEAR_SEED * _NEAR_SEED:
-            # Next to a singularity the deltas can take the seed's own branch out of the
-            # nominal solutions of the target (a wrist near θ5 = 0 turns by tenths of a
-            # radian per millimetre); the target corrected by the offset at the seed has it.
+        best, best_d, largest, unrefined = self._refine(candidates, goal, seed)
+        if best is None or unrefined <= math.sqrt(best_d):
+            return None
+        if edge or largest > _SINGULAR_MOVE or len(candidates) < _BRANCHES:
             corrected = _compose(
-                _compose(self.nominal.forward_rows(seed), _inverse_rows(self._chain.frame(seed))),
+                _compose(starts.forward_rows(seed), _inverse_rows(self._chain.frame(seed))),
                 goal,
             )
-            own = self.nominal.nearest_within(_pose(corrected), seed, 0.0, lenient=True)[0]
-            if own is None or max(abs(a - b) for a, b in zip(own, best, strict=True)) < (
-                BRANCH_TOLERANCE
-            ):
-                return np.array(best)  # no such branch, or the one found
-            q, err = self._chain.newton(own, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
-            if err > ACCEPTED:
-                q, err = self._corrected_newton(own, goal)
-            shifted = self._shifted(q, seed) if err <= ACCEPTED else None
-            if shifted is not None:
-                d = sum((a - b) * (a - b) for a, b in zip(shifted, seed, strict=True))
-                if d < best_d - 1e-12:
-                    return np.array(shifted)
+            own, candidates, _, _ = starts.nearest_within(
+                _pose(corrected), seed, math.inf, lenient=True
+            )
+            if own is not None:
+                q, d, _, _ = self._refine(candidates, goal, seed)
+                if q is not None and d < best_d:
+                    best = q
         return np.array(best)
 
-    def _refine_start(
-        self, start: list[float], goal: list[float]
-    ) -> tuple[list[float], float, bool]:
-        """A nominal start refined by the hot path: Newton's steps, then the offset
-        corrections, then Levenberg-Marquardt; the joints, the error norm left and, when it
-        did not converge, whether it ended at a local minimum of the error (the branch has no
-        calibrated solution: the target is beyond its reach)."""
-        q, err = self._chain.newton(start, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
-        if err > ACCEPTED:
-            q, err = self._corrected_newton(start, goal)
-        if err <= ACCEPTED:
-            return q, err, False
-        q, err, gradient = self._chain.settle(
-            start, goal, _SETTLE_ITERATIONS, CONVERGED, _STATIONARY
+    def _refine(
+        self, starts: list[tuple[float, list[float]]], goal: list[float], seed: list[float]
+    ) -> tuple[list[float] | None, float, float, float]:
+        """:meth:`DHChain.nearest` with the hot path's settings."""
+        return self._chain.nearest(
+            starts,
+            goal,
+            seed,
+            self.lower,
+            self.upper,
+            _FAST_ITERATIONS,
+            _SETTLE_ITERATIONS,
+            CONVERGED,
+            _ROUNDING,
+            _STATIONARY,
+            ACCEPTED,
+            _RIVAL_FACTOR,
         )
-        return q, err, err > ACCEPTED and gradient <= _STATIONARY
-
-    def _corrected_newton(self, start: list[float], goal: list[float]) -> tuple[list[float], float]:
-        """Newton steps from ``start`` once it is corrected by the calibration's offset:
-        up to _CORRECTIONS times the nominal solution (lenient, nearest the last) for the goal
-        moved by the calibrated arm's error at the last, ``goal · F_cal(q)⁻¹ · F_nom(q)``;
-        for starts next to a singularity, where the nominal branch is too far for Newton's
-        steps (returns the last joints and the error norm left)."""
-        q, err = start, math.inf
-        for _ in range(_CORRECTIONS):
-            moved = _compose(
-                _compose(goal, _inverse_rows(self._chain.frame(q))), self.nominal.forward_rows(q)
-            )
-            nxt = self.nominal.nearest_within(_pose(moved), q, 0.0, lenient=True)[0]
-            if nxt is None:
-                break
-            q = nxt
-            q, err = self._chain.newton(q, goal, _FAST_ITERATIONS, CONVERGED, _ROUNDING)
-            if err <= ACCEPTED:
-                break
-        return q, err
 
     def inverse(
         self,
@@ -448,37 +407,6 @@ class CalibratedKinematics(Kinematics):
         out = list(self._solutions(target, s))
         out.sort(key=lambda q: float(np.sum((q - s) ** 2)))
         return out
-
-    def _marquardt(self, q: FloatArray, target: Pose) -> tuple[FloatArray, float]:
-        """Levenberg-Marquardt (diagonal scaling) on the TCP pose error, for far starts."""
-        goal = _rows(target)
-
-        def evaluate(q: FloatArray) -> tuple[FloatArray, FloatArray]:
-            frame, jac = self._chain.frame_and_jacobian(q.tolist())
-            return np.array(_twist_to(frame, goal)), np.array(jac).reshape(6, 6)
-
-        err, J = evaluate(q)
-        norm = float(np.linalg.norm(err))
-        lam = 1e-4
-        for _ in range(_PATIENT_ITERATIONS):
-            if norm < CONVERGED:
-                break
-            A = J.T @ J
-            try:
-                step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), J.T @ err)
-            except np.linalg.LinAlgError:
-                break
-            trial = q + step
-            trial_err, J_trial = evaluate(trial)
-            trial_norm = float(np.linalg.norm(trial_err))
-            if trial_norm < norm:
-                q, J, err, norm = trial, J_trial, trial_err, trial_norm
-                lam = max(lam / 3.0, 1e-12)
-            else:
-                lam *= 4.0
-                if lam > 1e8:
-                    break
-        return q, norm
 
 
 def _inverse_rows(f: list[float]) -> list[float]:

@@ -1473,6 +1473,86 @@ class DHChain:
                     break
         return qq, norm, gradient
 
+    def nearest(
+        self,
+        starts: Sequence[tuple[float, Sequence[float]]],
+        target: Sequence[float],
+        seed: Sequence[float],
+        lower: Sequence[float],
+        upper: Sequence[float],
+        newton_iterations: int,
+        settle_iterations: int,
+        converged: float,
+        rounding: float,
+        stationary: float,
+        accepted: float,
+        factor: float,
+    ) -> tuple[list[float] | None, float, float, float]:
+        """Each start refined toward ``target``, the solution nearest ``seed``.
+
+        ``starts``: (distance², joints) pairs (as :meth:`Kinematics.nearest_within` gives
+        them; the distances are not used). Each start's distance from the seed (each joint's
+        difference wrapped into ±π) less ``factor`` × its first Newton step (how far
+        refinement moves it, to first order) bounds its solution's distance from below; the
+        starts are refined in the order of that bound, and the search ends at one whose
+        bound exceeds the best solution's distance. Refined: :meth:`newton`, then
+        :meth:`settle` if that leaves an error above ``accepted``; a solution's joints are
+        shifted by 2π toward the seed within [lower, upper] (dropped if none fits).
+        Returns the best joints (None: none), their distance², the largest first step of
+        the starts refined (large: next to a singularity) and the smallest bound of a start that
+        neither converged nor reached a local minimum of the error (inf: none).
+        ``fxcell.motion._dhchain.Chain.nearest`` is this in C."""
+        n = len(starts)
+        qs = [[float(v) for v in start] for _, start in starts]
+        bounds = [0.0] * n
+        steps = [0.0] * n
+        largest = 0.0
+        for i in range(n):
+            step = steps[i] = self._first_step(qs[i], target)
+            d = 0.0
+            for k in range(6):
+                w = qs[i][k] - seed[k]
+                w -= TWO_PI * round(w * _INV_TWO_PI)
+                d += w * w
+            bounds[i] = math.sqrt(d) - factor * step
+        order = sorted(range(n), key=lambda i: bounds[i])
+        best: list[float] | None = None
+        best_d = math.inf
+        unrefined = math.inf
+        for i in order:
+            if best is not None and bounds[i] > math.sqrt(best_d) + 1e-9:
+                break  # it and the rest cannot come nearer
+            largest = max(largest, steps[i])
+            q, err = self.newton(qs[i], target, newton_iterations, converged, rounding)
+            if err > accepted:
+                q, err, gradient = self.settle(
+                    qs[i], target, settle_iterations, converged, stationary
+                )
+                if err > accepted:
+                    if not gradient <= stationary and bounds[i] < unrefined:
+                        unrefined = bounds[i]
+                    continue
+            shifted = [0.0] * 6
+            d = 0.0
+            inside = True
+            for k in range(6):
+                w = _near(q[k], seed[k], lower[k], upper[k])
+                if w != w:
+                    inside = False
+                    break
+                shifted[k] = w
+                d += (w - seed[k]) * (w - seed[k])
+            if inside and d < best_d:
+                best, best_d = shifted, d
+        return best, best_d, largest, unrefined
+
+    def _first_step(self, q: list[float], target: Sequence[float]) -> float:
+        """The length of the first Newton step from ``q`` toward ``target`` (inf where the
+        Jacobian is singular to rounding)."""
+        frame, jac = self.frame_and_jacobian(q)
+        step = _solve6(jac, _twist_to(frame, target), 0.0)
+        return math.inf if step is None else _norm6(step)
+
 
 def _gradient_ratio(jac: list[float], err: list[float], norm: float) -> float:
     """``‖Jᵀe‖ / (‖J‖_F·‖e‖)``: 0 where the error ``e`` (norm ``norm``) is stationary."""
