@@ -197,7 +197,7 @@ def test_the_c_chain_computes_what_dhchain_does(
     seed = [v + 10.0 * d for v, d in zip(q, far, strict=True)]
     starts = [(0.0, start), (0.0, wide), (0.0, seed)]
     lower, upper = [-2.0 * math.pi] * 6, [2.0 * math.pi] * 6
-    args = (starts, goal, seed, lower, upper, 8, 60, 1e-12, 1e-11, 1e-6, 1e-9, 2.0)
+    args = (starts, goal, seed, lower, upper, 8, 60, 1e-12, 1e-11, 1e-6, 1e-9, 3.0, 0.2)
     assert fast.nearest(*args) == slow.nearest(*args)
 
 
@@ -212,4 +212,6 @@ def test_the_c_chain_rejects_malformed_input() -> None:
         chain.frame(["a"] * 6)
     lims = ([-7.0] * 6, [7.0] * 6)
     with pytest.raises(TypeError, match="pairs"):
-        chain.nearest([[0.0] * 6], [0.0] * 12, [0.0] * 6, *lims, 8, 60, 0.0, 0.0, 0.0, 0.0, 2.0)
+        chain.nearest(
+            [[0.0] * 6], [0.0] * 12, [0.0] * 6, *lims, 8, 60, 0.0, 0.0, 0.0, 0.0, 3.0, 0.2
+        )

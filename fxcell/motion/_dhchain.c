@@ -447,19 +447,6 @@ Chain_settle(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     return out == NULL ? NULL : Py_BuildValue("(Ndd)", out, norm, gradient);
 }
 
-/* The length of the first Newton step from q toward target: how far refinement moves q, to
- * first order (inf where the Jacobian is singular to rounding). */
-static double
-first_step(const Chain *c, const double *q, const double *target)
-{
-    double frame[12], jac[36], err[6], step[6];
-    evaluate(c, q, frame, jac);
-    twist_to(frame, target, err);
-    if (!solve6(jac, err, 0.0, 0, step))
-        return INFINITY;
-    return norm6(step);
-}
-
 /* Squared distance from seed with each joint's difference wrapped into [-π, π]. */
 static double
 free_distance(const double *q, const double *seed)
@@ -473,15 +460,50 @@ free_distance(const double *q, const double *seed)
     return d;
 }
 
+/* Next to which singularities target g is, whatever the joints (with the chain's own d4, d6
+ * and TCP): 1 if its wrist centre is within near·d4 of the shoulder singularity (h² below
+ * (near·d4)², h its distance from the plane of axes 1 and 2), 2 if the wrist is (|sin θ5|
+ * below near) for either shoulder, 3 both, 0 neither. */
+static int
+singular_target(const Chain *c, const double *g, double near)
+{
+    const double *T = c->tcp;
+    /* flange = goal · tcp⁻¹: R_f = R_g·R_tᵀ, p_f = p_g - R_f·p_t */
+    double f[9], pf[3];
+    for (int r = 0; r < 3; r++) {
+        const double *row = g + 3 * r;
+        f[3 * r] = row[0] * T[0] + row[1] * T[1] + row[2] * T[2];
+        f[3 * r + 1] = row[0] * T[3] + row[1] * T[4] + row[2] * T[5];
+        f[3 * r + 2] = row[0] * T[6] + row[1] * T[7] + row[2] * T[8];
+        pf[r] = g[9 + r] - (f[3 * r] * T[9] + f[3 * r + 1] * T[10] + f[3 * r + 2] * T[11]);
+    }
+    double d4 = c->d[3];
+    double x = pf[0] - c->d[5] * f[2], y = pf[1] - c->d[5] * f[5];
+    double rho2 = x * x + y * y;
+    double h2 = rho2 - d4 * d4;
+    int out = h2 < near * near * d4 * d4 ? 1 : 0;
+    double h = h2 > 0.0 ? sqrt(h2) : 0.0;
+    if (rho2 > 0.0) {
+        for (int side = 0; side < 2; side++) {
+            double hs = side ? -h : h;
+            double c1 = (x * hs - y * d4) / rho2, s1 = (y * hs + x * d4) / rho2;
+            double zx = f[0] * s1 - f[3] * c1, zy = f[1] * s1 - f[4] * c1;
+            if (zx * zx + zy * zy < near * near)
+                out |= 2;
+        }
+    }
+    return out;
+}
+
 #define MAX_STARTS 64
 
 /* nearest(starts, target, seed, lower, upper, newton_iterations, settle_iterations,
- *         converged, rounding, stationary, accepted, factor): DHChain.nearest in C. */
+ *         converged, rounding, stationary, accepted, factor, near): DHChain.nearest in C. */
 static PyObject *
 Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    if (nargs != 12) {
-        PyErr_SetString(PyExc_TypeError, "nearest() takes 12 arguments");
+    if (nargs != 13) {
+        PyErr_SetString(PyExc_TypeError, "nearest() takes 13 arguments");
         return NULL;
     }
     double target[12], seed[6], lower[6], upper[6];
@@ -495,6 +517,7 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     double stationary = PyFloat_AsDouble(args[9]);
     double accepted = PyFloat_AsDouble(args[10]);
     double factor = PyFloat_AsDouble(args[11]);
+    double near = PyFloat_AsDouble(args[12]);
     if (PyErr_Occurred())
         return NULL;
     PyObject *seq = PySequence_Fast(args[0], "starts");
@@ -507,7 +530,7 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     }
     PyObject **items = PySequence_Fast_ITEMS(seq);
-    double starts[MAX_STARTS][6], steps[MAX_STARTS], lower_bound[MAX_STARTS], largest = 0.0;
+    double starts[MAX_STARTS][6], distance[MAX_STARTS];
     int order[MAX_STARTS];
     for (Py_ssize_t i = 0; i < n; i++) {
         PyObject *pair = items[i];
@@ -520,39 +543,45 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
             Py_DECREF(seq);
             return NULL;
         }
-        steps[i] = first_step(self, starts[i], target);
-        lower_bound[i] = sqrt(free_distance(starts[i], seed)) - factor * steps[i];
-        /* insertion sort by the lower bound (stable: ties keep the caller's order) */
+        distance[i] = sqrt(free_distance(starts[i], seed));
+        /* insertion sort by distance (stable: ties keep the caller's order) */
         Py_ssize_t k = i;
-        while (k > 0 && lower_bound[order[k - 1]] > lower_bound[i]) {
+        while (k > 0 && distance[order[k - 1]] > distance[i]) {
             order[k] = order[k - 1];
             k--;
         }
         order[k] = (int)i;
     }
     Py_DECREF(seq);
-    double best[6], best_d = INFINITY, unrefined = INFINITY;
+    int singular_at = singular_target(self, target, near);
+    int shoulder = singular_at & 1;
+    double best[6], best_d = INFINITY, moved = 0.0, unrefined = INFINITY;
     int found = 0;
     for (Py_ssize_t r = 0; r < n; r++) {
         int i = order[r];
-        if (found && lower_bound[i] > sqrt(best_d) + 1e-9)
-            break; /* it and the rest cannot come nearer */
+        const double *start = starts[i];
+        int singular = shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
+        if (found && !singular && distance[i] > sqrt(best_d) + factor * moved + 1e-9)
+            continue; /* it cannot come nearer */
         double q[6];
-        if (steps[i] > largest)
-            largest = steps[i];
-        memcpy(q, starts[i], sizeof q);
+        memcpy(q, start, sizeof q);
         double err = newton(self, q, target, n_newton, converged, rounding);
         if (err > accepted) {
             double gradient;
-            memcpy(q, starts[i], sizeof q);
+            memcpy(q, start, sizeof q);
             err = settle(self, q, target, n_settle, converged, stationary, &gradient);
             if (err > accepted) {
-                if (!(gradient <= stationary) && lower_bound[i] < unrefined)
-                    unrefined = lower_bound[i];
+                if (!(gradient <= stationary) && distance[i] < unrefined)
+                    unrefined = distance[i];
                 continue;
             }
         }
-        double d = 0.0, shifted[6];
+        double m = 0.0, d = 0.0, shifted[6];
+        for (int k = 0; k < 6; k++)
+            m += (q[k] - start[k]) * (q[k] - start[k]);
+        m = sqrt(m);
+        if (m > moved)
+            moved = m;
         int inside = 1;
         for (int k = 0; k < 6; k++) {
             shifted[k] = near_angle(q[k], seed[k], lower[k], upper[k]);
@@ -577,7 +606,7 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     else {
         q_out = Py_NewRef(Py_None);
     }
-    return Py_BuildValue("(Nddd)", q_out, best_d, largest, unrefined);
+    return Py_BuildValue("(Ndddi)", q_out, best_d, moved, unrefined, singular_at);
 }
 
 static PyMethodDef Chain_methods[] = {

@@ -47,5 +47,6 @@ class Chain:
         stationary: float,
         accepted: float,
         factor: float,
+        near: float,
         /,
-    ) -> tuple[list[float] | None, float, float, float]: ...
+    ) -> tuple[list[float] | None, float, float, float, int]: ...

@@ -73,16 +73,21 @@ solution (see :meth:`DHChain.settle`)."""
 _STATIONARY = 1e-6
 """``‖Jᵀe‖ / (‖J‖·‖e‖)`` below which a start that did not converge has reached a local minimum
 of the error: the branch has no calibrated solution, and is no rival."""
-_RIVAL_FACTOR = 2.0
-"""How much farther than its first Newton step a nominal start is assumed to move at most
-when refined (see :meth:`DHChain.nearest`)."""
+_RIVAL_FACTOR = 3.0
+"""How much farther than the farthest refined one an unrefined nominal branch away from the
+singularities is assumed to move at most (see :meth:`DHChain.nearest`)."""
+_NEAR_SINGULAR = 0.2
+"""|sin θ3| or |sin θ5| below which, or the wrist centre's distance from the shoulder
+singularity over d4 below which, a nominal branch is always refined: refinement can move it
+far."""
 _BRANCHES = 8
 """The nominal closed form's branches where none is missing (2 shoulders, 2 wrists, 2 elbows)."""
 _START_SLACK = 0.2
 """Radians by which the hot path widens the joint limits for its nominal starts."""
 _SINGULAR_MOVE = 0.1
-"""Radians (Euclidean): a nominal start whose first Newton step is longer is next to a
-singularity, where the hot path refines the branches of the seed-corrected target too."""
+"""Radians (Euclidean): a refinement that moves a nominal start farther is next to a
+singularity; where the nominal arm also lacks a branch, the hot path refines the branches of
+the seed-corrected target too."""
 
 
 BRANCH_TOLERANCE = 0.05
@@ -296,29 +301,29 @@ class CalibratedKinematics(Kinematics):
         yield [seed]
 
     def _nearest_fast(self, target: Pose, seed: list[float]) -> FloatArray | None:
-        """The hot path of :meth:`inverse`: every nominal branch refined (in C when
+        """The hot path of :meth:`inverse`: the nominal branches refined (in C when
         :data:`NATIVE`, see :meth:`DHChain.nearest`), the result nearest the seed; None to
         leave the decision to the general path.
 
-        The deltas move a solution by up to a few tenths of a radian (millimetres over the
-        UR3e's ~0.1 m lever arms; more next to a singularity), and may so reorder branches
-        that the nominal solution puts about equally far from the seed: each branch's first
-        Newton step bounds how near its solution can come, and only those whose bound beats
-        the best found are refined. Next to a singularity (a first step over
-        _SINGULAR_MOVE), where the nominal arm lacks a branch or at the edge of its
-        workspace, the branches of the target
-        corrected by the offset at the seed are refined too: the deltas can take the seed's
-        own branch out of the nominal solutions of the target (a wrist near θ5 = 0 turns by
-        tenths of a radian per millimetre)."""
+        The deltas move a solution by millimetres over the UR3e's ~0.1 m lever arms (a few
+        hundredths of a radian), more next to a singularity, and may so reorder branches
+        that the nominal solutions put about equally far from the seed: a branch is refined
+        unless it is farther than the best found plus _RIVAL_FACTOR × the largest move a
+        refinement made, and always next to a singularity (_NEAR_SINGULAR). When a
+        refinement moved by over _SINGULAR_MOVE or the target is next to a singularity, and
+        the nominal arm lacks a branch there, or at the edge of its workspace, the branches
+        of the target corrected by the offset at the seed are refined too: the deltas can
+        take the seed's own branch out of the nominal solutions of the target (a wrist near
+        θ5 = 0 turns by tenths of a radian per millimetre)."""
         goal = _rows(target)
         starts = self._starts
         nearest, candidates, _, edge = starts.nearest_within(target, seed, math.inf, lenient=True)
         if nearest is None:
             return None
-        best, best_d, largest, unrefined = self._refine(candidates, goal, seed)
-        if best is None or unrefined <= math.sqrt(best_d):
+        best, best_d, moved, unrefined, singular = self._refine(candidates, goal, seed)
+        if best is None or unrefined <= math.sqrt(best_d) + _RIVAL_FACTOR * moved:
             return None
-        if edge or largest > _SINGULAR_MOVE or len(candidates) < _BRANCHES:
+        if edge or (len(candidates) < _BRANCHES and (singular or moved > _SINGULAR_MOVE)):
             corrected = _compose(
                 _compose(starts.forward_rows(seed), _inverse_rows(self._chain.frame(seed))),
                 goal,
@@ -327,14 +332,14 @@ class CalibratedKinematics(Kinematics):
                 _pose(corrected), seed, math.inf, lenient=True
             )
             if own is not None:
-                q, d, _, _ = self._refine(candidates, goal, seed)
+                q, d, _, _, _ = self._refine(candidates, goal, seed)
                 if q is not None and d < best_d:
                     best = q
         return np.array(best)
 
     def _refine(
         self, starts: list[tuple[float, list[float]]], goal: list[float], seed: list[float]
-    ) -> tuple[list[float] | None, float, float, float]:
+    ) -> tuple[list[float] | None, float, float, float, int]:
         """:meth:`DHChain.nearest` with the hot path's settings."""
         return self._chain.nearest(
             starts,
@@ -349,6 +354,7 @@ class CalibratedKinematics(Kinematics):
             _STATIONARY,
             ACCEPTED,
             _RIVAL_FACTOR,
+            _NEAR_SINGULAR,
         )
 
     def inverse(

@@ -1487,51 +1487,63 @@ class DHChain:
         stationary: float,
         accepted: float,
         factor: float,
-    ) -> tuple[list[float] | None, float, float, float]:
-        """Each start refined toward ``target``, the solution nearest ``seed``.
+        near: float,
+    ) -> tuple[list[float] | None, float, float, float, int]:
+        """Starts refined toward ``target``, the solution nearest ``seed``.
 
         ``starts``: (distance², joints) pairs (as :meth:`Kinematics.nearest_within` gives
-        them; the distances are not used). Each start's distance from the seed (each joint's
-        difference wrapped into ±π) less ``factor`` × its first Newton step (how far
-        refinement moves it, to first order) bounds its solution's distance from below; the
-        starts are refined in the order of that bound, and the search ends at one whose
-        bound exceeds the best solution's distance. Refined: :meth:`newton`, then
+        them; the distances are not used), taken in the order of their distance from the
+        seed with each joint's difference wrapped into ±π. A start farther than the best
+        solution found plus ``factor`` × the largest move a refinement made is skipped
+        (it cannot come nearer), unless it is next to a singularity, where refinement moves
+        far: |sin θ3| or |sin θ5| below ``near``, or the target next to the shoulder
+        singularity (:meth:`_singular_target`). Refined: :meth:`newton`, then
         :meth:`settle` if that leaves an error above ``accepted``; a solution's joints are
         shifted by 2π toward the seed within [lower, upper] (dropped if none fits).
-        Returns the best joints (None: none), their distance², the largest first step of
-        the starts refined (large: next to a singularity) and the smallest bound of a start that
-        neither converged nor reached a local minimum of the error (inf: none).
+        Returns the best joints (None: none), their distance², the largest move a
+        refinement made (rad, Euclidean), the smallest distance of a start that neither
+        converged nor reached a local minimum of the error (inf: none) and
+        :meth:`_singular_target`'s flags.
         ``fxcell.motion._dhchain.Chain.nearest`` is this in C."""
         n = len(starts)
         qs = [[float(v) for v in start] for _, start in starts]
-        bounds = [0.0] * n
-        steps = [0.0] * n
-        largest = 0.0
+        distance = [0.0] * n
         for i in range(n):
-            step = steps[i] = self._first_step(qs[i], target)
             d = 0.0
             for k in range(6):
                 w = qs[i][k] - seed[k]
                 w -= TWO_PI * round(w * _INV_TWO_PI)
                 d += w * w
-            bounds[i] = math.sqrt(d) - factor * step
-        order = sorted(range(n), key=lambda i: bounds[i])
+            distance[i] = math.sqrt(d)
+        order = sorted(range(n), key=lambda i: distance[i])
+        singular_at = self._singular_target(target, near)
+        shoulder = singular_at & 1 != 0
         best: list[float] | None = None
         best_d = math.inf
+        moved = 0.0
         unrefined = math.inf
         for i in order:
-            if best is not None and bounds[i] > math.sqrt(best_d) + 1e-9:
-                break  # it and the rest cannot come nearer
-            largest = max(largest, steps[i])
-            q, err = self.newton(qs[i], target, newton_iterations, converged, rounding)
+            start = qs[i]
+            singular = shoulder or abs(math.sin(start[2])) < near or abs(math.sin(start[4])) < near
+            if (
+                best is not None
+                and not singular
+                and distance[i] > math.sqrt(best_d) + factor * moved + 1e-9
+            ):
+                continue  # it cannot come nearer
+            q, err = self.newton(start, target, newton_iterations, converged, rounding)
             if err > accepted:
                 q, err, gradient = self.settle(
-                    qs[i], target, settle_iterations, converged, stationary
+                    start, target, settle_iterations, converged, stationary
                 )
                 if err > accepted:
-                    if not gradient <= stationary and bounds[i] < unrefined:
-                        unrefined = bounds[i]
+                    if not gradient <= stationary and distance[i] < unrefined:
+                        unrefined = distance[i]
                     continue
+            m = 0.0
+            for k in range(6):
+                m += (q[k] - start[k]) * (q[k] - start[k])
+            moved = max(moved, math.sqrt(m))
             shifted = [0.0] * 6
             d = 0.0
             inside = True
@@ -1544,14 +1556,38 @@ class DHChain:
                 d += (w - seed[k]) * (w - seed[k])
             if inside and d < best_d:
                 best, best_d = shifted, d
-        return best, best_d, largest, unrefined
+        return best, best_d, moved, unrefined, singular_at
 
-    def _first_step(self, q: list[float], target: Sequence[float]) -> float:
-        """The length of the first Newton step from ``q`` toward ``target`` (inf where the
-        Jacobian is singular to rounding)."""
-        frame, jac = self.frame_and_jacobian(q)
-        step = _solve6(jac, _twist_to(frame, target), 0.0)
-        return math.inf if step is None else _norm6(step)
+    def _singular_target(self, g: Sequence[float], near: float) -> int:
+        """Next to which singularities target ``g`` is, whatever the joints: 1 if its wrist
+        centre (of its flange, ``g · tcp⁻¹``) is within ``near``·d4 of the shoulder
+        singularity (h² below (near·d4)², h its distance from the plane of axes 1 and 2),
+        2 if the wrist is (|sin θ5| below ``near``) for either shoulder, 3 both, 0 neither."""
+        t = self._tcp
+        f = [0.0] * 9
+        pf = [0.0] * 3
+        for r in range(3):
+            g0, g1, g2 = g[3 * r], g[3 * r + 1], g[3 * r + 2]
+            f[3 * r] = g0 * t[0] + g1 * t[1] + g2 * t[2]
+            f[3 * r + 1] = g0 * t[3] + g1 * t[4] + g2 * t[5]
+            f[3 * r + 2] = g0 * t[6] + g1 * t[7] + g2 * t[8]
+            pf[r] = g[9 + r] - (f[3 * r] * t[9] + f[3 * r + 1] * t[10] + f[3 * r + 2] * t[11])
+        d4 = self._d[3]
+        x = pf[0] - self._d[5] * f[2]
+        y = pf[1] - self._d[5] * f[5]
+        rho2 = x * x + y * y
+        h2 = rho2 - d4 * d4
+        out = 1 if h2 < near * near * d4 * d4 else 0
+        h = math.sqrt(h2) if h2 > 0.0 else 0.0
+        if rho2 > 0.0:
+            for hs in (h, -h):
+                c1 = (x * hs - y * d4) / rho2
+                s1 = (y * hs + x * d4) / rho2
+                zx = f[0] * s1 - f[3] * c1
+                zy = f[1] * s1 - f[4] * c1
+                if zx * zx + zy * zy < near * near:
+                    out |= 2
+        return out
 
 
 def _gradient_ratio(jac: list[float], err: list[float], norm: float) -> float:
