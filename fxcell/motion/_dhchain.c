@@ -19,7 +19,8 @@ typedef struct {
 
 static const double TWO_PI = 6.283185307179586;
 static const double INV_TWO_PI = 0.15915494309189535;
-static const double LIMIT_EPS = 1e-12; /* as kinematics._LIMIT_EPS */
+static const double LIMIT_EPS = 1e-12;  /* as kinematics._LIMIT_EPS */
+static const double FINAL_STEP = 1e-7;  /* as kinematics._FINAL_STEP */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -252,7 +253,8 @@ gradient_ratio(const double *jac, const double *err, double norm)
     return scale > 0.0 ? sqrt(grad) / scale : 0.0;
 }
 
-/* Newton's steps from q (updated in place) toward target; the error norm left. */
+/* Newton's steps from q (updated in place) toward target; the error norm left (after a
+ * final step shorter than FINAL_STEP, the step's length squared). */
 static double
 newton(const Chain *c, double *q, const double *target, long iterations, double converged,
        double rounding)
@@ -267,6 +269,14 @@ newton(const Chain *c, double *q, const double *target, long iterations, double 
         if (!solve6(jac, err, lam, 0, step)) {
             lam = lam > 1e-9 ? lam : 1e-9;
             continue;
+        }
+        double size = norm6(step);
+        if (lam == 0.0 && size < FINAL_STEP) {
+            /* a full Newton step this short leaves an error of its square's order, far
+             * below converged: taken without evaluating the chain again */
+            for (int k = 0; k < 6; k++)
+                q[k] += step[k];
+            return size * size;
         }
         for (int k = 0; k < 6; k++)
             trial[k] = q[k] + step[k];
@@ -555,13 +565,13 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     Py_DECREF(seq);
     int singular_at = singular_target(self, target, near);
     int shoulder = singular_at & 1;
-    double best[6], best_d = INFINITY, moved = 0.0, unrefined = INFINITY;
+    double best[6], best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
     int found = 0;
     for (Py_ssize_t r = 0; r < n; r++) {
         int i = order[r];
         const double *start = starts[i];
         int singular = shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
-        if (found && !singular && distance[i] > sqrt(best_d) + factor * moved + 1e-9)
+        if (found && !singular && distance[i] > sqrt(best_d) + factor * regular + 1e-9)
             continue; /* it cannot come nearer */
         double q[6];
         memcpy(q, start, sizeof q);
@@ -582,6 +592,8 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         m = sqrt(m);
         if (m > moved)
             moved = m;
+        if (!singular && m > regular)
+            regular = m;
         int inside = 1;
         for (int k = 0; k < 6; k++) {
             shifted[k] = near_angle(q[k], seed[k], lower[k], upper[k]);

@@ -4,12 +4,13 @@ A calibrated arm's DH parameters differ from the nominal ones by up to millimetr
 milliradians (:class:`fxcell.calibration.Calibration`), which breaks the closed-form inverse
 (it needs exactly parallel middle axes). :class:`CalibratedKinematics` keeps the
 :class:`~fxcell.motion.kinematics.Kinematics` interface: its forward kinematics is the
-calibrated DH chain, and its inverse takes the closed-form branch of the nominal model nearest
-the seed as the start of Newton steps on the calibrated one, with the analytic Jacobian, in
-plain floats (:class:`~fxcell.motion.kinematics.DHChain`, compiled with the rest of that
-module): three or four steps bring a millimetre-off start to the rounding floor. Only when
-another branch could come nearer the seed once moved by the deltas, or the nominal closed form
-has no branch there (at the edge of its workspace, next to a singularity), are more starts
+calibrated DH chain, and its inverse refines the closed-form branches of the nominal model
+onto the calibrated one, nearest the seed first (Newton steps with the analytic Jacobian,
+Levenberg-Marquardt where they do not converge): three or four steps bring a millimetre-off
+start to the rounding floor. The chain and that loop run in C (``fxcell/motion/_dhchain.c``,
+:data:`NATIVE`), else in plain Python floats (:class:`~fxcell.motion.kinematics.DHChain`).
+Next to a singularity, where the deltas can take a branch out of the nominal solutions, and
+where the nominal closed form has no branch (at the edge of its workspace), more starts are
 refined. No Pinocchio: the simulator uses this module too.
 """
 

@@ -94,6 +94,9 @@ _LENIENT_H2 = math.sin(_LENIENT_BEND) ** 2
 """(h/d4)² below which a ``lenient`` start is taken at the shoulder singularity's edge."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
+_FINAL_STEP = 1e-7
+"""Radians: a full Newton step of :meth:`DHChain.newton` this short is its last (the error it
+leaves is of the order of its square)."""
 
 
 @dataclass(frozen=True)
@@ -1400,7 +1403,8 @@ class DHChain:
         ``target`` (12 floats as :meth:`frame`): the joints and the error norm left (m and
         rad together). A step that does not lower the error is retried damped
         (Levenberg-Marquardt), as next to a singularity; the steps stop below ``converged``,
-        or below ``rounding`` when no step improves."""
+        or below ``rounding`` when no step improves, or after a full step shorter than
+        _FINAL_STEP, whose length squared is returned as the error (its order)."""
         qq = [float(v) for v in q]
         frame, jac = self.frame_and_jacobian(qq)
         err = _twist_to(frame, target)
@@ -1413,6 +1417,12 @@ class DHChain:
             if step is None:
                 lam = max(lam, 1e-9)
                 continue
+            size = _norm6(step)
+            if lam == 0.0 and size < _FINAL_STEP:
+                # a full Newton step this short leaves an error of its square's order, far
+                # below converged: taken without evaluating the chain again
+                qq = [qq[k] + step[k] for k in range(6)]
+                return qq, size * size
             trial = [qq[0] + step[0], qq[1] + step[1], qq[2] + step[2]]
             trial += [qq[3] + step[3], qq[4] + step[4], qq[5] + step[5]]
             frame, trial_jac = self.frame_and_jacobian(trial)
@@ -1494,10 +1504,10 @@ class DHChain:
         ``starts``: (distance², joints) pairs (as :meth:`Kinematics.nearest_within` gives
         them; the distances are not used), taken in the order of their distance from the
         seed with each joint's difference wrapped into ±π. A start farther than the best
-        solution found plus ``factor`` × the largest move a refinement made is skipped
-        (it cannot come nearer), unless it is next to a singularity, where refinement moves
-        far: |sin θ3| or |sin θ5| below ``near``, or the target next to the shoulder
-        singularity (:meth:`_singular_target`). Refined: :meth:`newton`, then
+        solution found plus ``factor`` × the largest move the refinement of such a start
+        made is skipped (it cannot come nearer), unless it is next to a singularity, where
+        refinement moves far: |sin θ3| or |sin θ5| below ``near``, or the target next to
+        the shoulder singularity (:meth:`_singular_target`). Refined: :meth:`newton`, then
         :meth:`settle` if that leaves an error above ``accepted``; a solution's joints are
         shifted by 2π toward the seed within [lower, upper] (dropped if none fits).
         Returns the best joints (None: none), their distance², the largest move a
@@ -1521,6 +1531,7 @@ class DHChain:
         best: list[float] | None = None
         best_d = math.inf
         moved = 0.0
+        regular = 0.0  # the largest move of a start away from the singularities
         unrefined = math.inf
         for i in order:
             start = qs[i]
@@ -1528,7 +1539,7 @@ class DHChain:
             if (
                 best is not None
                 and not singular
-                and distance[i] > math.sqrt(best_d) + factor * moved + 1e-9
+                and distance[i] > math.sqrt(best_d) + factor * regular + 1e-9
             ):
                 continue  # it cannot come nearer
             q, err = self.newton(start, target, newton_iterations, converged, rounding)
@@ -1543,7 +1554,10 @@ class DHChain:
             m = 0.0
             for k in range(6):
                 m += (q[k] - start[k]) * (q[k] - start[k])
-            moved = max(moved, math.sqrt(m))
+            m = math.sqrt(m)
+            moved = max(moved, m)
+            if not singular:
+                regular = max(regular, m)
             shifted = [0.0] * 6
             d = 0.0
             inside = True
