@@ -21,6 +21,7 @@ static const double TWO_PI = 6.283185307179586;
 static const double INV_TWO_PI = 0.15915494309189535;
 static const double LIMIT_EPS = 1e-12;  /* as kinematics._LIMIT_EPS */
 static const double FINAL_STEP = 1e-7;  /* as kinematics._FINAL_STEP */
+static const double WRIST_SLACK = 0.1;  /* as kinematics._WRIST_SLACK */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -505,6 +506,18 @@ singular_target(const Chain *c, const double *g, double near)
     return out;
 }
 
+/* Next to the wrist singularity (sin θ5 ≈ 0) refinement can turn θ2, θ3, θ4 and θ6 far
+ * (the arm's self-motion there), but θ1 and θ5 only by the deltas' order: a lower bound of the
+ * distance from seed of any solution it reaches, with WRIST_SLACK rad for those moves. */
+static double
+wrist_bound(const double *start, const double *seed)
+{
+    double w1 = start[0] - seed[0], w5 = start[4] - seed[4];
+    w1 -= TWO_PI * nearbyint(w1 * INV_TWO_PI);
+    w5 -= TWO_PI * nearbyint(w5 * INV_TWO_PI);
+    return sqrt(w1 * w1 + w5 * w5) - WRIST_SLACK;
+}
+
 #define MAX_STARTS 64
 
 /* nearest(starts, target, seed, lower, upper, newton_iterations, settle_iterations,
@@ -573,6 +586,9 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         int singular = shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
         if (found && !singular && distance[i] > sqrt(best_d) + factor * regular + 1e-9)
             continue; /* it cannot come nearer */
+        if (found && !shoulder && fabs(sin(start[4])) < near &&
+            wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
+            continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
         double q[6];
         memcpy(q, start, sizeof q);
         double err = newton(self, q, target, n_newton, converged, rounding);

@@ -94,6 +94,9 @@ _LENIENT_H2 = math.sin(_LENIENT_BEND) ** 2
 """(h/d4)² below which a ``lenient`` start is taken at the shoulder singularity's edge."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
+_WRIST_SLACK = 0.1
+"""Radians by which refinement next to the wrist singularity may move θ1 and θ5 together (see
+:meth:`DHChain.nearest`)."""
 _FINAL_STEP = 1e-7
 """Radians: a full Newton step of :meth:`DHChain.newton` this short is its last (the error it
 leaves is of the order of its square)."""
@@ -1507,9 +1510,11 @@ class DHChain:
         solution found plus ``factor`` × the largest move the refinement of such a start
         made is skipped (it cannot come nearer), unless it is next to a singularity, where
         refinement moves far: |sin θ3| or |sin θ5| below ``near``, or the target next to
-        the shoulder singularity (:meth:`_singular_target`). Refined: :meth:`newton`, then
-        :meth:`settle` if that leaves an error above ``accepted``; a solution's joints are
-        shifted by 2π toward the seed within [lower, upper] (dropped if none fits).
+        the shoulder singularity (:meth:`_singular_target`); next to the wrist singularity
+        alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
+        Refined: :meth:`newton`, then :meth:`settle` if that leaves an error above
+        ``accepted``; a solution's joints are shifted by 2π toward the seed within
+        [lower, upper] (dropped if none fits).
         Returns the best joints (None: none), their distance², the largest move a
         refinement made (rad, Euclidean), the smallest distance of a start that neither
         converged nor reached a local minimum of the error (inf: none) and
@@ -1542,6 +1547,13 @@ class DHChain:
                 and distance[i] > math.sqrt(best_d) + factor * regular + 1e-9
             ):
                 continue  # it cannot come nearer
+            if (
+                best is not None
+                and not shoulder
+                and abs(math.sin(start[4])) < near
+                and _wrist_bound(start, seed) > math.sqrt(best_d) + 1e-9
+            ):
+                continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
             q, err = self.newton(start, target, newton_iterations, converged, rounding)
             if err > accepted:
                 q, err, gradient = self.settle(
@@ -1602,6 +1614,18 @@ class DHChain:
                 if zx * zx + zy * zy < near * near:
                     out |= 2
         return out
+
+
+def _wrist_bound(start: Sequence[float], seed: Sequence[float]) -> float:
+    """Next to the wrist singularity (sin θ5 ≈ 0) refinement can turn θ2, θ3, θ4 and θ6 far
+    (the arm's self-motion there), but θ1 and θ5 only by the deltas' order: a lower bound of
+    the distance from ``seed`` of any solution it reaches from ``start``, with _WRIST_SLACK
+    for those moves."""
+    w1 = start[0] - seed[0]
+    w5 = start[4] - seed[4]
+    w1 -= TWO_PI * round(w1 * _INV_TWO_PI)
+    w5 -= TWO_PI * round(w5 * _INV_TWO_PI)
+    return math.sqrt(w1 * w1 + w5 * w5) - _WRIST_SLACK
 
 
 def _gradient_ratio(jac: list[float], err: list[float], norm: float) -> float:
