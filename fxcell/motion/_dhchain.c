@@ -21,7 +21,7 @@ static const double TWO_PI = 6.283185307179586;
 static const double INV_TWO_PI = 0.15915494309189535;
 static const double LIMIT_EPS = 1e-12;  /* as kinematics._LIMIT_EPS */
 static const double FINAL_STEP = 1e-7;  /* as kinematics._FINAL_STEP */
-static const double WRIST_SLACK = 0.1;  /* as kinematics._WRIST_SLACK */
+static const double WRIST_MOVE = 0.1;   /* as kinematics._WRIST_MOVE */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -508,14 +508,14 @@ singular_target(const Chain *c, const double *g, double near)
 
 /* Next to the wrist singularity (sin θ5 ≈ 0) refinement can turn θ2, θ3, θ4 and θ6 far
  * (the arm's self-motion there), but θ1 and θ5 only by the deltas' order: a lower bound of the
- * distance from seed of any solution it reaches, with WRIST_SLACK rad for those moves. */
+ * distance from seed of any solution it reaches, with WRIST_MOVE rad for those moves. */
 static double
 wrist_bound(const double *start, const double *seed)
 {
     double w1 = start[0] - seed[0], w5 = start[4] - seed[4];
     w1 -= TWO_PI * nearbyint(w1 * INV_TWO_PI);
     w5 -= TWO_PI * nearbyint(w5 * INV_TWO_PI);
-    return sqrt(w1 * w1 + w5 * w5) - WRIST_SLACK;
+    return sqrt(w1 * w1 + w5 * w5) - WRIST_MOVE;
 }
 
 #define MAX_STARTS 64

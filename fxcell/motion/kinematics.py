@@ -94,7 +94,7 @@ _LENIENT_H2 = math.sin(_LENIENT_BEND) ** 2
 """(h/d4)² below which a ``lenient`` start is taken at the shoulder singularity's edge."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
-_WRIST_SLACK = 0.1
+_WRIST_MOVE = 0.1
 """Radians by which refinement next to the wrist singularity may move θ1 and θ5 together (see
 :meth:`DHChain.nearest`)."""
 _FINAL_STEP = 1e-7
@@ -1619,13 +1619,13 @@ class DHChain:
 def _wrist_bound(start: Sequence[float], seed: Sequence[float]) -> float:
     """Next to the wrist singularity (sin θ5 ≈ 0) refinement can turn θ2, θ3, θ4 and θ6 far
     (the arm's self-motion there), but θ1 and θ5 only by the deltas' order: a lower bound of
-    the distance from ``seed`` of any solution it reaches from ``start``, with _WRIST_SLACK
+    the distance from ``seed`` of any solution it reaches from ``start``, with _WRIST_MOVE
     for those moves."""
     w1 = start[0] - seed[0]
     w5 = start[4] - seed[4]
     w1 -= TWO_PI * round(w1 * _INV_TWO_PI)
     w5 -= TWO_PI * round(w5 * _INV_TWO_PI)
-    return math.sqrt(w1 * w1 + w5 * w5) - _WRIST_SLACK
+    return math.sqrt(w1 * w1 + w5 * w5) - _WRIST_MOVE
 
 
 def _gradient_ratio(jac: list[float], err: list[float], norm: float) -> float:
