@@ -68,7 +68,7 @@ _SAME_START = 0.05
 """Radians (per joint) within which two starting points count as one."""
 _EDGE_TURN = 0.02
 """Radians by which a target near a wrist singularity is turned to find starts."""
-_SETTLE_ITERATIONS = 400
+_SETTLE_ITERATIONS = 1000
 """Levenberg-Marquardt steps the hot path gives a start that Newton's steps did not bring to a
 solution (see :meth:`DHChain.settle`)."""
 _STATIONARY = 1e-6
