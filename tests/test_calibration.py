@@ -378,3 +378,23 @@ def test_kinematics_for_a_config_reads_its_calibration_file(tmp_path: object) ->
     assert calibrated.with_tcp(None).calibration == calibrated.calibration
     with pytest.raises(CalibrationError):
         kinematics_for(CellConfig.from_dict({"robot": {"calibration": str(path) + ".missing"}}))
+
+
+def test_an_exactly_wrist_singular_stretched_pose_is_solved() -> None:
+    # θ5 = π with the elbow ~0.28 rad from stretched (the bench's calibration and wrist
+    # family): the nominal closed form has no branch there and damped steps from the seed
+    # stalled, so the reachable pose raised UnreachableError (issue 26)
+    c = Calibration(
+        (0.000770973, 0.001263268, -0.000622373, -0.001820647, 0.000286389, -0.001415018),
+        (0.000875086, -0.000618574, -0.000171961, 0.001903752, 0.001125864, 0.00137516),
+        (0.000220458, 0.001766485, -0.001926697, 0.001556736, -0.000440966, -0.001073039),
+        (0.000137577, 0.001778761, -0.000676007, 0.001634485, -0.000130674, 0.001869151),
+    )
+    k = CalibratedKinematics(c)
+    q = np.array([2.96448894298, 3.85237571787, 5.99834433755, 4.85296104321, 3.14159178872,
+                  3.96914923181])  # fmt: skip
+    target = k.forward(q)
+    solution = k.inverse(target, [1.2624, 3.4004, -4.503, 0.6539, 2.9659, 6.2428])
+    dp, da = _pose_error(k, solution, target)
+    assert dp < 1e-10
+    assert da < 1e-10

@@ -60,6 +60,11 @@ _ITERATIONS = 20
 _FAST_ITERATIONS = 8
 """Newton steps the hot path gives a start (4 or 5 bring a nominal solution to rounding)."""
 _PATIENT_ITERATIONS = 400  # Levenberg-Marquardt's, from far starts (rarely needed)
+_SELF_MOTION_TURNS = (0.5 * math.pi, math.pi, 1.5 * math.pi)
+"""Radians by which the last resort of the general path turns θ4 and θ6 together (both
+ways) from each start: points along the wrist's self-motion at its singularity."""
+_SELF_MOTION_ITERATIONS = 3000
+"""Levenberg-Marquardt steps the last resort gives each of those starts."""
 _EDGE_STEPS = (0.005, 0.02)
 """Metres by which a target at the edge of the nominal workspace is moved to find starts."""
 _ROUNDING = 1e-11
@@ -273,6 +278,33 @@ class CalibratedKinematics(Kinematics):
             if q is not None and not any(np.max(np.abs(q - f)) < 1e-9 for f in found):
                 found.append(q)
                 yield q
+        if found:
+            return
+        # Exactly wrist-singular with the arm nearly stretched: the nominal closed form has
+        # no branch, and damped steps from one point of the wrist's self-motion (θ4 and θ6
+        # turning together) can stall; from points a quarter turn apart along it, with more
+        # steps, one gets there (a few poses in 10^3 of the bench's wrist family).
+        goal = _rows(target)
+        for start in tried:
+            for turn in _SELF_MOTION_TURNS:
+                for sign in (1.0, -1.0):
+                    moved = start.tolist()
+                    moved[3] += turn
+                    moved[5] -= sign * turn
+                    qq, err, _ = self._chain.settle(
+                        moved, goal, _SELF_MOTION_ITERATIONS, CONVERGED, 0.0
+                    )
+                    if err > ACCEPTED:
+                        continue
+                    shifted = self._shifted(qq, s)
+                    if shifted is None:
+                        continue
+                    q = np.array(shifted)
+                    if not any(np.max(np.abs(q - f)) < 1e-9 for f in found):
+                        found.append(q)
+                        yield q
+            if found:
+                return
 
     def _start_groups(self, target: Pose, seed: FloatArray) -> Iterator[list[FloatArray]]:
         """Nominal solutions to start from, nearest ``seed`` first within each group: for the
