@@ -1,9 +1,14 @@
-"""Compile fxcell's hot pure-Python modules with mypyc (a build hook, and a script for ./dev).
+"""Compile fxcell's native modules (a build hook, and a script for ./dev).
 
-The same source runs interpreted when it is not compiled: compilation changes speed, not
-results (tests/test_native.py compares the two). Inverse kinematics is the one such module:
-the wrist-singular continuum search is ~2.4x faster compiled, which is what keeps its p99
-within the 100 µs target of ``bench/ik.py``.
+- ``fxcell/motion/kinematics.py`` with mypyc. The same source runs interpreted when it is not
+  compiled: compilation changes speed, not results (tests/test_native.py compares the two).
+  The wrist-singular continuum search is ~2.4x faster compiled, which is what keeps its p99
+  within the 100 µs target of ``bench/ik.py``.
+- ``fxcell/motion/_dhchain.c``, a small C extension (setuptools' ``build_ext``): the
+  calibrated arm's DH chain, Newton and Levenberg-Marquardt refinement, which the
+  calibrated inverse kinematics runs a few times per call. Without it
+  :class:`fxcell.motion.kinematics.DHChain` (the same computations in Python, ~30x slower)
+  takes its place; tests/test_native.py checks the two agree.
 
 - ``./dev`` runs ``python hatch_build.py`` whenever a module's source no longer matches the
   stamp its last compilation left (``<module>.sha256``), so the extension imported from the
@@ -31,8 +36,22 @@ try:
 except ImportError:  # run as a script, outside a build
     BuildHookInterface = object  # type: ignore[assignment,misc]
 
-NATIVE = ("fxcell/motion/kinematics.py",)
-"""Modules compiled with mypyc, relative to the project root."""
+NATIVE = ("fxcell/motion/kinematics.py", "fxcell/motion/_dhchain.c")
+"""Native modules, relative to the project root: ``.py`` compiled with mypyc, ``.c`` a C
+extension of its own."""
+
+# a C extension built by setuptools in a scratch directory (argv: source, module name);
+# no contraction into fused multiply-adds, so it rounds as DHChain's Python does
+_BUILD_EXT = """\
+import sys
+from setuptools import Extension, setup
+source, name = sys.argv.pop(1), sys.argv.pop(1)
+setup(
+    name=name.rpartition(".")[2],
+    ext_modules=[Extension(name, [source], extra_compile_args=["-O2", "-ffp-contract=off"])],
+    script_args=["build_ext", "--inplace", "--quiet"],
+)
+"""
 
 # mypy settings for the compilation only. The project's [tool.mypy] loads the pydantic
 # plugin, which an isolated build environment does not have; without it mypy misreads the
@@ -59,7 +78,7 @@ def _stamp_of(source: Path) -> str:
 
 
 def extensions(root: Path, module: str) -> list[Path]:
-    """The extension files mypyc left for ``module`` (a path relative to ``root``)."""
+    """The extension files built for ``module`` (a path relative to ``root``)."""
     source = root / module
     names = (f"{source.stem}{_suffix()}", f"{source.stem}__mypyc{_suffix()}")
     return [path for name in names if (path := source.parent / name).is_file()]
@@ -79,7 +98,8 @@ def is_current(root: Path, module: str) -> bool:
 def compile_native(root: Path, *, force: bool = False) -> list[Path]:
     """Compile every module of :data:`NATIVE` in place that is not current; the extensions.
 
-    Raises ``RuntimeError`` (stale extensions removed) if mypyc or the C compiler fails.
+    Raises ``RuntimeError`` (stale extensions removed) if mypyc or the C compiler fails; the
+    modules compiled before stay.
     """
     out: list[Path] = []
     for module in NATIVE:
@@ -96,18 +116,22 @@ def compile_native(root: Path, *, force: bool = False) -> list[Path]:
         with tempfile.TemporaryDirectory() as tmp:
             work = Path(tmp)
             shutil.copytree(root / "fxcell", work / "fxcell", ignore=_NOT_SOURCE)
-            (work / "mypy.ini").write_text(_MYPY_CONFIG)
+            if source.suffix == ".c":
+                (work / "build_ext.py").write_text(_BUILD_EXT)
+                name = module.removesuffix(".c").replace("/", ".")
+                command = [sys.executable, "build_ext.py", module, name]
+                tool = "the C compiler"
+            else:
+                (work / "mypy.ini").write_text(_MYPY_CONFIG)
+                command = [sys.executable, "-m", "mypyc", "--config-file", "mypy.ini", module]
+                tool = "mypyc"
             done = subprocess.run(
-                [sys.executable, "-m", "mypyc", "--config-file", "mypy.ini", module],
-                cwd=work,
-                capture_output=True,
-                text=True,
-                check=False,
+                command, cwd=work, capture_output=True, text=True, check=False
             )
             built = extensions(work, module)
             if done.returncode != 0 or not built:
                 tail = "\n".join((done.stdout + done.stderr).splitlines()[-20:])
-                raise RuntimeError(f"mypyc could not compile {module}:\n{tail}")
+                raise RuntimeError(f"{tool} could not compile {module}:\n{tail}")
             for path in built:  # new files: a running process keeps its mapped old ones
                 shutil.copy2(path, source.parent / path.name)
             stamp.write_text(_stamp_of(work / module))  # the source it was built from

@@ -77,13 +77,16 @@ class RobotConfig(_Model):
     stall_timeout: float = Field(0.08, ge=0.01, le=0.09)
     """... and when no robot state has arrived for this long (s); below the 100 ms after
     which the cell declares the link down."""
-    calibration: str | None = None
-    """Where the arm's factory calibration comes from: a ``calibration.conf`` file (UR's
-    format), or ``controller`` (its primary interface's kinematics info, read at connect);
-    ``None``: the nominal UR3e model."""
+    calibration: str | None = "controller"
+    """Where the arm's factory calibration comes from: ``controller`` (the default; its
+    primary interface's kinematics info, read at every connect, the embedded simulator's
+    included), a ``calibration.conf`` file (UR's format), or ``nominal``: UR's published
+    model, by explicit choice only (pose moves then miss by millimetres on a real arm).
+    Unset (``null``) is the default, ``controller``."""
     accept_nominal_kinematics: bool = False
     """With ``calibration: controller``: when it cannot be read, plan pose moves on the nominal
-    model (the TCP may be millimetres off) instead of refusing them (``UncalibratedError``)."""
+    model (the TCP may be millimetres off) instead of refusing them (``UncalibratedError``,
+    the default: joint moves stay allowed)."""
 
 
 class ToolConfig(_Model):

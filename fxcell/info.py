@@ -37,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     config = CellConfig.load(args.config)
     robot = config.robot.host or "embedded simulator"
     print(f"robot: {robot} (external control: {config.robot.external_control})")
+    print(f"arm model: {_arm_model(config)}")
     print(f"tcp: {list(config.tool.tcp)}")
     print(f"scene: {', '.join(o.name for o in config.scene.objects) or 'empty'}")
     stations = [
@@ -47,6 +48,27 @@ def run(args: argparse.Namespace) -> int:
     print(f"robot link scheduling: {link_scheduling(config.robot.realtime_priority)}")
     print(sila_line(config))
     return 0
+
+
+def _arm_model(config: Any) -> str:
+    """What ``robot.calibration`` makes of the arm (``fxcell status`` shows what was read)."""
+    from fxcell.calibration import Calibration
+    from fxcell.errors import CalibrationError
+    from fxcell.motion.calibration import CONTROLLER, NOMINAL
+
+    source = config.robot.calibration
+    if source == NOMINAL:
+        return "nominal (robot.calibration: nominal; pose moves miss by millimetres on a real arm)"
+    if source is None or source == CONTROLLER:
+        fallback = (
+            "the nominal model" if config.robot.accept_nominal_kinematics else "pose moves refused"
+        )
+        return f"calibrated, read from the controller at connect (if unreadable: {fallback})"
+    try:
+        calibration = Calibration.load(source)
+    except CalibrationError as exc:
+        return f"calibrated from {source}: UNREADABLE ({exc})"
+    return f"calibrated from {source}, checksum {calibration.checksum}"
 
 
 def link_scheduling(priority: int) -> str:

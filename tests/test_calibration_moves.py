@@ -1,6 +1,7 @@
-"""Moves on a calibrated arm: the simulator runs a factory calibration (deltas up to 2 mm and
-0.002 rad); a Cell that knows it reaches targets as the controller reports them, one on the
-nominal model misses by millimetres.
+"""Moves on a calibrated arm: the simulator runs a factory calibration (by default its shipped
+one; here also deltas up to 2 mm and 0.002 rad); a Cell reads it at connect by default and
+reaches targets as the controller reports them, one told to use the nominal model misses by
+millimetres.
 
 fxcell sets its TCP on the controller when external control starts, so the controller's
 ``actual_TCP_pose`` is the tool centre point itself.
@@ -32,7 +33,10 @@ CALIBRATION = Calibration(
     delta_d=(-0.0015, 0.0009, 0.0012, 0.002, -0.0017, 0.0011),
     delta_alpha=(0.002, -0.0011, 0.0008, -0.0016, 0.0013, -0.0007),
 )
-NOMINAL = CellConfig.load()
+DEFAULT = CellConfig.load()  # robot.calibration: controller, by default
+NOMINAL = DEFAULT.model_copy(
+    update={"robot": DEFAULT.robot.model_copy(update={"calibration": "nominal"})}
+)
 WORK = [0.4, -1.4, 1.6, -1.8, -1.57, 0.0]  # gripper down over the table
 POSITION_TOL = 1e-5
 ANGLE_TOL = 1e-4
@@ -151,10 +155,55 @@ async def test_a_calibrated_cell_reaches_targets_as_the_controller_reports_them(
         assert line_deviation(trace, start, target) < LINE_TOL
 
 
+async def test_the_default_cell_on_the_default_simulator_is_calibrated_and_accurate() -> None:
+    # no calibration anywhere in the configuration, none given to the simulator: the
+    # simulator presents its shipped factory calibration and the cell reads it at connect
+    from fxcell.sim.server import default_calibration
+
+    shipped = default_calibration()
+    assert not shipped.is_nominal
+    assert DEFAULT.robot.calibration == "controller"
+    with simulator() as sim:
+        async with ready_cell(sim, DEFAULT) as cell:
+            assert cell.calibration_status == {
+                "model": "calibrated",
+                "source": f"controller {cell.host}",
+                "checksum": shipped.checksum,
+            }
+            for offset in ((0.03, -0.02, 0.04), (-0.05, 0.03, -0.02)):
+                target = await pose_target(cell, offset)
+                await cell.move_pose(target)
+                dp, da = errors(await settled_tcp(cell), target)
+                assert dp < POSITION_TOL, dp
+                assert da < ANGLE_TOL, da
+            start = await settled_tcp(cell)
+            await cell.move_distance([0.0, 0.03, 0.0])
+            dp, _ = errors(
+                await settled_tcp(cell),
+                Pose(start.position + np.array([0.0, 0.03, 0.0]), start.rotation),
+            )
+            assert dp < POSITION_TOL, dp
+
+
+async def test_a_simulator_told_nominal_presents_the_nominal_arm() -> None:
+    from fxcell.link.primary import read_calibration
+
+    with simulator(extra_args=["--calibration", "nominal"]) as sim:
+        calibration = await asyncio.to_thread(read_calibration, sim.host)
+        assert calibration.is_nominal
+        async with ready_cell(sim, DEFAULT) as cell:
+            assert cell.calibration_status is not None
+            assert cell.calibration_status["model"] == "nominal"
+            assert cell.calibration_status["checksum"] == Calibration.nominal().checksum
+
+
 async def test_the_nominal_model_misses_a_calibrated_arms_targets_by_millimetres(
     calibrated_sim: SimulatorHandle,
 ) -> None:
+    # only by explicit choice (robot.calibration: nominal)
     async with ready_cell(calibrated_sim, NOMINAL) as cell:
+        assert cell.calibration_status is not None
+        assert cell.calibration_status["model"] == "nominal"
         target = await pose_target(cell, (0.03, -0.02, 0.04))
         await cell.move_pose(target)
         dp, _ = errors(await settled_tcp(cell), target)
@@ -190,6 +239,8 @@ async def test_pose_moves_are_refused_when_the_calibration_cannot_be_read(
     try:
         async with ready_cell(calibrated_sim, calibrated_config("controller")) as cell:
             assert cell.controller_info["calibration_source"].startswith("unreadable")
+            assert cell.calibration_status is not None
+            assert cell.calibration_status["model"] == "uncalibrated"  # visible, and safe
             start = cell.robot_state.actual_q
             target = await pose_target(cell, (0.02, 0.0, 0.0))
             with pytest.raises(UncalibratedError, match="accept_nominal_kinematics"):
@@ -199,6 +250,8 @@ async def test_pose_moves_are_refused_when_the_calibration_cannot_be_read(
             assert cell.robot_state.actual_q == pytest.approx(start, abs=1e-9)
         accepting = calibrated_config("controller", accept_nominal_kinematics=True)
         async with ready_cell(calibrated_sim, accepting) as cell:
+            assert cell.calibration_status is not None
+            assert cell.calibration_status["model"] == "nominal (fallback)"
             await cell.move_distance([0.0, 0.0, 0.01])  # nominal, as configured
     finally:
         calibrated_sim.inject("show_kinematics_info")

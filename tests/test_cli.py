@@ -52,6 +52,27 @@ def test_info_reports_the_robotics_stack(capsys: pytest.CaptureFixture[str]) -> 
         line = next(line for line in out.splitlines() if line.strip().startswith(dist))
         assert "missing" not in line
     assert "embedded simulator" in out
+    assert "arm model: calibrated, read from the controller at connect" in out
+
+
+def test_info_names_the_arm_model_and_a_calibration_files_checksum(
+    tmp_path: pytest.TempPathFactory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from fxcell.calibration import Calibration
+    from fxcell.sim.server import default_calibration
+
+    shipped = default_calibration()
+    conf = tmp_path / "calibration.conf"  # type: ignore[operator]
+    conf.write_text(shipped.to_conf())
+    for setting, expected in (
+        (str(conf), f"checksum {shipped.checksum}"),
+        ("nominal", "arm model: nominal"),
+    ):
+        cfg = tmp_path / "cell.yaml"  # type: ignore[operator]
+        cfg.write_text(f"robot:\n  calibration: {setting}\n")
+        assert main(["info", "--config", str(cfg)]) == 0
+        assert expected in capsys.readouterr().out
+    assert Calibration.nominal().checksum != shipped.checksum
 
 
 def test_config_error_is_reported_without_a_traceback(

@@ -131,6 +131,12 @@ async def test_full_life_cycle_over_http_and_websocket(
     async with Watcher(daemon.url) as watcher:
         hello = watcher.of("hello")[0]
         assert hello["snapshot"]["connected"] is True
+        # the embedded simulator's factory calibration, read at connect (the page shows it)
+        from fxcell.sim.server import default_calibration
+
+        calibration = hello["snapshot"]["calibration"]
+        assert calibration["model"] == "calibrated"
+        assert calibration["checksum"] == default_calibration().checksum
         steps = [
             ("power_off", "power_off"),
             ("power_on", "idle"),

@@ -1,9 +1,12 @@
-"""fxcell.motion.kinematics compiled with mypyc (hatch_build.py) is its source, only faster.
+"""The native modules (hatch_build.py) compute what their Python counterparts do, only faster.
 
-Python imports the extension in preference to the ``.py`` beside it, so a stale one would
-silently run old code: ``./dev`` recompiles when the source's hash changes, and the first
-test here fails a run that bypassed it. The second runs the same source interpreted
-(loaded under another name) and compares its solutions with the compiled module's.
+fxcell.motion.kinematics compiled with mypyc is its source: Python imports the extension in
+preference to the ``.py`` beside it, so a stale one would silently run old code; ``./dev``
+recompiles when the source's hash changes, and the first test here fails a run that bypassed
+it. The second runs the same source interpreted (loaded under another name) and compares its
+solutions with the compiled module's. fxcell.motion._dhchain (C) is checked the same way
+against :class:`~fxcell.motion.kinematics.DHChain`, which takes its place when it is not
+built.
 """
 
 from __future__ import annotations
@@ -18,8 +21,10 @@ from types import ModuleType
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from fxcell.motion import kinematics
+from fxcell.motion import calibration, kinematics
 
 ROOT = Path(__file__).resolve().parent.parent
 SOURCE = ROOT / "fxcell" / "motion" / "kinematics.py"
@@ -49,6 +54,14 @@ def _load(name: str, path: Path) -> ModuleType:
     return module
 
 
+def _require_native_chain() -> None:
+    if calibration.NATIVE:
+        return
+    if os.environ.get("FXCELL_REQUIRE_NATIVE") == "1":
+        pytest.fail("fxcell.motion._dhchain is not built (run ./dev, see hatch_build.py)")
+    pytest.skip("fxcell.motion._dhchain is not built here (./dev builds it)")
+
+
 def test_the_compiled_kinematics_is_built_from_the_present_source() -> None:
     _require_compiled()
     build = _load("fxcell_hatch_build", ROOT / "hatch_build.py")
@@ -56,6 +69,29 @@ def test_the_compiled_kinematics_is_built_from_the_present_source() -> None:
         "fxcell/motion/kinematics.py changed since it was compiled: run ./dev (or "
         "python hatch_build.py) to rebuild it"
     )
+
+
+def test_the_c_chain_is_built_from_the_present_source() -> None:
+    _require_native_chain()
+    build = _load("fxcell_hatch_build", ROOT / "hatch_build.py")
+    assert build.is_current(ROOT, "fxcell/motion/_dhchain.c"), (
+        "fxcell/motion/_dhchain.c changed since it was built: run ./dev (or "
+        "python hatch_build.py) to rebuild it"
+    )
+
+
+def test_a_changed_source_makes_its_build_stale(tmp_path: Path) -> None:
+    build = _load("fxcell_hatch_build", ROOT / "hatch_build.py")
+    module = "fxcell/motion/_dhchain.c"
+    source = tmp_path / module
+    source.parent.mkdir(parents=True)
+    source.write_text("/* v1 */\n")
+    assert not build.is_current(tmp_path, module)  # never built
+    (source.parent / f"_dhchain{build._suffix()}").write_bytes(b"")
+    source.with_suffix(".sha256").write_text(build._stamp_of(source))
+    assert build.is_current(tmp_path, module)
+    source.write_text("/* v2 */\n")
+    assert not build.is_current(tmp_path, module)
 
 
 def _configs(rng: np.random.Generator, n: int) -> list[np.ndarray]:
@@ -95,3 +131,87 @@ def test_compiled_and_interpreted_kinematics_find_the_same_solutions(
         got, want = fast.inverse(pose, seed), slow.inverse(pose, seed)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12, err_msg=f"q={q!r} seed={seed!r}")
         assert len(fast.inverse_all(pose)) == len(slow.inverse_all(pose)), f"q={q!r}"
+
+
+def test_compiled_and_interpreted_calibrated_chains_agree() -> None:
+    # DHChain (the calibrated inverse's Newton steps) lives in the compiled module too
+    _require_compiled()
+    interpreted = _load("fxcell_kinematics_interpreted", SOURCE)
+    rng = np.random.default_rng(26)
+    dh = [
+        rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.a) + rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.d) + rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.alpha) + rng.uniform(-2e-3, 2e-3, 6),
+    ]
+    tcp = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.146]
+    fast = kinematics.DHChain(*dh, tcp)
+    slow = interpreted.DHChain(*dh, tcp)
+    for _ in range(200):
+        q = rng.uniform(-math.pi, math.pi, 6).tolist()
+        goal = fast.frame(q)
+        np.testing.assert_allclose(slow.frame(q), goal, rtol=0, atol=1e-15)
+        start = (np.array(q) + rng.uniform(-0.05, 0.05, 6)).tolist()
+        got, err = fast.newton(start, goal)
+        want, err_slow = slow.newton(start, goal)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        assert err == pytest.approx(err_slow, abs=1e-12)
+        far = (np.array(q) + rng.uniform(-0.5, 0.5, 6)).tolist()
+        got, err, gradient = fast.settle(far, goal)
+        want, err_slow, gradient_slow = slow.settle(far, goal)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+        assert err == pytest.approx(err_slow, abs=1e-12)
+        assert gradient == pytest.approx(gradient_slow, rel=1e-6, abs=1e-12)
+
+
+def _dh(rng: np.random.Generator) -> list[np.ndarray]:
+    return [
+        rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.a) + rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.d) + rng.uniform(-2e-3, 2e-3, 6),
+        np.array(kinematics.UR3E_DH.alpha) + rng.uniform(-2e-3, 2e-3, 6),
+    ]
+
+
+_TCP = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.01, -0.02, 0.146]
+_ANGLES = st.lists(st.floats(-2.0 * math.pi, 2.0 * math.pi), min_size=6, max_size=6)
+_DELTAS = st.lists(st.floats(-0.3, 0.3), min_size=6, max_size=6)
+
+
+@settings(max_examples=300, deadline=None)
+@given(q=_ANGLES, delta=_DELTAS, far=_DELTAS, calibration_seed=st.integers(0, 2**32 - 1))
+def test_the_c_chain_computes_what_dhchain_does(
+    q: list[float], delta: list[float], far: list[float], calibration_seed: int
+) -> None:
+    _require_native_chain()
+    dh = _dh(np.random.default_rng(calibration_seed))
+    fast = calibration.Chain(*dh, _TCP)
+    slow = kinematics.DHChain(*dh, _TCP)
+    goal = slow.frame(q)
+    assert fast.frame(q) == goal  # the same floating operations in the same order
+    assert fast.frame_and_jacobian(q) == slow.frame_and_jacobian(q)
+    start = [v + 0.1 * d for v, d in zip(q, delta, strict=True)]
+    assert fast.newton(start, goal, 8, 1e-12, 1e-11) == slow.newton(start, goal, 8, 1e-12, 1e-11)
+    wide = [v + 3.0 * d for v, d in zip(q, far, strict=True)]
+    assert fast.settle(wide, goal, 60, 1e-12, 1e-6) == slow.settle(wide, goal, 60, 1e-12, 1e-6)
+    seed = [v + 10.0 * d for v, d in zip(q, far, strict=True)]
+    starts = [(0.0, start), (0.0, wide), (0.0, seed)]
+    lower, upper = [-2.0 * math.pi] * 6, [2.0 * math.pi] * 6
+    args = (starts, goal, seed, lower, upper, 8, 60, 1e-12, 1e-11, 1e-6, 1e-9, 3.0, 0.2)
+    assert fast.nearest(*args) == slow.nearest(*args)
+
+
+def test_the_c_chain_rejects_malformed_input() -> None:
+    _require_native_chain()
+    chain = calibration.Chain(*_dh(np.random.default_rng(1)), _TCP)
+    with pytest.raises(ValueError, match="6 values"):
+        chain.frame([0.0] * 5)
+    with pytest.raises(TypeError):
+        chain.newton([0.0] * 6)
+    with pytest.raises(TypeError):
+        chain.frame(["a"] * 6)
+    lims = ([-7.0] * 6, [7.0] * 6)
+    with pytest.raises(TypeError, match="pairs"):
+        chain.nearest(
+            [[0.0] * 6], [0.0] * 12, [0.0] * 6, *lims, 8, 60, 0.0, 0.0, 0.0, 0.0, 3.0, 0.2
+        )

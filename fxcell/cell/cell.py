@@ -382,32 +382,55 @@ class Cell(CellCommands):
             ) from None
         return self.state
 
+    @property
+    def calibration_status(self) -> dict[str, str] | None:
+        """Which arm model pose moves are planned on (``model``: ``calibrated``, ``nominal``,
+        ``nominal (fallback)`` or ``uncalibrated``), its ``source`` and the calibration's
+        ``checksum``; None before the cell has connected."""
+        info = self.controller_info
+        if "calibration_model" not in info:
+            return None
+        return {
+            "model": info["calibration_model"],
+            "source": info.get("calibration_source", ""),
+            "checksum": info.get("calibration_checksum", ""),
+        }
+
     async def _use_calibration(self) -> dict[str, str]:
-        """Take the arm's calibration (``robot.calibration``: a file, the controller's primary
-        interface, or none) into the planner; its deltas and checksum for the log metadata."""
-        from fxcell.motion.calibration import CONTROLLER
+        """Take the arm's calibration (``robot.calibration``: the controller's, by default, a
+        file, or ``nominal``) into the planner; which model is in use, its source, deltas and
+        checksum for the log metadata, ``fxcell info`` and the daemon's state.
+
+        A controller whose calibration cannot be read is not an error at connect: pose moves
+        are refused (UncalibratedError) unless ``robot.accept_nominal_kinematics``, and the
+        model says ``uncalibrated`` (or ``nominal (fallback)``), so nothing moves on a model
+        millimetres off without it being visible."""
+        from fxcell.motion.calibration import CONTROLLER, NOMINAL
 
         source = self.config.robot.calibration
         calibration: Calibration | None = None
-        if source is None:
+        if source == NOMINAL:
             calibration = Calibration.nominal()
-            source = "nominal (robot.calibration not set)"
-        elif source == CONTROLLER:
-            from fxcell.link.primary import read_calibration
-
-            assert self._host is not None
+            source = "nominal (robot.calibration: nominal)"
+        elif source is None or source == CONTROLLER:
             try:
-                calibration = await asyncio.to_thread(read_calibration, self._host)
+                calibration = await self._link().read_calibration()
             except CalibrationError as exc:
                 log.warning("the arm's calibration: %s", exc)
                 self._moves().planner.use_calibration(None, str(exc))
-                return {"calibration_source": f"unreadable: {exc}"}
+                fallback = self.config.robot.accept_nominal_kinematics
+                return {
+                    "calibration_model": "nominal (fallback)" if fallback else "uncalibrated",
+                    "calibration_source": f"unreadable: {exc}",
+                    "calibration_checksum": Calibration.nominal().checksum if fallback else "",
+                }
             source = f"controller {self._host}"
             self._moves().planner.use_calibration(calibration)
         else:
             calibration = Calibration.load(source)  # the planner read it already
         self.calibration = calibration
         return {
+            "calibration_model": "nominal" if calibration.is_nominal else "calibrated",
             "calibration_source": source,
             "calibration_checksum": calibration.checksum,
             "calibration": json.dumps(calibration.summary()),
@@ -1411,6 +1434,8 @@ class Cell(CellCommands):
             fresh.set_acceleration_factor(old.acceleration_factor)
             if self.calibration is not None:
                 fresh.planner.use_calibration(self.calibration)
+            elif old.planner.uncalibrated is not None:
+                fresh.planner.use_calibration(None, old.planner.uncalibrated)
             if self.held is not None:
                 fresh.planner.checker.attach(self.held)
 

@@ -317,6 +317,10 @@ async def _status(cell: Any, args: argparse.Namespace) -> Any:
         f"control:      {control['client'] if control else 'free'}",
         f"allowed:      {', '.join(snap.get('allowed', []))}",
     ]
+    cal = snap.get("calibration")
+    if cal:
+        checksum = f", checksum {cal['checksum']}" if cal.get("checksum") else ""
+        lines.append(f"arm model:    {cal['model']} ({cal['source']}{checksum})")
     for op in snap.get("operations", []):
         lines.append(f"running:      {op['id']} {op['name']} ({op['client']})")
     if snap.get("cell_error"):

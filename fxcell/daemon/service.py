@@ -205,6 +205,7 @@ class CellService:
             "connected": self.cell is not None,
             "cell_error": self.cell_error,
             "remote_control": (None if self.cell is None else not self.cell.local_control),
+            "calibration": None if self.cell is None else self.cell.calibration_status,
             "robot": robot,
             "gripper": None
             if self.cell is None

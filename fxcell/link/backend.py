@@ -27,6 +27,7 @@ from fxcell.link.contract import (
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
+    from fxcell.calibration import Calibration
     from fxcell.config import RobotConfig
     from fxcell.link.subscription import StateSubscription
     from fxcell.protocol import RobotState
@@ -100,6 +101,10 @@ class LinkBackend(Protocol):
 
     async def dashboard(self, command: str, within: float = 5.0) -> str:
         """Send one Dashboard request line; returns the reply line."""
+
+    async def read_calibration(self) -> Calibration:
+        """The arm's factory calibration as the controller reports it (the primary
+        interface's kinematics info); CalibrationError when it cannot be read."""
 
     async def start_control(self, mode: ControlMode, program: str, within: float) -> None:
         """Start external control: ``script`` upload or ``urcap`` program."""

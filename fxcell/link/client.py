@@ -77,6 +77,7 @@ from fxcell.link.subscription import StateSubscription
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
 if TYPE_CHECKING:
+    from fxcell.calibration import Calibration
     from fxcell.config import RobotConfig
 
 log = logging.getLogger(__name__)
@@ -821,6 +822,13 @@ class LinkClient:
     async def dashboard(self, command: str, within: float = 5.0) -> str:
         """Send one dashboard request line; returns the reply line."""
         return str(await self._request(Dashboard(command), within))
+
+    async def read_calibration(self) -> Calibration:
+        """The arm's calibration from the controller's primary interface (port 30001), read
+        in a thread; CalibrationError when it cannot be read within 3 s."""
+        from fxcell.link.primary import read_calibration
+
+        return await asyncio.to_thread(read_calibration, self.host)
 
     async def start_control(self, mode: ControlMode, program: str, within: float) -> None:
         """Start external control: ``script`` upload or ``urcap`` program."""

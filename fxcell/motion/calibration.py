@@ -4,46 +4,67 @@ A calibrated arm's DH parameters differ from the nominal ones by up to millimetr
 milliradians (:class:`fxcell.calibration.Calibration`), which breaks the closed-form inverse
 (it needs exactly parallel middle axes). :class:`CalibratedKinematics` keeps the
 :class:`~fxcell.motion.kinematics.Kinematics` interface: its forward kinematics is the
-calibrated DH chain, and its inverse takes each closed-form branch of the nominal model as the
-start of Gauss-Newton steps on the calibrated one (by default with Pinocchio, on the model of
-:func:`calibrated_model`; ``backend="numpy"`` for the simulator, which must not load
-Pinocchio). Two or three steps bring a millimetre-off start to ~1e-13 m.
+calibrated DH chain, and its inverse refines the closed-form branches of the nominal model
+onto the calibrated one, nearest the seed first (Newton steps with the analytic Jacobian,
+Levenberg-Marquardt where they do not converge): three or four steps bring a millimetre-off
+start to the rounding floor. The chain and that loop run in C (``fxcell/motion/_dhchain.c``,
+:data:`NATIVE`), else in plain Python floats (:class:`~fxcell.motion.kinematics.DHChain`).
+Next to a singularity, where the deltas can take a branch out of the nominal solutions, and
+where the nominal closed form has no branch (at the edge of its workspace), more starts are
+refined. No Pinocchio: the simulator uses this module too.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from fxcell.calibration import Calibration
 from fxcell.errors import SingularityError, UnreachableError
-from fxcell.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
+from fxcell.geometry import Pose, rotvec_to_matrix
 from fxcell.motion.kinematics import (
     JOINT_NAMES,
-    TWO_PI,
     UR3E_DH,
+    DHChain,
     FloatArray,
     JointValidity,
     Kinematics,
+    _compose,
     _joints,
+    _near,
     dh_transform,
 )
+
+try:
+    from fxcell.motion._dhchain import Chain
+
+    NATIVE = True
+    """Whether the calibrated chain runs in C (``fxcell/motion/_dhchain.c``, hatch_build.py)."""
+except ImportError:  # not built (no C compiler): the same computations in Python
+    Chain = DHChain  # type: ignore[assignment,misc]
+    NATIVE = False
 
 if TYPE_CHECKING:
     from fxcell.config import CellConfig, JointLimits
 
-Backend = Literal["pinocchio", "numpy"]
 
 CONVERGED = 1e-12
 """Pose error norm (m and rad together) at which refinement stops."""
 ACCEPTED = 1e-9
 """Pose error norm above which a refined branch is dropped (did not converge)."""
 _ITERATIONS = 20
+_FAST_ITERATIONS = 8
+"""Newton steps the hot path gives a start (4 or 5 bring a nominal solution to rounding)."""
 _PATIENT_ITERATIONS = 400  # Levenberg-Marquardt's, from far starts (rarely needed)
+_SELF_MOTION_TURNS = (0.5 * math.pi, math.pi, 1.5 * math.pi)
+"""Radians by which the last resort of the general path turns θ4 and θ6 together (both
+ways) from each start: points along the wrist's self-motion at its singularity."""
+_SELF_MOTION_ITERATIONS = 3000
+"""Levenberg-Marquardt steps the last resort gives each of those starts."""
 _EDGE_STEPS = (0.005, 0.02)
 """Metres by which a target at the edge of the nominal workspace is moved to find starts."""
 _ROUNDING = 1e-11
@@ -52,6 +73,27 @@ _SAME_START = 0.05
 """Radians (per joint) within which two starting points count as one."""
 _EDGE_TURN = 0.02
 """Radians by which a target near a wrist singularity is turned to find starts."""
+_SETTLE_ITERATIONS = 1000
+"""Levenberg-Marquardt steps the hot path gives a start that Newton's steps did not bring to a
+solution (see :meth:`DHChain.settle`)."""
+_STATIONARY = 1e-6
+"""``‖Jᵀe‖ / (‖J‖·‖e‖)`` below which a start that did not converge has reached a local minimum
+of the error: the branch has no calibrated solution, and is no rival."""
+_RIVAL_FACTOR = 3.0
+"""How much farther than the farthest refined one an unrefined nominal branch away from the
+singularities is assumed to move at most (see :meth:`DHChain.nearest`)."""
+_NEAR_SINGULAR = 0.2
+"""|sin θ3| or |sin θ5| below which, or the wrist centre's distance from the shoulder
+singularity over d4 below which, a nominal branch is always refined: refinement can move it
+far."""
+_BRANCHES = 8
+"""The nominal closed form's branches where none is missing (2 shoulders, 2 wrists, 2 elbows)."""
+_START_SLACK = 0.2
+"""Radians by which the hot path widens the joint limits for its nominal starts."""
+_SINGULAR_MOVE = 0.1
+"""Radians (Euclidean): a refinement that moves a nominal start farther is next to a
+singularity; where the nominal arm also lacks a branch, the hot path refines the branches of
+the seed-corrected target too."""
 
 
 BRANCH_TOLERANCE = 0.05
@@ -71,17 +113,28 @@ class CalibratedKinematics(Kinematics):
         calibration: Calibration,
         tcp: Sequence[float] | Pose | None = None,
         limits: tuple[Sequence[float], Sequence[float]] | None = None,
-        *,
-        backend: Backend = "pinocchio",
     ) -> None:
         super().__init__(UR3E_DH, tcp, limits)
         self.calibration = calibration
-        self.backend: Backend = backend
         self.nominal = Kinematics(UR3E_DH, self.tcp, (self.lower, self.upper))
+        # the hot path's starts: the nominal model with the limits widened by _START_SLACK,
+        # so that a branch whose calibrated solution is just inside a limit its nominal one
+        # is just beyond still has its start, at its distance from the seed
+        self._starts = Kinematics(
+            UR3E_DH,
+            self.tcp,
+            (
+                [v - _START_SLACK for v in self.lower],
+                [v + _START_SLACK for v in self.upper],
+            ),
+        )
         theta, a, d, alpha = calibration.dh()
         # Rz(q + θ)·Tz(d)·Tx(a)·Rx(α) = Rz(q)·C with C fixed per joint
         self._links = [dh_transform(theta[j], d[j], a[j], alpha[j]) for j in range(6)]
-        self._pin: Any = None
+        self._chain = Chain(theta, a, d, alpha, self._tcp)
+        self.fallbacks = 0
+        """Calls of :meth:`inverse` (without ``valid`` or a margin) that the hot path left to
+        the general one (the benchmark reports it)."""
 
     @classmethod
     def ur3e_calibrated(
@@ -89,18 +142,14 @@ class CalibratedKinematics(Kinematics):
         calibration: Calibration,
         tcp: Sequence[float] | Pose | None = None,
         limits: JointLimits | tuple[Sequence[float], Sequence[float]] | None = None,
-        *,
-        backend: Backend = "pinocchio",
     ) -> CalibratedKinematics:
         """The calibrated UR3e; ``limits`` a JointLimits or ``(lower, upper)``."""
         if limits is not None and not isinstance(limits, tuple):
             limits = (limits.position_min, limits.position_max)
-        return cls(calibration, tcp, limits, backend=backend)
+        return cls(calibration, tcp, limits)
 
     def with_tcp(self, tcp: Sequence[float] | Pose | None) -> CalibratedKinematics:
-        return CalibratedKinematics(
-            self.calibration, tcp, (self.lower, self.upper), backend=self.backend
-        )
+        return CalibratedKinematics(self.calibration, tcp, (self.lower, self.upper))
 
     # ------------------------------------------------------------ forward
 
@@ -118,24 +167,12 @@ class CalibratedKinematics(Kinematics):
         out[7] = out[6] @ self._tcp_matrix
         return out
 
-    def _tcp_frame(self, q: FloatArray) -> FloatArray:
-        """4×4 TCP frame (Pinocchio when that is the backend: faster)."""
-        if self.backend == "pinocchio":
-            pin, model, data, fid = self._pinocchio()
-            pin.framesForwardKinematics(model, data, q)
-            out: FloatArray = data.oMf[fid].homogeneous
-            return out
-        frame: FloatArray = self._frames(q)[7]
-        return frame
-
     def forward(self, q: ArrayLike) -> Pose:
-        F = self._frames(q)[7]
-        return Pose._raw(F[:3, 3].copy(), F[:3, :3].copy())
+        f = self._chain.frame(_joints(q))
+        return Pose._raw(np.array(f[9:]), np.array((f[0:3], f[3:6], f[6:9])))
 
     def forward_rows(self, q: ArrayLike) -> list[float]:
-        F = self._frames(q)[7]
-        out: list[float] = [*F[:3, :3].ravel().tolist(), *F[:3, 3].tolist()]
-        return out
+        return self._chain.frame(_joints(q))
 
     def forward_flange(self, q: ArrayLike) -> Pose:
         F = self._frames(q)[6]
@@ -146,35 +183,51 @@ class CalibratedKinematics(Kinematics):
         out: list[float] = [*F[:3, :3].ravel().tolist(), *F[:3, 3].tolist()]
         return out
 
+    def jacobian(self, q: ArrayLike) -> FloatArray:
+        return np.array(self._chain.frame_and_jacobian(_joints(q))[1]).reshape(6, 6)
+
     # ------------------------------------------------------------ inverse
 
     def solve(
-        self, q_nominal: ArrayLike, target: Pose, *, patient: bool = False
+        self,
+        q_nominal: ArrayLike,
+        target: Pose,
+        *,
+        patient: bool = False,
+        seed: Sequence[float] | None = None,
     ) -> FloatArray | None:
         """Refine a nominal solution onto the calibrated model; None if it does not converge
-        or leaves the joint limits (also after shifts by 2π). ``patient``: Levenberg-Marquardt
-        for many iterations instead of a few Newton steps (for starts far from a solution)."""
-        start = np.array(_joints(q_nominal))
-        q, err = self._marquardt(start, target) if patient else self._newton(start, target)
+        or has no 2π-equivalent within the joint limits. Each joint is the equivalent nearest
+        ``seed`` (default: the start). ``patient``: Levenberg-Marquardt for many iterations
+        instead of a few Newton steps (for starts far from a solution)."""
+        start = _joints(q_nominal)
+        if patient:
+            qq, err, _ = self._chain.settle(
+                start, _rows(target), _PATIENT_ITERATIONS, CONVERGED, 0.0
+            )
+        else:
+            qq, err = self._chain.newton(start, _rows(target), _ITERATIONS, CONVERGED, _ROUNDING)
         if err > ACCEPTED:
             return None
-        for j in range(6):
-            v = float(q[j])
-            if v < self.lower[j]:
-                v += TWO_PI * math.ceil((self.lower[j] - v) / TWO_PI)
-            elif v > self.upper[j]:
-                v -= TWO_PI * math.ceil((v - self.upper[j]) / TWO_PI)
-            if not self.lower[j] <= v <= self.upper[j]:
+        shifted = self._shifted(qq, start if seed is None else seed)
+        return None if shifted is None else np.array(shifted)
+
+    def _shifted(self, q: list[float], seed: Sequence[float]) -> list[float] | None:
+        """Each joint's 2π-equivalent nearest ``seed`` within the limits (None: none)."""
+        out = []
+        for v, s, lo, hi in zip(q, seed, self.lower, self.upper, strict=True):
+            w = _near(v, s, lo, hi)
+            if w != w:
                 return None
-            q[j] = v
-        return q
+            out.append(w)
+        return out
 
     def nominal_target(self, target: Pose, q: ArrayLike) -> Pose:
         """``target`` moved by the nominal model's offset from the calibrated one at ``q``:
         the pose whose nominal inverse lands near the calibrated solution when ``q`` is near it
         (the offset changes slowly with ``q``). Keeps the closed form in reach of poses at the
         edge of the nominal workspace."""
-        F = self._tcp_frame(np.array(_joints(q)))
+        F = self.forward(q).matrix
         R, p = F[:3, :3], F[:3, 3]
         F_inv = np.eye(4)
         F_inv[:3, :3] = R.T
@@ -191,17 +244,27 @@ class CalibratedKinematics(Kinematics):
         except UnreachableError:
             return q
 
-    def _solutions(self, target: Pose, seed: FloatArray) -> Iterator[FloatArray]:
+    def _solutions(
+        self, target: Pose, seed: FloatArray, *, thorough: bool = True
+    ) -> Iterator[FloatArray]:
         """Calibrated solutions, distinct, lazily: each start (see :meth:`_start_groups`)
-        re-solved for the target corrected by the offset on its own branch, then refined."""
+        refined directly and, if that fails, re-solved for the target corrected by the offset
+        on its own branch, then refined; each joint shifted by 2π toward ``seed``. Not
+        ``thorough``: the starts at the edge of the workspace only if the first group (the
+        target's and the seed-corrected target's nominal branches) finds nothing."""
         tried: list[FloatArray] = []
         found: list[FloatArray] = []
+        s = seed.tolist()
         for group in self._start_groups(target, seed):
+            if found and not thorough:
+                return
             for start in group:
                 if any(np.max(np.abs(start - t)) < _SAME_START for t in tried):
                     continue
                 tried.append(start)
-                q = self.solve(self._corrected(target, start), target)
+                q = self.solve(start, target, seed=s)
+                if q is None:
+                    q = self.solve(self._corrected(target, start), target, seed=s)
                 if q is not None and not any(np.max(np.abs(q - f)) < 1e-9 for f in found):
                     found.append(q)
                     yield q
@@ -211,10 +274,37 @@ class CalibratedKinematics(Kinematics):
         # nominal branches can be a tenth of a radian from the calibrated solution, where
         # Newton's steps overshoot; damped steps get there (about 1 pose in 10^4).
         for start in tried:
-            q = self.solve(start, target, patient=True)
+            q = self.solve(start, target, patient=True, seed=s)
             if q is not None and not any(np.max(np.abs(q - f)) < 1e-9 for f in found):
                 found.append(q)
                 yield q
+        if found:
+            return
+        # Exactly wrist-singular with the arm nearly stretched: the nominal closed form has
+        # no branch, and damped steps from one point of the wrist's self-motion (θ4 and θ6
+        # turning together) can stall; from points a quarter turn apart along it, with more
+        # steps, one gets there (a few poses in 10^3 of the bench's wrist family).
+        goal = _rows(target)
+        for start in tried:
+            for turn in _SELF_MOTION_TURNS:
+                for sign in (1.0, -1.0):
+                    moved = start.tolist()
+                    moved[3] += turn
+                    moved[5] -= sign * turn
+                    qq, err, _ = self._chain.settle(
+                        moved, goal, _SELF_MOTION_ITERATIONS, CONVERGED, 0.0
+                    )
+                    if err > ACCEPTED:
+                        continue
+                    shifted = self._shifted(qq, s)
+                    if shifted is None:
+                        continue
+                    q = np.array(shifted)
+                    if not any(np.max(np.abs(q - f)) < 1e-9 for f in found):
+                        found.append(q)
+                        yield q
+            if found:
+                return
 
     def _start_groups(self, target: Pose, seed: FloatArray) -> Iterator[list[FloatArray]]:
         """Nominal solutions to start from, nearest ``seed`` first within each group: for the
@@ -243,6 +333,63 @@ class CalibratedKinematics(Kinematics):
         yield nearest_first(edge)
         yield [seed]
 
+    def _nearest_fast(self, target: Pose, seed: list[float]) -> FloatArray | None:
+        """The hot path of :meth:`inverse`: the nominal branches refined (in C when
+        :data:`NATIVE`, see :meth:`DHChain.nearest`), the result nearest the seed; None to
+        leave the decision to the general path.
+
+        The deltas move a solution by millimetres over the UR3e's ~0.1 m lever arms (a few
+        hundredths of a radian), more next to a singularity, and may so reorder branches
+        that the nominal solutions put about equally far from the seed: a branch is refined
+        unless it is farther than the best found plus _RIVAL_FACTOR × the largest move a
+        refinement made, and always next to a singularity (_NEAR_SINGULAR). When a
+        refinement moved by over _SINGULAR_MOVE or the target is next to a singularity, and
+        the nominal arm lacks a branch there, or at the edge of its workspace, the branches
+        of the target corrected by the offset at the seed are refined too: the deltas can
+        take the seed's own branch out of the nominal solutions of the target (a wrist near
+        θ5 = 0 turns by tenths of a radian per millimetre)."""
+        goal = _rows(target)
+        starts = self._starts
+        nearest, candidates, _, edge = starts.nearest_within(target, seed, math.inf, lenient=True)
+        if nearest is None:
+            return None
+        best, best_d, moved, unrefined, singular = self._refine(candidates, goal, seed)
+        if best is None or unrefined <= math.sqrt(best_d) + _RIVAL_FACTOR * moved:
+            return None
+        if edge or (len(candidates) < _BRANCHES and (singular or moved > _SINGULAR_MOVE)):
+            corrected = _compose(
+                _compose(starts.forward_rows(seed), _inverse_rows(self._chain.frame(seed))),
+                goal,
+            )
+            own, candidates, _, _ = starts.nearest_within(
+                _pose(corrected), seed, math.inf, lenient=True
+            )
+            if own is not None:
+                q, d, _, _, _ = self._refine(candidates, goal, seed)
+                if q is not None and d < best_d:
+                    best = q
+        return np.array(best)
+
+    def _refine(
+        self, starts: list[tuple[float, list[float]]], goal: list[float], seed: list[float]
+    ) -> tuple[list[float] | None, float, float, float, int]:
+        """:meth:`DHChain.nearest` with the hot path's settings."""
+        return self._chain.nearest(
+            starts,
+            goal,
+            seed,
+            self.lower,
+            self.upper,
+            _FAST_ITERATIONS,
+            _SETTLE_ITERATIONS,
+            CONVERGED,
+            _ROUNDING,
+            _STATIONARY,
+            ACCEPTED,
+            _RIVAL_FACTOR,
+            _NEAR_SINGULAR,
+        )
+
     def inverse(
         self,
         pose: Pose | Sequence[float],
@@ -254,29 +401,17 @@ class CalibratedKinematics(Kinematics):
     ) -> FloatArray:
         """As :meth:`Kinematics.inverse`, on the calibrated model (``refine`` is implied)."""
         target = pose if isinstance(pose, Pose) else Pose.parse(pose)
-        s = np.zeros(6) if seed is None else np.array(_joints(seed))
+        s_list = [0.0] * 6 if seed is None else list(_joints(seed))
         if valid is None and singularity_margin is None:
-            try:
-                start = self.nominal.inverse(target, s)
-                q = self.solve(self._corrected(target, start), target)
-                # At the edge of the workspace the seed's branch can be missing from the
-                # nominal solutions of the target (the deltas move the wrist out of nominal
-                # reach); the target corrected at the seed still has it. Only when both
-                # agree is the nearest nominal branch the nearest calibrated one.
-                seed_branch = self.nominal.inverse(self.nominal_target(target, s), s)
-            except UnreachableError:
-                q = None
-            # the refinement must stay on the nominal branch nearest the seed (the deltas
-            # are millimetres); Newton that wandered to another branch is not an answer
-            if (
-                q is not None
-                and float(np.max(np.abs(q - start))) < BRANCH_TOLERANCE
-                and float(np.max(np.abs(seed_branch - start))) < BRANCH_TOLERANCE
-            ):
-                return q
+            fast = self._nearest_fast(target, s_list)
+            if fast is not None:
+                return fast
+            self.fallbacks += 1
+        s = np.array(s_list)
         singular: str | None = None
         rejected = 0
-        candidates = sorted(self._solutions(target, s), key=lambda q: float(np.sum((q - s) ** 2)))
+        everything = self._solutions(target, s, thorough=valid is not None)
+        candidates = sorted(everything, key=lambda q: float(np.sum((q - s) ** 2)))
         for q in candidates:
             if singularity_margin is not None:
                 kind = self.singularity(q, distance=singularity_margin, sine=singularity_margin)
@@ -312,102 +447,27 @@ class CalibratedKinematics(Kinematics):
         out.sort(key=lambda q: float(np.sum((q - s) ** 2)))
         return out
 
-    # ------------------------------------------------------------ Pinocchio
 
-    def _pinocchio(self) -> tuple[Any, Any, Any, int]:
-        if self._pin is None:
-            import pinocchio as pin
+def _inverse_rows(f: list[float]) -> list[float]:
+    """The inverse of a rigid transform given as 12 floats (rotation row-major, position)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z = f
+    return [
+        r00, r10, r20, r01, r11, r21, r02, r12, r22,
+        -(r00 * x + r10 * y + r20 * z),
+        -(r01 * x + r11 * y + r21 * z),
+        -(r02 * x + r12 * y + r22 * z),
+    ]  # fmt: skip
 
-            model = calibrated_model(self.calibration, self.tcp)
-            self._pin = (pin, model, model.createData(), model.getFrameId("tcp"))
-        out: tuple[Any, Any, Any, int] = self._pin
-        return out
 
-    def _tcp_and_jacobian(self, q: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """TCP frame (4×4) and geometric Jacobian (rows v, ω; base frame) at ``q``."""
-        if self.backend == "pinocchio":
-            pin, model, data, fid = self._pinocchio()
-            J = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL_WORLD_ALIGNED)
-            F: FloatArray = data.oMf[fid].homogeneous  # computeFrameJacobian placed the frames
-            return F, J
-        frames = self._frames(q)
-        z = frames[:6, :3, 2]
-        d = frames[7, :3, 3] - frames[:6, :3, 3]
-        return frames[7], np.vstack((np.cross(z, d).T, z.T))
+def _pose(f: list[float]) -> Pose:
+    """A pose from 12 floats (rotation row-major, then position)."""
+    return Pose._raw(np.array(f[9:]), np.array(f[:9]).reshape(3, 3))
 
-    def _newton(self, q: FloatArray, target: Pose) -> tuple[FloatArray, float]:
-        """Newton steps on the TCP pose error; a step that does not lower the error is
-        retried damped (Levenberg-Marquardt), as near a singularity."""
-        Rt, pt = target.rotation, target.position
 
-        def error(F: FloatArray) -> FloatArray:
-            return np.concatenate((pt - F[:3, 3], matrix_to_rotvec(Rt @ F[:3, :3].T)))
-
-        F, J = self._tcp_and_jacobian(q)
-        err = error(F)
-        norm = float(np.linalg.norm(err))
-        lam = 0.0
-        for _ in range(_ITERATIONS):
-            if norm < CONVERGED:
-                break
-            try:
-                if lam == 0.0:
-                    step = np.linalg.solve(J, err)
-                else:
-                    step = J.T @ np.linalg.solve(J @ J.T + lam * np.eye(6), err)
-            except np.linalg.LinAlgError:
-                lam = max(lam, 1e-9)
-                continue
-            trial = q + step
-            F, J_trial = self._tcp_and_jacobian(trial)
-            trial_err = error(F)
-            trial_norm = float(np.linalg.norm(trial_err))
-            if trial_norm < norm:
-                q, J, err, norm = trial, J_trial, trial_err, trial_norm
-                lam *= 0.1 if lam > 1e-9 else 0.0
-            else:
-                if norm < _ROUNDING:  # at the rounding floor: no better step exists
-                    break
-                lam = 1e-6 if lam == 0.0 else lam * 10.0
-                if lam > 1.0:
-                    break
-                if self.backend == "pinocchio":
-                    self._tcp_and_jacobian(q)  # keep Pinocchio's data at q
-        return q, norm
-
-    def _marquardt(self, q: FloatArray, target: Pose) -> tuple[FloatArray, float]:
-        """Levenberg-Marquardt (diagonal scaling) on the TCP pose error, for far starts."""
-        Rt, pt = target.rotation, target.position
-
-        def error(F: FloatArray) -> FloatArray:
-            return np.concatenate((pt - F[:3, 3], matrix_to_rotvec(Rt @ F[:3, :3].T)))
-
-        F, J = self._tcp_and_jacobian(q)
-        err = error(F)
-        norm = float(np.linalg.norm(err))
-        lam = 1e-4
-        for _ in range(_PATIENT_ITERATIONS):
-            if norm < CONVERGED:
-                break
-            A = J.T @ J
-            try:
-                step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), J.T @ err)
-            except np.linalg.LinAlgError:
-                break
-            trial = q + step
-            F, J_trial = self._tcp_and_jacobian(trial)
-            trial_err = error(F)
-            trial_norm = float(np.linalg.norm(trial_err))
-            if trial_norm < norm:
-                q, J, err, norm = trial, J_trial, trial_err, trial_norm
-                lam = max(lam / 3.0, 1e-12)
-            else:
-                lam *= 4.0
-                if lam > 1e8:
-                    break
-                if self.backend == "pinocchio":
-                    self._tcp_and_jacobian(q)  # keep Pinocchio's data at q
-        return q, norm
+def _rows(pose: Pose) -> list[float]:
+    """A pose as 12 floats: rotation row-major, then position."""
+    out: list[float] = [*pose.rotation.ravel().tolist(), *pose.position.tolist()]
+    return out
 
 
 def calibrated_model(calibration: Calibration, tcp: Pose | None = None) -> Any:
@@ -430,24 +490,25 @@ def calibrated_model(calibration: Calibration, tcp: Pose | None = None) -> Any:
 
 
 CONTROLLER = "controller"
-"""``robot.calibration`` value: read the calibration from the controller at connect."""
+"""``robot.calibration`` value (the default): read the calibration from the controller at
+connect."""
+NOMINAL = "nominal"
+"""``robot.calibration`` value: UR's nominal model, by explicit choice."""
 
 
-def kinematics_for(config: CellConfig, *, backend: Backend = "pinocchio") -> Kinematics:
+def kinematics_for(config: CellConfig) -> Kinematics:
     """The arm of a configuration: calibrated when ``robot.calibration`` names a file (read
-    here; CalibrationError if it is unreadable), else the nominal UR3e (until the Cell has
-    read the controller's calibration); with the tool's TCP and the joint limits."""
+    here; CalibrationError if it is unreadable), else the nominal UR3e (``nominal``, or until
+    the Cell has read the controller's calibration); with the tool's TCP and the limits."""
     source = config.robot.calibration
-    if source is None or source == CONTROLLER:
+    if source is None or source in (CONTROLLER, NOMINAL):
         return Kinematics.ur3e(config.tool.tcp, config.limits)
-    return calibrated_kinematics(config, Calibration.load(source), backend=backend)
+    return calibrated_kinematics(config, Calibration.load(source))
 
 
-def calibrated_kinematics(
-    config: CellConfig, calibration: Calibration, *, backend: Backend = "pinocchio"
-) -> Kinematics:
+def calibrated_kinematics(config: CellConfig, calibration: Calibration) -> Kinematics:
     """The configuration's arm (TCP, limits) with ``calibration``; nominal if all-zero."""
     tcp, limits = config.tool.tcp, config.limits
     if calibration.is_nominal:
         return Kinematics.ur3e(tcp, limits)
-    return CalibratedKinematics.ur3e_calibrated(calibration, tcp, limits, backend=backend)
+    return CalibratedKinematics.ur3e_calibrated(calibration, tcp, limits)

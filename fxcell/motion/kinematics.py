@@ -83,8 +83,23 @@ _NEAR_MISS = 1e-6
 :func:`_rounding_slack` for how far it is near which singularity."""
 _POLISH_TOL = 1e-10
 """Pose error (m, rad) accepted from a solution polished by Newton steps."""
+_EDGE_C3 = 0.1
+"""How far beyond full stretch or fold (in cos θ3) :meth:`Kinematics.nearest_within` reports
+a missed branch (a calibration's millimetres move cos θ3 by up to ~0.04)."""
+_LENIENT_BEND = 0.05
+"""rad: how far from straight :meth:`Kinematics.nearest_within` (``lenient``) bends a
+stretched or folded arm, or turns θ1 from the shoulder singularity, for starting points."""
+_LENIENT_C3 = math.cos(_LENIENT_BEND)
+_LENIENT_H2 = math.sin(_LENIENT_BEND) ** 2
+"""(h/d4)² below which a ``lenient`` start is taken at the shoulder singularity's edge."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
+_WRIST_MOVE = 0.1
+"""Radians by which refinement next to the wrist singularity may move θ1 and θ5 together (see
+:meth:`DHChain.nearest`)."""
+_FINAL_STEP = 1e-7
+"""Radians: a full Newton step of :meth:`DHChain.newton` this short is its last (the error it
+leaves is of the order of its square)."""
 
 
 @dataclass(frozen=True)
@@ -959,15 +974,36 @@ class Kinematics:
         return total, out
 
     def _fast_nearest(self, target: Pose, seed: list[float]) -> list[float] | None:
-        """The hot path of :meth:`inverse`: the nearest solution without building every branch.
+        """The hot path of :meth:`inverse`: the nearest solution without building every branch
+        (see :meth:`nearest_and_runner_up`)."""
+        return self.nearest_within(target, seed, 0.0)[0]
+
+    def nearest_within(
+        self, target: Pose, seed: list[float], margin: float, lenient: bool = False
+    ) -> tuple[list[float] | None, list[tuple[float, list[float]]], float, bool]:
+        """The solution nearest ``seed`` (None: see below); with ``margin`` > 0 (rad,
+        Euclidean) also every solution whose distance from the seed is within ``margin`` of
+        the nearest one's, as (distance², joints) nearest first, and a bound: every other
+        solution's distance² is at least the third value; fourth, whether a branch not pruned
+        misses full stretch or fold by less than _EDGE_C3 (in cos θ3): slightly other arm
+        lengths would reach it. ``margin`` 0 is :meth:`inverse`'s
+        hot path. The calibrated inverse (:mod:`fxcell.motion.calibration`) refines the
+        solutions within the margin, which the deltas may reorder.
 
         Same result as ranking :meth:`_branches` with :meth:`_nearest`, with shared terms
         computed once per shoulder and wrist branch, branches pruned as soon as their
-        partial distance exceeds the best, and the 2π shift toward the seed inlined
-        (``_near`` only when the shifted angle leaves the limits); an exactly wrist-singular
+        partial distance exceeds the best (plus the margin), and the 2π shift toward the seed
+        inlined (``_near`` only when the shifted angle leaves the limits); an exactly wrist-singular
         shoulder goes to :meth:`_singular_arms` last, unless the others' best already beats
         its θ1 and θ5 alone. Returns None, to fall back on the general path, next to the
         singularities that need its special handling (polishing) or when nothing fits.
+
+        ``lenient`` (starting points for the calibrated inverse, not solutions): a target
+        a little beyond the nominal reach (within _EDGE_C3·d4² in h² beyond the shoulder
+        singularity, within _EDGE_C3 in cos θ3 beyond full stretch or fold), or next to it,
+        gets branches with the arm bent by _LENIENT_BEND (θ3 ≈ ±_LENIENT_BEND; the wrist
+        centre that far from the shoulder singularity, both sides), so the branches the
+        deltas make on either side each have a start.
         """
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = target._R.tolist()
         px, py, pz = target._p.tolist()
@@ -1001,18 +1037,26 @@ class Kinematics:
         p5x, p5y, p5z = px - d6 * r02, py - d6 * r12, pz - d6 * r22
         rho2 = p5x * p5x + p5y * p5y
         h2 = rho2 - d4 * d4
+        clamped = False
+        if lenient and h2 < _LENIENT_H2 * d4 * d4:
+            if h2 < -_EDGE_C3 * d4 * d4 or rho2 == 0.0:
+                return None, [], math.inf, True
+            h2 = _LENIENT_H2 * d4 * d4
+            clamped = True
         if h2 < 0.0:  # beyond the shoulder singularity by rounding, or out of reach
             if h2 < -_CLIP_EPS * d4 * d4:
-                return None
+                return None, [], math.inf, True
             h2 = 0.0
         h = sqrt(h2)
         # (c1, sn1) has norm √((h² + d4²) / rho2): 1 but for a clipped h2
-        norm = rho2 if h2 > 1e-12 else sqrt(rho2 * (h2 + d4 * d4))
+        norm = rho2 if h2 > 1e-12 and not clamped else sqrt(rho2 * (h2 + d4 * d4))
         k3 = 1.0 / (2.0 * a2 * a3)
         l3 = a2 * a2 + a3 * a3
-        best = math.inf
+        best = cut = math.inf
         best_q: list[float] | None = None
+        found: list[tuple[float, list[float]]] = []
         near_miss = False
+        edge = False
         shoulders = []
         # next to the shoulder singularity θ1 carries rounding error amplified ~1/h, but
         # the pose reached moves only to second order: the two branches nearly coincide
@@ -1030,7 +1074,7 @@ class Kinematics:
             shoulders.reverse()  # nearest θ1 first: the pruning bites early
         singular = []
         for e1, v1, c1, sn1, t1 in shoulders:
-            if e1 >= best:
+            if e1 >= cut:
                 continue
             zx = r00 * sn1 - r10 * c1
             zy = r01 * sn1 - r11 * c1
@@ -1071,7 +1115,7 @@ class Kinematics:
             if len(wrists) == 2 and wrists[1][0] < wrists[0][0]:
                 wrists.reverse()
             for e6, sign, v5, v6 in wrists:
-                if e6 >= best:
+                if e6 >= cut:
                     continue
                 t234 = atan2(sign * x4z, sign * x4p)
                 sd5 = sign * d5
@@ -1079,7 +1123,13 @@ class Kinematics:
                 X = c1 * ox + sn1 * oy
                 Y = oz - d1
                 c3 = (X * X + Y * Y - l3) * k3
+                if lenient and abs(c3) > _LENIENT_C3:
+                    if abs(c3) >= 1.0 + _EDGE_C3:
+                        continue
+                    c3 = _LENIENT_C3 if c3 > 0.0 else -_LENIENT_C3
                 if c3 > 1.0 or c3 < -1.0:
+                    if margin > 0.0 and abs(c3) < 1.0 + _EDGE_C3:
+                        edge = True
                     if abs(c3) > 1.0 + _CLIP_EPS:
                         miss = abs(c3) - 1.0
                         near_miss = near_miss or miss <= slack
@@ -1096,7 +1146,7 @@ class Kinematics:
                         if v2 != v2:
                             continue
                     e = e6 + (v2 - s1_) * (v2 - s1_)
-                    if e >= best:
+                    if e >= cut:
                         continue
                     v3 = t3e + tau * (((s2 - t3e) * inv + 0.5) // 1.0)
                     if not lo2 <= v3 <= hi2:
@@ -1110,28 +1160,39 @@ class Kinematics:
                         if v4 != v4:
                             continue
                     e += (v3 - s2) * (v3 - s2) + (v4 - s3) * (v4 - s3)
-                    if e < best:
-                        best = e
-                        best_q = [v1, v2, v3, v4, v5, v6]
-        if near_miss:
-            return None
+                    if e < cut:
+                        sol = [v1, v2, v3, v4, v5, v6]
+                        if margin > 0.0:
+                            found.append((e, sol))
+                        if e < best:
+                            best, best_q = e, sol
+                            cut = best if margin == 0.0 else (sqrt(best) + margin) ** 2
+        if near_miss and not lenient:
+            return None, found, math.inf, True
         # exactly wrist singular (θ5 = 0 or π, θ6 free), last: the others' best prunes it
         for e1, t1, c1, sn1, c5 in singular:
             v5 = _near(0.0 if c5 > 0.0 else math.pi, s4, lo4, hi4)
             if v5 != v5:
                 continue
             e5 = e1 + (v5 - s4) * (v5 - s4)
-            if e5 >= best:
+            if e5 >= cut:
                 continue
             f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
             sols = self._singular_arms(
-                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, best - e5, nearest_only=True
+                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=True
             )
             for sol in sols:
                 ranked = self._nearest(sol, seed)
-                if ranked is not None and ranked[0] < best:
+                if ranked is None or ranked[0] >= cut:
+                    continue
+                if margin > 0.0:
+                    found.append(ranked)
+                if ranked[0] < best:
                     best, best_q = ranked
-        return best_q
+                    cut = best if margin == 0.0 else (sqrt(best) + margin) ** 2
+        if margin > 0.0:
+            found = sorted(c for c in found if c[0] < cut)
+        return best_q, found, cut, edge
 
     def inverse(
         self,
@@ -1233,6 +1294,443 @@ class Kinematics:
                 if lam > 1.0:
                     return qq
         return qq
+
+
+class DHChain:
+    """A 6R arm's standard DH chain with per-joint θ offsets (a calibrated UR arm) and a TCP:
+    forward kinematics, geometric Jacobian and Newton steps, in plain floats.
+
+    ``T_j = Rz(q_j + θ_j)·Tz(d_j)·Tx(a_j)·Rx(α_j)``; ``tcp`` is 12 floats (rotation row-major,
+    then position) in the flange frame. The calibrated inverse
+    (:class:`fxcell.motion.calibration.CalibratedKinematics`) refines the nominal closed form
+    with :meth:`newton`: from a start a few millimetres off, three or four steps reach the
+    rounding floor (~1e-15), about a microsecond each compiled.
+    """
+
+    def __init__(
+        self,
+        theta: Sequence[float],
+        a: Sequence[float],
+        d: Sequence[float],
+        alpha: Sequence[float],
+        tcp: Sequence[float],
+    ) -> None:
+        self._theta = [float(v) for v in theta]
+        self._a = [float(v) for v in a]
+        self._d = [float(v) for v in d]
+        self._ca = [math.cos(float(v)) for v in alpha]
+        self._sa = [math.sin(float(v)) for v in alpha]
+        self._tcp = [float(v) for v in tcp]
+
+    def frame(self, q: Sequence[float]) -> list[float]:
+        """The TCP frame at ``q`` as 12 floats (rotation row-major, then position)."""
+        return self._evaluate(q, None)
+
+    def frame_and_jacobian(self, q: Sequence[float]) -> tuple[list[float], list[float]]:
+        """The TCP frame (as :meth:`frame`) and the geometric Jacobian in the base frame,
+        36 floats row-major (rows vx, vy, vz, wx, wy, wz)."""
+        jac = [0.0] * 36
+        return self._evaluate(q, jac), jac
+
+    def _evaluate(self, q: Sequence[float], jac: list[float] | None) -> list[float]:
+        # frame axes X, Y, Z and origin O, as columns; joint j turns about Z of frame j-1
+        xx, xy, xz = 1.0, 0.0, 0.0
+        yx, yy, yz = 0.0, 1.0, 0.0
+        zx, zy, zz = 0.0, 0.0, 1.0
+        ox, oy, oz = 0.0, 0.0, 0.0
+        axes = [0.0] * 36  # z and origin of frame j-1 per joint (for the Jacobian)
+        cos, sin = math.cos, math.sin
+        for j in range(6):
+            k = 6 * j
+            axes[k] = zx
+            axes[k + 1] = zy
+            axes[k + 2] = zz
+            axes[k + 3] = ox
+            axes[k + 4] = oy
+            axes[k + 5] = oz
+            t = q[j] + self._theta[j]
+            ct, st = cos(t), sin(t)
+            ca, sa, a, d = self._ca[j], self._sa[j], self._a[j], self._d[j]
+            ux, uy, uz = ct * xx + st * yx, ct * xy + st * yy, ct * xz + st * yz
+            vx, vy, vz = ct * yx - st * xx, ct * yy - st * xy, ct * yz - st * xz
+            ox, oy, oz = ox + a * ux + d * zx, oy + a * uy + d * zy, oz + a * uz + d * zz
+            xx, xy, xz = ux, uy, uz
+            yx, yy, yz, zx, zy, zz = (
+                ca * vx + sa * zx,
+                ca * vy + sa * zy,
+                ca * vz + sa * zz,
+                ca * zx - sa * vx,
+                ca * zy - sa * vy,
+                ca * zz - sa * vz,
+            )
+        t00, t01, t02, t10, t11, t12, t20, t21, t22, tx, ty, tz = self._tcp
+        px = ox + xx * tx + yx * ty + zx * tz
+        py = oy + xy * tx + yy * ty + zy * tz
+        pz = oz + xz * tx + yz * ty + zz * tz
+        out = [
+            xx * t00 + yx * t10 + zx * t20,
+            xx * t01 + yx * t11 + zx * t21,
+            xx * t02 + yx * t12 + zx * t22,
+            xy * t00 + yy * t10 + zy * t20,
+            xy * t01 + yy * t11 + zy * t21,
+            xy * t02 + yy * t12 + zy * t22,
+            xz * t00 + yz * t10 + zz * t20,
+            xz * t01 + yz * t11 + zz * t21,
+            xz * t02 + yz * t12 + zz * t22,
+            px,
+            py,
+            pz,
+        ]
+        if jac is not None:
+            for j in range(6):
+                k = 6 * j
+                ax, ay, az = axes[k], axes[k + 1], axes[k + 2]
+                rx, ry, rz = px - axes[k + 3], py - axes[k + 4], pz - axes[k + 5]
+                jac[j] = ay * rz - az * ry
+                jac[6 + j] = az * rx - ax * rz
+                jac[12 + j] = ax * ry - ay * rx
+                jac[18 + j] = ax
+                jac[24 + j] = ay
+                jac[30 + j] = az
+        return out
+
+    def newton(
+        self,
+        q: Sequence[float],
+        target: Sequence[float],
+        iterations: int = 20,
+        converged: float = 1e-12,
+        rounding: float = 1e-11,
+    ) -> tuple[list[float], float]:
+        """Newton steps on the TCP pose error (position, rotation vector) from ``q`` toward
+        ``target`` (12 floats as :meth:`frame`): the joints and the error norm left (m and
+        rad together). A step that does not lower the error is retried damped
+        (Levenberg-Marquardt), as next to a singularity; the steps stop below ``converged``,
+        or below ``rounding`` when no step improves, or after a full step shorter than
+        _FINAL_STEP, whose length squared is returned as the error (its order)."""
+        qq = [float(v) for v in q]
+        frame, jac = self.frame_and_jacobian(qq)
+        err = _twist_to(frame, target)
+        norm = _norm6(err)
+        lam = 0.0
+        for _ in range(iterations):
+            if norm < converged:
+                break
+            step = _solve6(jac, err, lam)
+            if step is None:
+                lam = max(lam, 1e-9)
+                continue
+            size = _norm6(step)
+            if lam == 0.0 and size < _FINAL_STEP:
+                # a full Newton step this short leaves an error of its square's order, far
+                # below converged: taken without evaluating the chain again
+                qq = [qq[k] + step[k] for k in range(6)]
+                return qq, size * size
+            trial = [qq[0] + step[0], qq[1] + step[1], qq[2] + step[2]]
+            trial += [qq[3] + step[3], qq[4] + step[4], qq[5] + step[5]]
+            frame, trial_jac = self.frame_and_jacobian(trial)
+            trial_err = _twist_to(frame, target)
+            trial_norm = _norm6(trial_err)
+            if trial_norm < norm:
+                qq, jac, err, norm = trial, trial_jac, trial_err, trial_norm
+                lam = lam * 0.1 if lam > 1e-9 else 0.0
+            else:
+                if norm < rounding:  # at the rounding floor: no better step exists
+                    break
+                lam = 1e-6 if lam == 0.0 else lam * 10.0
+                if lam > 1.0:
+                    break
+        return qq, norm
+
+    def settle(
+        self,
+        q: Sequence[float],
+        target: Sequence[float],
+        iterations: int = 60,
+        converged: float = 1e-12,
+        stationary: float = 1e-6,
+    ) -> tuple[list[float], float, float]:
+        """Levenberg-Marquardt (damping scaled by the diagonal of ``JᵀJ``) from ``q`` toward
+        ``target``, for starts Newton's steps do not bring to a solution (next to a
+        singularity): the joints, the error norm left and how far that point is from
+        stationary, ``‖Jᵀe‖ / (‖J‖·‖e‖)``. A last value below ``stationary`` (where the steps
+        stop) with an error left is a local minimum of the error: no solution near ``q`` (the
+        target beyond this branch's reach, as a stretched arm's)."""
+        qq = [float(v) for v in q]
+        frame, jac = self.frame_and_jacobian(qq)
+        err = _twist_to(frame, target)
+        norm = _norm6(err)
+        gradient = _gradient_ratio(jac, err, norm)
+        lam = 1e-3
+        for _ in range(iterations):
+            if norm < converged or gradient < stationary:
+                break
+            step = _solve6(jac, err, lam, True)
+            if step is None:
+                lam *= 5.0
+                if lam > 1e9:
+                    break
+                continue
+            trial = [qq[0] + step[0], qq[1] + step[1], qq[2] + step[2]]
+            trial += [qq[3] + step[3], qq[4] + step[4], qq[5] + step[5]]
+            frame, trial_jac = self.frame_and_jacobian(trial)
+            trial_err = _twist_to(frame, target)
+            trial_norm = _norm6(trial_err)
+            if trial_norm < norm:
+                qq, jac, err, norm = trial, trial_jac, trial_err, trial_norm
+                gradient = _gradient_ratio(jac, err, norm)
+                lam = max(lam * 0.2, 1e-9)
+            else:
+                lam *= 5.0
+                if lam > 1e9:
+                    break
+        return qq, norm, gradient
+
+    def nearest(
+        self,
+        starts: Sequence[tuple[float, Sequence[float]]],
+        target: Sequence[float],
+        seed: Sequence[float],
+        lower: Sequence[float],
+        upper: Sequence[float],
+        newton_iterations: int,
+        settle_iterations: int,
+        converged: float,
+        rounding: float,
+        stationary: float,
+        accepted: float,
+        factor: float,
+        near: float,
+    ) -> tuple[list[float] | None, float, float, float, int]:
+        """Starts refined toward ``target``, the solution nearest ``seed``.
+
+        ``starts``: (distance², joints) pairs (as :meth:`Kinematics.nearest_within` gives
+        them; the distances are not used), taken in the order of their distance from the
+        seed with each joint's difference wrapped into ±π. A start farther than the best
+        solution found plus ``factor`` × the largest move the refinement of such a start
+        made is skipped (it cannot come nearer), unless it is next to a singularity, where
+        refinement moves far: |sin θ3| or |sin θ5| below ``near``, or the target next to
+        the shoulder singularity (:meth:`_singular_target`); next to the wrist singularity
+        alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
+        Refined: :meth:`newton`, then :meth:`settle` if that leaves an error above
+        ``accepted``; a solution's joints are shifted by 2π toward the seed within
+        [lower, upper] (dropped if none fits).
+        Returns the best joints (None: none), their distance², the largest move a
+        refinement made (rad, Euclidean), the smallest distance of a start that neither
+        converged nor reached a local minimum of the error (inf: none) and
+        :meth:`_singular_target`'s flags.
+        ``fxcell.motion._dhchain.Chain.nearest`` is this in C."""
+        n = len(starts)
+        qs = [[float(v) for v in start] for _, start in starts]
+        distance = [0.0] * n
+        for i in range(n):
+            d = 0.0
+            for k in range(6):
+                w = qs[i][k] - seed[k]
+                w -= TWO_PI * round(w * _INV_TWO_PI)
+                d += w * w
+            distance[i] = math.sqrt(d)
+        order = sorted(range(n), key=lambda i: distance[i])
+        singular_at = self._singular_target(target, near)
+        shoulder = singular_at & 1 != 0
+        best: list[float] | None = None
+        best_d = math.inf
+        moved = 0.0
+        regular = 0.0  # the largest move of a start away from the singularities
+        unrefined = math.inf
+        for i in order:
+            start = qs[i]
+            singular = shoulder or abs(math.sin(start[2])) < near or abs(math.sin(start[4])) < near
+            if (
+                best is not None
+                and not singular
+                and distance[i] > math.sqrt(best_d) + factor * regular + 1e-9
+            ):
+                continue  # it cannot come nearer
+            if (
+                best is not None
+                and not shoulder
+                and abs(math.sin(start[4])) < near
+                and _wrist_bound(start, seed) > math.sqrt(best_d) + 1e-9
+            ):
+                continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
+            q, err = self.newton(start, target, newton_iterations, converged, rounding)
+            if err > accepted:
+                q, err, gradient = self.settle(
+                    start, target, settle_iterations, converged, stationary
+                )
+                if err > accepted:
+                    if not gradient <= stationary and distance[i] < unrefined:
+                        unrefined = distance[i]
+                    continue
+            m = 0.0
+            for k in range(6):
+                m += (q[k] - start[k]) * (q[k] - start[k])
+            m = math.sqrt(m)
+            moved = max(moved, m)
+            if not singular:
+                regular = max(regular, m)
+            shifted = [0.0] * 6
+            d = 0.0
+            inside = True
+            for k in range(6):
+                w = _near(q[k], seed[k], lower[k], upper[k])
+                if w != w:
+                    inside = False
+                    break
+                shifted[k] = w
+                d += (w - seed[k]) * (w - seed[k])
+            if inside and d < best_d:
+                best, best_d = shifted, d
+        return best, best_d, moved, unrefined, singular_at
+
+    def _singular_target(self, g: Sequence[float], near: float) -> int:
+        """Next to which singularities target ``g`` is, whatever the joints: 1 if its wrist
+        centre (of its flange, ``g · tcp⁻¹``) is within ``near``·d4 of the shoulder
+        singularity (h² below (near·d4)², h its distance from the plane of axes 1 and 2),
+        2 if the wrist is (|sin θ5| below ``near``) for either shoulder, 3 both, 0 neither."""
+        t = self._tcp
+        f = [0.0] * 9
+        pf = [0.0] * 3
+        for r in range(3):
+            g0, g1, g2 = g[3 * r], g[3 * r + 1], g[3 * r + 2]
+            f[3 * r] = g0 * t[0] + g1 * t[1] + g2 * t[2]
+            f[3 * r + 1] = g0 * t[3] + g1 * t[4] + g2 * t[5]
+            f[3 * r + 2] = g0 * t[6] + g1 * t[7] + g2 * t[8]
+            pf[r] = g[9 + r] - (f[3 * r] * t[9] + f[3 * r + 1] * t[10] + f[3 * r + 2] * t[11])
+        d4 = self._d[3]
+        x = pf[0] - self._d[5] * f[2]
+        y = pf[1] - self._d[5] * f[5]
+        rho2 = x * x + y * y
+        h2 = rho2 - d4 * d4
+        out = 1 if h2 < near * near * d4 * d4 else 0
+        h = math.sqrt(h2) if h2 > 0.0 else 0.0
+        if rho2 > 0.0:
+            for hs in (h, -h):
+                c1 = (x * hs - y * d4) / rho2
+                s1 = (y * hs + x * d4) / rho2
+                zx = f[0] * s1 - f[3] * c1
+                zy = f[1] * s1 - f[4] * c1
+                if zx * zx + zy * zy < near * near:
+                    out |= 2
+        return out
+
+
+def _wrist_bound(start: Sequence[float], seed: Sequence[float]) -> float:
+    """Next to the wrist singularity (sin θ5 ≈ 0) refinement can turn θ2, θ3, θ4 and θ6 far
+    (the arm's self-motion there), but θ1 and θ5 only by the deltas' order: a lower bound of
+    the distance from ``seed`` of any solution it reaches from ``start``, with _WRIST_MOVE
+    for those moves."""
+    w1 = start[0] - seed[0]
+    w5 = start[4] - seed[4]
+    w1 -= TWO_PI * round(w1 * _INV_TWO_PI)
+    w5 -= TWO_PI * round(w5 * _INV_TWO_PI)
+    return math.sqrt(w1 * w1 + w5 * w5) - _WRIST_MOVE
+
+
+def _gradient_ratio(jac: list[float], err: list[float], norm: float) -> float:
+    """``‖Jᵀe‖ / (‖J‖_F·‖e‖)``: 0 where the error ``e`` (norm ``norm``) is stationary."""
+    grad = 0.0
+    size = 0.0
+    for k in range(6):
+        acc = 0.0
+        for r in range(6):
+            v = jac[6 * r + k]
+            acc += v * err[r]
+            size += v * v
+        grad += acc * acc
+    scale = math.sqrt(size) * norm
+    return math.sqrt(grad) / scale if scale > 0.0 else 0.0
+
+
+def _twist_to(frame: list[float], target: Sequence[float]) -> list[float]:
+    """Position difference and rotation vector (base frame) from ``frame`` to ``target``
+    (12 floats each, rotation row-major then position)."""
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = frame[0:9]
+    b00, b01, b02, b10, b11, b12, b20, b21, b22 = target[0:9]
+    # E = B·Aᵀ: its skew part and trace give the rotation vector
+    e01 = b00 * a10 + b01 * a11 + b02 * a12
+    e02 = b00 * a20 + b01 * a21 + b02 * a22
+    e10 = b10 * a00 + b11 * a01 + b12 * a02
+    e12 = b10 * a20 + b11 * a21 + b12 * a22
+    e20 = b20 * a00 + b21 * a01 + b22 * a02
+    e21 = b20 * a10 + b21 * a11 + b22 * a12
+    trace = (
+        b00 * a00 + b01 * a01 + b02 * a02
+        + b10 * a10 + b11 * a11 + b12 * a12
+        + b20 * a20 + b21 * a21 + b22 * a22
+    )  # fmt: skip
+    wx, wy, wz = 0.5 * (e21 - e12), 0.5 * (e02 - e20), 0.5 * (e10 - e01)
+    s = math.sqrt(wx * wx + wy * wy + wz * wz)  # sin of the angle
+    scale = math.atan2(s, 0.5 * (trace - 1.0)) / s if s > 1e-300 else 1.0
+    return [
+        target[9] - frame[9],
+        target[10] - frame[10],
+        target[11] - frame[11],
+        scale * wx,
+        scale * wy,
+        scale * wz,
+    ]
+
+
+def _norm6(v: list[float]) -> float:
+    a, b, c, d, e, f = v
+    return math.sqrt(a * a + b * b + c * c + d * d + e * e + f * f)
+
+
+def _solve6(
+    jac: list[float], rhs: list[float], lam: float, scaled: bool = False
+) -> list[float] | None:
+    """``J·x = rhs`` (``lam`` 0), or the damped least squares ``(JᵀJ + lam·I)·x = Jᵀ·rhs``
+    (``scaled``: Marquardt's ``(JᵀJ + lam·(diag(JᵀJ) + 1e-12))·x = Jᵀ·rhs``), by Gaussian
+    elimination with partial pivoting on a flat 6×7 array; None if singular to rounding."""
+    m = [0.0] * 42
+    if lam == 0.0 and not scaled:
+        for i in range(6):
+            for k in range(6):
+                m[7 * i + k] = jac[6 * i + k]
+            m[7 * i + 6] = rhs[i]
+    else:
+        for i in range(6):
+            for k in range(i, 6):
+                acc = 0.0
+                for r in range(6):
+                    acc += jac[6 * r + i] * jac[6 * r + k]
+                m[7 * i + k] = acc
+                m[7 * k + i] = acc
+            m[7 * i + i] += lam * (m[7 * i + i] + 1e-12) if scaled else lam
+            acc = 0.0
+            for r in range(6):
+                acc += jac[6 * r + i] * rhs[r]
+            m[7 * i + 6] = acc
+    for c in range(6):
+        p = c
+        big = abs(m[7 * c + c])
+        for r in range(c + 1, 6):
+            v = abs(m[7 * r + c])
+            if v > big:
+                p, big = r, v
+        if big < 1e-300:
+            return None
+        if p != c:
+            for k in range(c, 7):
+                m[7 * c + k], m[7 * p + k] = m[7 * p + k], m[7 * c + k]
+        inv_p = 1.0 / m[7 * c + c]
+        for r in range(c + 1, 6):
+            f = m[7 * r + c] * inv_p
+            if f != 0.0:
+                for k in range(c + 1, 7):
+                    m[7 * r + k] -= f * m[7 * c + k]
+    x = [0.0] * 6
+    for c in range(5, -1, -1):
+        acc = m[7 * c + 6]
+        for k in range(c + 1, 6):
+            acc -= m[7 * c + k] * x[k]
+        v = acc / m[7 * c + c]
+        if v - v != 0.0:  # NaN or inf
+            return None
+        x[c] = v
+    return x
 
 
 def _rounding_slack(s5: float, h: float) -> float:

@@ -71,8 +71,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--joints", type=_joints, help="initial joint positions q1,...,q6 (rad)")
     p.add_argument(
         "--calibration",
-        metavar="FILE",
-        help="the arm's factory calibration (UR's calibration.conf): default all-zero deltas",
+        metavar="FILE|nominal",
+        help="the arm's factory calibration (UR's calibration.conf); 'nominal': UR's published "
+        "model (all-zero deltas); default: typical factory deltas (config/ur3e_calibration.conf)",
     )
     p.add_argument(
         "--urcap-port",
@@ -309,7 +310,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     config = CellConfig.load(args.config)
     try:
-        calibration = Calibration.load(args.calibration) if args.calibration else None
+        if args.calibration == "nominal":
+            calibration: Calibration | None = Calibration.nominal()
+        else:
+            calibration = Calibration.load(args.calibration) if args.calibration else None
     except CalibrationError as exc:
         print(f"fxcell sim: {exc}", file=sys.stderr)
         return 2

@@ -183,8 +183,24 @@ class ControlConnection(asyncio.Protocol):
             self.transport.write((answer + "\n").encode())
 
 
+DEFAULT_CALIBRATION = "ur3e_calibration.conf"
+"""The shipped ``calibration.conf`` (in the configuration directory) of the arm the
+simulator presents unless told otherwise: typical factory deltas, so that every client's
+default path (reading the calibration at connect) is exercised."""
+
+
+def default_calibration() -> Calibration:
+    """The simulated arm's calibration by default (:data:`DEFAULT_CALIBRATION`)."""
+    from fxcell.resources import resource_dir
+
+    return Calibration.load(resource_dir("config") / DEFAULT_CALIBRATION)
+
+
 class SimServer:
-    """The simulator: controller, servers and the control cycle."""
+    """The simulator: controller, servers and the control cycle.
+
+    ``calibration``: the arm's factory calibration (None: :func:`default_calibration`;
+    ``Calibration.nominal()`` for UR's published model)."""
 
     def __init__(
         self,
@@ -210,14 +226,14 @@ class SimServer:
         self.urcap_port = urcap_port
         limits = (self.config.limits.position_min, self.config.limits.position_max)
 
-        self.calibration = calibration or Calibration.nominal()
+        self.calibration = calibration if calibration is not None else default_calibration()
         cal = self.calibration
 
         def make_kinematics(tcp: Any) -> Kinematics:
             if cal.is_nominal:
                 return Kinematics.ur3e(tcp, limits)
             # the controller's FK, actual_TCP_pose and its own moves use the calibrated model
-            return CalibratedKinematics(cal, tcp, limits, backend="numpy")
+            return CalibratedKinematics(cal, tcp, limits)
 
         table = next((o for o in self.config.scene.objects if o.name == "table"), None)
         guard = TableGuard(table.position, table.size) if table is not None else None

@@ -23,9 +23,9 @@ Differences from the simulator process: no sockets and no ur_rtde (so no GIL sta
 no link process to kill); controller time runs ``speed`` times faster than the wall clock
 (default 5) and the controller's own delays are scaled by ``time_scale`` as in the
 simulator; the gripper (Robotiq URCap socket) is not simulated, so ``cell.gripper``
-commands fail with a connection error; the primary interface (``robot.calibration:
-controller``) is not served; ``drop_rtde`` drops the link for 50 ms, as a restarted link
-process would.
+commands fail with a connection error; the arm is nominal and its link reports all-zero
+calibration deltas (``read_calibration``) instead of serving the primary interface;
+``drop_rtde`` drops the link for 50 ms, as a restarted link process would.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fxcell.calibration import Calibration
 from fxcell.config import CellConfig, RobotConfig
 from fxcell.errors import (
     ConnectionLostError,
@@ -126,6 +127,8 @@ class FakeRobot:
         guard = TableGuard(table.position, table.size) if table is not None else None
         start = joints if joints is not None else self.config.home
         self.arm = Arm(make_kinematics(None), start, table=guard, make_kinematics=make_kinematics)
+        self.calibration = Calibration.nominal()
+        """What the fake controller reports as the arm's calibration (its arm is nominal)."""
         self.controller = Controller(self.arm, time_scale=time_scale)
         self.dashboard = DashboardServer(self.controller)
         self.controller.on_drop_rtde = self._drop_rtde
@@ -452,6 +455,11 @@ class FakeLink:
 
     async def dashboard(self, command: str, within: float = 5.0) -> str:
         return str(await self.request(Dashboard(command)))
+
+    async def read_calibration(self) -> Calibration:
+        """The fake arm's calibration: all-zero deltas (it moves on the nominal model), as
+        the kinematics info of an uncalibrated controller would say."""
+        return self.robot.calibration
 
     async def start_control(self, mode: ControlMode, program: str, within: float) -> None:
         await self.request(StartControl(mode, program, within))

@@ -18,9 +18,10 @@ import pytest
 
 from fxcell.calibration import Calibration
 from fxcell.link.primary import read_calibration
+from fxcell.sim.server import default_calibration
 from fxcell.testing import SimulatorHandle, simulator
 
-from .test_sim_rtde import dh_forward, rotvec_matrix
+from .test_sim_rtde import CAL_A, CAL_D, dh_forward, rotvec_matrix
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -128,14 +129,19 @@ def test_robot_state_sub_packages_report_the_arm(running: SimulatorHandle) -> No
     assert board[:2] == (1, 0)  # digital inputs (the fusion machine's ready on DI0) and outputs
     config = struct.unpack(">12d12d5d24d4i", packages[6])
     a, d = config[29:35], config[35:41]
-    assert np.allclose(a, [0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0])
-    assert np.allclose(d, [0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921])
+    assert np.allclose(a, CAL_A)  # the calibrated arm's (the default simulator's)
+    assert np.allclose(d, CAL_D)
 
 
-def test_fxcell_reads_the_nominal_calibration_from_the_simulator(
+def test_fxcell_reads_the_default_simulators_factory_calibration(
     running: SimulatorHandle,
 ) -> None:
-    assert read_calibration(running.host).is_nominal
+    seen, shipped = read_calibration(running.host), default_calibration()
+    assert not shipped.is_nominal
+    for key in ("delta_theta", "delta_a", "delta_d", "delta_alpha"):
+        assert np.allclose(getattr(seen, key), getattr(shipped, key), rtol=0, atol=1e-15)
+    with simulator(extra_args=["--calibration", "nominal"]) as sim:
+        assert read_calibration(sim.host).is_nominal
 
 
 def test_a_calibrated_simulator_reports_its_deltas_on_the_primary_interface(

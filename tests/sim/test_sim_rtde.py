@@ -14,17 +14,37 @@ from rtde_io import RTDEIOInterface
 from rtde_receive import RTDEReceiveInterface
 from waiting import wait_until
 
+from fxcell.sim.server import default_calibration
 from fxcell.testing import SimulatorHandle
 
 # UR3e DH parameters as UR publishes them, written out here independently of fxcell.
 D = (0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921)
 A = (0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0)
 ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
+# The simulator presents a calibrated arm by default: its shipped factory deltas (UR's
+# calibration.conf) added to those parameters.
+_CAL = default_calibration()
+CAL_THETA = _CAL.delta_theta
+CAL_D = tuple(v + dv for v, dv in zip(D, _CAL.delta_d, strict=True))
+CAL_A = tuple(v + dv for v, dv in zip(A, _CAL.delta_a, strict=True))
+CAL_ALPHA = tuple(v + dv for v, dv in zip(ALPHA, _CAL.delta_alpha, strict=True))
 
 
 def dh_forward(q: list[float]) -> np.ndarray:
+    """Flange pose of the default simulator's (calibrated) arm."""
+    return _chain([v + t for v, t in zip(q, CAL_THETA, strict=True)], CAL_D, CAL_A, CAL_ALPHA)
+
+
+def nominal_dh_forward(q: list[float]) -> np.ndarray:
+    """Flange pose of the nominal UR3e."""
+    return _chain(q, D, A, ALPHA)
+
+
+def _chain(
+    q: list[float], ds: tuple[float, ...], as_: tuple[float, ...], alphas: tuple[float, ...]
+) -> np.ndarray:
     T = np.eye(4)
-    for theta, d, a, alpha in zip(q, D, A, ALPHA, strict=True):
+    for theta, d, a, alpha in zip(q, ds, as_, alphas, strict=True):
         ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
         T = T @ np.array(
             [

@@ -36,7 +36,8 @@ from fxcell.sim.urscript import (
 from fxcell.testing import SimulatorHandle, simulator
 
 from .test_sim_primary import Messages
-from .test_sim_rtde import dh_forward, rotvec_matrix
+from .test_sim_rtde import nominal_dh_forward as dh_forward
+from .test_sim_rtde import rotvec_matrix
 
 START = [0.1, -1.2, 1.2, -1.57, -1.57, 0.3]
 

@@ -142,6 +142,15 @@ function showSituation() {
   $("#situation-dismiss").hidden = !page.problem;
 }
 
+function showCalibration(cal) {
+  // which arm model the planner uses, and the calibration's checksum
+  const el = $("#kinematics");
+  if (!cal) { el.textContent = "model: ?"; el.className = "pill"; return; }
+  el.textContent = `model: ${cal.model}` + (cal.checksum ? ` · ${cal.checksum}` : "");
+  el.title = `arm model: ${cal.model}; source: ${cal.source}` + (cal.checksum ? `; checksum ${cal.checksum}` : "");
+  el.className = cal.model === "calibrated" ? "pill ok" : "pill warn";
+}
+
 function showRemote(remote) {
   page.remote = remote;
   const el = $("#remote");
@@ -159,6 +168,7 @@ async function pollCell() {
     const snap = await api("GET", "/api/state");
     page.cellError = snap.cell_error;
     showRemote(snap.remote_control);
+    showCalibration(snap.calibration);
   } catch (e) { /* the stream's own reconnect shows a lost daemon */ }
 }
 setInterval(pollCell, 2000);
@@ -301,6 +311,7 @@ function onMessage(m) {
     case "hello":
       page.cellError = m.snapshot.cell_error;
       showRemote(m.snapshot.remote_control);
+      showCalibration(m.snapshot.calibration);
       showControl(m.snapshot.control);
       showState(m.snapshot.state);
       showRobot(m.snapshot.robot);

@@ -1,0 +1,682 @@
+/* fxcell.motion._dhchain: the calibrated UR arm's DH chain in C (hatch_build.py builds it).
+ *
+ * The same computations as fxcell.motion.kinematics.DHChain, in the same order of floating
+ * operations (built with -ffp-contract=off, so no fused multiply-adds): forward kinematics,
+ * the geometric Jacobian, Newton steps with a damped fallback and Marquardt's
+ * Levenberg-Marquardt, plus `nearest`, which refines a list of nominal starts and returns
+ * the solution nearest a seed (each joint 2π-shifted toward it within the limits) in one
+ * call. DHChain in Python is the fallback where this extension is not built;
+ * tests/test_native.py checks that both give the same results.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+
+typedef struct {
+    PyObject_HEAD
+    double theta[6], a[6], d[6], ca[6], sa[6], tcp[12];
+} Chain;
+
+static const double TWO_PI = 6.283185307179586;
+static const double INV_TWO_PI = 0.15915494309189535;
+static const double LIMIT_EPS = 1e-12;  /* as kinematics._LIMIT_EPS */
+static const double FINAL_STEP = 1e-7;  /* as kinematics._FINAL_STEP */
+static const double WRIST_MOVE = 0.1;   /* as kinematics._WRIST_MOVE */
+
+/* ------------------------------------------------------------------ conversions */
+
+static int
+read_floats(PyObject *obj, double *out, Py_ssize_t n, const char *what)
+{
+    PyObject *seq = PySequence_Fast(obj, what);
+    if (seq == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(seq) != n) {
+        PyErr_Format(PyExc_ValueError, "%s: %zd values expected, got %zd", what, n,
+                     PySequence_Fast_GET_SIZE(seq));
+        Py_DECREF(seq);
+        return -1;
+    }
+    PyObject **items = PySequence_Fast_ITEMS(seq);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double v = PyFloat_AsDouble(items[i]);
+        if (v == -1.0 && PyErr_Occurred()) {
+            Py_DECREF(seq);
+            return -1;
+        }
+        out[i] = v;
+    }
+    Py_DECREF(seq);
+    return 0;
+}
+
+static PyObject *
+float_list(const double *v, Py_ssize_t n)
+{
+    PyObject *out = PyList_New(n);
+    if (out == NULL)
+        return NULL;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *f = PyFloat_FromDouble(v[i]);
+        if (f == NULL) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyList_SET_ITEM(out, i, f);
+    }
+    return out;
+}
+
+/* ------------------------------------------------------------------ the chain */
+
+static void
+evaluate(const Chain *c, const double *q, double *out, double *jac)
+{
+    double xx = 1.0, xy = 0.0, xz = 0.0;
+    double yx = 0.0, yy = 1.0, yz = 0.0;
+    double zx = 0.0, zy = 0.0, zz = 1.0;
+    double ox = 0.0, oy = 0.0, oz = 0.0;
+    double axes[36];
+    for (int j = 0; j < 6; j++) {
+        int k = 6 * j;
+        axes[k] = zx;
+        axes[k + 1] = zy;
+        axes[k + 2] = zz;
+        axes[k + 3] = ox;
+        axes[k + 4] = oy;
+        axes[k + 5] = oz;
+        double t = q[j] + c->theta[j];
+        double ct = cos(t), st = sin(t);
+        double ca = c->ca[j], sa = c->sa[j], a = c->a[j], d = c->d[j];
+        double ux = ct * xx + st * yx, uy = ct * xy + st * yy, uz = ct * xz + st * yz;
+        double vx = ct * yx - st * xx, vy = ct * yy - st * xy, vz = ct * yz - st * xz;
+        ox = ox + a * ux + d * zx;
+        oy = oy + a * uy + d * zy;
+        oz = oz + a * uz + d * zz;
+        xx = ux;
+        xy = uy;
+        xz = uz;
+        double nyx = ca * vx + sa * zx, nyy = ca * vy + sa * zy, nyz = ca * vz + sa * zz;
+        double nzx = ca * zx - sa * vx, nzy = ca * zy - sa * vy, nzz = ca * zz - sa * vz;
+        yx = nyx;
+        yy = nyy;
+        yz = nyz;
+        zx = nzx;
+        zy = nzy;
+        zz = nzz;
+    }
+    const double *T = c->tcp;
+    double px = ox + xx * T[9] + yx * T[10] + zx * T[11];
+    double py = oy + xy * T[9] + yy * T[10] + zy * T[11];
+    double pz = oz + xz * T[9] + yz * T[10] + zz * T[11];
+    out[0] = xx * T[0] + yx * T[3] + zx * T[6];
+    out[1] = xx * T[1] + yx * T[4] + zx * T[7];
+    out[2] = xx * T[2] + yx * T[5] + zx * T[8];
+    out[3] = xy * T[0] + yy * T[3] + zy * T[6];
+    out[4] = xy * T[1] + yy * T[4] + zy * T[7];
+    out[5] = xy * T[2] + yy * T[5] + zy * T[8];
+    out[6] = xz * T[0] + yz * T[3] + zz * T[6];
+    out[7] = xz * T[1] + yz * T[4] + zz * T[7];
+    out[8] = xz * T[2] + yz * T[5] + zz * T[8];
+    out[9] = px;
+    out[10] = py;
+    out[11] = pz;
+    if (jac != NULL) {
+        for (int j = 0; j < 6; j++) {
+            int k = 6 * j;
+            double ax = axes[k], ay = axes[k + 1], az = axes[k + 2];
+            double rx = px - axes[k + 3], ry = py - axes[k + 4], rz = pz - axes[k + 5];
+            jac[j] = ay * rz - az * ry;
+            jac[6 + j] = az * rx - ax * rz;
+            jac[12 + j] = ax * ry - ay * rx;
+            jac[18 + j] = ax;
+            jac[24 + j] = ay;
+            jac[30 + j] = az;
+        }
+    }
+}
+
+static void
+twist_to(const double *f, const double *t, double *e)
+{
+    double a00 = f[0], a01 = f[1], a02 = f[2], a10 = f[3], a11 = f[4], a12 = f[5];
+    double a20 = f[6], a21 = f[7], a22 = f[8];
+    double b00 = t[0], b01 = t[1], b02 = t[2], b10 = t[3], b11 = t[4], b12 = t[5];
+    double b20 = t[6], b21 = t[7], b22 = t[8];
+    double e01 = b00 * a10 + b01 * a11 + b02 * a12;
+    double e02 = b00 * a20 + b01 * a21 + b02 * a22;
+    double e10 = b10 * a00 + b11 * a01 + b12 * a02;
+    double e12 = b10 * a20 + b11 * a21 + b12 * a22;
+    double e20 = b20 * a00 + b21 * a01 + b22 * a02;
+    double e21 = b20 * a10 + b21 * a11 + b22 * a12;
+    double trace = b00 * a00 + b01 * a01 + b02 * a02 + b10 * a10 + b11 * a11 + b12 * a12 +
+                   b20 * a20 + b21 * a21 + b22 * a22;
+    double wx = 0.5 * (e21 - e12), wy = 0.5 * (e02 - e20), wz = 0.5 * (e10 - e01);
+    double s = sqrt(wx * wx + wy * wy + wz * wz);
+    double scale = s > 1e-300 ? atan2(s, 0.5 * (trace - 1.0)) / s : 1.0;
+    e[0] = t[9] - f[9];
+    e[1] = t[10] - f[10];
+    e[2] = t[11] - f[11];
+    e[3] = scale * wx;
+    e[4] = scale * wy;
+    e[5] = scale * wz;
+}
+
+static double
+norm6(const double *v)
+{
+    return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2] + v[3] * v[3] + v[4] * v[4] +
+                v[5] * v[5]);
+}
+
+/* J x = rhs (lam 0), or the damped least squares (JᵀJ + lam·I) x = Jᵀ rhs (scaled:
+ * Marquardt's lam·(diag(JᵀJ) + 1e-12)); 0 if singular to rounding. */
+static int
+solve6(const double *jac, const double *rhs, double lam, int scaled, double *x)
+{
+    double m[42];
+    if (lam == 0.0 && !scaled) {
+        for (int i = 0; i < 6; i++) {
+            for (int k = 0; k < 6; k++)
+                m[7 * i + k] = jac[6 * i + k];
+            m[7 * i + 6] = rhs[i];
+        }
+    }
+    else {
+        for (int i = 0; i < 6; i++) {
+            for (int k = i; k < 6; k++) {
+                double acc = 0.0;
+                for (int r = 0; r < 6; r++)
+                    acc += jac[6 * r + i] * jac[6 * r + k];
+                m[7 * i + k] = acc;
+                m[7 * k + i] = acc;
+            }
+            m[7 * i + i] += scaled ? lam * (m[7 * i + i] + 1e-12) : lam;
+            double acc = 0.0;
+            for (int r = 0; r < 6; r++)
+                acc += jac[6 * r + i] * rhs[r];
+            m[7 * i + 6] = acc;
+        }
+    }
+    for (int c = 0; c < 6; c++) {
+        int p = c;
+        double big = fabs(m[7 * c + c]);
+        for (int r = c + 1; r < 6; r++) {
+            double v = fabs(m[7 * r + c]);
+            if (v > big) {
+                p = r;
+                big = v;
+            }
+        }
+        if (big < 1e-300)
+            return 0;
+        if (p != c) {
+            for (int k = c; k < 7; k++) {
+                double tmp = m[7 * c + k];
+                m[7 * c + k] = m[7 * p + k];
+                m[7 * p + k] = tmp;
+            }
+        }
+        double inv_p = 1.0 / m[7 * c + c];
+        for (int r = c + 1; r < 6; r++) {
+            double f = m[7 * r + c] * inv_p;
+            if (f != 0.0)
+                for (int k = c + 1; k < 7; k++)
+                    m[7 * r + k] -= f * m[7 * c + k];
+        }
+    }
+    for (int c = 5; c >= 0; c--) {
+        double acc = m[7 * c + 6];
+        for (int k = c + 1; k < 6; k++)
+            acc -= m[7 * c + k] * x[k];
+        double v = acc / m[7 * c + c];
+        if (v - v != 0.0)
+            return 0;
+        x[c] = v;
+    }
+    return 1;
+}
+
+static double
+gradient_ratio(const double *jac, const double *err, double norm)
+{
+    double grad = 0.0, size = 0.0;
+    for (int k = 0; k < 6; k++) {
+        double acc = 0.0;
+        for (int r = 0; r < 6; r++) {
+            double v = jac[6 * r + k];
+            acc += v * err[r];
+            size += v * v;
+        }
+        grad += acc * acc;
+    }
+    double scale = sqrt(size) * norm;
+    return scale > 0.0 ? sqrt(grad) / scale : 0.0;
+}
+
+/* Newton's steps from q (updated in place) toward target; the error norm left (after a
+ * final step shorter than FINAL_STEP, the step's length squared). */
+static double
+newton(const Chain *c, double *q, const double *target, long iterations, double converged,
+       double rounding)
+{
+    double frame[12], jac[36], err[6], step[6], trial[6], tjac[36], terr[6];
+    evaluate(c, q, frame, jac);
+    twist_to(frame, target, err);
+    double norm = norm6(err), lam = 0.0;
+    for (long it = 0; it < iterations; it++) {
+        if (norm < converged)
+            break;
+        if (!solve6(jac, err, lam, 0, step)) {
+            lam = lam > 1e-9 ? lam : 1e-9;
+            continue;
+        }
+        double size = norm6(step);
+        if (lam == 0.0 && size < FINAL_STEP) {
+            /* a full Newton step this short leaves an error of its square's order, far
+             * below converged: taken without evaluating the chain again */
+            for (int k = 0; k < 6; k++)
+                q[k] += step[k];
+            return size * size;
+        }
+        for (int k = 0; k < 6; k++)
+            trial[k] = q[k] + step[k];
+        evaluate(c, trial, frame, tjac);
+        twist_to(frame, target, terr);
+        double tnorm = norm6(terr);
+        if (tnorm < norm) {
+            memcpy(q, trial, sizeof trial);
+            memcpy(jac, tjac, sizeof tjac);
+            memcpy(err, terr, sizeof terr);
+            norm = tnorm;
+            lam = lam > 1e-9 ? lam * 0.1 : 0.0;
+        }
+        else {
+            if (norm < rounding)
+                break;
+            lam = lam == 0.0 ? 1e-6 : lam * 10.0;
+            if (lam > 1.0)
+                break;
+        }
+    }
+    return norm;
+}
+
+/* Marquardt's Levenberg-Marquardt from q (in place); the error norm left, and the
+ * stationarity ratio in *gradient. */
+static double
+settle(const Chain *c, double *q, const double *target, long iterations, double converged,
+       double stationary, double *gradient)
+{
+    double frame[12], jac[36], err[6], step[6], trial[6], tjac[36], terr[6];
+    evaluate(c, q, frame, jac);
+    twist_to(frame, target, err);
+    double norm = norm6(err);
+    double g = gradient_ratio(jac, err, norm);
+    double lam = 1e-3;
+    for (long it = 0; it < iterations; it++) {
+        if (norm < converged || g < stationary)
+            break;
+        if (!solve6(jac, err, lam, 1, step)) {
+            lam *= 5.0;
+            if (lam > 1e9)
+                break;
+            continue;
+        }
+        for (int k = 0; k < 6; k++)
+            trial[k] = q[k] + step[k];
+        evaluate(c, trial, frame, tjac);
+        twist_to(frame, target, terr);
+        double tnorm = norm6(terr);
+        if (tnorm < norm) {
+            memcpy(q, trial, sizeof trial);
+            memcpy(jac, tjac, sizeof tjac);
+            memcpy(err, terr, sizeof terr);
+            norm = tnorm;
+            g = gradient_ratio(jac, err, norm);
+            lam = lam * 0.2 > 1e-9 ? lam * 0.2 : 1e-9;
+        }
+        else {
+            lam *= 5.0;
+            if (lam > 1e9)
+                break;
+        }
+    }
+    *gradient = g;
+    return norm;
+}
+
+/* The 2π-equivalent of v nearest s within [lo, hi], or NaN (kinematics._near). */
+static double
+near_angle(double v, double s, double lo, double hi)
+{
+    v += TWO_PI * nearbyint((s - v) * INV_TWO_PI);
+    if (v > hi) {
+        v = v - hi < LIMIT_EPS ? hi : v - TWO_PI * ceil((v - hi) * INV_TWO_PI);
+        if (v < lo)
+            return NAN;
+    }
+    else if (v < lo) {
+        v = lo - v < LIMIT_EPS ? lo : v + TWO_PI * ceil((lo - v) * INV_TWO_PI);
+        if (v > hi)
+            return NAN;
+    }
+    return v;
+}
+
+/* ------------------------------------------------------------------ the Python type */
+
+static int
+Chain_init(Chain *self, PyObject *args, PyObject *kwds)
+{
+    PyObject *theta, *a, *d, *alpha, *tcp;
+    double al[6];
+    if (!PyArg_ParseTuple(args, "OOOOO:Chain", &theta, &a, &d, &alpha, &tcp))
+        return -1;
+    if (read_floats(theta, self->theta, 6, "theta") || read_floats(a, self->a, 6, "a") ||
+        read_floats(d, self->d, 6, "d") || read_floats(alpha, al, 6, "alpha") ||
+        read_floats(tcp, self->tcp, 12, "tcp"))
+        return -1;
+    for (int j = 0; j < 6; j++) {
+        self->ca[j] = cos(al[j]);
+        self->sa[j] = sin(al[j]);
+    }
+    return 0;
+}
+
+static PyObject *
+Chain_frame(Chain *self, PyObject *arg)
+{
+    double q[6], f[12];
+    if (read_floats(arg, q, 6, "q"))
+        return NULL;
+    evaluate(self, q, f, NULL);
+    return float_list(f, 12);
+}
+
+static PyObject *
+Chain_frame_and_jacobian(Chain *self, PyObject *arg)
+{
+    double q[6], f[12], jac[36];
+    if (read_floats(arg, q, 6, "q"))
+        return NULL;
+    evaluate(self, q, f, jac);
+    PyObject *frame = float_list(f, 12);
+    if (frame == NULL)
+        return NULL;
+    PyObject *j = float_list(jac, 36);
+    if (j == NULL) {
+        Py_DECREF(frame);
+        return NULL;
+    }
+    return Py_BuildValue("(NN)", frame, j);
+}
+
+static PyObject *
+Chain_newton(Chain *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double q[6], target[12];
+    long iterations = 20;
+    double converged = 1e-12, rounding = 1e-11;
+    if (nargs < 2 || nargs > 5) {
+        PyErr_SetString(PyExc_TypeError, "newton(q, target, iterations, converged, rounding)");
+        return NULL;
+    }
+    if (read_floats(args[0], q, 6, "q") || read_floats(args[1], target, 12, "target"))
+        return NULL;
+    if (nargs > 2 && (iterations = PyLong_AsLong(args[2])) == -1 && PyErr_Occurred())
+        return NULL;
+    if (nargs > 3 && (converged = PyFloat_AsDouble(args[3])) == -1.0 && PyErr_Occurred())
+        return NULL;
+    if (nargs > 4 && (rounding = PyFloat_AsDouble(args[4])) == -1.0 && PyErr_Occurred())
+        return NULL;
+    double norm = newton(self, q, target, iterations, converged, rounding);
+    PyObject *out = float_list(q, 6);
+    return out == NULL ? NULL : Py_BuildValue("(Nd)", out, norm);
+}
+
+static PyObject *
+Chain_settle(Chain *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double q[6], target[12];
+    long iterations = 60;
+    double converged = 1e-12, stationary = 1e-6, gradient = 0.0;
+    if (nargs < 2 || nargs > 5) {
+        PyErr_SetString(PyExc_TypeError, "settle(q, target, iterations, converged, stationary)");
+        return NULL;
+    }
+    if (read_floats(args[0], q, 6, "q") || read_floats(args[1], target, 12, "target"))
+        return NULL;
+    if (nargs > 2 && (iterations = PyLong_AsLong(args[2])) == -1 && PyErr_Occurred())
+        return NULL;
+    if (nargs > 3 && (converged = PyFloat_AsDouble(args[3])) == -1.0 && PyErr_Occurred())
+        return NULL;
+    if (nargs > 4 && (stationary = PyFloat_AsDouble(args[4])) == -1.0 && PyErr_Occurred())
+        return NULL;
+    double norm = settle(self, q, target, iterations, converged, stationary, &gradient);
+    PyObject *out = float_list(q, 6);
+    return out == NULL ? NULL : Py_BuildValue("(Ndd)", out, norm, gradient);
+}
+
+/* Squared distance from seed with each joint's difference wrapped into [-π, π]. */
+static double
+free_distance(const double *q, const double *seed)
+{
+    double d = 0.0;
+    for (int k = 0; k < 6; k++) {
+        double w = q[k] - seed[k];
+        w -= TWO_PI * nearbyint(w * INV_TWO_PI);
+        d += w * w;
+    }
+    return d;
+}
+
+/* Next to which singularities target g is, whatever the joints (with the chain's own d4, d6
+ * and TCP): 1 if its wrist centre is within near·d4 of the shoulder singularity (h² below
+ * (near·d4)², h its distance from the plane of axes 1 and 2), 2 if the wrist is (|sin θ5|
+ * below near) for either shoulder, 3 both, 0 neither. */
+static int
+singular_target(const Chain *c, const double *g, double near)
+{
+    const double *T = c->tcp;
+    /* flange = goal · tcp⁻¹: R_f = R_g·R_tᵀ, p_f = p_g - R_f·p_t */
+    double f[9], pf[3];
+    for (int r = 0; r < 3; r++) {
+        const double *row = g + 3 * r;
+        f[3 * r] = row[0] * T[0] + row[1] * T[1] + row[2] * T[2];
+        f[3 * r + 1] = row[0] * T[3] + row[1] * T[4] + row[2] * T[5];
+        f[3 * r + 2] = row[0] * T[6] + row[1] * T[7] + row[2] * T[8];
+        pf[r] = g[9 + r] - (f[3 * r] * T[9] + f[3 * r + 1] * T[10] + f[3 * r + 2] * T[11]);
+    }
+    double d4 = c->d[3];
+    double x = pf[0] - c->d[5] * f[2], y = pf[1] - c->d[5] * f[5];
+    double rho2 = x * x + y * y;
+    double h2 = rho2 - d4 * d4;
+    int out = h2 < near * near * d4 * d4 ? 1 : 0;
+    double h = h2 > 0.0 ? sqrt(h2) : 0.0;
+    if (rho2 > 0.0) {
+        for (int side = 0; side < 2; side++) {
+            double hs = side ? -h : h;
+            double c1 = (x * hs - y * d4) / rho2, s1 = (y * hs + x * d4) / rho2;
+            double zx = f[0] * s1 - f[3] * c1, zy = f[1] * s1 - f[4] * c1;
+            if (zx * zx + zy * zy < near * near)
+                out |= 2;
+        }
+    }
+    return out;
+}
+
+/* Next to the wrist singularity (sin θ5 ≈ 0) refinement can turn θ2, θ3, θ4 and θ6 far
+ * (the arm's self-motion there), but θ1 and θ5 only by the deltas' order: a lower bound of the
+ * distance from seed of any solution it reaches, with WRIST_MOVE rad for those moves. */
+static double
+wrist_bound(const double *start, const double *seed)
+{
+    double w1 = start[0] - seed[0], w5 = start[4] - seed[4];
+    w1 -= TWO_PI * nearbyint(w1 * INV_TWO_PI);
+    w5 -= TWO_PI * nearbyint(w5 * INV_TWO_PI);
+    return sqrt(w1 * w1 + w5 * w5) - WRIST_MOVE;
+}
+
+#define MAX_STARTS 64
+
+/* nearest(starts, target, seed, lower, upper, newton_iterations, settle_iterations,
+ *         converged, rounding, stationary, accepted, factor, near): DHChain.nearest in C. */
+static PyObject *
+Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 13) {
+        PyErr_SetString(PyExc_TypeError, "nearest() takes 13 arguments");
+        return NULL;
+    }
+    double target[12], seed[6], lower[6], upper[6];
+    if (read_floats(args[1], target, 12, "target") || read_floats(args[2], seed, 6, "seed") ||
+        read_floats(args[3], lower, 6, "lower") || read_floats(args[4], upper, 6, "upper"))
+        return NULL;
+    long n_newton = PyLong_AsLong(args[5]);
+    long n_settle = PyLong_AsLong(args[6]);
+    double converged = PyFloat_AsDouble(args[7]);
+    double rounding = PyFloat_AsDouble(args[8]);
+    double stationary = PyFloat_AsDouble(args[9]);
+    double accepted = PyFloat_AsDouble(args[10]);
+    double factor = PyFloat_AsDouble(args[11]);
+    double near = PyFloat_AsDouble(args[12]);
+    if (PyErr_Occurred())
+        return NULL;
+    PyObject *seq = PySequence_Fast(args[0], "starts");
+    if (seq == NULL)
+        return NULL;
+    Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
+    if (n > MAX_STARTS) {
+        Py_DECREF(seq);
+        PyErr_Format(PyExc_ValueError, "at most %d starts", MAX_STARTS);
+        return NULL;
+    }
+    PyObject **items = PySequence_Fast_ITEMS(seq);
+    double starts[MAX_STARTS][6], distance[MAX_STARTS];
+    int order[MAX_STARTS];
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *pair = items[i];
+        if (!PyTuple_Check(pair) || PyTuple_GET_SIZE(pair) != 2) {
+            Py_DECREF(seq);
+            PyErr_SetString(PyExc_TypeError, "starts: (distance², joints) pairs expected");
+            return NULL;
+        }
+        if (read_floats(PyTuple_GET_ITEM(pair, 1), starts[i], 6, "start")) {
+            Py_DECREF(seq);
+            return NULL;
+        }
+        distance[i] = sqrt(free_distance(starts[i], seed));
+        /* insertion sort by distance (stable: ties keep the caller's order) */
+        Py_ssize_t k = i;
+        while (k > 0 && distance[order[k - 1]] > distance[i]) {
+            order[k] = order[k - 1];
+            k--;
+        }
+        order[k] = (int)i;
+    }
+    Py_DECREF(seq);
+    int singular_at = singular_target(self, target, near);
+    int shoulder = singular_at & 1;
+    double best[6], best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
+    int found = 0;
+    for (Py_ssize_t r = 0; r < n; r++) {
+        int i = order[r];
+        const double *start = starts[i];
+        int singular = shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
+        if (found && !singular && distance[i] > sqrt(best_d) + factor * regular + 1e-9)
+            continue; /* it cannot come nearer */
+        if (found && !shoulder && fabs(sin(start[4])) < near &&
+            wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
+            continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
+        double q[6];
+        memcpy(q, start, sizeof q);
+        double err = newton(self, q, target, n_newton, converged, rounding);
+        if (err > accepted) {
+            double gradient;
+            memcpy(q, start, sizeof q);
+            err = settle(self, q, target, n_settle, converged, stationary, &gradient);
+            if (err > accepted) {
+                if (!(gradient <= stationary) && distance[i] < unrefined)
+                    unrefined = distance[i];
+                continue;
+            }
+        }
+        double m = 0.0, d = 0.0, shifted[6];
+        for (int k = 0; k < 6; k++)
+            m += (q[k] - start[k]) * (q[k] - start[k]);
+        m = sqrt(m);
+        if (m > moved)
+            moved = m;
+        if (!singular && m > regular)
+            regular = m;
+        int inside = 1;
+        for (int k = 0; k < 6; k++) {
+            shifted[k] = near_angle(q[k], seed[k], lower[k], upper[k]);
+            if (shifted[k] != shifted[k]) {
+                inside = 0;
+                break;
+            }
+            d += (shifted[k] - seed[k]) * (shifted[k] - seed[k]);
+        }
+        if (inside && d < best_d) {
+            memcpy(best, shifted, sizeof best);
+            best_d = d;
+            found = 1;
+        }
+    }
+    PyObject *q_out;
+    if (found) {
+        q_out = float_list(best, 6);
+        if (q_out == NULL)
+            return NULL;
+    }
+    else {
+        q_out = Py_NewRef(Py_None);
+    }
+    return Py_BuildValue("(Ndddi)", q_out, best_d, moved, unrefined, singular_at);
+}
+
+static PyMethodDef Chain_methods[] = {
+    {"frame", (PyCFunction)Chain_frame, METH_O,
+     "The TCP frame at q as 12 floats (rotation row-major, then position)."},
+    {"frame_and_jacobian", (PyCFunction)Chain_frame_and_jacobian, METH_O,
+     "The TCP frame and the geometric Jacobian (36 floats row-major)."},
+    {"newton", (PyCFunction)(void (*)(void))Chain_newton, METH_FASTCALL,
+     "Newton's steps toward target: (joints, error norm)."},
+    {"settle", (PyCFunction)(void (*)(void))Chain_settle, METH_FASTCALL,
+     "Levenberg-Marquardt toward target: (joints, error norm, stationarity)."},
+    {"nearest", (PyCFunction)(void (*)(void))Chain_nearest, METH_FASTCALL,
+     "Each start refined; the solution nearest the seed (see the C source)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject ChainType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "fxcell.motion._dhchain.Chain",
+    .tp_basicsize = sizeof(Chain),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "A 6R arm's DH chain with per-joint theta offsets and a TCP (as DHChain).",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Chain_init,
+    .tp_methods = Chain_methods,
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "_dhchain",
+    "The calibrated arm's DH chain in C (see fxcell.motion.kinematics.DHChain).", -1, NULL,
+};
+
+PyMODINIT_FUNC
+PyInit__dhchain(void)
+{
+    if (PyType_Ready(&ChainType) < 0)
+        return NULL;
+    PyObject *m = PyModule_Create(&module);
+    if (m == NULL)
+        return NULL;
+    if (PyModule_AddObjectRef(m, "Chain", (PyObject *)&ChainType) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}
