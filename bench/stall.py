@@ -23,8 +23,12 @@ bench sets ``--link``'s policy on every thread of
 the running link process from outside (root only), so it measures either policy whatever
 the link process asked for itself.
 
+``--camera`` also takes a frame from the simulator's camera every ``--camera`` seconds
+during the moves (the rendering runs inside the simulator process, as during a job's
+placement checks).
+
     ./dev bench stall [--moves N] [--burners N] [--sim realtime|normal]
-                      [--link realtime|normal|starved]
+                      [--link realtime|normal|starved] [--camera S]
 
 Target: no move braked on a stall. Exits 1 otherwise. Takes about a minute.
 """
@@ -38,14 +42,16 @@ import logging
 import os
 import subprocess
 import sys
+import threading
 import time
+import urllib.request
 from dataclasses import dataclass
 from typing import Any
 
 from _harness import Targets
 
 from fxcell.cell import Cell
-from fxcell.config import CellConfig
+from fxcell.config import SIMULATOR_CAMERA_PORT, CellConfig
 from fxcell.errors import FxcellError
 from fxcell.link import embedded
 from fxcell.testing import simulator
@@ -57,6 +63,23 @@ def burners(n: int) -> list[subprocess.Popen[bytes]]:
     code = f"import time\nend = time.monotonic() + {BURN_SECONDS}\n"
     code += "while time.monotonic() < end: pass"
     return [subprocess.Popen([sys.executable, "-c", code]) for _ in range(n)]
+
+
+class Snapshots(threading.Thread):
+    """Takes a frame from the simulator's camera every ``period`` s until stopped."""
+
+    def __init__(self, host: str, period: float) -> None:
+        super().__init__(daemon=True)
+        self.url = f"http://{host}:{SIMULATOR_CAMERA_PORT}/snapshot.jpg"
+        self.period = period
+        self.halt = threading.Event()
+        self.frames = 0
+
+    def run(self) -> None:
+        while not self.halt.wait(self.period):
+            with urllib.request.urlopen(self.url, timeout=10) as reply:
+                reply.read()
+            self.frames += 1
 
 
 def schedule_threads(pid: int, policy: str, priority: int = 80) -> None:
@@ -125,6 +148,9 @@ async def run(args: argparse.Namespace) -> Outcome:
             if pid is not None:
                 schedule_threads(pid, args.link)
             procs = burners(args.burners)
+            camera = Snapshots(sim.host, args.camera) if args.camera > 0 else None
+            if camera is not None:
+                camera.start()
             try:
                 embedded.stats(sim.host, reset=True)
                 gaps_before = getattr(link, "gaps", 0)
@@ -147,6 +173,10 @@ async def run(args: argparse.Namespace) -> Outcome:
                 sim_stats = embedded.stats(sim.host)
                 gaps = getattr(link, "gaps", 0) - gaps_before
             finally:
+                if camera is not None:
+                    camera.halt.set()
+                    camera.join()
+                    print(f"  camera frames taken: {camera.frames}")
                 for p in procs:
                     p.kill()
                 for p in procs:
@@ -162,6 +192,7 @@ def main() -> int:
     parser.add_argument("--burners", type=int, default=2)
     parser.add_argument("--sim", choices=("realtime", "normal"), default="realtime")
     parser.add_argument("--link", choices=("realtime", "normal", "starved"), default="realtime")
+    parser.add_argument("--camera", type=float, default=0.0, metavar="S")
     args = parser.parse_args()
     os.environ["FXCELL_SIM_PRIORITY"] = args.sim
     with open("/proc/loadavg") as f:

@@ -387,6 +387,11 @@ class SimCamera:
         # descheduled on a busy machine while it holds the GIL, and the control cycle waiting
         # for the GIL would stall behind it (and the snapshot would take seconds).
         self._executor = concurrent.futures.ThreadPoolExecutor(1, "fxcell-sim-camera")
+        # OpenCV's own workers inherit that scheduling too: with one per core, a frame's
+        # parallel regions would take every CPU from the control cycle (a real-time thread
+        # waits behind running ones of its priority). One thread renders a frame in time.
+        # Process-wide, and only the camera uses OpenCV in the simulator.
+        cv2.setNumThreads(1)
 
     async def snapshot(self) -> bytes:
         """Take a frame (the world as it is now), rendered in the worker thread."""
