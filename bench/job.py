@@ -202,8 +202,10 @@ async def bench(
             print(f"run {i + 1}/{runs}")
             r = await one_run(n, time_scale, fusion, cooling)
             results.append(r)
+            # a fault or pause says why; a finished run's message only names its run id
+            ended = r["state"] if r["state"] == "done" else f"{r['state']}: {r['message']}"
             print(
-                f"  {r['state']}: {r['message']}\n"
+                f"  {ended}\n"
                 f"  wall {r['wall']:.1f} s, robot time {r['robot_time']:.1f} s "
                 f"({r['robot_time'] / n:.1f} s per sample), planned motion {r['planned']:.1f} s "
                 f"in {r['moves']} moves, overhead {r['overhead']:.3f}; pick median "
