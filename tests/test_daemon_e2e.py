@@ -19,6 +19,7 @@ import pytest
 import websockets
 
 from fxcell.daemon.process import DaemonProcess
+from fxcell.settling import REST_VELOCITY
 from fxcell.testing import simulator
 
 TOKEN = "e2e-test-token-0123456789abcdef"
@@ -597,7 +598,9 @@ async def test_cancelling_a_remote_move_stops_the_robot(daemon: DaemonProcess) -
         assert ops[-1]["name"] == "move_joint"
         assert ops[-1]["status"] == "cancelled"
         assert await cell.get_state() == "running.external_control_ready"
-        assert max(abs(v) for v in await cell.get_velocity()) < 1e-4
+        # the cancelled move returned with the arm at rest, as fxcell defines it (a servo's
+        # tracking lag decays for a while below that: 1e-4 rad/s was stricter than promised)
+        assert max(abs(v) for v in await cell.get_velocity()) < REST_VELOCITY
 
 
 async def test_remote_refusals_are_typed(daemon: DaemonProcess) -> None:
