@@ -69,6 +69,7 @@ if TYPE_CHECKING:
     from fxcell.link import StateSubscription, TrajectoryResult
     from fxcell.link.backend import LinkBackend, TrajectoryRun
     from fxcell.motion.collision import CollisionChecker
+    from fxcell.motion.kinematics import Kinematics
 
 Array = NDArray[np.float64]
 MoveKind = Literal["joint", "pose", "linear", "distance"]
@@ -132,6 +133,18 @@ def _vector(value: object, n: int, what: str) -> Array:
     return arr
 
 
+KinematicsFactory = Callable[[CellConfig, "Calibration | None"], "Kinematics"]
+"""A robot kind's arm: ``factory(config, calibration)`` (see :mod:`fxcell.robots`)."""
+
+
+def ur3e_kinematics(config: CellConfig, calibration: Calibration | None) -> Kinematics:
+    """The UR3e with the configuration's TCP and limits: calibrated with ``calibration``,
+    else as ``robot.calibration`` says (a file, or the nominal model until one is read)."""
+    if calibration is None:
+        return kinematics_for(config)
+    return calibrated_kinematics(config, calibration)
+
+
 class MotionPlanner:
     """Plans moves in the configured cell: the UR3e with its TCP, limits and scene."""
 
@@ -143,10 +156,13 @@ class MotionPlanner:
         planning_timeout: float = 1.0,
         checker: CollisionChecker | None = None,
         seed: int | None = None,
+        kinematics: KinematicsFactory | None = None,
     ) -> None:
         self.config = config
         self.limits = config.limits
-        self.kinematics = kinematics_for(config)
+        self._kinematics_of = kinematics or ur3e_kinematics
+        """The robot kind's kinematic model factory (default: the UR3e's)."""
+        self.kinematics = self._kinematics_of(config, None)
         self.uncalibrated: str | None = None
         """Why pose moves are refused (the calibration could not be read), or None."""
         if checker is None:
@@ -186,10 +202,9 @@ class MotionPlanner:
         be read (``why``), so pose moves raise UncalibratedError unless the configuration
         accepts the nominal model."""
         self.uncalibrated = None
+        self.kinematics = self._kinematics_of(self.config, calibration)
         if calibration is not None:
-            self.kinematics = calibrated_kinematics(self.config, calibration)
             return
-        self.kinematics = kinematics_for(self.config)
         if not self.config.robot.accept_nominal_kinematics:
             self.uncalibrated = why or "the arm's calibration could not be read"
 
@@ -874,8 +889,10 @@ class MotionController:
         publish: Publish | None = None,
         options: ExecutionOptions | None = None,
         planner: str = DEFAULT_PLANNER,
+        kinematics: KinematicsFactory | None = None,
     ) -> None:
         self.config = config
+        self._kinematics = kinematics
         self.options = options or ExecutionOptions()
         self._min_factor = config.limits.min_factor
         self._publish = publish
@@ -890,7 +907,9 @@ class MotionController:
     @property
     def planner(self) -> MotionPlanner:
         if self._planner is None:
-            self._planner = MotionPlanner(self.config, planner=self._planner_name)
+            self._planner = MotionPlanner(
+                self.config, planner=self._planner_name, kinematics=self._kinematics
+            )
         return self._planner
 
     def use_planner(self, name: str) -> None:
