@@ -42,7 +42,6 @@ from fxcell.commands import COMMANDS, CellCommands, get_command
 from fxcell.config import CellConfig
 from fxcell.errors import (
     CalibrationError,
-    ConfigError,
     ConnectionLostError,
     FxcellError,
     InvalidArgumentError,
@@ -130,7 +129,8 @@ _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
 class Cell(CellCommands):
     """One UR3e cell.
 
-    ``host=None`` starts the embedded controller simulator (``fxcell.link.embedded``).
+    ``host=None`` starts the robot kind's simulator (the UR3e's: the embedded controller
+    simulator, ``fxcell.link.embedded``); a kind without one gets no address.
     Without ``config`` the shipped configuration is used (its tool, limits and scene).
     Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
     ``record`` names a directory for an MCAP flight record of the session (default:
@@ -274,13 +274,9 @@ class Cell(CellCommands):
         try:
             if self._record is not None:
                 self._recorder = _start_recorder(Path(self._record), self)
-            if self._host is None and self._link_factory is None:
-                if self.kind.simulator is None:
-                    raise ConfigError(
-                        f"robot.host: a {self.kind.name} has no simulator; "
-                        "configure its controller's address"
-                    )
-                simulator = self.kind.simulator(self._simulator_options)
+            launch = self.kind.simulator
+            if self._host is None and self._link_factory is None and launch is not None:
+                simulator = launch(self._simulator_options)
                 self._host = str(await asyncio.to_thread(simulator.start))
                 self._simulator = simulator
             # Load the motion planner before the link streams: its imports hold the GIL

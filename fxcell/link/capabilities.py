@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from fxcell.errors import UnsupportedCommandError
+from fxcell.commands import COMMANDS
+from fxcell.errors import InvalidArgumentError, UnsupportedCommandError
 from fxcell.protocol import CONTROL_PERIOD
 
 __all__ = ["UR3E", "RobotCapabilities"]
@@ -29,6 +30,13 @@ class RobotCapabilities:
     """Seconds between two samples of a streamed trajectory (the link's servo cycle)."""
     unsupported: frozenset[str] = frozenset()
     """Commands of the command table this kind refuses."""
+
+    def __post_init__(self) -> None:
+        unknown = sorted(self.unsupported - COMMANDS.keys())
+        if unknown:
+            raise InvalidArgumentError(f"{self.kind}: no such commands {unknown}")
+        if self.joints < 1 or not self.sample_period > 0:
+            raise InvalidArgumentError(f"{self.kind}: joints and sample_period must be > 0")
 
     def supports(self, command: str) -> bool:
         """Whether this kind can do ``command`` (a name of the command table)."""
