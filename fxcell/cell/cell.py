@@ -1074,7 +1074,10 @@ class Cell(CellCommands):
             from fxcell.motion.moves import MotionController
 
             self._motion = MotionController(
-                self.config, publish=self.bus.publish, kinematics=self.kind.kinematics
+                self.config,
+                publish=self.bus.publish,
+                kinematics=self.kind.kinematics,
+                capabilities=self.kind.capabilities,
             )
         return self._motion
 

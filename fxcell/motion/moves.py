@@ -28,6 +28,7 @@ from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
 from fxcell.errors import (
     CollisionError,
+    ConfigError,
     ConnectionLostError,
     InvalidArgumentError,
     InvalidTargetError,
@@ -40,6 +41,7 @@ from fxcell.errors import (
 )
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
+from fxcell.link.capabilities import UR3E, RobotCapabilities
 from fxcell.link.contract import LINK_BRAKES, Guard, StopReason
 from fxcell.motion.calibration import calibrated_kinematics, kinematics_for
 from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
@@ -143,6 +145,22 @@ def ur3e_kinematics(config: CellConfig, calibration: Calibration | None) -> Kine
     if calibration is None:
         return kinematics_for(config)
     return calibrated_kinematics(config, calibration)
+
+
+def _check_sampling(capabilities: RobotCapabilities, config: CellConfig) -> None:
+    """ConfigError unless the kind's link takes what the planner makes: joint vectors as
+    wide as the configured limits, sampled every :data:`DT` (the timing's period)."""
+    joints = len(config.limits.velocity)
+    if capabilities.joints != joints:
+        raise ConfigError(
+            f"robot.kind {capabilities.kind!r}: {capabilities.joints} joints, but the "
+            f"configured limits are for {joints}"
+        )
+    if not math.isclose(capabilities.sample_period, DT, rel_tol=1e-9):
+        raise ConfigError(
+            f"robot.kind {capabilities.kind!r}: its link takes a trajectory sample every "
+            f"{capabilities.sample_period:g} s; moves are timed every {DT:g} s"
+        )
 
 
 class MotionPlanner:
@@ -890,9 +908,13 @@ class MotionController:
         options: ExecutionOptions | None = None,
         planner: str = DEFAULT_PLANNER,
         kinematics: KinematicsFactory | None = None,
+        capabilities: RobotCapabilities = UR3E,
     ) -> None:
+        _check_sampling(capabilities, config)
         self.config = config
         self._kinematics = kinematics
+        self.capabilities = capabilities
+        """The robot kind's joints and trajectory sample period."""
         self.options = options or ExecutionOptions()
         self._min_factor = config.limits.min_factor
         self._publish = publish
