@@ -148,3 +148,26 @@ def test_a_kind_name_is_registered_once() -> None:
     with pytest.raises(InvalidArgumentError, match="already"):
         register(robot_kind("ur3e"))
     assert np.isclose(robot_kind("ur3e").capabilities.sample_period, CONTROL_PERIOD)
+
+
+async def test_the_daemons_command_table_marks_what_the_kind_cannot_do(
+    toy: list[Calibration | None],
+) -> None:
+    from fxcell.daemon.service import CellService
+
+    table = CellService(_toy_config(), "token").commands_data()
+    assert table["freedrive_start"]["supported"] is False
+    assert table["freedrive_start"]["allowed"] == []  # the page's button stays disabled
+    assert table["move_joint"]["supported"] is True
+    assert table["move_joint"]["allowed"]
+
+
+def test_a_remote_client_gets_the_refusal_back_with_command_and_kind() -> None:
+    from fxcell.client import build_error
+    from fxcell.daemon.encoding import error_info, http_status
+
+    refusal = UnsupportedCommandError("freedrive_start", "toy")
+    assert http_status(refusal) == 409
+    again = build_error(error_info(refusal), 409)
+    assert isinstance(again, UnsupportedCommandError)
+    assert (again.command, again.kind, str(again)) == ("freedrive_start", "toy", str(refusal))
