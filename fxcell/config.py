@@ -43,8 +43,11 @@ class _Model(BaseModel):
 
 
 class RobotConfig(_Model):
-    """How to reach the controller."""
+    """Which robot, and how to reach its controller."""
 
+    kind: Literal["ur3e"] = "ur3e"
+    """The robot kind (:mod:`fxcell.robots`: its link, kinematic model and simulator);
+    the UR3e is the one fxcell drives so far."""
     host: str | None = None
     """Controller address; ``None`` starts the embedded simulator."""
     external_control: Literal["script", "urcap"] = "script"

@@ -91,6 +91,16 @@ class InvalidStateError(FxcellError):
         )
 
 
+class UnsupportedCommandError(FxcellError):
+    """The cell's robot kind cannot do this command (its capabilities,
+    :mod:`fxcell.link.capabilities`); nothing was sent."""
+
+    def __init__(self, command: str, kind: str) -> None:
+        self.command = command
+        self.kind = kind
+        super().__init__(f"{command}() is not supported by a {kind} robot")
+
+
 class NotInRemoteControlError(FxcellError):
     """The teach pendant is in Local control: network commands are refused."""
 

@@ -50,6 +50,7 @@ LAYERS: dict[str, int] = {
     "fxcell.motion.trajectory": 2,
     "fxcell.motion.moves": 2,
     "fxcell.motion.runner": 2,
+    "fxcell.robots": 2,
     "fxcell.cell": 3,
     "fxcell.cell.statemachine": 3,
     "fxcell.cell.cell": 3,

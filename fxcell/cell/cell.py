@@ -50,7 +50,6 @@ from fxcell.errors import (
     MoveStoppedError,
     NotInRemoteControlError,
     ProtectiveStopUnlockTooSoonError,
-    RobotCommandError,
     RobotTimeoutError,
 )
 from fxcell.events import (
@@ -68,9 +67,8 @@ from fxcell.jsonable import to_jsonable
 from fxcell.layout import Layout, LayoutConfig, layout_data
 from fxcell.link import LinkStatus, StateSubscription
 from fxcell.link.backend import LinkBackend, LinkFactory
-from fxcell.link.client import LinkClient, process_link
+from fxcell.link.client import LinkClient
 from fxcell.link.contract import STOP_ERRORS, StopReason
-from fxcell.link.embedded import EmbeddedSimulator
 from fxcell.motion.runner import (
     DistanceTarget,
     JointTarget,
@@ -79,8 +77,9 @@ from fxcell.motion.runner import (
     PoseTarget,
     RelativeTarget,
 )
-from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
+from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.results import GripResult, MoveResult, ProgramStatus
+from fxcell.robots import RobotKind, Simulator, robot_kind
 from fxcell.settling import REST_VELOCITY
 
 if TYPE_CHECKING:
@@ -93,8 +92,6 @@ T = TypeVar("T")
 
 PROTECTIVE_STOP_HOLD = 5.0
 """Seconds the controller keeps a protective stop locked (its wording says 5 s)."""
-
-_LOCAL_CONTROL_MARKERS = ("remote control", "not allowed due to safety")
 
 # States in which a command waiting for an effect gives up, as the stop reason each is: the
 # error it raises comes from the link contract's one table of stop reasons (STOP_ERRORS).
@@ -132,13 +129,17 @@ _MOVE_ABORT_STATES: dict[CellState, type[FxcellError]] = {
 class Cell(CellCommands):
     """One UR3e cell.
 
-    ``host=None`` starts the embedded controller simulator (``fxcell.link.embedded``).
+    ``host=None`` starts the robot kind's simulator (the UR3e's: the embedded controller
+    simulator, ``fxcell.link.embedded``); a kind without one gets no address.
     Without ``config`` the shipped configuration is used (its tool, limits and scene).
     Use ``async with Cell(...) as cell:`` (or :meth:`open` / :meth:`close`).
     ``record`` names a directory for an MCAP flight record of the session (default:
     the configuration's ``recorder.directory`` when ``recorder.enabled``).
-    ``link_factory`` makes the robot link (default: the supervised ur_rtde process,
-    :func:`fxcell.link.client.process_link`); with one, no embedded simulator is started
+    ``robot.kind`` in the configuration chooses the robot (:mod:`fxcell.robots`: its
+    link, kinematic model and simulator; commands it cannot do are refused with
+    :class:`~fxcell.errors.UnsupportedCommandError`). ``link_factory`` makes the robot
+    link instead of the kind's (the UR3e's: the supervised ur_rtde process,
+    :func:`fxcell.link.client.process_link`); with one, no simulator is started
     (``fxcell.testing.FakeRobot`` gives an in-process one).
 
     The commands (``init``, ``move_joint``, ``stop``, ...) are those of
@@ -165,6 +166,8 @@ class Cell(CellCommands):
         self.layout = Layout(self.config.layout)
         """The stations and their slots, as taught."""
         robot = self.config.robot
+        self.kind: RobotKind = robot_kind(robot.kind)
+        """The robot kind: capabilities, link, kinematic model and simulator."""
         self._host = host if host is not None else robot.host
         self.external_control = external_control or robot.external_control
         self.command_timeout = command_timeout or robot.command_timeout
@@ -177,7 +180,7 @@ class Cell(CellCommands):
         self.machine = RobotStateMachine(on_transition=self._on_transition)
         self._link_factory = link_factory
         self.link: LinkBackend | None = None
-        self._simulator: Any = None
+        self._simulator: Simulator | None = None
         self._recorder: Any = None
         self.controller_info: dict[str, str] = {}
         """Controller version, serial number and robot model, read when the link is up."""
@@ -271,25 +274,26 @@ class Cell(CellCommands):
         try:
             if self._record is not None:
                 self._recorder = _start_recorder(Path(self._record), self)
-            if self._host is None and self._link_factory is None:
-                simulator = EmbeddedSimulator(**self._simulator_options)
+            launch = self.kind.simulator
+            if self._host is None and self._link_factory is None and launch is not None:
+                simulator = launch(self._simulator_options)
                 self._host = str(await asyncio.to_thread(simulator.start))
                 self._simulator = simulator
             # Load the motion planner before the link streams: its imports hold the GIL
             # long enough to starve the loop (and trip the link watchdog) mid-move.
             await asyncio.to_thread(self._moves().warm_up)
             self._machine_task = asyncio.create_task(self.machine.run(), name="cell machine")
-            factory = self._link_factory or process_link
+            factory = self._link_factory or self.kind.link
             self.link = factory(
                 self._host,
-                self.config.robot,
+                self.config.robot.model_copy(update={"external_control": self.external_control}),
                 on_state=self._on_sample,
                 on_status=self._on_link_status,
                 on_control=self._on_control,
             )
             await self.link.start(wait=True)
             await self.wait_for_state(*[s for s in CellState if s is not CellState.DISCONNECTED])
-            self.controller_info = await self._read_controller_info()
+            self.controller_info = (await self.link.controller_info()).as_dict()
             if isinstance(self.link, LinkClient) and self.link.scheduling is not None:
                 self.controller_info["link_scheduling"] = self.link.scheduling.describe()
             self.controller_info.update(await self._use_calibration())
@@ -436,21 +440,6 @@ class Cell(CellCommands):
             "calibration": json.dumps(calibration.summary()),
         }
 
-    async def _read_controller_info(self) -> dict[str, str]:
-        """Controller version, serial number and model, as the dashboard reports them."""
-        info: dict[str, str] = {}
-        queries = (
-            ("controller_version", "PolyscopeVersion"),
-            ("serial", "get serial number"),
-            ("robot_model", "get robot model"),
-        )
-        for key, command in queries:
-            try:
-                info[key] = await self._link().dashboard(command)
-            except FxcellError as exc:  # informational only: never fail open() for it
-                log.warning("could not read %s from the controller: %s", key, exc)
-        return info
-
     # ------------------------------------------------------------- observation
 
     def _on_sample(self, sample: RobotState) -> None:
@@ -491,11 +480,7 @@ class Cell(CellCommands):
                 and sample.runtime_state == RuntimeState.PLAYING
             ):
                 async with self._command("restore_external_control"):
-                    await self._link().start_control(
-                        self.external_control,
-                        self.config.robot.urcap_program,
-                        self.command_timeout,
-                    )
+                    await self._link().enable_control(self.command_timeout)
                     await self._await_effect(
                         "restore_external_control", {CellState.EXTERNAL_CONTROL_READY}, None
                     )
@@ -562,9 +547,7 @@ class Cell(CellCommands):
             if self.state is CellState.PROGRAM_STOPPED:
                 await self._require_remote()
                 self._control_wanted = True
-                await self._link().start_control(
-                    self.external_control, self.config.robot.urcap_program, left()
-                )
+                await self._link().enable_control(left())
             await self._await_effect("restore_control", {CellState.EXTERNAL_CONTROL_READY}, left())
             await self._send_tool()
 
@@ -652,7 +635,9 @@ class Cell(CellCommands):
     async def _admit(self, name: str, args: Mapping[str, Any]) -> None:
         """Raise what refuses command ``name`` of the table (not a move: :meth:`_admit_move`)
         before it acts: its arguments against the configuration, then the guard the table
-        names (a move that has just ended is let land in the state machine first)."""
+        names (a move that has just ended is let land in the state machine first); any
+        command the robot kind cannot do (UnsupportedCommandError)."""
+        self.kind.capabilities.check(name)
         entry = COMMANDS.get(name)
         if entry is None or entry.kind == "move":
             return
@@ -675,7 +660,9 @@ class Cell(CellCommands):
     async def _admit_move(self, name: str, args: Mapping[str, Any], *, queue: bool) -> None:
         """Raise what refuses move ``name`` before it exists: another move running
         (unless ``queue``: it waits its turn), the guard, Local control, then the factors
-        and the target, or for ``pick``/``place`` the slot."""
+        and the target, or for ``pick``/``place`` the slot; first a move the robot kind
+        cannot do (UnsupportedCommandError)."""
+        self.kind.capabilities.check(name)
         if not (queue and self._moving()):
             if self._moving():
                 raise MoveInProgressError(f"{name}(): another move is running")
@@ -775,10 +762,9 @@ class Cell(CellCommands):
             if link is None or not link.up:
                 continue
             try:
-                reply = await link.dashboard("is in remote control", within=2.0)
+                local = not await link.remote_control(within=2.0)
             except FxcellError:
                 continue
-            local = reply.strip().lower() == "false"
             if local and not self.local_control:
                 log.warning("the teach pendant switched to Local control")
                 if self._runner is not None:
@@ -790,21 +776,10 @@ class Cell(CellCommands):
             self.local_control = local
 
     async def _require_remote(self) -> None:
-        reply = await self._link().dashboard("is in remote control")
-        if reply.strip().lower() != "true":
+        if not await self._link().remote_control():
             raise NotInRemoteControlError(
                 "the teach pendant is in Local control: switch it to Remote Control"
             )
-
-    async def _dashboard(self, command: str, expect: str) -> str:
-        """Send a dashboard command that needs Remote control; check the reply."""
-        await self._require_remote()
-        reply = await self._link().dashboard(command)
-        if any(marker in reply.lower() for marker in _LOCAL_CONTROL_MARKERS):
-            raise NotInRemoteControlError(f"{command!r} refused: {reply}")
-        if expect not in reply:
-            raise RobotCommandError(f"{command!r} failed: controller replied {reply!r}")
-        return reply
 
     async def _await_effect(
         self,
@@ -836,14 +811,16 @@ class Cell(CellCommands):
         async with self._command("power_on"):
             state = self.state
             if state is CellState.POWER_OFF:
-                await self._dashboard("power on", "Powering on")
+                await self._require_remote()
+                await self._link().power(True)
             await self._await_effect("power_on", {CellState.IDLE}, timeout)
 
     async def brake_release(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         async with self._command("brake_release"):
             state = self.state
             if state is CellState.IDLE:
-                await self._dashboard("brake release", "Brake releasing")
+                await self._require_remote()
+                await self._link().release_brakes()
             await self._await_effect("brake_release", _running_states(), timeout)
 
     async def power_off(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
@@ -851,7 +828,8 @@ class Cell(CellCommands):
             state = self.state
             if state is not CellState.POWER_OFF:
                 self._control_wanted = False
-                await self._dashboard("power off", "Powering off")
+                await self._require_remote()
+                await self._link().power(False)
             await self._await_effect("power_off", {CellState.POWER_OFF}, timeout)
 
     async def init(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
@@ -871,9 +849,7 @@ class Cell(CellCommands):
             await self._require_remote()
             limit = timeout if timeout is not None else self.command_timeout
             self._control_wanted = True
-            await self._link().start_control(
-                self.external_control, self.config.robot.urcap_program, limit
-            )
+            await self._link().enable_control(limit)
             await self._await_effect(
                 "start_external_control", {CellState.EXTERNAL_CONTROL_READY}, timeout
             )
@@ -884,7 +860,7 @@ class Cell(CellCommands):
             self._control_wanted = False
             link = self._link()
             if link.control_ready or self.state is CellState.EXTERNAL_CONTROL_READY:
-                await link.stop_control(self.external_control)
+                await link.disable_control()
             await self._await_effect("stop_external_control", {CellState.PROGRAM_STOPPED}, timeout)
 
     async def unlock_protective_stop(
@@ -899,11 +875,8 @@ class Cell(CellCommands):
             deadline = time.monotonic() + limit + (PROTECTIVE_STOP_HOLD if wait else 0.0)
             link = self._link()
             while True:
-                reply = await link.dashboard("unlock protective stop")
-                if "releasing" in reply.lower():
+                if await link.unlock_protective_stop():
                     break
-                if "5s" not in reply and "cannot unlock" not in reply.lower():
-                    raise RobotCommandError(f"unlock protective stop failed: {reply!r}")
                 since = self._protective_since or time.monotonic()
                 remaining = max(0.0, PROTECTIVE_STOP_HOLD - (time.monotonic() - since))
                 if not wait:
@@ -918,9 +891,7 @@ class Cell(CellCommands):
                 ignore=CellState.PROTECTIVE_STOP,
             )
             if self._control_wanted and self.state is CellState.PROGRAM_STOPPED:
-                await link.start_control(
-                    self.external_control, self.config.robot.urcap_program, limit
-                )
+                await link.enable_control(limit)
                 await self._await_effect(
                     "unlock_protective_stop", {CellState.EXTERNAL_CONTROL_READY}, timeout
                 )
@@ -930,16 +901,7 @@ class Cell(CellCommands):
             await self._require_remote()
             link = self._link()
             self._control_wanted = False
-            sent = link.messages_sent
-            try:
-                reply = await link.dashboard("shutdown")
-            except ConnectionLostError:
-                if link.messages_sent == sent:  # never left: the link was already down
-                    raise
-                # The controller went down before its reply reached us: the effect asked.
-                reply = "Shutting down"
-            if "shutting down" not in reply.lower():
-                raise RobotCommandError(f"'shutdown' failed: controller replied {reply!r}")
+            await link.shutdown()
             self._shutting_down = True
             self._observe(self.robot_state, "shutdown sent")
             await self.wait_for_state(
@@ -962,19 +924,12 @@ class Cell(CellCommands):
 
     async def get_program_state(self) -> ProgramStatus:
         async with self._command("get_program_state") as out:
-            reply = await self._link().dashboard("programState")
-            word, _, program = reply.strip().partition(" ")
-            try:
-                state = ProgramState(word)
-            except ValueError:
-                raise RobotCommandError(f"unexpected programState reply {reply!r}") from None
-            out["result"] = status = ProgramStatus(state, program)
+            out["result"] = status = await self._link().program_status()
             return status
 
     async def is_in_remote_control(self) -> bool:
         async with self._command("is_in_remote_control") as out:
-            reply = await self._link().dashboard("is in remote control")
-            out["result"] = remote = reply.strip().lower() == "true"
+            out["result"] = remote = await self._link().remote_control()
             return remote
 
     async def get_current_joint_values(self) -> tuple[float, ...]:
@@ -1118,7 +1073,12 @@ class Cell(CellCommands):
         if self._motion is None:
             from fxcell.motion.moves import MotionController
 
-            self._motion = MotionController(self.config, publish=self.bus.publish)
+            self._motion = MotionController(
+                self.config,
+                publish=self.bus.publish,
+                kinematics=self.kind.kinematics,
+                capabilities=self.kind.capabilities,
+            )
         return self._motion
 
     @property

@@ -14,6 +14,7 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.RemoteError, 400),
     (errors.InvalidArgumentError, 422),
     (errors.InvalidStateError, 409),
+    (errors.UnsupportedCommandError, 409),
     (errors.NotInRemoteControlError, 409),
     (errors.MoveInProgressError, 409),
     (errors.MoveStoppedError, 409),
@@ -42,7 +43,7 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.CameraError, 502),
     (errors.FxcellError, 500),
 )
-_DETAIL_ATTRS = ("command", "state", "allowed", "next_step", "remaining", "failures")
+_DETAIL_ATTRS = ("command", "state", "allowed", "next_step", "remaining", "failures", "kind")
 
 
 def http_status(exc: BaseException) -> int:

@@ -27,6 +27,7 @@ from fxcell.daemon.stream import StreamHub
 from fxcell.errors import ConnectionLostError, MoveInProgressError
 from fxcell.events import COMMAND_ORIGIN, Event, EventBus, StateEvent, TransitionEvent
 from fxcell.protocol import RobotState
+from fxcell.robots import robot_kind
 
 
 class CellService:
@@ -177,7 +178,10 @@ class CellService:
         return cached
 
     def _allowed_states(self, command: str) -> list[str]:
-        """States admitting ``command``: a statechart guard or a command of the table."""
+        """States admitting ``command``: a statechart guard or a command of the table
+        (none for a command the robot kind cannot do)."""
+        if not robot_kind(self.config.robot.kind).capabilities.supports(command):
+            return []
         entry = COMMANDS.get(command)
         guard = entry.guard if entry is not None else command
         if guard is None:
@@ -255,6 +259,7 @@ class CellService:
                 "result": c.result.annotation,
                 "guard": c.guard,
                 "allowed": self._allowed_states(name),
+                "supported": robot_kind(self.config.robot.kind).capabilities.supports(name),
                 "changes_robot": c.changes_robot,
                 "needs_control": c.needs_control,
             }

@@ -1,7 +1,10 @@
 """What the Cell and the move runner need from a robot link: :class:`LinkBackend`.
 
 The contract is robot-neutral and typed: one method per operation (never an operation
-named by a string), the value types and the stop reasons of :mod:`fxcell.link.contract`.
+named by a string, no vendor protocol's words), the value types and the stop reasons of
+:mod:`fxcell.link.contract`. What a robot kind can do (its joints, its trajectory sample
+period, the commands it refuses) is :mod:`fxcell.link.capabilities`; a kind's link
+factory, kinematic model and simulator are registered in :mod:`fxcell.robots`.
 
 :class:`fxcell.link.client.LinkClient` (the supervised ur_rtde process) is the production
 backend; ``fxcell.testing.FakeRobot`` provides an in-process one for fast unit tests. A
@@ -15,7 +18,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
 from fxcell.link.contract import (
-    ControlMode,
+    ControllerInfo,
     Guard,
     LinkStatus,
     OutputGroup,
@@ -31,8 +34,10 @@ if TYPE_CHECKING:
     from fxcell.config import RobotConfig
     from fxcell.link.subscription import StateSubscription
     from fxcell.protocol import RobotState
+    from fxcell.results import ProgramStatus
 
 __all__ = [
+    "ControllerInfo",
     "Guard",
     "LinkBackend",
     "LinkFactory",
@@ -99,18 +104,44 @@ class LinkBackend(Protocol):
     # Each request below fails with a typed fxcell error (RobotCommandError,
     # RobotTimeoutError after ``within`` s, ConnectionLostError, ...).
 
-    async def dashboard(self, command: str, within: float = 5.0) -> str:
-        """Send one Dashboard request line; returns the reply line."""
+    # The controller's operations. A kind does them with its own protocol (the UR with
+    # Dashboard lines, fxcell.link.dashboard); a kind that lacks one says so in its
+    # capabilities (fxcell.link.capabilities) and the Cell never calls it.
+
+    async def power(self, on: bool, within: float = 5.0) -> None:
+        """Power the arm on (to idle, brakes engaged) or off; NotInRemoteControlError
+        when the pendant refuses it."""
+
+    async def release_brakes(self, within: float = 5.0) -> None:
+        """Release the brakes of a powered arm."""
+
+    async def remote_control(self, within: float = 5.0) -> bool:
+        """Whether the robot takes commands from the network (a UR pendant in Remote)."""
+
+    async def unlock_protective_stop(self, within: float = 5.0) -> bool:
+        """Unlock a protective stop: True once released, False while the controller still
+        holds it (too soon); RobotCommandError for another refusal."""
+
+    async def program_status(self, within: float = 5.0) -> ProgramStatus:
+        """The controller's program state and the program loaded."""
+
+    async def shutdown(self, within: float = 5.0) -> None:
+        """Shut the controller down (the link goes down with it)."""
+
+    async def controller_info(self, within: float = 5.0) -> ControllerInfo:
+        """Controller version, serial number and model (a field it cannot read: None)."""
 
     async def read_calibration(self) -> Calibration:
-        """The arm's factory calibration as the controller reports it (the primary
-        interface's kinematics info); CalibrationError when it cannot be read."""
+        """The arm's factory calibration as the controller reports it, in the form the
+        kind's kinematic model factory takes (:mod:`fxcell.robots`; a UR: the primary
+        interface's DH deltas); CalibrationError when it cannot be read."""
 
-    async def start_control(self, mode: ControlMode, program: str, within: float) -> None:
-        """Start external control: ``script`` upload or ``urcap`` program."""
+    async def enable_control(self, within: float) -> None:
+        """Start external control (how: the driver's configuration, e.g. the UR's script
+        upload or URCap program); return once it accepts commands."""
 
-    async def stop_control(self, mode: ControlMode, within: float = 5.0) -> None:
-        """Stop external control."""
+    async def disable_control(self, within: float = 5.0) -> None:
+        """Stop external control (braking a running trajectory first)."""
 
     async def servo_stop(self, within: float = 5.0) -> bool:
         """Brake any streamed trajectory and leave servo mode."""
@@ -140,7 +171,10 @@ class LinkBackend(Protocol):
         gain: float = 300.0,
         guard: Guard | None = None,
     ) -> TrajectoryRun:
-        """Stream (N, 6) joint positions spaced 2 ms apart with servoJ."""
+        """Stream ``samples``, (N, joints) joint positions ``sample_period`` apart, both
+        from the kind's :class:`~fxcell.link.capabilities.RobotCapabilities` (a UR3e:
+        6 joints, 2 ms, sent with servoJ); ``lookahead_time`` and ``gain`` tune a
+        servo that takes them (others ignore them)."""
 
     def subscribe(self, maxsize: int = 1024) -> StateSubscription:
         """An async iterator over every state sample (use as a context manager)."""

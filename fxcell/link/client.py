@@ -72,6 +72,7 @@ from fxcell.link.contract import (
     reply_error,
     stop_reason,
 )
+from fxcell.link.dashboard import DashboardOperations
 from fxcell.link.realtime import LINK_PRIORITY, Scheduling, request_realtime
 from fxcell.link.subscription import StateSubscription
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
@@ -259,11 +260,14 @@ class _LinkProtocol(asyncio.Protocol):
             self.closed.set_result(None)
 
 
-class LinkClient:
-    """Asyncio client of a supervised robot-link process for one controller.
+class LinkClient(DashboardOperations):
+    """Asyncio client of a supervised robot-link process for one UR controller.
 
     ``receiver``: ``stream`` (default) reads every RTDE sample with fxcell's own reader;
     ``ur_rtde`` polls ``RTDEReceiveInterface`` (which keeps only the newest sample).
+    ``control_mode`` and ``urcap_program``: how ``enable_control`` starts external
+    control (the UR's ``script`` upload or ``urcap`` program); the contract's controller
+    operations are the Dashboard's (:class:`~fxcell.link.dashboard.DashboardOperations`).
 
     ``on_state`` is called for every sample, ``on_status`` when the link goes up or
     down and ``on_control`` when external control starts or ends (all synchronous).
@@ -279,11 +283,15 @@ class LinkClient:
         urcap_port: int = URCAP_SCRIPT_PORT,
         receiver: Literal["stream", "ur_rtde"] = "stream",
         realtime_priority: int = LINK_PRIORITY,
+        control_mode: ControlMode = "script",
+        urcap_program: str = "external_control.urp",
         on_state: Callable[[RobotState], None] | None = None,
         on_status: Callable[[LinkStatus, str], None] | None = None,
         on_control: Callable[[bool, str], None] | None = None,
     ) -> None:
         self.host = host
+        self.control_mode = control_mode
+        self.urcap_program = urcap_program
         self.frequency = frequency
         self.connect_timeout = connect_timeout
         self.backoff_max = backoff_max
@@ -819,8 +827,12 @@ class LinkClient:
         finally:
             self._pending.pop(request_id, None)
 
+    def _requests_sent(self) -> int:
+        return self.messages_sent
+
     async def dashboard(self, command: str, within: float = 5.0) -> str:
-        """Send one dashboard request line; returns the reply line."""
+        """Send one Dashboard request line; returns the reply line (UR only: outside the
+        link contract, whose operations :class:`DashboardOperations` maps onto it)."""
         return str(await self._request(Dashboard(command), within))
 
     async def read_calibration(self) -> Calibration:
@@ -925,6 +937,8 @@ def process_link(
         connect_timeout=robot.connect_timeout,
         backoff_max=robot.reconnect_backoff_max,
         realtime_priority=robot.realtime_priority,
+        control_mode=robot.external_control,
+        urcap_program=robot.urcap_program,
         on_state=on_state,
         on_status=on_status,
         on_control=on_control,

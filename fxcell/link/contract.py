@@ -342,3 +342,21 @@ class TrajectoryResult:
     def error(self) -> type[FxcellError]:
         """The typed error of a move that ended so (see :data:`STOP_ERRORS`)."""
         return STOP_ERRORS[self.reason]
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerInfo:
+    """What the controller says about itself (``None``: it could not be read)."""
+
+    controller_version: str | None = None
+    serial: str | None = None
+    robot_model: str | None = None
+
+    def as_dict(self) -> dict[str, str]:
+        """The fields that were read, by name (the Cell's ``controller_info``)."""
+        fields = {
+            "controller_version": self.controller_version,
+            "serial": self.serial,
+            "robot_model": self.robot_model,
+        }
+        return {key: value for key, value in fields.items() if value is not None}

@@ -28,6 +28,7 @@ from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
 from fxcell.errors import (
     CollisionError,
+    ConfigError,
     ConnectionLostError,
     InvalidArgumentError,
     InvalidTargetError,
@@ -40,6 +41,7 @@ from fxcell.errors import (
 )
 from fxcell.events import MotionEvent, now
 from fxcell.geometry import Pose
+from fxcell.link.capabilities import UR3E, RobotCapabilities
 from fxcell.link.contract import LINK_BRAKES, Guard, StopReason
 from fxcell.motion.calibration import calibrated_kinematics, kinematics_for
 from fxcell.motion.planning import DEFAULT_PLANNER, PLANNERS, JointPlanner, cartesian_line
@@ -69,6 +71,7 @@ if TYPE_CHECKING:
     from fxcell.link import StateSubscription, TrajectoryResult
     from fxcell.link.backend import LinkBackend, TrajectoryRun
     from fxcell.motion.collision import CollisionChecker
+    from fxcell.motion.kinematics import Kinematics
 
 Array = NDArray[np.float64]
 MoveKind = Literal["joint", "pose", "linear", "distance"]
@@ -132,6 +135,34 @@ def _vector(value: object, n: int, what: str) -> Array:
     return arr
 
 
+KinematicsFactory = Callable[[CellConfig, "Calibration | None"], "Kinematics"]
+"""A robot kind's arm: ``factory(config, calibration)`` (see :mod:`fxcell.robots`)."""
+
+
+def ur3e_kinematics(config: CellConfig, calibration: Calibration | None) -> Kinematics:
+    """The UR3e with the configuration's TCP and limits: calibrated with ``calibration``,
+    else as ``robot.calibration`` says (a file, or the nominal model until one is read)."""
+    if calibration is None:
+        return kinematics_for(config)
+    return calibrated_kinematics(config, calibration)
+
+
+def _check_sampling(capabilities: RobotCapabilities, config: CellConfig) -> None:
+    """ConfigError unless the kind's link takes what the planner makes: joint vectors as
+    wide as the configured limits, sampled every :data:`DT` (the timing's period)."""
+    joints = len(config.limits.velocity)
+    if capabilities.joints != joints:
+        raise ConfigError(
+            f"robot.kind {capabilities.kind!r}: {capabilities.joints} joints, but the "
+            f"configured limits are for {joints}"
+        )
+    if not math.isclose(capabilities.sample_period, DT, rel_tol=1e-9):
+        raise ConfigError(
+            f"robot.kind {capabilities.kind!r}: its link takes a trajectory sample every "
+            f"{capabilities.sample_period:g} s; moves are timed every {DT:g} s"
+        )
+
+
 class MotionPlanner:
     """Plans moves in the configured cell: the UR3e with its TCP, limits and scene."""
 
@@ -143,10 +174,13 @@ class MotionPlanner:
         planning_timeout: float = 1.0,
         checker: CollisionChecker | None = None,
         seed: int | None = None,
+        kinematics: KinematicsFactory | None = None,
     ) -> None:
         self.config = config
         self.limits = config.limits
-        self.kinematics = kinematics_for(config)
+        self._kinematics_of = kinematics or ur3e_kinematics
+        """The robot kind's kinematic model factory (default: the UR3e's)."""
+        self.kinematics = self._kinematics_of(config, None)
         self.uncalibrated: str | None = None
         """Why pose moves are refused (the calibration could not be read), or None."""
         if checker is None:
@@ -186,10 +220,9 @@ class MotionPlanner:
         be read (``why``), so pose moves raise UncalibratedError unless the configuration
         accepts the nominal model."""
         self.uncalibrated = None
+        self.kinematics = self._kinematics_of(self.config, calibration)
         if calibration is not None:
-            self.kinematics = calibrated_kinematics(self.config, calibration)
             return
-        self.kinematics = kinematics_for(self.config)
         if not self.config.robot.accept_nominal_kinematics:
             self.uncalibrated = why or "the arm's calibration could not be read"
 
@@ -874,8 +907,14 @@ class MotionController:
         publish: Publish | None = None,
         options: ExecutionOptions | None = None,
         planner: str = DEFAULT_PLANNER,
+        kinematics: KinematicsFactory | None = None,
+        capabilities: RobotCapabilities = UR3E,
     ) -> None:
+        _check_sampling(capabilities, config)
         self.config = config
+        self._kinematics = kinematics
+        self.capabilities = capabilities
+        """The robot kind's joints and trajectory sample period."""
         self.options = options or ExecutionOptions()
         self._min_factor = config.limits.min_factor
         self._publish = publish
@@ -890,7 +929,9 @@ class MotionController:
     @property
     def planner(self) -> MotionPlanner:
         if self._planner is None:
-            self._planner = MotionPlanner(self.config, planner=self._planner_name)
+            self._planner = MotionPlanner(
+                self.config, planner=self._planner_name, kinematics=self._kinematics
+            )
         return self._planner
 
     def use_planner(self, name: str) -> None:

@@ -72,6 +72,7 @@ from fxcell.link.contract import (
     TrajectoryResult,
     TrajectoryStatus,
 )
+from fxcell.link.dashboard import DashboardOperations
 from fxcell.link.embedded import SimulatorState
 from fxcell.link.follower import Follower
 from fxcell.link.subscription import StateSubscription
@@ -159,7 +160,14 @@ class FakeRobot:
         on_control: Callable[[bool, str], None],
     ) -> FakeLink:
         """A :class:`fxcell.link.backend.LinkFactory`: ``Cell(link_factory=robot.link_factory)``."""
-        return FakeLink(self, on_state=on_state, on_status=on_status, on_control=on_control)
+        return FakeLink(
+            self,
+            control_mode=robot.external_control,
+            urcap_program=robot.urcap_program,
+            on_state=on_state,
+            on_status=on_status,
+            on_control=on_control,
+        )
 
     def inject(self, fault: str, *args: object) -> str:
         """A fault, as ``fxcell sim inject`` (``protective_stop``, ``emergency_stop``,
@@ -331,19 +339,25 @@ class FakeRobot:
                 link._watch()
 
 
-class FakeLink:
+class FakeLink(DashboardOperations):
     """The :class:`fxcell.link.backend.LinkBackend` of a :class:`FakeRobot` (made by
-    :meth:`FakeRobot.link_factory`)."""
+    :meth:`FakeRobot.link_factory`): a UR link, its controller operations the Dashboard's
+    (:class:`~fxcell.link.dashboard.DashboardOperations`), ``control_mode`` and
+    ``urcap_program`` from the robot configuration."""
 
     def __init__(
         self,
         robot: FakeRobot,
         *,
+        control_mode: ControlMode = "script",
+        urcap_program: str = "external_control.urp",
         on_state: Callable[[RobotState], None] | None = None,
         on_status: Callable[[LinkStatus, str], None] | None = None,
         on_control: Callable[[bool, str], None] | None = None,
     ) -> None:
         self.robot = robot
+        self.control_mode = control_mode
+        self.urcap_program = urcap_program
         self._on_state = on_state
         self._on_status = on_status
         self._on_control = on_control
@@ -453,7 +467,11 @@ class FakeLink:
             c.end_freedrive()
         return True
 
+    def _requests_sent(self) -> int:
+        return self._sent
+
     async def dashboard(self, command: str, within: float = 5.0) -> str:
+        """One raw Dashboard request line (UR only: outside the link contract)."""
         return str(await self.request(Dashboard(command)))
 
     async def read_calibration(self) -> Calibration:

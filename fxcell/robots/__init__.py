@@ -1,0 +1,37 @@
+"""Robot kinds: what ``robot.kind`` in the configuration chooses.
+
+A kind is one :class:`RobotKind`: its capabilities (joints, trajectory sample period,
+commands it refuses: :mod:`fxcell.link.capabilities`), its link factory (an
+implementation of :class:`~fxcell.link.backend.LinkBackend`), its kinematic model factory
+(what the motion planner plans on) and its simulator launcher (started when no controller
+address is configured). Adding a robot is one package holding those and one
+:func:`register` call; the Cell never names a kind.
+"""
+
+from __future__ import annotations
+
+from fxcell.robots.registry import (
+    KinematicsFactory,
+    RobotKind,
+    Simulator,
+    SimulatorLauncher,
+    kind_names,
+    register,
+    robot_kind,
+    unregister,
+)
+from fxcell.robots.ur3e import UR3E_KIND
+
+register(UR3E_KIND)
+
+__all__ = [
+    "UR3E_KIND",
+    "KinematicsFactory",
+    "RobotKind",
+    "Simulator",
+    "SimulatorLauncher",
+    "kind_names",
+    "register",
+    "robot_kind",
+    "unregister",
+]

@@ -1,0 +1,173 @@
+"""A second robot kind plugs in as one registry entry: the Cell drives it unchanged.
+
+``toy`` is a made-up kind registered here: the in-process fake link as its link, a
+kinematic model factory of its own (the UR3e's geometry, counted), no simulator, and
+freedrive among the commands it cannot do. The Cell is not touched to drive it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from fxcell import Cell, CellState
+from fxcell.calibration import Calibration
+from fxcell.config import CellConfig
+from fxcell.errors import (
+    ConfigError,
+    InvalidArgumentError,
+    MoveStoppedError,
+    UnsupportedCommandError,
+)
+from fxcell.link.capabilities import UR3E, RobotCapabilities
+from fxcell.motion.kinematics import Kinematics
+from fxcell.motion.moves import ur3e_kinematics
+from fxcell.protocol import CONTROL_PERIOD
+from fxcell.robots import RobotKind, kind_names, register, robot_kind, unregister
+from fxcell.testing import FakeRobot
+
+HOME = [0.0, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0]
+QUARTER_TURN = [math.pi / 2, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0]
+
+
+@pytest.fixture
+def toy(fake_robot: FakeRobot) -> Iterator[list[Calibration | None]]:
+    """Register the ``toy`` kind on ``fake_robot``; the calibrations its kinematic
+    model factory was called with."""
+    built: list[Calibration | None] = []
+
+    def kinematics(config: CellConfig, calibration: Calibration | None) -> Kinematics:
+        built.append(calibration)
+        return ur3e_kinematics(config, calibration)
+
+    capabilities = RobotCapabilities(
+        "toy", joints=6, sample_period=CONTROL_PERIOD, unsupported=frozenset({"freedrive_start"})
+    )
+    register(RobotKind(capabilities, fake_robot.link_factory, kinematics))
+    try:
+        yield built
+    finally:
+        unregister("toy")
+
+
+def _toy_config() -> CellConfig:
+    # robot.kind accepts the kinds fxcell ships; a test's own kind is set past validation
+    config = CellConfig.load()
+    return config.model_copy(update={"robot": config.robot.model_copy(update={"kind": "toy"})})
+
+
+async def test_a_registered_second_kind_inits_moves_and_stops_through_the_cell(
+    toy: list[Calibration | None], fake_robot: FakeRobot
+) -> None:
+    async with Cell(config=_toy_config(), record=None) as cell:
+        assert cell.kind.name == "toy"
+        assert cell.host is None  # no simulator started: the kind has none
+        await cell.init()
+        assert cell.state is CellState.EXTERNAL_CONTROL_READY
+        result = await cell.move_joint(HOME)
+        assert result.joint_error < 1e-5
+        move = asyncio.create_task(cell.move_joint(QUARTER_TURN))
+        async with asyncio.timeout(5.0):
+            with cell.robot_states(maxsize=8) as states:
+                async for sample in states:
+                    if abs(sample.actual_qd[0]) > 0.2:
+                        break
+        assert await cell.stop() is True
+        with pytest.raises(MoveStoppedError):
+            await move
+        assert float(fake_robot.arm.q[0]) < QUARTER_TURN[0] - 0.1  # braked short of it
+        # the kind's own kinematic model: built with the calibration its link read
+        assert toy
+        assert isinstance(toy[-1], Calibration)
+
+
+async def test_a_command_the_kind_cannot_do_is_refused_naming_the_kind(
+    toy: list[Calibration | None], fake_robot: FakeRobot
+) -> None:
+    async with Cell(config=_toy_config(), record=None) as cell:
+        await cell.init()
+        sent = cell._link().messages_sent
+        with pytest.raises(UnsupportedCommandError, match="toy") as info:
+            await cell.freedrive_start()
+        assert (info.value.command, info.value.kind) == ("freedrive_start", "toy")
+        with pytest.raises(UnsupportedCommandError):
+            await cell.check_command("freedrive_start")
+        assert cell._link().messages_sent == sent  # nothing sent
+        assert not fake_robot.controller.teach_mode
+        assert cell.state is CellState.EXTERNAL_CONTROL_READY
+
+
+def test_the_ur3e_is_the_default_kind_and_does_every_command() -> None:
+    assert CellConfig.load().robot.kind == "ur3e"
+    assert robot_kind("ur3e").capabilities is UR3E
+    assert UR3E.unsupported == frozenset()
+    assert (UR3E.joints, UR3E.sample_period) == (6, 0.002)
+    assert "ur3e" in kind_names()
+
+
+def test_a_kind_fxcell_does_not_drive_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match=r"robot\.kind"):
+        CellConfig.from_dict({"robot": {"kind": "ned2"}})
+    with pytest.raises(ConfigError, match="'ned2' is not a robot kind"):
+        robot_kind("ned2")
+    config = CellConfig.load()
+    unknown = config.model_copy(update={"robot": config.robot.model_copy(update={"kind": "x"})})
+    with pytest.raises(ConfigError, match=r"known: .*ur3e"):
+        Cell(config=unknown, record=None)
+
+
+def test_capabilities_name_only_commands_of_the_table() -> None:
+    with pytest.raises(InvalidArgumentError, match="fly"):
+        RobotCapabilities("toy", 6, 0.002, frozenset({"fly"}))
+    with pytest.raises(InvalidArgumentError):
+        RobotCapabilities("toy", 0, 0.002)
+    assert not RobotCapabilities("toy", 6, 0.002, frozenset({"shutdown"})).supports("shutdown")
+
+
+@pytest.mark.parametrize(
+    ("joints", "period", "says"), [(7, 0.002, "7 joints"), (6, 0.004, "every 0.004 s")]
+)
+async def test_a_kind_whose_trajectories_the_planner_cannot_make_is_refused_at_open(
+    fake_robot: FakeRobot, joints: int, period: float, says: str
+) -> None:
+    capabilities = RobotCapabilities("toy", joints, period)
+    register(RobotKind(capabilities, fake_robot.link_factory, ur3e_kinematics))
+    try:
+        with pytest.raises(ConfigError, match=says):
+            async with Cell(config=_toy_config(), record=None):
+                pass
+    finally:
+        unregister("toy")
+
+
+def test_a_kind_name_is_registered_once() -> None:
+    with pytest.raises(InvalidArgumentError, match="already"):
+        register(robot_kind("ur3e"))
+    assert np.isclose(robot_kind("ur3e").capabilities.sample_period, CONTROL_PERIOD)
+
+
+async def test_the_daemons_command_table_marks_what_the_kind_cannot_do(
+    toy: list[Calibration | None],
+) -> None:
+    from fxcell.daemon.service import CellService
+
+    table = CellService(_toy_config(), "token").commands_data()
+    assert table["freedrive_start"]["supported"] is False
+    assert table["freedrive_start"]["allowed"] == []  # the page's button stays disabled
+    assert table["move_joint"]["supported"] is True
+    assert table["move_joint"]["allowed"]
+
+
+def test_a_remote_client_gets_the_refusal_back_with_command_and_kind() -> None:
+    from fxcell.client import build_error
+    from fxcell.daemon.encoding import error_info, http_status
+
+    refusal = UnsupportedCommandError("freedrive_start", "toy")
+    assert http_status(refusal) == 409
+    again = build_error(error_info(refusal), 409)
+    assert isinstance(again, UnsupportedCommandError)
+    assert (again.command, again.kind, str(again)) == ("freedrive_start", "toy", str(refusal))
