@@ -26,6 +26,7 @@ static const double WRIST_MOVE = 0.1;   /* as kinematics._WRIST_MOVE */
 static const int VALLEY_PROJECTIONS = 2;  /* as kinematics._VALLEY_PROJECTIONS */
 static const int VALLEY_STEPS = 30;       /* as kinematics._VALLEY_STEPS */
 static const double VALLEY_NEAR = 0.0;   /* as kinematics._VALLEY_NEAR */
+static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
 
 /* ------------------------------------------------------------------ conversions */
@@ -387,8 +388,9 @@ static double
 close_root(const Chain *c, const double *lower, const double *upper, const double *target,
            double converged, double *q)
 {
-    double jac[36], err[6], step[6], trial[6];
+    double jac[36], err[6], step[6];
     double lo = lower[5], hi = upper[5];
+    int halved = 0;
     memcpy(q, lower, 6 * sizeof(double));
     double norm = project(c, q, target, jac, err);
     for (int it = 0; it < VALLEY_STEPS; it++) {
@@ -401,16 +403,23 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
         else
             hi = q[5];
         double t = q[5] + step[5];
-        if (lo < t && t < hi) {
+        if (lo < t && t < hi) { /* Newton's step: near the root it needs no projection */
             for (int k = 0; k < 6; k++)
-                trial[k] = q[k] + step[k];
+                q[k] = q[k] + step[k];
+            double size = norm6(step);
+            if (size < FINAL_STEP)
+                return size * size; /* as in newton: an error of the step's square */
+            double frame[12];
+            evaluate(c, q, frame, jac);
+            twist_to(frame, target, err);
+            norm = norm6(err);
         }
         else {
-            memcpy(trial, q, sizeof trial);
-            trial[5] = 0.5 * (lo + hi);
+            if (++halved > VALLEY_HALVINGS)
+                break; /* a minimum of the error between the points, not a root */
+            q[5] = 0.5 * (lo + hi);
+            norm = project(c, q, target, jac, err);
         }
-        memcpy(q, trial, sizeof trial);
-        norm = project(c, q, target, jac, err);
     }
     return norm;
 }

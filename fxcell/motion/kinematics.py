@@ -112,6 +112,9 @@ _VALLEY_STEPS = 30
 _VALLEY_NEAR = 0.0
 """|sin θ5| of a nominal start below which its whole valley is searched even when Newton's
 steps converged: there the calibrated solutions of a branch can lie close together."""
+_VALLEY_HALVINGS = 5
+"""Halvings of a bracket after which :meth:`DHChain.valley` drops it: Newton's steps take over
+within one or two next to a root; one they keep leaving holds a minimum of the error."""
 _VALLEY_FLOOR = 1e-2
 """Pose error (m and rad together) above which a point is off the valley (the arm out of
 reach at that θ6): no root is looked for next to it."""
@@ -1587,6 +1590,7 @@ class DHChain:
         """The root of the valley between points ``lower`` and ``upper`` (θ6 increasing)."""
         lo, hi = lower[5], upper[5]
         qq, jac, err, norm = self._project(list(lower), target)
+        halved = 0
         for _ in range(_VALLEY_STEPS):
             if norm < converged:
                 break
@@ -1598,11 +1602,20 @@ class DHChain:
             else:
                 hi = qq[5]
             t = qq[5] + step[5]
-            if lo < t < hi:
-                trial = [qq[k] + step[k] for k in range(6)]
+            if lo < t < hi:  # Newton's step: near the root it needs no projection
+                qq = [qq[k] + step[k] for k in range(6)]
+                size = _norm6(step)
+                if size < _FINAL_STEP:
+                    return qq, size * size  # as in newton: an error of the step's square
+                frame, jac = self.frame_and_jacobian(qq)
+                err = _twist_to(frame, target)
+                norm = _norm6(err)
             else:
-                trial = [qq[0], qq[1], qq[2], qq[3], qq[4], 0.5 * (lo + hi)]
-            qq, jac, err, norm = self._project(trial, target)
+                halved += 1
+                if halved > _VALLEY_HALVINGS:
+                    break  # a minimum of the error between the points, not a root
+                qq = [qq[0], qq[1], qq[2], qq[3], qq[4], 0.5 * (lo + hi)]
+                qq, jac, err, norm = self._project(qq, target)
         return qq, norm
 
     def nearest(
