@@ -1200,7 +1200,7 @@ class Kinematics:
                 continue
             f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
             sols = self._singular_arms(
-                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=True
+                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=not lenient
             )
             for sol in sols:
                 ranked = self._nearest(sol, seed)
