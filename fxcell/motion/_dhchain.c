@@ -2,10 +2,10 @@
  *
  * The same computations as fxcell.motion.kinematics.DHChain, in the same order of floating
  * operations (built with -ffp-contract=off, so no fused multiply-adds): forward kinematics,
- * the geometric Jacobian, Newton steps with a damped fallback and Marquardt's
- * Levenberg-Marquardt, plus `nearest`, which refines a list of nominal starts and returns
- * the solution nearest a seed (each joint 2π-shifted toward it within the limits) in one
- * call. DHChain in Python is the fallback where this extension is not built;
+ * the geometric Jacobian, Newton steps with a damped fallback, Marquardt's
+ * Levenberg-Marquardt and the search along the wrist's self-motion (`valley`), plus
+ * `nearest`, which refines a list of nominal starts and returns the solution nearest a seed
+ * (each joint 2π-shifted toward it within the limits) in one call. DHChain in Python is the fallback where this extension is not built;
  * tests/test_native.py checks that both give the same results.
  */
 #define PY_SSIZE_T_CLEAN
@@ -23,9 +23,8 @@ static const double LIMIT_EPS = 1e-12;  /* as kinematics._LIMIT_EPS */
 static const double FINAL_STEP = 1e-7;  /* as kinematics._FINAL_STEP */
 static const double WRIST_MOVE = 0.1;   /* as kinematics._WRIST_MOVE */
 #define VALLEY_POINTS 12                /* as kinematics._VALLEY_POINTS */
-static const int VALLEY_PROJECTIONS = 2;  /* as kinematics._VALLEY_PROJECTIONS */
+static const int VALLEY_PROJECTIONS = 1;  /* as kinematics._VALLEY_PROJECTIONS */
 static const int VALLEY_STEPS = 30;       /* as kinematics._VALLEY_STEPS */
-static const double VALLEY_NEAR = 0.0;   /* as kinematics._VALLEY_NEAR */
 static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
 
@@ -766,8 +765,7 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         int n_found = 0;
         if (err <= accepted)
             memcpy(found[n_found++], q, sizeof q);
-        double s5 = fabs(sin(start[4]));
-        if (!shoulder && s5 < near && (!n_found || s5 < VALLEY_NEAR)) {
+        if (!n_found && !shoulder && fabs(sin(start[4])) < near) {
             /* along the wrist's self-motion: every solution on this branch's valley */
             double roots[MAX_ROOTS][6];
             int n_roots = valley(self, start, target, converged, roots, norms);

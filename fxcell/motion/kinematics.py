@@ -105,13 +105,11 @@ _FINAL_STEP = 1e-7
 leaves is of the order of its square)."""
 _VALLEY_POINTS = 12
 """Points per turn of θ6 at which :meth:`DHChain.valley` samples the wrist's self-motion."""
-_VALLEY_PROJECTIONS = 2
-"""Gauss-Newton steps on θ1..θ5 (θ6 held) that bring a point back to the valley's floor."""
+_VALLEY_PROJECTIONS = 1
+"""Gauss-Newton steps on θ1..θ5 (θ6 held) that bring a point back to the valley's floor (the
+points are predicted along its tangent: one is enough)."""
 _VALLEY_STEPS = 30
 """Steps :meth:`DHChain.valley` takes to close in on a root between two points."""
-_VALLEY_NEAR = 0.0
-"""|sin θ5| of a nominal start below which its whole valley is searched even when Newton's
-steps converged: there the calibrated solutions of a branch can lie close together."""
 _VALLEY_HALVINGS = 5
 """Halvings of a bracket after which :meth:`DHChain.valley` drops it: Newton's steps take over
 within one or two next to a root; one they keep leaving holds a minimum of the error."""
@@ -1644,9 +1642,11 @@ class DHChain:
         refinement moves far: |sin θ3| or |sin θ5| below ``near``, or the target next to
         the shoulder singularity (:meth:`_singular_target`); next to the wrist singularity
         alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
-        Refined: :meth:`newton`, then :meth:`settle` if that leaves an error above
-        ``accepted``; a solution's joints are shifted by 2π toward the seed within
-        [lower, upper] (dropped if none fits).
+        Refined: :meth:`newton`; if that leaves an error above ``accepted``, every solution
+        along the start's valley (:meth:`valley`) next to the wrist singularity (|sin θ5|
+        below ``near``, the target away from the shoulder's), else :meth:`settle`; a
+        solution's joints are shifted by 2π toward the seed within [lower, upper] (dropped
+        if none fits).
         Returns the best joints (None: none), their distance², the largest move a
         refinement made (rad, Euclidean), the smallest distance of a start that neither
         converged nor reached a local minimum of the error (inf: none) and
@@ -1688,8 +1688,7 @@ class DHChain:
                 continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
             q, err = self.newton(start, target, newton_iterations, converged, rounding)
             found = [q] if err <= accepted else []
-            s5 = abs(math.sin(start[4]))
-            if not shoulder and s5 < near and (not found or s5 < _VALLEY_NEAR):
+            if not found and not shoulder and abs(math.sin(start[4])) < near:
                 # along the wrist's self-motion: every solution on this branch's valley
                 found += [r for r, e in self.valley(start, target, converged) if e <= accepted]
             elif not found:
