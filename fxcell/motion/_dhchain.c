@@ -26,6 +26,7 @@ static const double WRIST_MOVE = 0.1;   /* as kinematics._WRIST_MOVE */
 static const int VALLEY_PROJECTIONS = 1;  /* as kinematics._VALLEY_PROJECTIONS */
 static const int VALLEY_STEPS = 30;       /* as kinematics._VALLEY_STEPS */
 static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
+static const double VALLEY_FINISH = 1e-5; /* as kinematics._VALLEY_FINISH */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
 
 /* ------------------------------------------------------------------ conversions */
@@ -420,6 +421,8 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
             norm = project(c, q, target, jac, err);
         }
     }
+    if (converged <= norm && norm < VALLEY_FINISH) /* a step's sign misled the bracket */
+        norm = newton(c, q, target, VALLEY_STEPS, converged, converged);
     return norm;
 }
 

@@ -113,6 +113,9 @@ _VALLEY_STEPS = 30
 _VALLEY_HALVINGS = 5
 """Halvings of a bracket after which :meth:`DHChain.valley` drops it: Newton's steps take over
 within one or two next to a root; one they keep leaving holds a minimum of the error."""
+_VALLEY_FINISH = 1e-5
+"""Pose error below which a bracket that did not close is finished by :meth:`DHChain.newton`
+(next to a root; a bracket around a minimum of the error stays well above)."""
 _VALLEY_FLOOR = 1e-2
 """Pose error (m and rad together) above which a point is off the valley (the arm out of
 reach at that θ6): no root is looked for next to it."""
@@ -1614,6 +1617,10 @@ class DHChain:
                     break  # a minimum of the error between the points, not a root
                 qq = [qq[0], qq[1], qq[2], qq[3], qq[4], 0.5 * (lo + hi)]
                 qq, jac, err, norm = self._project(qq, target)
+        if converged <= norm < _VALLEY_FINISH:
+            # off the floor a step's sign can mislead the bracket: Newton's steps of all
+            # six joints finish from next to the root
+            return self.newton(qq, target, _VALLEY_STEPS, converged, converged)
         return qq, norm
 
     def nearest(
