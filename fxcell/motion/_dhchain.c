@@ -26,6 +26,7 @@ static const double WRIST_MOVE = 0.1;   /* as kinematics._WRIST_MOVE */
 static const int VALLEY_PROJECTIONS = 1;  /* as kinematics._VALLEY_PROJECTIONS */
 static const int VALLEY_STEPS = 30;       /* as kinematics._VALLEY_STEPS */
 static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
+static const double VALLEY_NEAR = 0.05;    /* as kinematics._VALLEY_NEAR */
 static const double VALLEY_FINISH = 1e-5; /* as kinematics._VALLEY_FINISH */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
 
@@ -768,7 +769,7 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         int n_found = 0;
         if (err <= accepted)
             memcpy(found[n_found++], q, sizeof q);
-        if (!n_found && !shoulder && fabs(sin(start[4])) < near) {
+        if (!n_found && !shoulder && fabs(sin(start[4])) < VALLEY_NEAR) {
             /* along the wrist's self-motion: every solution on this branch's valley */
             double roots[MAX_ROOTS][6];
             int n_roots = valley(self, start, target, converged, roots, norms);

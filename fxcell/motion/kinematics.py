@@ -113,6 +113,10 @@ _VALLEY_STEPS = 30
 _VALLEY_HALVINGS = 5
 """Halvings of a bracket after which :meth:`DHChain.valley` drops it: Newton's steps take over
 within one or two next to a root; one they keep leaving holds a minimum of the error."""
+_VALLEY_NEAR = 0.05
+"""|sin θ5| of a start below which :meth:`DHChain.nearest` searches its valley where Newton's
+steps fail (farther from the singularity θ6 parametrises the valley poorly:
+Levenberg-Marquardt)."""
 _VALLEY_FINISH = 1e-5
 """Pose error below which a bracket that did not close is finished by :meth:`DHChain.newton`
 (next to a root; a bracket around a minimum of the error stays well above)."""
@@ -1695,7 +1699,7 @@ class DHChain:
                 continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
             q, err = self.newton(start, target, newton_iterations, converged, rounding)
             found = [q] if err <= accepted else []
-            if not found and not shoulder and abs(math.sin(start[4])) < near:
+            if not found and not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR:
                 # along the wrist's self-motion: every solution on this branch's valley
                 found += [r for r, e in self.valley(start, target, converged) if e <= accepted]
             elif not found:
