@@ -1655,7 +1655,7 @@ class DHChain:
         alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
         Refined: :meth:`newton`; if that leaves an error above ``accepted``, every solution
         along the start's valley (:meth:`valley`) next to the wrist singularity (|sin θ5|
-        below ``near``, the target away from the shoulder's), else :meth:`settle`; a
+        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle`; a
         solution's joints are shifted by 2π toward the seed within [lower, upper] (dropped
         if none fits).
         Returns the best joints (None: none), their distance², the largest move a
