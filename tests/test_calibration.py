@@ -398,3 +398,52 @@ def test_an_exactly_wrist_singular_stretched_pose_is_solved() -> None:
     dp, da = _pose_error(k, solution, target)
     assert dp < 1e-10
     assert da < 1e-10
+
+
+_BENCH_CALIBRATION = Calibration(  # bench/ik.py's calibrated arm (seed 1)
+    (0.0007709734718606095, 0.00126326844534423, -0.0006223729688285733,
+     -0.0018206472972383248, 0.0002863890281349238, -0.00141501829310561),
+    (0.000875085507501885, -0.0006185739836966412, -0.0001719612975645149,
+     0.0019037515495607012, 0.0011258641110881225, 0.0013751601810559036),
+    (0.0002204575362994409, 0.0017664854503435727, -0.001926696722499561,
+     0.0015567356235674451, -0.00044096606660034557, -0.001073039488464744),
+    (0.00013757690901344388, 0.0017787611146110262, -0.000676006756783731,
+     0.0016344847243547679, -0.00013067354997965772, 0.0018691510591549248),
+)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("q", "seed"),
+    [
+        # θ5 = -π + 1.2e-5: the nominal closed form has no branch at all (its θ6, taken from
+        # the deltas' tilt of the wrist, puts the elbow out of reach); the start is the
+        # wrist-singular continuum's member nearest the seed, the solution along its valley
+        (
+            [-3.012217424, -3.747250882, -5.783499952, -1.974566402, -3.141580515, -1.038617644],
+            [-1.5871, 0.1871, 1.233, 5.5273, -2.6591, -1.3705],
+        ),
+        # θ5 = π - 7e-8: two solutions of one branch 0.3 rad apart along its self-motion;
+        # damped steps found the farther one
+        (
+            [5.0205655, -5.166357077, 1.557802629, -1.900829769, 3.141592587, 3.430600356],
+            [6.1569, 0.9803, 1.1531, -0.1237, 0.231, -0.6644],
+        ),
+    ],
+    ids=["no-nominal-branch", "close-solutions"],
+)
+def test_next_to_the_wrist_singularity_the_nearest_solution_is_found_on_the_hot_path(
+    q: list[float], seed: list[float]
+) -> None:
+    k = CalibratedKinematics(_BENCH_CALIBRATION)
+    target = k.forward(q)
+    solution = k.inverse(target, seed)
+    assert k.fallbacks == 0
+    assert max(_pose_error(k, solution, target)) < 1e-9
+    assert np.all(np.abs(solution) <= 2 * math.pi)
+    s = np.array(seed)
+    own = np.array(
+        [v + 2 * math.pi * round((t - v) / (2 * math.pi)) for v, t in zip(q, s, strict=True)]
+    )
+    reference = [*k.inverse_all(target, s), own]
+    nearest = min(float(np.linalg.norm(r - s)) for r in reference)
+    assert float(np.linalg.norm(solution - s)) <= nearest + 1e-7

@@ -199,6 +199,14 @@ def test_the_c_chain_computes_what_dhchain_does(
     lower, upper = [-2.0 * math.pi] * 6, [2.0 * math.pi] * 6
     args = (starts, goal, seed, lower, upper, 8, 60, 1e-12, 1e-11, 1e-6, 1e-9, 3.0, 0.2)
     assert fast.nearest(*args) == slow.nearest(*args)
+    # next to the wrist singularity, from a start turned along the wrist's self-motion
+    bent = [*q[:4], 1e-3 * delta[4], q[5]]
+    goal = slow.frame(bent)
+    turned = [*start[:4], 0.0, start[5] + 3.0 * far[5]]
+    assert fast.valley(turned, goal) == slow.valley(turned, goal)
+    args = ([(0.0, turned), (0.0, wide)], goal, seed, lower, upper, 8, 60, 1e-12, 1e-11, 1e-6,
+            1e-9, 3.0, 0.2)  # fmt: skip
+    assert fast.nearest(*args) == slow.nearest(*args)
 
 
 def test_the_c_chain_rejects_malformed_input() -> None:

@@ -2,10 +2,10 @@
  *
  * The same computations as fxcell.motion.kinematics.DHChain, in the same order of floating
  * operations (built with -ffp-contract=off, so no fused multiply-adds): forward kinematics,
- * the geometric Jacobian, Newton steps with a damped fallback and Marquardt's
- * Levenberg-Marquardt, plus `nearest`, which refines a list of nominal starts and returns
- * the solution nearest a seed (each joint 2π-shifted toward it within the limits) in one
- * call. DHChain in Python is the fallback where this extension is not built;
+ * the geometric Jacobian, Newton steps with a damped fallback, Marquardt's
+ * Levenberg-Marquardt and the search along the wrist's self-motion (`valley`), plus
+ * `nearest`, which refines a list of nominal starts and returns the solution nearest a seed
+ * (each joint 2π-shifted toward it within the limits) in one call. DHChain in Python is the fallback where this extension is not built;
  * tests/test_native.py checks that both give the same results.
  */
 #define PY_SSIZE_T_CLEAN
@@ -22,6 +22,13 @@ static const double INV_TWO_PI = 0.15915494309189535;
 static const double LIMIT_EPS = 1e-12;  /* as kinematics._LIMIT_EPS */
 static const double FINAL_STEP = 1e-7;  /* as kinematics._FINAL_STEP */
 static const double WRIST_MOVE = 0.1;   /* as kinematics._WRIST_MOVE */
+#define VALLEY_POINTS 12                /* as kinematics._VALLEY_POINTS */
+static const int VALLEY_PROJECTIONS = 1;  /* as kinematics._VALLEY_PROJECTIONS */
+static const int VALLEY_STEPS = 30;       /* as kinematics._VALLEY_STEPS */
+static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
+static const double VALLEY_NEAR = 0.05;    /* as kinematics._VALLEY_NEAR */
+static const double VALLEY_FINISH = 1e-5; /* as kinematics._VALLEY_FINISH */
+static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -346,6 +353,144 @@ settle(const Chain *c, double *q, const double *target, long iterations, double 
     return norm;
 }
 
+/* q (in place) toward the valley's floor: Gauss-Newton steps on θ1..θ5 with θ6 held
+ * (DHChain._project); jac, err and the returned norm are those at q. */
+static double
+project(const Chain *c, double *q, const double *target, double *jac, double *err)
+{
+    double frame[12], held[36], x[6], trial[6], tjac[36], terr[6];
+    evaluate(c, q, frame, jac);
+    twist_to(frame, target, err);
+    double norm = norm6(err);
+    for (int p = 0; p < VALLEY_PROJECTIONS; p++) {
+        memcpy(held, jac, sizeof held);
+        for (int r = 0; r < 6; r++)
+            held[6 * r + 5] = 0.0;
+        if (!solve6(held, err, 1e-12, 0, x))
+            break;
+        for (int k = 0; k < 6; k++)
+            trial[k] = q[k] + x[k];
+        evaluate(c, trial, frame, tjac);
+        twist_to(frame, target, terr);
+        double tnorm = norm6(terr);
+        if (!(tnorm < norm))
+            break;
+        memcpy(q, trial, sizeof trial);
+        memcpy(jac, tjac, sizeof tjac);
+        memcpy(err, terr, sizeof terr);
+        norm = tnorm;
+    }
+    return norm;
+}
+
+/* The root of the valley between points lower and upper (θ6 increasing) into q
+ * (DHChain._close); its error norm. */
+static double
+close_root(const Chain *c, const double *lower, const double *upper, const double *target,
+           double converged, double *q)
+{
+    double jac[36], err[6], step[6];
+    double lo = lower[5], hi = upper[5];
+    int halved = 0;
+    memcpy(q, lower, 6 * sizeof(double));
+    double norm = project(c, q, target, jac, err);
+    for (int it = 0; it < VALLEY_STEPS; it++) {
+        if (norm < converged)
+            break;
+        if (!solve6(jac, err, 0.0, 0, step))
+            break;
+        if (step[5] > 0.0)
+            lo = q[5];
+        else
+            hi = q[5];
+        double t = q[5] + step[5];
+        if (lo < t && t < hi) { /* Newton's step: near the root it needs no projection */
+            for (int k = 0; k < 6; k++)
+                q[k] = q[k] + step[k];
+            double size = norm6(step);
+            if (size < FINAL_STEP)
+                return size * size; /* as in newton: an error of the step's square */
+            double frame[12];
+            evaluate(c, q, frame, jac);
+            twist_to(frame, target, err);
+            norm = norm6(err);
+        }
+        else {
+            if (++halved > VALLEY_HALVINGS)
+                break; /* a minimum of the error between the points, not a root */
+            q[5] = 0.5 * (lo + hi);
+            norm = project(c, q, target, jac, err);
+        }
+    }
+    if (converged <= norm && norm < VALLEY_FINISH) /* a step's sign misled the bracket */
+        norm = newton(c, q, target, VALLEY_STEPS, converged, converged);
+    return norm;
+}
+
+#define MAX_ROOTS (VALLEY_POINTS + 3)
+
+/* The solutions along the wrist's self-motion through q (DHChain.valley): up to MAX_ROOTS
+ * joints into roots and their error norms into norms; their number. */
+static int
+valley(const Chain *c, const double *q, const double *target, double converged,
+       double roots[][6], double *norms)
+{
+    double h = TWO_PI / VALLEY_POINTS;
+    double origin[6], origin_jac[36], origin_err[6];
+    double qq[6], below[6], jac[36], err[6], step[6], held[36], column[6], tangent[6];
+    int n = 0;
+    memcpy(origin, q, sizeof origin);
+    double origin_norm = project(c, origin, target, origin_jac, origin_err);
+    if (origin_norm < converged) {
+        memcpy(roots[n], origin, sizeof origin);
+        norms[n++] = origin_norm;
+    }
+    for (int side = 0; side < 2; side++) {
+        double sign = side ? -1.0 : 1.0, previous = 0.0, norm = origin_norm;
+        memcpy(qq, origin, sizeof qq);
+        memcpy(jac, origin_jac, sizeof jac);
+        memcpy(err, origin_err, sizeof err);
+        memcpy(below, qq, sizeof below);
+        for (int point = 0; point <= VALLEY_POINTS / 2; point++) {
+            if (point) {
+                memcpy(held, jac, sizeof held);
+                for (int r = 0; r < 6; r++) {
+                    column[r] = -jac[6 * r + 5];
+                    held[6 * r + 5] = 0.0;
+                }
+                if (!solve6(held, column, 1e-12, 0, tangent))
+                    for (int k = 0; k < 6; k++)
+                        tangent[k] = 0.0;
+                tangent[5] = 1.0;
+                for (int k = 0; k < 6; k++)
+                    qq[k] = qq[k] + sign * h * tangent[k];
+                norm = project(c, qq, target, jac, err);
+                if (norm < converged) {
+                    memcpy(roots[n], qq, sizeof qq);
+                    norms[n++] = norm;
+                    previous = 0.0;
+                    continue;
+                }
+            }
+            int ok = solve6(jac, err, 0.0, 0, step);
+            if (norm > VALLEY_FLOOR || !ok) {
+                previous = 0.0; /* off the floor (out of reach there): no bracket across */
+                continue;
+            }
+            if (sign * previous > 0.0 && sign * step[5] < 0.0) {
+                if (sign > 0.0)
+                    norms[n] = close_root(c, below, qq, target, converged, roots[n]);
+                else
+                    norms[n] = close_root(c, qq, below, target, converged, roots[n]);
+                n++;
+            }
+            previous = step[5];
+            memcpy(below, qq, sizeof below);
+        }
+    }
+    return n;
+}
+
 /* The 2π-equivalent of v nearest s within [lo, hi], or NaN (kinematics._near). */
 static double
 near_angle(double v, double s, double lo, double hi)
@@ -433,6 +578,34 @@ Chain_newton(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     double norm = newton(self, q, target, iterations, converged, rounding);
     PyObject *out = float_list(q, 6);
     return out == NULL ? NULL : Py_BuildValue("(Nd)", out, norm);
+}
+
+static PyObject *
+Chain_valley(Chain *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double q[6], target[12], converged = 1e-12, roots[MAX_ROOTS][6], norms[MAX_ROOTS];
+    if (nargs < 2 || nargs > 3) {
+        PyErr_SetString(PyExc_TypeError, "valley(q, target, converged)");
+        return NULL;
+    }
+    if (read_floats(args[0], q, 6, "q") || read_floats(args[1], target, 12, "target"))
+        return NULL;
+    if (nargs > 2 && (converged = PyFloat_AsDouble(args[2])) == -1.0 && PyErr_Occurred())
+        return NULL;
+    int n = valley(self, q, target, converged, roots, norms);
+    PyObject *out = PyList_New(n);
+    if (out == NULL)
+        return NULL;
+    for (int i = 0; i < n; i++) {
+        PyObject *joints = float_list(roots[i], 6);
+        PyObject *pair = joints == NULL ? NULL : Py_BuildValue("(Nd)", joints, norms[i]);
+        if (pair == NULL) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyList_SET_ITEM(out, i, pair);
+    }
+    return out;
 }
 
 static PyObject *
@@ -579,20 +752,32 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     int singular_at = singular_target(self, target, near);
     int shoulder = singular_at & 1;
     double best[6], best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
-    int found = 0;
+    int found_any = 0;
     for (Py_ssize_t r = 0; r < n; r++) {
         int i = order[r];
         const double *start = starts[i];
         int singular = shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
-        if (found && !singular && distance[i] > sqrt(best_d) + factor * regular + 1e-9)
+        if (found_any && !singular && distance[i] > sqrt(best_d) + factor * regular + 1e-9)
             continue; /* it cannot come nearer */
-        if (found && !shoulder && fabs(sin(start[4])) < near &&
+        if (found_any && !shoulder && fabs(sin(start[4])) < near &&
             wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
             continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
         double q[6];
         memcpy(q, start, sizeof q);
         double err = newton(self, q, target, n_newton, converged, rounding);
-        if (err > accepted) {
+        double found[MAX_ROOTS + 1][6], norms[MAX_ROOTS];
+        int n_found = 0;
+        if (err <= accepted)
+            memcpy(found[n_found++], q, sizeof q);
+        if (!n_found && !shoulder && fabs(sin(start[4])) < VALLEY_NEAR) {
+            /* along the wrist's self-motion: every solution on this branch's valley */
+            double roots[MAX_ROOTS][6];
+            int n_roots = valley(self, start, target, converged, roots, norms);
+            for (int k = 0; k < n_roots; k++)
+                if (norms[k] <= accepted)
+                    memcpy(found[n_found++], roots[k], sizeof q);
+        }
+        else if (!n_found) {
             double gradient;
             memcpy(q, start, sizeof q);
             err = settle(self, q, target, n_settle, converged, stationary, &gradient);
@@ -601,32 +786,36 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
                     unrefined = distance[i];
                 continue;
             }
+            memcpy(found[n_found++], q, sizeof q);
         }
-        double m = 0.0, d = 0.0, shifted[6];
-        for (int k = 0; k < 6; k++)
-            m += (q[k] - start[k]) * (q[k] - start[k]);
-        m = sqrt(m);
-        if (m > moved)
-            moved = m;
-        if (!singular && m > regular)
-            regular = m;
-        int inside = 1;
-        for (int k = 0; k < 6; k++) {
-            shifted[k] = near_angle(q[k], seed[k], lower[k], upper[k]);
-            if (shifted[k] != shifted[k]) {
-                inside = 0;
-                break;
+        for (int f = 0; f < n_found; f++) {
+            const double *sol = found[f];
+            double m = 0.0, d = 0.0, shifted[6];
+            for (int k = 0; k < 6; k++)
+                m += (sol[k] - start[k]) * (sol[k] - start[k]);
+            m = sqrt(m);
+            if (m > moved)
+                moved = m;
+            if (!singular && m > regular)
+                regular = m;
+            int inside = 1;
+            for (int k = 0; k < 6; k++) {
+                shifted[k] = near_angle(sol[k], seed[k], lower[k], upper[k]);
+                if (shifted[k] != shifted[k]) {
+                    inside = 0;
+                    break;
+                }
+                d += (shifted[k] - seed[k]) * (shifted[k] - seed[k]);
             }
-            d += (shifted[k] - seed[k]) * (shifted[k] - seed[k]);
-        }
-        if (inside && d < best_d) {
-            memcpy(best, shifted, sizeof best);
-            best_d = d;
-            found = 1;
+            if (inside && d < best_d) {
+                memcpy(best, shifted, sizeof best);
+                best_d = d;
+                found_any = 1;
+            }
         }
     }
     PyObject *q_out;
-    if (found) {
+    if (found_any) {
         q_out = float_list(best, 6);
         if (q_out == NULL)
             return NULL;
@@ -646,6 +835,8 @@ static PyMethodDef Chain_methods[] = {
      "Newton's steps toward target: (joints, error norm)."},
     {"settle", (PyCFunction)(void (*)(void))Chain_settle, METH_FASTCALL,
      "Levenberg-Marquardt toward target: (joints, error norm, stationarity)."},
+    {"valley", (PyCFunction)(void (*)(void))Chain_valley, METH_FASTCALL,
+     "The solutions along the wrist's self-motion through q: (joints, error norm) pairs."},
     {"nearest", (PyCFunction)(void (*)(void))Chain_nearest, METH_FASTCALL,
      "Each start refined; the solution nearest the seed (see the C source)."},
     {NULL, NULL, 0, NULL},

@@ -33,6 +33,9 @@ class Chain:
         stationary: float = 1e-6,
         /,
     ) -> tuple[list[float], float, float]: ...
+    def valley(
+        self, q: Sequence[float], target: Sequence[float], converged: float = 1e-12, /
+    ) -> list[tuple[list[float], float]]: ...
     def nearest(
         self,
         starts: Sequence[tuple[float, Sequence[float]]],

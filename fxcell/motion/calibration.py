@@ -5,12 +5,18 @@ milliradians (:class:`fxcell.calibration.Calibration`), which breaks the closed-
 (it needs exactly parallel middle axes). :class:`CalibratedKinematics` keeps the
 :class:`~fxcell.motion.kinematics.Kinematics` interface: its forward kinematics is the
 calibrated DH chain, and its inverse refines the closed-form branches of the nominal model
-onto the calibrated one, nearest the seed first (Newton steps with the analytic Jacobian,
-Levenberg-Marquardt where they do not converge): three or four steps bring a millimetre-off
-start to the rounding floor. The chain and that loop run in C (``fxcell/motion/_dhchain.c``,
-:data:`NATIVE`), else in plain Python floats (:class:`~fxcell.motion.kinematics.DHChain`).
-Next to a singularity, where the deltas can take a branch out of the nominal solutions, and
-where the nominal closed form has no branch (at the edge of its workspace), more starts are
+onto the calibrated one, nearest the seed first (Newton steps with the analytic Jacobian):
+three or four steps bring a millimetre-off start to the rounding floor. Where they do not
+converge, next to the wrist singularity, the calibrated solutions lie along the branch's
+self-motion (θ4 and θ6 turning together, θ2 and θ3 following), up to a turn of θ6 from the
+nominal branch and sometimes close to each other:
+:meth:`~fxcell.motion.kinematics.DHChain.valley` searches that
+valley with θ6 as its parameter; elsewhere Levenberg-Marquardt. The chain and that loop run
+in C (``fxcell/motion/_dhchain.c``, :data:`NATIVE`), else in plain Python floats
+(:class:`~fxcell.motion.kinematics.DHChain`). Next to a singularity, where the deltas can
+take a branch out of the nominal solutions, and where the nominal closed form has no branch
+(at the edge of its workspace, or with θ5 within milliradians of 0 or π, where the
+wrist-singular continuum's members nearest the seed are the starts), more starts are
 refined. No Pinocchio: the simulator uses this module too.
 """
 

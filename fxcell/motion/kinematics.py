@@ -92,6 +92,9 @@ stretched or folded arm, or turns θ1 from the shoulder singularity, for startin
 _LENIENT_C3 = math.cos(_LENIENT_BEND)
 _LENIENT_H2 = math.sin(_LENIENT_BEND) ** 2
 """(h/d4)² below which a ``lenient`` start is taken at the shoulder singularity's edge."""
+_LENIENT_WRIST = 0.01
+"""|sin θ5| below which a ``lenient`` start is also taken on the wrist-singular continuum
+(the member nearest the seed): a calibration's deltas move a target's θ5 by milliradians."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
 _WRIST_MOVE = 0.1
@@ -100,6 +103,26 @@ _WRIST_MOVE = 0.1
 _FINAL_STEP = 1e-7
 """Radians: a full Newton step of :meth:`DHChain.newton` this short is its last (the error it
 leaves is of the order of its square)."""
+_VALLEY_POINTS = 12
+"""Points per turn of θ6 at which :meth:`DHChain.valley` samples the wrist's self-motion."""
+_VALLEY_PROJECTIONS = 1
+"""Gauss-Newton steps on θ1..θ5 (θ6 held) that bring a point back to the valley's floor (the
+points are predicted along its tangent: one is enough)."""
+_VALLEY_STEPS = 30
+"""Steps :meth:`DHChain.valley` takes to close in on a root between two points."""
+_VALLEY_HALVINGS = 5
+"""Halvings of a bracket after which :meth:`DHChain.valley` drops it: Newton's steps take over
+within one or two next to a root; one they keep leaving holds a minimum of the error."""
+_VALLEY_NEAR = 0.05
+"""|sin θ5| of a start below which :meth:`DHChain.nearest` searches its valley where Newton's
+steps fail (farther from the singularity θ6 parametrises the valley poorly:
+Levenberg-Marquardt)."""
+_VALLEY_FINISH = 1e-5
+"""Pose error below which a bracket that did not close is finished by :meth:`DHChain.newton`
+(next to a root; a bracket around a minimum of the error stays well above)."""
+_VALLEY_FLOOR = 1e-2
+"""Pose error (m and rad together) above which a point is off the valley (the arm out of
+reach at that θ6): no root is looked for next to it."""
 
 
 @dataclass(frozen=True)
@@ -1080,9 +1103,12 @@ class Kinematics:
             zy = r01 * sn1 - r11 * c1
             zz = r02 * sn1 - r12 * c1
             s5a = sqrt(zx * zx + zy * zy)
-            if s5a <= _WRIST_EPS:
+            if s5a <= _WRIST_EPS or (lenient and s5a < _LENIENT_WRIST):
+                # exactly singular; or, for starting points, close enough that the deltas
+                # can put the calibrated solutions anywhere along the continuum
                 singular.append((e1, t1, c1, sn1, 1.0 if zz >= 0.0 else -1.0))
-                continue
+                if s5a <= _WRIST_EPS:
+                    continue
             # next to the wrist or shoulder singularity θ6 or θ1 carries amplified rounding
             # error: a stretched arm can then miss its reach, which the general path fixes
             slack = _rounding_slack(s5a, h)
@@ -1179,7 +1205,7 @@ class Kinematics:
                 continue
             f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
             sols = self._singular_arms(
-                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=True
+                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=not lenient
             )
             for sol in sols:
                 ranked = self._nearest(sol, seed)
@@ -1486,6 +1512,121 @@ class DHChain:
                     break
         return qq, norm, gradient
 
+    def _project(
+        self, q: list[float], target: Sequence[float]
+    ) -> tuple[list[float], list[float], list[float], float]:
+        """``q`` brought toward the valley's floor by Gauss-Newton steps on θ1..θ5 with θ6
+        held: the joints, Jacobian, error and its norm."""
+        frame, jac = self.frame_and_jacobian(q)
+        err = _twist_to(frame, target)
+        norm = _norm6(err)
+        for _ in range(_VALLEY_PROJECTIONS):
+            held = list(jac)
+            for r in range(6):
+                held[6 * r + 5] = 0.0
+            x = _solve6(held, err, 1e-12)
+            if x is None:
+                break
+            trial = [q[k] + x[k] for k in range(6)]
+            frame, trial_jac = self.frame_and_jacobian(trial)
+            trial_err = _twist_to(frame, target)
+            trial_norm = _norm6(trial_err)
+            if not trial_norm < norm:
+                break
+            q, jac, err, norm = trial, trial_jac, trial_err, trial_norm
+        return q, jac, err, norm
+
+    def valley(
+        self, q: Sequence[float], target: Sequence[float], converged: float = 1e-12
+    ) -> list[tuple[list[float], float]]:
+        """The solutions along the wrist's self-motion through ``q``: (joints, error norm)
+        pairs, the norm below ``converged`` unless a root's search ran out of steps.
+
+        Next to the wrist singularity (sin θ5 ≈ 0) the calibrated solutions lie along a
+        curved valley of the pose error (θ6 turning, θ2, θ3 and θ4 following), far from the
+        nominal branches and, next to the singularity, close to each other: damped steps
+        crawl along it and find one. θ6 is the valley's parameter: at _VALLEY_POINTS points
+        of a full turn around ``q``'s θ6, each predicted along the valley's tangent from the
+        previous one, θ1..θ5 are brought back to the floor with θ6 held (a well-conditioned
+        problem); Newton's step of all six joints there says on which side a root is (its
+        θ6 part changes sign from + to - across one). The points go half a turn each way
+        (the valley may be cut where the arm is out of reach); each bracket is closed by
+        Newton's steps, bisected where one would leave it."""
+        h = TWO_PI / _VALLEY_POINTS
+        roots: list[tuple[list[float], float]] = []
+        origin = self._project([float(v) for v in q], target)
+        if origin[3] < converged:
+            roots.append((origin[0], origin[3]))
+        for sign in (1.0, -1.0):
+            qq, jac, err, norm = origin
+            previous = 0.0  # the Newton step of θ6 at the last point on the floor (0: none)
+            below = qq
+            for point in range(_VALLEY_POINTS // 2 + 1):
+                if point:
+                    held = list(jac)
+                    column = [0.0] * 6
+                    for r in range(6):
+                        column[r] = -jac[6 * r + 5]
+                        held[6 * r + 5] = 0.0
+                    tangent = _solve6(held, column, 1e-12) or [0.0] * 6
+                    tangent[5] = 1.0
+                    qq = [qq[k] + sign * h * tangent[k] for k in range(6)]
+                    qq, jac, err, norm = self._project(qq, target)
+                    if norm < converged:
+                        roots.append((qq, norm))
+                        previous = 0.0
+                        continue
+                step = _solve6(jac, err, 0.0)
+                if norm > _VALLEY_FLOOR or step is None:
+                    previous = 0.0  # off the floor (out of reach there): no bracket across
+                    continue
+                if sign * previous > 0.0 and sign * step[5] < 0.0:
+                    if sign > 0.0:
+                        roots.append(self._close(below, qq, target, converged))
+                    else:
+                        roots.append(self._close(qq, below, target, converged))
+                previous = step[5]
+                below = qq
+        return roots
+
+    def _close(
+        self, lower: list[float], upper: list[float], target: Sequence[float], converged: float
+    ) -> tuple[list[float], float]:
+        """The root of the valley between points ``lower`` and ``upper`` (θ6 increasing)."""
+        lo, hi = lower[5], upper[5]
+        qq, jac, err, norm = self._project(list(lower), target)
+        halved = 0
+        for _ in range(_VALLEY_STEPS):
+            if norm < converged:
+                break
+            step = _solve6(jac, err, 0.0)
+            if step is None:
+                break
+            if step[5] > 0.0:
+                lo = qq[5]
+            else:
+                hi = qq[5]
+            t = qq[5] + step[5]
+            if lo < t < hi:  # Newton's step: near the root it needs no projection
+                qq = [qq[k] + step[k] for k in range(6)]
+                size = _norm6(step)
+                if size < _FINAL_STEP:
+                    return qq, size * size  # as in newton: an error of the step's square
+                frame, jac = self.frame_and_jacobian(qq)
+                err = _twist_to(frame, target)
+                norm = _norm6(err)
+            else:
+                halved += 1
+                if halved > _VALLEY_HALVINGS:
+                    break  # a minimum of the error between the points, not a root
+                qq = [qq[0], qq[1], qq[2], qq[3], qq[4], 0.5 * (lo + hi)]
+                qq, jac, err, norm = self._project(qq, target)
+        if converged <= norm < _VALLEY_FINISH:
+            # off the floor a step's sign can mislead the bracket: Newton's steps of all
+            # six joints finish from next to the root
+            return self.newton(qq, target, _VALLEY_STEPS, converged, converged)
+        return qq, norm
+
     def nearest(
         self,
         starts: Sequence[tuple[float, Sequence[float]]],
@@ -1512,9 +1653,11 @@ class DHChain:
         refinement moves far: |sin θ3| or |sin θ5| below ``near``, or the target next to
         the shoulder singularity (:meth:`_singular_target`); next to the wrist singularity
         alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
-        Refined: :meth:`newton`, then :meth:`settle` if that leaves an error above
-        ``accepted``; a solution's joints are shifted by 2π toward the seed within
-        [lower, upper] (dropped if none fits).
+        Refined: :meth:`newton`; if that leaves an error above ``accepted``, every solution
+        along the start's valley (:meth:`valley`) next to the wrist singularity (|sin θ5|
+        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle`; a
+        solution's joints are shifted by 2π toward the seed within [lower, upper] (dropped
+        if none fits).
         Returns the best joints (None: none), their distance², the largest move a
         refinement made (rad, Euclidean), the smallest distance of a start that neither
         converged nor reached a local minimum of the error (inf: none) and
@@ -1555,7 +1698,11 @@ class DHChain:
             ):
                 continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
             q, err = self.newton(start, target, newton_iterations, converged, rounding)
-            if err > accepted:
+            found = [q] if err <= accepted else []
+            if not found and not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR:
+                # along the wrist's self-motion: every solution on this branch's valley
+                found += [r for r, e in self.valley(start, target, converged) if e <= accepted]
+            elif not found:
                 q, err, gradient = self.settle(
                     start, target, settle_iterations, converged, stationary
                 )
@@ -1563,25 +1710,27 @@ class DHChain:
                     if not gradient <= stationary and distance[i] < unrefined:
                         unrefined = distance[i]
                     continue
-            m = 0.0
-            for k in range(6):
-                m += (q[k] - start[k]) * (q[k] - start[k])
-            m = math.sqrt(m)
-            moved = max(moved, m)
-            if not singular:
-                regular = max(regular, m)
-            shifted = [0.0] * 6
-            d = 0.0
-            inside = True
-            for k in range(6):
-                w = _near(q[k], seed[k], lower[k], upper[k])
-                if w != w:
-                    inside = False
-                    break
-                shifted[k] = w
-                d += (w - seed[k]) * (w - seed[k])
-            if inside and d < best_d:
-                best, best_d = shifted, d
+                found.append(q)
+            for q in found:
+                m = 0.0
+                for k in range(6):
+                    m += (q[k] - start[k]) * (q[k] - start[k])
+                m = math.sqrt(m)
+                moved = max(moved, m)
+                if not singular:
+                    regular = max(regular, m)
+                shifted = [0.0] * 6
+                d = 0.0
+                inside = True
+                for k in range(6):
+                    w = _near(q[k], seed[k], lower[k], upper[k])
+                    if w != w:
+                        inside = False
+                        break
+                    shifted[k] = w
+                    d += (w - seed[k]) * (w - seed[k])
+                if inside and d < best_d:
+                    best, best_d = shifted, d
         return best, best_d, moved, unrefined, singular_at
 
     def _singular_target(self, g: Sequence[float], near: float) -> int:
