@@ -72,6 +72,7 @@ if TYPE_CHECKING:
     from fxcell.link.backend import LinkBackend, TrajectoryRun
     from fxcell.motion.collision import CollisionChecker
     from fxcell.motion.kinematics import Kinematics
+    from fxcell.robots.registry import KinematicsFactory
 
 Array = NDArray[np.float64]
 MoveKind = Literal["joint", "pose", "linear", "distance"]
@@ -133,10 +134,6 @@ def _vector(value: object, n: int, what: str) -> Array:
     if not np.all(np.isfinite(arr)):
         raise InvalidTargetError(f"{what} must be finite, got {value!r}")
     return arr
-
-
-KinematicsFactory = Callable[[CellConfig, "Calibration | None"], "Kinematics"]
-"""A robot kind's arm: ``factory(config, calibration)`` (see :mod:`fxcell.robots`)."""
 
 
 def ur3e_kinematics(config: CellConfig, calibration: Calibration | None) -> Kinematics:
