@@ -1,6 +1,7 @@
 """Whatever a client sends, the Ned2 simulator answers it as the robot's server would (OK
 or KO) or drops the connection, and never logs an unhandled exception: Hypothesis over
-the command grammar (real command names with arbitrary parameters) and over raw frames.
+the command grammar (real command names with arbitrary parameters) and over raw frames,
+and over rosbridge messages (operations, topics, services and goals with arbitrary fields).
 
 The server runs in this process on an event loop of the test's own, so an exception
 escaping a handler reaches the loop's exception handler or a log record here.
@@ -19,10 +20,12 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from websockets.asyncio.client import connect
 
-from fxcell.sim.ned2 import NED2_PORT
+from fxcell.sim.ned2 import NED2_PORT, ROSBRIDGE_PORT
 from fxcell.sim.ned2.protocol import HANDSHAKE_NOTE, Interpreter
 from fxcell.sim.ned2.robot import Ned2Robot
+from fxcell.sim.ned2.rosbridge import SERVICES
 from fxcell.sim.ned2.server import Ned2Server
 from fxcell.testing.ned2 import free_ned2_host
 
@@ -170,6 +173,86 @@ def test_any_frame_on_the_socket_is_answered_or_the_connection_dropped(
                 assert answer["status"] in ("OK", "KO")
             writer.close()
             await writer.wait_closed()
+        finally:
+            await server.close()
+
+    loop.run_until_complete(scenario())
+    assert not trouble.loop_errors
+    assert not trouble.records
+
+
+# ---------------------------------------------------------------------- the rosbridge
+
+ARM = "/niryo_robot_arm_commander/robot_action"
+TOPICS = [
+    "/joint_states", "//joint_states/", "/niryo_robot/robot_state",
+    "/niryo_robot_hardware_interface/hardware_status", "/niryo_robot/learning_mode/state",
+    f"{ARM}//status", f"{ARM}/goal", f"{ARM}/cancel", f"{ARM}/result",
+    "/niryo_robot_tools_commander/action_server/goal", "/ping_pyniryo", "/x", "",
+]  # fmt: skip
+commands = st.fixed_dictionaries(
+    {},
+    optional={
+        "cmd_type": st.integers(-1, 13) | scalars,
+        "joints": st.lists(st.floats(-3.2, 3.2) | scalars, max_size=7),
+        "position": st.dictionaries(st.sampled_from(["x", "y", "z"]),
+                                    st.floats(-0.6, 0.6) | scalars),
+        "rpy": st.dictionaries(st.sampled_from(["roll", "pitch", "yaw"]),
+                               st.floats(-3, 3) | scalars),
+        "tool_id": st.sampled_from([0, 11, 12]) | scalars,
+    },
+)  # fmt: skip
+goals = st.fixed_dictionaries(
+    {"goal_id": st.fixed_dictionaries({"id": st.text(max_size=4) | scalars}) | values,
+     "goal": st.fixed_dictionaries({"cmd": commands}) | values}
+)  # fmt: skip
+OPS = ["subscribe", "unsubscribe", "advertise", "unadvertise", "publish", "call_service", "fly"]
+
+
+def mostly(choices: list[str], other: st.SearchStrategy[Any]) -> st.SearchStrategy[Any]:
+    """One of ``choices`` nine times in ten, else ``other``."""
+    return st.integers(0, 9).flatmap(lambda k: other if k == 0 else st.sampled_from(choices))
+
+
+bridge_messages = st.fixed_dictionaries(
+    {"op": mostly(OPS, scalars)},
+    optional={
+        "id": st.text(max_size=4) | scalars,
+        "topic": mostly(TOPICS, values),
+        "type": st.sampled_from(["sensor_msgs/JointState", "std_msgs/Bool"]) | scalars,
+        "service": mostly(sorted(SERVICES), st.text(max_size=8) | scalars),
+        "args": st.fixed_dictionaries({}, optional={"value": scalars, "name": scalars}) | values,
+        "msg": goals | values,
+        "throttle_rate": scalars,
+    },
+)  # fmt: skip
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+          HealthCheck.function_scoped_fixture])  # fmt: skip
+@given(
+    messages=st.lists(bridge_messages, min_size=1, max_size=6)
+    | st.lists(bridge_messages | st.text(max_size=12), min_size=1, max_size=6)
+)
+def test_any_rosbridge_message_is_answered_or_ignored_without_an_unhandled_exception(
+    loop: asyncio.AbstractEventLoop, trouble: Trouble, messages: list[Any]
+) -> None:
+    async def scenario() -> None:
+        server = Ned2Server(free_ned2_host(), time_scale=1e-4, calibrated=True)
+        await server.start()
+        try:
+            async with connect(f"ws://{server.host}:{ROSBRIDGE_PORT}") as ws:
+                for m in messages:
+                    await ws.send(m if isinstance(m, str) else json.dumps(m))
+                # the bridge reads in order: once this is answered, every message was taken
+                await ws.send(json.dumps({"op": "call_service", "id": "end",
+                                          "service": "/rosapi/get_param_names"}))  # fmt: skip
+                while True:
+                    answer = json.loads(await asyncio.wait_for(ws.recv(), 5.0))
+                    assert answer["op"] in ("publish", "status", "service_response")
+                    if answer.get("id") == "end":
+                        assert answer["result"] is True
+                        break
         finally:
             await server.close()
 

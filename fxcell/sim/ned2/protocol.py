@@ -33,8 +33,7 @@ from collections.abc import Awaitable, Callable
 from enum import Enum
 from typing import Any
 
-import numpy as np
-
+from fxcell.geometry import matrix_to_quaternion
 from fxcell.motion import ned2
 from fxcell.sim.ned2.robot import (
     ANALOG_INPUTS,
@@ -419,7 +418,7 @@ class Interpreter:
     async def _c_get_pose_quat(self, *a: Any) -> tuple[Any, ...]:
         _nb_args("get_pose_quat", a, 0)
         t = ned2.forward(self.robot.joints)
-        return (*[float(v) for v in t[:3, 3]], *_quaternion(t[:3, :3]))
+        return (*[float(v) for v in t[:3, 3]], *matrix_to_quaternion(t[:3, :3]))
 
     async def _c_get_home_pose(self, *a: Any) -> tuple[Any, ...]:
         _nb_args("get_home_pose", a, 0)
@@ -613,18 +612,3 @@ def _server_error(text: str) -> str:
 
 def _jsonable_scalar(v: Any) -> bool:
     return v is None or isinstance(v, (int, float, bool))
-
-
-def _quaternion(r: np.ndarray) -> list[float]:
-    """(x, y, z, w) of a rotation matrix, w >= 0."""
-    w = math.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2.0
-    x = math.copysign(
-        math.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) / 2.0, r[2, 1] - r[1, 2]
-    )
-    y = math.copysign(
-        math.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) / 2.0, r[0, 2] - r[2, 0]
-    )
-    z = math.copysign(
-        math.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) / 2.0, r[1, 0] - r[0, 1]
-    )
-    return [x, y, z, w]

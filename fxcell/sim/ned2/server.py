@@ -1,10 +1,12 @@
-"""The Ned2 simulator process: the robot's TCP server on port 40001 and the simulator's
-control port (29990: ``inject FAULT [ARGS]``, ``state``, ``add_object NAME X Y Z
-[WIDTH]``, ``set_input PIN VALUE``, ``set_joints Q1,...,Q6``; one text line each).
+"""The Ned2 simulator process: the robot's TCP server on port 40001, its rosbridge
+WebSocket on 9090 (:mod:`fxcell.sim.ned2.rosbridge`) and the simulator's control port
+(29990: ``inject FAULT [ARGS]``, ``state``, ``add_object NAME X Y Z [WIDTH]``,
+``set_input PIN VALUE``, ``set_joints Q1,...,Q6``; one text line each).
 
-Like the robot's server it serves one client at a time (a second connection waits until
-the first closes) and answers a command only once it has finished (a move holds its
-connection until the arm arrives).
+Like the robot's server the TCP server serves one client at a time (a second connection
+waits until the first closes) and answers a command only once it has finished (a move
+holds its connection until the arm arrives); the rosbridge serves any number of clients
+at once, so a stop reaches a move that holds the TCP connection.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 
 from fxcell.motion import ned2
 from fxcell.sim.lifetime import watch_parent
-from fxcell.sim.ned2 import CONTROL_PORT, FAULTS, NED2_PORT
+from fxcell.sim.ned2 import CONTROL_PORT, FAULTS, NED2_PORT, ROSBRIDGE_PORT
 from fxcell.sim.ned2.protocol import LENGTH, Interpreter
 from fxcell.sim.ned2.robot import (
     ANALOG_INPUTS,
@@ -31,6 +33,7 @@ from fxcell.sim.ned2.robot import (
     Ned2Robot,
     SimObject,
 )
+from fxcell.sim.ned2.rosbridge import Rosbridge
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +44,7 @@ class Ned2Server:
     def __init__(self, host: str, *, time_scale: float = 1.0, calibrated: bool = False) -> None:
         self.host = host
         self.robot = Ned2Robot(time_scale=time_scale, calibrated=calibrated)
+        self.rosbridge = Rosbridge(self.robot)
         self._slot = asyncio.Lock()  # one client at a time, as the robot's server
         self._clients: set[asyncio.StreamWriter] = set()
         self._tcp: asyncio.Server | None = None
@@ -54,6 +58,7 @@ class Ned2Server:
 
     async def start(self) -> None:
         self._tcp = await asyncio.start_server(self._client, self.host, NED2_PORT)
+        await self.rosbridge.start(self.host, ROSBRIDGE_PORT)
         self._control = await asyncio.start_server(self._control_client, self.host, CONTROL_PORT)
 
     async def serve(
@@ -72,7 +77,7 @@ class Ned2Server:
         if announce:
             print(
                 f"fxcell sim (ned2) listening on {self.host}: tcp {NED2_PORT}, "
-                f"control {CONTROL_PORT}",
+                f"rosbridge {ROSBRIDGE_PORT}, control {CONTROL_PORT}",
                 flush=True,
             )
         if on_listening is not None:
@@ -92,6 +97,7 @@ class Ned2Server:
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self.rosbridge.close()
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self._clients.add(writer)
@@ -208,9 +214,11 @@ class Ned2Server:
                 self._tcp = None
             for writer in list(self._clients):
                 writer.close()
+            await self.rosbridge.close()
         elif fault == "power_restore":
             if not self.powered:
                 self._tcp = await asyncio.start_server(self._client, self.host, NED2_PORT)
+                await self.rosbridge.start(self.host, ROSBRIDGE_PORT)
                 self.powered = True
         elif fault == "motor_error":
             joint = int(args[0]) if args else 2
