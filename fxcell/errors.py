@@ -109,6 +109,19 @@ class RobotCommandError(FxcellError):
     """The controller refused or failed a command (reply quoted in the message)."""
 
 
+class RobotCommandStatusError(RobotCommandError):
+    """The controller failed a command with a status code (a Ned2's ``CommandStatus``:
+    -3 aborted, -4 stopped, -113 calibration not done, ...)."""
+
+    def __init__(self, code: int, detail: str) -> None:
+        self.code = code
+        self.detail = detail
+        super().__init__(f"{detail} (status {code})")
+
+    def __reduce__(self) -> tuple[type[RobotCommandStatusError], tuple[int, str]]:
+        return (type(self), (self.code, self.detail))
+
+
 class SafetyStopError(FxcellError):
     """A safety stop is active or happened during the command."""
 

@@ -9,8 +9,11 @@ protocol).
 this package.
 """
 
-NED2_PORT = 40001
-ROSBRIDGE_PORT = 9090
+from fxcell.link.ned2 import ROSBRIDGE_PORT
+from fxcell.link.ned2 import TCP_PORT as NED2_PORT
+
+__all__ = ["CONTROL_PORT", "FAULTS", "NED2_PORT", "PORTS", "ROSBRIDGE_PORT"]
+
 CONTROL_PORT = 29990
 PORTS = (NED2_PORT, ROSBRIDGE_PORT, CONTROL_PORT)
 FAULTS = (

@@ -400,6 +400,20 @@ class Rosbridge:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
 
+    async def drop(self) -> None:
+        """The robot went dark: stop listening and cut every connection, with no closing
+        handshake (the clients see their connection fail)."""
+        server, self._server = self._server, None
+        if server is not None:
+            server.close(close_connections=False)
+        for client in list(self._clients):
+            client.ws.transport.abort()
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        if server is not None:
+            await server.wait_closed()
+
     def _spawn(self, coro: Awaitable[None], client: _Client | None = None) -> asyncio.Task[None]:
         task: asyncio.Task[None] = asyncio.ensure_future(coro)
         self._tasks.add(task)

@@ -214,7 +214,7 @@ class Ned2Server:
                 self._tcp = None
             for writer in list(self._clients):
                 writer.close()
-            await self.rosbridge.close()
+            await self.rosbridge.drop()
         elif fault == "power_restore":
             if not self.powered:
                 self._tcp = await asyncio.start_server(self._client, self.host, NED2_PORT)

@@ -1,0 +1,17 @@
+"""The Niryo Ned2's network interfaces as the Ned2 driver speaks them.
+
+- :mod:`~fxcell.link.ned2.tcp`: the robot's TCP server (port 40001, the protocol of Niryo's
+  pyniryo client): one command at a time, each answered once it has finished, so a move
+  holds the connection until the arm arrives.
+- :mod:`~fxcell.link.ned2.rosbridge`: the robot's rosbridge WebSocket (port 9090): topics
+  streamed while a move runs (joint states, hardware status, learning mode, collision
+  detection) and services that reach a running move (``stop_command``).
+
+Both are asyncio clients with typed errors (:mod:`fxcell.errors`); neither knows the
+Cell. Facts about the interfaces: ``docs/guides/ned2.md``.
+"""
+
+TCP_PORT = 40001
+"""The robot's TCP server (pyniryo's protocol)."""
+ROSBRIDGE_PORT = 9090
+"""The robot's rosbridge WebSocket."""
