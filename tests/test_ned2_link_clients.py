@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Iterator
+from typing import Any
 
+import numpy as np
 import pytest
 
 from fxcell.errors import (
@@ -16,7 +18,12 @@ from fxcell.errors import (
     RobotCommandError,
     RobotCommandStatusError,
 )
-from fxcell.link.ned2.rosbridge import RosbridgeClient
+from fxcell.link.ned2.rosbridge import (
+    ABORTED,
+    PREEMPTED,
+    SUCCEEDED,
+    RosbridgeClient,
+)
 from fxcell.link.ned2.tcp import NiryoTcpClient, joints, robot_bool
 from fxcell.motion import ned2
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
@@ -24,7 +31,41 @@ from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 pytestmark = [pytest.mark.system, pytest.mark.timeout(60)]
 
 FAR = [-1.5, -0.8, 0.8, 1.0, 1.0, 1.0]
-CALIBRATION_NOT_DONE, STOPPED = -113, -4
+CALIBRATION_NOT_DONE, STOPPED, INVALID_PARAMETERS = -113, -4, -52
+ARM_ACTION = "/niryo_robot_arm_commander/robot_action"
+MOVE_ACTION = "niryo_robot_arm_commander/RobotMoveAction"
+EXECUTE_FULL_TRAJ = 11
+JOINT_NAMES = [f"joint_{i}" for i in range(1, 7)]
+
+
+def quintic_trajectory(
+    q0: np.ndarray, q1: np.ndarray, duration: float, step: float
+) -> dict[str, Any]:
+    """A ``trajectory_msgs/JointTrajectory`` from ``q0`` to ``q1`` along the straight joint
+    line (a quintic time law), a point every ``step`` s."""
+    points = []
+    for t in np.arange(0.0, duration + step / 2, step):
+        tau = min(t / duration, 1.0)
+        s = 10 * tau**3 - 15 * tau**4 + 6 * tau**5
+        ds = (30 * tau**2 - 60 * tau**3 + 30 * tau**4) / duration
+        secs = int(t)
+        points.append(
+            {
+                "positions": (q0 + s * (q1 - q0)).tolist(),
+                "velocities": (ds * (q1 - q0)).tolist(),
+                "time_from_start": {"secs": secs, "nsecs": round((t - secs) * 1e9)},
+            }
+        )
+    return {"joint_names": JOINT_NAMES, "points": points}
+
+
+def trajectory_goal(trajectory: dict[str, Any]) -> dict[str, Any]:
+    return {"cmd": {"cmd_type": EXECUTE_FULL_TRAJ, "trajectory": trajectory}}
+
+
+async def ready_arm(bridge: RosbridgeClient) -> None:
+    await bridge.call("/niryo_robot/joints_interface/calibrate_motors", {"value": 1}, within=30)
+    await bridge.call("/niryo_robot/learning_mode/activate", {"value": False})
 
 
 @pytest.fixture
@@ -84,8 +125,7 @@ async def test_a_refusal_is_a_typed_error_with_the_robots_status_code(
 async def test_joint_states_stream_while_a_move_holds_the_tcp_connection_and_a_stop_ends_it(
     tcp: NiryoTcpClient, bridge: RosbridgeClient, sim: Ned2SimulatorHandle
 ) -> None:
-    await bridge.call("/niryo_robot/joints_interface/calibrate_motors", {"value": 1}, within=30)
-    await bridge.call("/niryo_robot/learning_mode/activate", {"value": False})
+    await ready_arm(bridge)
     updates: asyncio.Queue[list[float]] = asyncio.Queue()
     sub = await bridge.subscribe(
         "/joint_states", "sensor_msgs/JointState", lambda msg: updates.put_nowait(msg["position"])
@@ -135,3 +175,73 @@ async def test_a_robot_that_goes_dark_fails_both_clients_with_connection_lost(
     fresh = NiryoTcpClient(sim.host)
     with pytest.raises(ConnectionLostError, match="cannot reach"):
         await fresh.connect()
+
+
+async def test_a_timed_trajectory_runs_through_the_arm_action_and_ends_on_its_last_point(
+    bridge: RosbridgeClient, sim: Ned2SimulatorHandle
+) -> None:
+    await ready_arm(bridge)
+    q0, q1 = ned2.HOME.copy(), np.array([0.4, -0.2, 0.1, 0.3, -0.4, 0.2])
+    seen: list[list[float]] = []
+    await bridge.subscribe(
+        "/joint_states", "sensor_msgs/JointState", lambda m: seen.append(m["position"])
+    )
+    goal = await bridge.send_goal(
+        ARM_ACTION,
+        MOVE_ACTION,
+        {
+            "cmd": {
+                "cmd_type": EXECUTE_FULL_TRAJ,
+                "trajectory": quintic_trajectory(q0, q1, 2.0, 0.1),
+            }
+        },
+    )
+    status, result = await bridge.goal_result(goal, within=30)
+    assert (status, result["status"]) == (SUCCEEDED, 1)
+    assert sim.state()["joints"] == pytest.approx(q1.tolist(), abs=1e-12)
+    # every streamed position is on the trajectory's straight joint line
+    direction = (q1 - q0) / np.linalg.norm(q1 - q0)
+    for q in seen:
+        offset = np.asarray(q) - q0
+        assert np.linalg.norm(offset - (offset @ direction) * direction) < 1e-9
+    assert len({round(float((np.asarray(q) - q0) @ direction), 6) for q in seen}) > 3
+
+
+async def test_a_trajectory_that_does_not_start_at_the_arm_is_refused_and_nothing_moves(
+    bridge: RosbridgeClient, sim: Ned2SimulatorHandle
+) -> None:
+    await ready_arm(bridge)
+    elsewhere = ned2.HOME + 0.1
+    goal = await bridge.send_goal(
+        ARM_ACTION,
+        MOVE_ACTION,
+        trajectory_goal(quintic_trajectory(elsewhere, elsewhere + 0.2, 1.0, 0.1)),
+    )
+    status, result = await bridge.goal_result(goal, within=30)
+    assert (status, result["status"]) == (ABORTED, INVALID_PARAMETERS)
+    assert "start" in result["message"]
+    assert sim.state()["joints"] == pytest.approx(ned2.HOME.tolist())
+
+
+async def test_a_stop_preempts_a_running_trajectory(
+    bridge: RosbridgeClient, sim: Ned2SimulatorHandle
+) -> None:
+    await ready_arm(bridge)
+    q0, q1 = ned2.HOME.copy(), np.array([0.4, -0.2, 0.1, 0.3, -0.4, 0.2])
+    goal = await bridge.send_goal(
+        ARM_ACTION,
+        MOVE_ACTION,
+        {
+            "cmd": {
+                "cmd_type": EXECUTE_FULL_TRAJ,
+                "trajectory": quintic_trajectory(q0, q1, 20.0, 0.5),
+            }
+        },
+    )
+    sim.wait_for("moving", True)
+    await bridge.call("/niryo_robot_arm_commander/stop_command")
+    status, result = await bridge.goal_result(goal, within=30)
+    assert (status, result["status"]) == (PREEMPTED, STOPPED)
+    state = sim.state()
+    assert state["moving"] is False
+    assert state["joints"] != pytest.approx(q1.tolist())

@@ -1,12 +1,14 @@
 """An asyncio client of a rosbridge WebSocket (the Ned2's port 9090), rosbridge v2.
 
 It subscribes to topics (:meth:`RosbridgeClient.subscribe`: each message to a callback,
-called on the client's event loop) and calls services (:meth:`RosbridgeClient.call`: the
-response's values, or a typed error). One reader task dispatches what arrives; a service
-that answers ``result: false`` raises :class:`~fxcell.errors.RobotCommandError` with
-rosbridge's message, a response carrying a Niryo ``status`` below 0 raises
-:class:`~fxcell.errors.RobotCommandStatusError`; a lost connection fails every pending
-call with :class:`~fxcell.errors.ConnectionLostError`.
+called on the client's event loop), calls services (:meth:`RosbridgeClient.call`: the
+response's values, or a typed error) and sends actionlib goals
+(:meth:`RosbridgeClient.send_goal`, then ``goal_result`` or ``cancel_goal``). One reader
+task dispatches what arrives; a service that answers ``result: false`` raises
+:class:`~fxcell.errors.RobotCommandError` with rosbridge's message, a response carrying a
+Niryo ``status`` below 0 raises :class:`~fxcell.errors.RobotCommandStatusError`; a lost
+connection fails every pending call and goal with
+:class:`~fxcell.errors.ConnectionLostError`.
 """
 
 from __future__ import annotations
@@ -31,11 +33,26 @@ from fxcell.errors import (
 )
 from fxcell.link.ned2 import ROSBRIDGE_PORT
 
-__all__ = ["RosbridgeClient", "Subscription"]
+__all__ = ["ActionGoal", "RosbridgeClient", "Subscription"]
 
 log = logging.getLogger(__name__)
 
 Message = dict[str, Any]
+
+
+# actionlib_msgs/GoalStatus
+PENDING, ACTIVE, PREEMPTED, SUCCEEDED, ABORTED, REJECTED = 0, 1, 2, 3, 4, 5
+
+
+@dataclass
+class ActionGoal:
+    """A goal sent to an action server: :meth:`RosbridgeClient.goal_result` waits for its
+    end, :meth:`RosbridgeClient.cancel_goal` cancels it."""
+
+    id: str
+    server: str
+    ended: asyncio.Future[tuple[int, Message]]
+    """(final ``actionlib_msgs/GoalStatus``, the action's result message)."""
 
 
 @dataclass
@@ -58,6 +75,8 @@ class RosbridgeClient:
         self._calls: dict[str, asyncio.Future[Message]] = {}
         self._subscriptions: dict[str, list[Subscription]] = {}
         self._ids = itertools.count(1)
+        self._goals: dict[str, ActionGoal] = {}
+        self._action_servers: set[str] = set()
         self.closed_because = ""
 
     @property
@@ -145,6 +164,67 @@ class RosbridgeClient:
             raise RobotCommandStatusError(status, f"{service}: {values.get('message', '')}")
         return values
 
+    # ---------------------------------------------------------------- actions
+
+    async def send_goal(self, server: str, action_type: str, goal: Message) -> ActionGoal:
+        """Send ``goal`` to the actionlib server ``server`` (``action_type`` e.g.
+        ``niryo_robot_arm_commander/RobotMoveAction``), as ROS 1's actionlib does it over
+        the server's ``goal``, ``cancel`` and ``result`` topics."""
+        if server not in self._action_servers:
+            await self._send(
+                {"op": "advertise", "topic": f"{server}/goal", "type": f"{action_type}Goal"}
+            )
+            await self._send(
+                {"op": "advertise", "topic": f"{server}/cancel", "type": "actionlib_msgs/GoalID"}
+            )
+            await self.subscribe(f"{server}/result", f"{action_type}Result", self._on_result)
+            self._action_servers.add(server)
+        gid = f"fxcell:{server}:{next(self._ids)}"
+        handle = ActionGoal(gid, server, asyncio.get_running_loop().create_future())
+        self._goals[gid] = handle
+        stamp = {"secs": 0, "nsecs": 0}
+        await self._send(
+            {
+                "op": "publish",
+                "topic": f"{server}/goal",
+                "msg": {"goal_id": {"stamp": stamp, "id": gid}, "goal": goal},
+            }
+        )
+        return handle
+
+    async def goal_result(
+        self, goal: ActionGoal, *, within: float | None = None
+    ) -> tuple[int, Message]:
+        """Wait for the goal's end: its final status and the action's result."""
+        try:
+            async with asyncio.timeout(within):
+                return await asyncio.shield(goal.ended)
+        except TimeoutError:
+            raise RobotTimeoutError(
+                f"{goal.server}: the goal did not end within {within:g} s"
+            ) from None
+        finally:
+            if goal.ended.done():
+                self._goals.pop(goal.id, None)
+
+    async def cancel_goal(self, goal: ActionGoal) -> None:
+        await self._send(
+            {"op": "publish", "topic": f"{goal.server}/cancel", "msg": {"id": goal.id}}
+        )
+
+    def _on_result(self, msg: Message) -> None:
+        status = msg.get("status")
+        goal_id = status.get("goal_id") if isinstance(status, dict) else None
+        gid = goal_id.get("id") if isinstance(goal_id, dict) else None
+        goal = self._goals.get(gid) if isinstance(gid, str) else None
+        if goal is None or goal.ended.done() or not isinstance(status, dict):
+            return
+        result = msg.get("result")
+        code = status.get("status")
+        goal.ended.set_result(
+            (code if isinstance(code, int) else ABORTED, result if isinstance(result, dict) else {})
+        )
+
     # ---------------------------------------------------------------- the socket
 
     async def _send(self, message: Message) -> None:
@@ -189,6 +269,10 @@ class RosbridgeClient:
             log.info("rosbridge %s: %s", message.get("level"), message.get("msg"))
 
     def _fail_calls(self, why: str) -> None:
-        for future in self._calls.values():
+        lost: list[asyncio.Future[Any]] = [*self._calls.values()]
+        lost += [g.ended for g in self._goals.values()]
+        for future in lost:
             if not future.done():
                 future.set_exception(ConnectionLostError(f"rosbridge at {self.host}: {why}"))
+                future.exception()  # retrieved here: a goal nobody waits for is not an error
+        self._goals.clear()

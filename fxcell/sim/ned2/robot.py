@@ -46,6 +46,7 @@ ANALOG_OUTPUTS = ("AO1", "AO2")
 MOTOR_NAMES = ["joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6", "tool"]
 MOTOR_TYPES = ["NIRYO_STEPPER"] * 3 + ["DXL_XL430"] * 2 + ["DXL_XL330"] * 2
 CYCLE = 0.01  # s of robot time per motion step
+TRAJECTORY_START_TOLERANCE = 0.01  # rad: a trajectory must start this close to the arm
 
 
 class RobotError(Exception):
@@ -305,6 +306,61 @@ class Ned2Robot:
             self.moving = False
             self._abort = None
 
+    async def follow_trajectory(
+        self, times: np.ndarray, positions: np.ndarray, velocities: np.ndarray
+    ) -> None:
+        """Run a timed joint trajectory as the arm's trajectory controller does: points at
+        ``times`` (s from the start, robot time), interpolated by cubic Hermite segments
+        through their positions and velocities. Refused (nothing moves) unless it starts
+        where the arm is, stays within the joint limits and the velocity limits (x the
+        velocity scaling), and its times increase."""
+        self._check_can_move()
+        n = len(times)
+        if n == 0 or positions.shape != (n, 6) or velocities.shape != (n, 6):
+            raise RobotError(INVALID_PARAMETERS, "A trajectory needs points of 6 joints")
+        finite = np.isfinite(times).all() and np.isfinite(positions).all()
+        if not finite or not np.isfinite(velocities).all():
+            raise RobotError(INVALID_PARAMETERS, "A trajectory's values must be finite")
+        if times[0] < 0 or np.any(np.diff(times) <= 0):
+            raise RobotError(INVALID_PARAMETERS, "A trajectory's times must increase")
+        if np.max(np.abs(positions[0] - self.joints)) > TRAJECTORY_START_TOLERANCE:
+            raise RobotError(INVALID_PARAMETERS, "The trajectory does not start where the arm is")
+        if not all(ned2.within_limits(q) for q in positions):
+            raise RobotError(INVALID_PARAMETERS, "A trajectory point is out of the joint limits")
+        limit = ned2.VELOCITY_LIMITS * (self.velocity_percent / 100.0) * 1.001
+        if np.any(np.abs(velocities) > limit):
+            raise RobotError(INVALID_PARAMETERS, "A trajectory point exceeds the velocity limits")
+        self.moving = True
+        self._abort = None
+        clock = time.monotonic()
+        try:
+            while True:
+                abort = self._pending_abort()
+                if abort is not None:
+                    raise RobotError(*abort)
+                t = (time.monotonic() - clock) / self.time_scale
+                if t >= times[-1]:
+                    self.joints = positions[-1].copy()
+                    self._carry()
+                    return
+                k = max(int(np.searchsorted(times, t, side="right")) - 1, 0)
+                if t < times[0]:  # before the first point: hold where the arm starts
+                    self.joints = positions[0].copy()
+                else:
+                    self.joints = _hermite(
+                        t - times[k],
+                        times[k + 1] - times[k],
+                        positions[k],
+                        velocities[k],
+                        positions[k + 1],
+                        velocities[k + 1],
+                    )
+                self._carry()
+                await self._sleep(CYCLE)
+        finally:
+            self.moving = False
+            self._abort = None
+
     def _pending_abort(self) -> tuple[int, str] | None:
         return self._abort
 
@@ -358,6 +414,18 @@ def _trapezoid(t: float, vs: float, as_: float, duration: float) -> float:
         r = max(0.0, duration - t)
         return 1.0 - 0.5 * as_ * r * r
     return 0.5 * as_ * ta * ta + vs * (t - ta)
+
+
+def _hermite(
+    t: float, h: float, p0: np.ndarray, v0: np.ndarray, p1: np.ndarray, v1: np.ndarray
+) -> np.ndarray:
+    """The cubic through ``p0`` (velocity ``v0``) at 0 and ``p1`` (``v1``) at ``h``, at ``t``."""
+    s = t / h
+    h00 = 2 * s**3 - 3 * s**2 + 1
+    h10 = s**3 - 2 * s**2 + s
+    h01 = -2 * s**3 + 3 * s**2
+    h11 = s**3 - s**2
+    return np.asarray(h00 * p0 + h10 * h * v0 + h01 * p1 + h11 * h * v1)
 
 
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:

@@ -13,7 +13,8 @@ It speaks the rosbridge v2 protocol (JSON objects with an ``op``):
   or arguments of the wrong type are answered ``result: false`` with a status message;
 - **actions** over topics as ROS 1's actionlib does it (``goal``, ``cancel``, ``status``,
   ``result``): the arm commander's ``robot_action`` (moves by joints, pose and linear
-  pose) and the tools commander's ``action_server`` (Gripper 1 open and close).
+  pose, and a timed ``trajectory_msgs/JointTrajectory``: ``EXECUTE_FULL_TRAJ``) and the
+  tools commander's ``action_server`` (Gripper 1 open and close).
 
 Names are canonical as ROS makes them (``/a//b/`` is ``/a/b``). Advertising and
 publishing are accepted (pyniryo2 publishes a heartbeat on ``/ping_pyniryo``).
@@ -63,7 +64,7 @@ STATUS_PERIOD = 0.2  # s: actionlib servers publish their goals' status at 5 Hz
 # actionlib_msgs/GoalStatus
 PENDING, ACTIVE, PREEMPTED, SUCCEEDED, ABORTED, REJECTED = 0, 1, 2, 3, 4, 5
 # niryo_robot_arm_commander ArmMoveCommand.cmd_type, niryo_robot_tools_commander ToolCommand
-MOVE_JOINTS, MOVE_POSE, MOVE_LINEAR_POSE = 0, 1, 5
+MOVE_JOINTS, MOVE_POSE, MOVE_LINEAR_POSE, EXECUTE_FULL_TRAJ = 0, 1, 5, 11
 OPEN_GRIPPER, CLOSE_GRIPPER = 1, 2
 
 
@@ -282,7 +283,49 @@ async def _arm_goal(robot: Ned2Robot, cmd: dict[str, Any]) -> None:
         else:
             await robot.move_joints(robot.solve(pose))
         return
+    if kind == EXECUTE_FULL_TRAJ:
+        times, positions, velocities = _joint_trajectory(cmd.get("trajectory"))
+        await robot.follow_trajectory(times, positions, velocities)
+        return
     raise RobotError(INVALID_PARAMETERS, f"Command type {kind} is not modelled by the simulator")
+
+
+def _numbers(value: Any, n: int, where: str) -> list[float]:
+    if not isinstance(value, list) or len(value) != n:
+        raise FieldError(f"{where}: expected {n} numbers, got {value!r:.80}")
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        raise FieldError(f"{where}: expected {n} numbers, got {value!r:.80}")
+    return [float(v) for v in value]
+
+
+def _joint_trajectory(message: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Times, positions and velocities (points x joints in the arm's order) of a
+    ``trajectory_msgs/JointTrajectory``; its points without velocities get zeros."""
+    if not isinstance(message, dict) or not isinstance(message.get("points"), list):
+        raise FieldError("robot_action: EXECUTE_FULL_TRAJ needs a trajectory with points")
+    names = message.get("joint_names")
+    if not isinstance(names, list) or sorted(map(str, names)) != sorted(JOINT_NAMES):
+        raise FieldError(f"robot_action: the trajectory's joint_names must be {list(JOINT_NAMES)}")
+    order = [names.index(j) for j in JOINT_NAMES]
+    times, positions, velocities = [], [], []
+    for point in message["points"]:
+        if not isinstance(point, dict):
+            raise FieldError("robot_action: a trajectory point must be an object")
+        q = _numbers(point.get("positions"), 6, "positions")
+        v = _numbers(point.get("velocities") or [0.0] * 6, 6, "velocities")
+        stamp = point.get("time_from_start")
+        if not isinstance(stamp, dict):
+            raise FieldError("robot_action: a point needs time_from_start {secs, nsecs}")
+        secs = _field(stamp, "secs", int, "time_from_start")
+        nsecs = _field(stamp, "nsecs", int, "time_from_start")
+        times.append(secs + nsecs * 1e-9)
+        positions.append([q[i] for i in order])
+        velocities.append([v[i] for i in order])
+    return (
+        np.array(times, dtype=float),
+        np.array(positions, dtype=float).reshape(-1, 6),
+        np.array(velocities, dtype=float).reshape(-1, 6),
+    )
 
 
 async def _tool_goal(robot: Ned2Robot, cmd: dict[str, Any]) -> None:
