@@ -3,8 +3,9 @@
 :class:`MotionPlanner` turns a target into a :class:`MovePlan` — validated factors and
 target, IK nearest the current joints and free of collision, a collision-free path
 (straight joint line, else OMPL; or a Cartesian straight line) and a jerk-limited
-trajectory sampled at 2 ms — or raises before anything moves. :class:`MoveExecution`
-streams a plan through the robot link (servoJ at 500 Hz in the link process) and, when
+trajectory sampled at the robot kind's period (its capabilities' ``sample_period``: a
+UR3e's 2 ms) — or raises before anything moves. :class:`MoveExecution` streams a plan
+through the robot link (a UR3e's: servoJ at 500 Hz in the link process) and, when
 stopped or cancelled, replaces the samples not yet sent by a jerk-limited braking
 profile computed with Ruckig from the planned state where the replacement takes over.
 """
@@ -54,7 +55,6 @@ from fxcell.motion.runner import (
     RelativeTarget,
 )
 from fxcell.motion.trajectory import (
-    DT,
     Limits,
     Trajectory,
     along_path,
@@ -144,24 +144,19 @@ def ur3e_kinematics(config: CellConfig, calibration: Calibration | None) -> Kine
     return calibrated_kinematics(config, calibration)
 
 
-def _check_sampling(capabilities: RobotCapabilities, config: CellConfig) -> None:
-    """ConfigError unless the kind's link takes what the planner makes: joint vectors as
-    wide as the configured limits, sampled every :data:`DT` (the timing's period)."""
+def _check_joints(capabilities: RobotCapabilities, config: CellConfig) -> None:
+    """ConfigError unless the configured limits are as wide as the kind's joint vectors."""
     joints = len(config.limits.velocity)
     if capabilities.joints != joints:
         raise ConfigError(
             f"robot.kind {capabilities.kind!r}: {capabilities.joints} joints, but the "
             f"configured limits are for {joints}"
         )
-    if not math.isclose(capabilities.sample_period, DT, rel_tol=1e-9):
-        raise ConfigError(
-            f"robot.kind {capabilities.kind!r}: its link takes a trajectory sample every "
-            f"{capabilities.sample_period:g} s; moves are timed every {DT:g} s"
-        )
 
 
 class MotionPlanner:
-    """Plans moves in the configured cell: the UR3e with its TCP, limits and scene."""
+    """Plans moves in the configured cell: the robot kind's arm (default: the UR3e) with
+    its TCP, limits and scene; trajectories sampled at the kind's period."""
 
     def __init__(
         self,
@@ -172,8 +167,13 @@ class MotionPlanner:
         checker: CollisionChecker | None = None,
         seed: int | None = None,
         kinematics: KinematicsFactory | None = None,
+        capabilities: RobotCapabilities = UR3E,
     ) -> None:
+        _check_joints(capabilities, config)
         self.config = config
+        self.capabilities = capabilities
+        self.period = capabilities.sample_period
+        """Seconds between two trajectory samples (the kind's servo cycle)."""
         self.limits = config.limits
         self._kinematics_of = kinematics or ur3e_kinematics
         """The robot kind's kinematic model factory (default: the UR3e's)."""
@@ -206,11 +206,13 @@ class MotionPlanner:
 
     def scaled_limits(self, velocity_factor: float, acceleration_factor: float) -> Limits:
         """Joint limits scaled by validated factors (InvalidFactorError otherwise)."""
-        return Limits.from_config(self.limits, velocity_factor, acceleration_factor)
+        return Limits.from_config(
+            self.limits, velocity_factor, acceleration_factor, period=self.period
+        )
 
     def braking_limits(self) -> Limits:
         """Limits for stopping: the configured braking limits, whatever the move's factors."""
-        return Limits.for_braking(self.limits)
+        return Limits.for_braking(self.limits, period=self.period)
 
     def use_calibration(self, calibration: Calibration | None, why: str = "") -> None:
         """Plan on ``calibration`` (the controller's, read at connect); None: it could not
@@ -476,7 +478,7 @@ class MotionPlanner:
         traj = along_path(line.joints, line.knots, limits)
         bad = self.checker.first_collision(traj.positions)
         if bad is not None:  # between two checked knots: rare, but the samples are what moves
-            raise CollisionError(f"the straight line collides after {bad * DT:.3f} s")
+            raise CollisionError(f"the straight line collides after {bad * traj.period:.3f} s")
         q1 = line.target_joints
         return MovePlan(
             kind,
@@ -546,16 +548,17 @@ def lead_setpoints(traj: Trajectory, lag: float) -> Array:
     servoJ behaves like a critically damped second-order tracker with lag = 2/ω; fed
     ``q + lag·q̇ + (lag²/4)·q̈`` it follows q without the lag. The derivatives are the
     samples' own differences (backward velocity, central acceleration), which is what a
-    tracker stepping once per 2 ms cycle needs to land on the next sample exactly.
+    tracker stepping once per sample period needs to land on the next sample exactly.
     Samples at rest are unchanged (the last one is the target).
     """
     q = traj.positions
     if len(q) < 2 or lag <= 0:
         return q.copy()
+    dt = traj.period
     prev = np.concatenate([q[:1], q[:-1]])
     nxt = np.concatenate([q[1:], q[-1:]])
-    qd = (q - prev) / DT
-    qdd = (nxt - 2 * q + prev) / (DT * DT)
+    qd = (q - prev) / dt
+    qdd = (nxt - 2 * q + prev) / (dt * dt)
     out: Array = q + lag * qd + (lag * lag / 4.0) * qdd
     out[-1] = q[-1]
     return out
@@ -640,7 +643,7 @@ class MoveExecution:
         samples[-1] = traj.positions[-1]
         # Hold the target after the last sample: servoJ converges onto it, and the
         # stream is ended as soon as the robot has settled there.
-        hold = np.repeat(samples[-1:], max(round(opts.settle_timeout / DT), 1), axis=0)
+        hold = np.repeat(samples[-1:], max(round(opts.settle_timeout / traj.period), 1), axis=0)
         with self.link.subscribe(maxsize=4096) as states:
             self._sent_at = time.monotonic()
             handle = await self.link.execute_trajectory(
@@ -688,6 +691,7 @@ class MoveExecution:
         the stream), the stream ends, or a stop request brakes it to rest."""
         opts = self.options
         target = self.plan.trajectory.positions[-1].tolist()
+        period = self.plan.trajectory.period
         # The link process sends one sample per controller cycle it sees; starved of CPU it
         # sees fewer, and the trajectory stretches (slower, never faster). So the patience
         # runs from the latest progress report: the samples still to send, plus margins.
@@ -701,12 +705,12 @@ class MoveExecution:
                 progress = handle.progress
                 if progress is not None and progress.index > reported:
                     reported = progress.index
-                    left = (progress.total - progress.index) * DT + margin
+                    left = (progress.total - progress.index) * period + margin
                     patience.reschedule(max(patience.when() or 0.0, loop.time() + left))
                 if self._stop.is_set() and not handle.done:
                     await self._braking(handle)
                 if state is not None:
-                    # plain floats: this runs for every 500 Hz sample
+                    # plain floats: this runs for every state sample (500 Hz on a UR)
                     moving = max(map(abs, state.actual_qd))
                     count += 1
                     if not self._braked and count % TRACKING_EVERY == 0:
@@ -771,14 +775,15 @@ class MoveExecution:
         p = handle.progress
         if p is None or p.timestamp is None:
             return self._current_index(handle)
-        return p.index + round((state.timestamp - p.timestamp) / DT)
+        return p.index + round((state.timestamp - p.timestamp) / self.plan.trajectory.period)
 
     def _current_index(self, handle: TrajectoryRun) -> float:
         """The link's sample index now, from its last progress report and the clock."""
         p = handle.progress
+        period = self.plan.trajectory.period
         if p is None:
-            return (time.monotonic() - self._sent_at) / DT
-        return p.index + max(time.time() - p.time, 0.0) / DT
+            return (time.monotonic() - self._sent_at) / period
+        return p.index + max(time.time() - p.time, 0.0) / period
 
     async def _brake(self, handle: TrajectoryRun) -> None:
         """Replace the samples not yet sent by the jerk-limited stop."""
@@ -797,11 +802,13 @@ class MoveExecution:
             # Lead the braking samples with the planned ones before them as history, so
             # the setpoints continue exactly where the replaced ones leave off.
             history = traj.positions[max(at - 1, 0) : at]
+            shape = (len(history) + len(stop), traj.positions.shape[1])
             joined = Trajectory(
                 np.concatenate([history, stop.positions]),
-                np.zeros((len(history) + len(stop), 6)),
-                np.zeros((len(history) + len(stop), 6)),
+                np.zeros(shape),
+                np.zeros(shape),
                 stop.duration,
+                stop.period,
             )
             samples = lead_setpoints(joined, self.options.lag)[len(history) :]
         samples[-1] = stop.positions[-1]
@@ -907,7 +914,7 @@ class MotionController:
         kinematics: KinematicsFactory | None = None,
         capabilities: RobotCapabilities = UR3E,
     ) -> None:
-        _check_sampling(capabilities, config)
+        _check_joints(capabilities, config)
         self.config = config
         self._kinematics = kinematics
         self.capabilities = capabilities
@@ -927,7 +934,10 @@ class MotionController:
     def planner(self) -> MotionPlanner:
         if self._planner is None:
             self._planner = MotionPlanner(
-                self.config, planner=self._planner_name, kinematics=self._kinematics
+                self.config,
+                planner=self._planner_name,
+                kinematics=self._kinematics,
+                capabilities=self.capabilities,
             )
         return self._planner
 
@@ -1138,7 +1148,7 @@ def _trajectory_data(plan: MovePlan) -> dict[str, Any]:
     return {
         "duration": traj.duration,
         "samples": len(traj),
-        "dt": DT,
+        "dt": traj.period,
         "stops": traj.stops,
         "preview": traj.positions[::step].tolist(),
     }
