@@ -47,7 +47,16 @@ def toy(fake_robot: FakeRobot) -> Iterator[list[Calibration | None]]:
     capabilities = RobotCapabilities(
         "toy", joints=6, sample_period=CONTROL_PERIOD, unsupported=frozenset({"freedrive_start"})
     )
-    register(RobotKind(capabilities, fake_robot.link_factory, kinematics))
+    ur3e = robot_kind("ur3e")
+    register(
+        RobotKind(
+            capabilities,
+            fake_robot.link_factory,
+            kinematics,
+            collision=ur3e.collision,
+            calibration=ur3e.calibration,
+        )
+    )
     try:
         yield built
     finally:
@@ -132,7 +141,16 @@ async def test_a_kind_whose_joints_the_configured_limits_do_not_fit_is_refused_a
     fake_robot: FakeRobot,
 ) -> None:
     capabilities = RobotCapabilities("toy", 7, 0.002)
-    register(RobotKind(capabilities, fake_robot.link_factory, ur3e_kinematics))
+    ur3e = robot_kind("ur3e")
+    register(
+        RobotKind(
+            capabilities,
+            fake_robot.link_factory,
+            ur3e.kinematics,
+            collision=ur3e.collision,
+            calibration=ur3e.calibration,
+        )
+    )
     try:
         with pytest.raises(ConfigError, match="7 joints"):
             async with Cell(config=_toy_config(), record=None):

@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
 from fxcell.errors import (
+    CalibrationError,
     CollisionError,
     ConfigError,
     ConnectionLostError,
@@ -69,10 +70,14 @@ from fxcell.settling import ARRIVE_TOLERANCE, REST_VELOCITY, SETTLE_POSITION, SE
 
 if TYPE_CHECKING:
     from fxcell.link import StateSubscription, TrajectoryResult
-    from fxcell.link.backend import LinkBackend, TrajectoryRun
-    from fxcell.motion.collision import CollisionChecker
+    from fxcell.link.backend import ArmCalibration, LinkBackend, TrajectoryRun
     from fxcell.motion.kinematics import Kinematics
-    from fxcell.robots.registry import KinematicsFactory
+    from fxcell.robots.registry import (
+        CollisionFactory,
+        CollisionModel,
+        KinematicModel,
+        KinematicsFactory,
+    )
 
 Array = NDArray[np.float64]
 MoveKind = Literal["joint", "pose", "linear", "distance"]
@@ -118,12 +123,6 @@ MAX_ANGLE = 2 * math.pi
 """Largest roll, pitch or yaw (rad) a pose's 6-list may give."""
 
 
-def _reach(kinematics: Any) -> float:
-    dh = kinematics.dh
-    tcp = float(np.linalg.norm(kinematics.tcp.position))
-    return float(sum(abs(v) for v in (*dh.a, *dh.d))) + tcp + 0.01
-
-
 def _vector(value: object, n: int, what: str) -> Array:
     try:
         arr = np.asarray(value, dtype=float)
@@ -136,12 +135,25 @@ def _vector(value: object, n: int, what: str) -> Array:
     return arr
 
 
-def ur3e_kinematics(config: CellConfig, calibration: Calibration | None) -> Kinematics:
+def ur3e_kinematics(config: CellConfig, calibration: ArmCalibration | None) -> Kinematics:
     """The UR3e with the configuration's TCP and limits: calibrated with ``calibration``,
-    else as ``robot.calibration`` says (a file, or the nominal model until one is read)."""
+    else as ``robot.calibration`` says (a file, or the nominal model until one is read);
+    CalibrationError for a calibration that is not a UR's DH deltas."""
     if calibration is None:
         return kinematics_for(config)
+    if not isinstance(calibration, Calibration):
+        raise CalibrationError(
+            f"the UR3e's model takes UR DH deltas, not a {type(calibration).__name__}"
+        )
     return calibrated_kinematics(config, calibration)
+
+
+def ur3e_collision(config: CellConfig) -> CollisionModel:
+    """The UR3e's and its gripper's collision bodies in the configured scene (Pinocchio and
+    coal, loaded on first use)."""
+    from fxcell.motion.collision import CollisionChecker
+
+    return CollisionChecker.for_config(config)
 
 
 def _check_joints(capabilities: RobotCapabilities, config: CellConfig) -> None:
@@ -164,9 +176,10 @@ class MotionPlanner:
         *,
         planner: str = DEFAULT_PLANNER,
         planning_timeout: float = 1.0,
-        checker: CollisionChecker | None = None,
+        checker: CollisionModel | None = None,
         seed: int | None = None,
         kinematics: KinematicsFactory | None = None,
+        collision: CollisionFactory | None = None,
         capabilities: RobotCapabilities = UR3E,
     ) -> None:
         _check_joints(capabilities, config)
@@ -174,17 +187,17 @@ class MotionPlanner:
         self.capabilities = capabilities
         self.period = capabilities.sample_period
         """Seconds between two trajectory samples (the kind's servo cycle)."""
+        self.joints = capabilities.joints
+        """The width of every joint vector."""
         self.limits = config.limits
-        self._kinematics_of = kinematics or ur3e_kinematics
+        self._kinematics_of: KinematicsFactory = kinematics or ur3e_kinematics
         """The robot kind's kinematic model factory (default: the UR3e's)."""
-        self.kinematics = self._kinematics_of(config, None)
+        self.kinematics: KinematicModel = self._kinematics_of(config, None)
         self.uncalibrated: str | None = None
         """Why pose moves are refused (the calibration could not be read), or None."""
         if checker is None:
-            from fxcell.motion.collision import CollisionChecker  # Pinocchio + coal: load on use
-
-            checker = CollisionChecker.for_config(config)
-        self.checker = checker
+            checker = (collision or ur3e_collision)(config)
+        self.checker: CollisionModel = checker
         self.joint_planner = JointPlanner(
             self.checker,
             config.limits.position_min,
@@ -195,9 +208,8 @@ class MotionPlanner:
         )
         self._lower = np.asarray(config.limits.position_min, float)
         self._upper = np.asarray(config.limits.position_max, float)
-        self.reach = _reach(self.kinematics)
-        """No TCP position farther than this from the base origin is reachable (m; the sum
-        of the DH lengths and the TCP offset, plus a margin for calibration deltas)."""
+        self.reach = self.kinematics.reach
+        """No TCP position farther than this from the base origin is reachable (m)."""
 
     @property
     def max_acceleration(self) -> tuple[float, ...]:
@@ -214,7 +226,7 @@ class MotionPlanner:
         """Limits for stopping: the configured braking limits, whatever the move's factors."""
         return Limits.for_braking(self.limits, period=self.period)
 
-    def use_calibration(self, calibration: Calibration | None, why: str = "") -> None:
+    def use_calibration(self, calibration: ArmCalibration | None, why: str = "") -> None:
         """Plan on ``calibration`` (the controller's, read at connect); None: it could not
         be read (``why``), so pose moves raise UncalibratedError unless the configuration
         accepts the nominal model."""
@@ -231,8 +243,9 @@ class MotionPlanner:
     # ------------------------------------------------------------ checks
 
     def check_joints(self, target: object, what: str = "joint target") -> Array:
-        """Six finite joint values within the position limits, or InvalidTargetError."""
-        q = _vector(target, 6, what)
+        """The kind's number of finite joint values within the position limits, or
+        InvalidTargetError."""
+        q = _vector(target, self.joints, what)
         outside = np.flatnonzero((q < self._lower) | (q > self._upper))
         if len(outside):
             j = int(outside[0])
@@ -278,7 +291,7 @@ class MotionPlanner:
             d = _vector(distance, 3, "distance vector")
         except InvalidTargetError as exc:
             raise InvalidArgumentError(str(exc)) from None
-        here = self.tcp_pose(_vector(start, 6, "start joints"))
+        here = self.tcp_pose(_vector(start, self.joints, "start joints"))
         return Pose(here.position + d, here.rotation)
 
     def check(self, target: MoveTarget, start: ArrayLike) -> None:
@@ -286,7 +299,7 @@ class MotionPlanner:
         finite, outside the joint limits, no pose, beyond reach, or with no collision-free
         IK solution (each leg of a relative move). No path is searched."""
         self._check_calibrated(target)
-        q0 = _vector(start, 6, "start joints")
+        q0 = _vector(start, self.joints, "start joints")
         match target:
             case JointTarget(joints):
                 self.check_joints(joints)
@@ -363,7 +376,7 @@ class MotionPlanner:
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
         q1 = self.check_joints(target)
-        q0 = _vector(start, 6, "start joints")
+        q0 = _vector(start, self.joints, "start joints")
         for attempt in range(3):
             path = self.joint_planner.plan(q0, q1, search=search)
             if len(path.waypoints) == 2:
@@ -405,7 +418,7 @@ class MotionPlanner:
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
         pose = self.parse_pose(target)
-        q0 = _vector(start, 6, "start joints")
+        q0 = _vector(start, self.joints, "start joints")
         if linear:
             return self._plan_line(
                 q0, pose, limits, t0, "linear", velocity_factor, acceleration_factor
@@ -437,7 +450,7 @@ class MotionPlanner:
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
         target = self.distance_target(start, distance)
-        q0 = _vector(start, 6, "start joints")
+        q0 = _vector(start, self.joints, "start joints")
         return self._plan_line(
             q0, target, limits, t0, "distance", velocity_factor, acceleration_factor
         )
@@ -912,11 +925,13 @@ class MotionController:
         options: ExecutionOptions | None = None,
         planner: str = DEFAULT_PLANNER,
         kinematics: KinematicsFactory | None = None,
+        collision: CollisionFactory | None = None,
         capabilities: RobotCapabilities = UR3E,
     ) -> None:
         _check_joints(capabilities, config)
         self.config = config
         self._kinematics = kinematics
+        self._collision = collision
         self.capabilities = capabilities
         """The robot kind's joints and trajectory sample period."""
         self.options = options or ExecutionOptions()
@@ -937,6 +952,7 @@ class MotionController:
                 self.config,
                 planner=self._planner_name,
                 kinematics=self._kinematics,
+                collision=self._collision,
                 capabilities=self.capabilities,
             )
         return self._planner
@@ -1155,13 +1171,14 @@ def _trajectory_data(plan: MovePlan) -> dict[str, Any]:
 
 
 def _within(start: ArrayLike, joints: object, span: float) -> bool:
-    """Whether ``joints`` (6 finite numbers) is within ``span`` rad of ``start`` on every
-    joint (False for anything malformed: the thread's planning reports it)."""
+    """Whether ``joints`` (finite numbers, as many as ``start``) is within ``span`` rad of
+    ``start`` on every joint (False for anything malformed: the thread's planning reports
+    it)."""
     try:
         a = np.asarray(start, dtype=float)
         b = np.asarray(joints, dtype=float)
     except (TypeError, ValueError):
         return False
-    if a.shape != (6,) or b.shape != (6,) or not np.all(np.isfinite(b)):
+    if a.ndim != 1 or b.shape != a.shape or not np.all(np.isfinite(b)):
         return False
     return float(np.max(np.abs(b - a))) <= span
