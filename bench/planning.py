@@ -39,6 +39,7 @@ from _harness import Targets
 from fxcell.config import CellConfig
 from fxcell.errors import FxcellError
 from fxcell.geometry import Pose
+from fxcell.link.capabilities import UR3E
 from fxcell.motion.moves import MotionPlanner
 from fxcell.motion.planning import JointPlanner
 from fxcell.motion.trajectory import Limits, through_waypoints
@@ -116,7 +117,7 @@ def main() -> int:
 
     planner = MotionPlanner(CONFIG)
     sets = queries(planner, args.queries, args.seed)
-    limits = Limits.from_config(CONFIG.limits)
+    limits = Limits.from_config(CONFIG.limits, period=UR3E.sample_period)
     peer = JointPlanner(
         planner.checker, CONFIG.limits.position_min, CONFIG.limits.position_max,
         simplify_timeout=1.0, window=math.inf, planner_range=0.0,

@@ -34,12 +34,13 @@ from fxcell.cell import Cell
 from fxcell.config import CellConfig
 from fxcell.errors import MoveStoppedError
 from fxcell.events import StateEvent
+from fxcell.link.capabilities import UR3E
 from fxcell.motion.trajectory import Limits
 from fxcell.protocol import RobotState
 from fxcell.testing import simulator
 
 CONFIG = CellConfig.load()
-BRAKING = Limits.for_braking(CONFIG.limits)  # what stop() brakes with
+BRAKING = Limits.for_braking(CONFIG.limits, period=UR3E.sample_period)  # what stop() brakes with
 FIT = 10  # samples (20 ms) fitted for the state at the stop() call
 REST = 1e-4  # rad/s: a jerk-limited stop crosses 1e-3 rad/s some 14 ms before its end
 

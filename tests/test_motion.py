@@ -19,6 +19,7 @@ from fxcell.errors import (
     UnreachableError,
 )
 from fxcell.geometry import Pose
+from fxcell.link.capabilities import UR3E
 from fxcell.motion.moves import MotionController, MotionPlanner, MovePlan, lead_setpoints
 from fxcell.motion.runner import (
     DistanceTarget,
@@ -27,9 +28,10 @@ from fxcell.motion.runner import (
     PoseTarget,
     RelativeTarget,
 )
-from fxcell.motion.trajectory import DT, Limits, rest_to_rest
+from fxcell.motion.trajectory import Limits, rest_to_rest
 
 CONFIG = CellConfig.load()
+DT = UR3E.sample_period  # the UR3e's trajectories: one sample per 2 ms servo cycle
 HOME = np.array(CONFIG.home)
 DOWN = Pose.from_rpy([0, 0, 0], [math.pi, 0, 0])
 WORK = np.array([0.4, -1.4, 1.6, -1.8, -1.57, 0.0])  # gripper down over the table
@@ -173,7 +175,7 @@ def test_lower_factors_make_slower_moves(planner: MotionPlanner) -> None:
 
 
 def test_lead_setpoints_undo_a_critically_damped_lag() -> None:
-    traj = rest_to_rest(HOME, WORK, Limits.from_config(CONFIG.limits))
+    traj = rest_to_rest(HOME, WORK, Limits.from_config(CONFIG.limits, period=DT))
     lag = 0.02
     omega = 2 / lag
     sp = lead_setpoints(traj, lag)

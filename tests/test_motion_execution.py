@@ -14,12 +14,14 @@ import numpy as np
 
 from fxcell.cell import Cell
 from fxcell.config import CellConfig
-from fxcell.motion.trajectory import DT, Limits, braking, rest_to_rest
+from fxcell.link.capabilities import UR3E
+from fxcell.motion.trajectory import Limits, braking, rest_to_rest
 from fxcell.testing import simulator
 
 CONFIG = CellConfig.load()
+DT = UR3E.sample_period  # the UR3e's trajectories: one sample per 2 ms servo cycle
 HOME = np.array(CONFIG.home)
-LIMITS = Limits.from_config(CONFIG.limits, 0.5, 1.0)
+LIMITS = Limits.from_config(CONFIG.limits, 0.5, 1.0, period=DT)
 
 
 async def test_a_replacement_at_an_index_continues_from_that_sample() -> None:
@@ -27,7 +29,7 @@ async def test_a_replacement_at_an_index_continues_from_that_sample() -> None:
     at = len(traj) // 2
     # the braking profile from sample `at` (within the limits, so the link's limit check
     # leaves it alone): a splice one sample off would stop ~1.8 mrad elsewhere
-    stop = braking(*traj.state(at), Limits.for_braking(CONFIG.limits))
+    stop = braking(*traj.state(at), Limits.for_braking(CONFIG.limits, period=DT))
     end = stop.positions[-1][0]
     hold = np.repeat(stop.positions[-1:], 150, axis=0)  # servoJ converges onto its end
     with simulator(joints=list(HOME)) as sim:
@@ -62,7 +64,7 @@ def test_a_braking_profile_from_a_sample_starts_there() -> None:
     traj = rest_to_rest(HOME, HOME + np.array([0.8, 0, 0, 0, 0, 0]), LIMITS)
     at = len(traj) // 2
     p, v, a = traj.state(at)
-    stop = braking(p, v, a, Limits.for_braking(CONFIG.limits))
+    stop = braking(p, v, a, Limits.for_braking(CONFIG.limits, period=DT))
     spliced = np.concatenate([traj.positions[:at], stop.positions])
     steps = np.abs(np.diff(spliced[:, 0]))
     # no step larger than the planned speed allows in one 2 ms sample

@@ -276,9 +276,10 @@ def test_a_tiny_speed_factor_is_refused_before_planning() -> None:
 
 def test_a_move_longer_than_the_limit_is_refused_before_it_is_sampled() -> None:
     from fxcell.errors import MoveTooLongError
+    from fxcell.link.capabilities import UR3E
     from fxcell.motion.trajectory import Limits, rest_to_rest
 
-    slow = Limits.from_config(CONFIG.limits, 0.01, 0.01)
+    slow = Limits.from_config(CONFIG.limits, 0.01, 0.01, period=UR3E.sample_period)
     assert slow.max_duration == CONFIG.limits.max_move_duration == 120.0
     start = np.array(WORK)
     with pytest.raises(MoveTooLongError, match="longer than the 120 s allowed"):

@@ -16,13 +16,14 @@ import pytest
 
 from fxcell.config import CellConfig
 from fxcell.errors import ConnectionLostError
+from fxcell.link.capabilities import UR3E
 from fxcell.link.client import StateSubscription, TrajectoryProgress, TrajectoryResult
 from fxcell.link.contract import StopReason
 from fxcell.motion.moves import STATE_PATIENCE, MotionPlanner, MoveExecution, MovePlan
-from fxcell.motion.trajectory import DT
 from fxcell.protocol import RobotState
 
 CONFIG = CellConfig.load()
+DT = UR3E.sample_period  # the UR3e's trajectories: one sample per 2 ms servo cycle
 HOME = np.array(CONFIG.home)
 TARGET = HOME + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.005])
 PROGRESS_EVERY = 10  # samples between two progress reports, as the link process sends them

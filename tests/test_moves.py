@@ -31,13 +31,14 @@ from fxcell.errors import (
 )
 from fxcell.events import MotionEvent
 from fxcell.geometry import Pose
+from fxcell.link.capabilities import UR3E
 from fxcell.motion.trajectory import Limits, braking
 from fxcell.testing import SimulatorHandle, simulator
 
 CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)
-LIMITS = Limits.from_config(CONFIG.limits)
-BRAKING = Limits.for_braking(CONFIG.limits)
+LIMITS = Limits.from_config(CONFIG.limits, period=UR3E.sample_period)
+BRAKING = Limits.for_braking(CONFIG.limits, period=UR3E.sample_period)
 WORK = np.array([0.4, -1.4, 1.6, -1.8, -1.57, 0.0])  # gripper down over the table
 POSITION_TOL = 1e-5  # m
 ANGLE_TOL = 1e-4  # rad

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from fxcell.config import CellConfig
 from fxcell.errors import CollisionError, PlanningError, SingularityError, UnreachableError
 from fxcell.geometry import Pose
+from fxcell.link.capabilities import UR3E
 from fxcell.motion.collision import CollisionChecker
 from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.planning import JointPlanner, cartesian_line, interpolate_pose
@@ -21,7 +22,7 @@ from fxcell.motion.trajectory import Limits, through_waypoints
 CONFIG = CellConfig.load()
 HOME = np.array(CONFIG.home)
 KIN = Kinematics.ur3e(tcp=CONFIG.tool.tcp, limits=CONFIG.limits)
-LIMITS = Limits.from_config(CONFIG.limits)
+LIMITS = Limits.from_config(CONFIG.limits, period=UR3E.sample_period)
 DOWN = Pose.from_rpy([0, 0, 0], [math.pi, 0, 0]).rotation
 
 # Left of the fusion machine to right of it, gripper low: the straight joint line swings

@@ -2,7 +2,10 @@
 
 ``toy`` is a made-up kind registered here: the in-process fake link as its link, a
 kinematic model factory of its own (the UR3e's geometry, counted), no simulator, and
-freedrive among the commands it cannot do. The Cell is not touched to drive it.
+freedrive among the commands it cannot do. ``toy5`` shares nothing with the UR3e but the
+link contract (:mod:`fxcell.testing.toy`): five joints, a trajectory sample every 4 ms, its
+own kinematic model, calibration and collision model. The Cell is not touched to drive
+either.
 """
 
 from __future__ import annotations
@@ -18,17 +21,22 @@ from fxcell import Cell, CellState
 from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
 from fxcell.errors import (
+    CalibrationError,
     ConfigError,
     InvalidArgumentError,
     MoveStoppedError,
     UnsupportedCommandError,
 )
+from fxcell.events import Event, MotionEvent
+from fxcell.geometry import Pose
 from fxcell.link.capabilities import UR3E, RobotCapabilities
+from fxcell.link.contract import StopReason
 from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.moves import ur3e_kinematics
 from fxcell.protocol import CONTROL_PERIOD
 from fxcell.robots import RobotKind, kind_names, register, robot_kind, unregister
 from fxcell.testing import FakeRobot
+from fxcell.testing.toy import ToyCalibration, ToyRobot, toy_kind
 
 HOME = [0.0, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0]
 QUARTER_TURN = [math.pi / 2, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0]
@@ -47,7 +55,16 @@ def toy(fake_robot: FakeRobot) -> Iterator[list[Calibration | None]]:
     capabilities = RobotCapabilities(
         "toy", joints=6, sample_period=CONTROL_PERIOD, unsupported=frozenset({"freedrive_start"})
     )
-    register(RobotKind(capabilities, fake_robot.link_factory, kinematics))
+    ur3e = robot_kind("ur3e")
+    register(
+        RobotKind(
+            capabilities,
+            fake_robot.link_factory,
+            kinematics,
+            collision=ur3e.collision,
+            calibration=ur3e.calibration,
+        )
+    )
     try:
         yield built
     finally:
@@ -128,16 +145,22 @@ def test_capabilities_name_only_commands_of_the_table() -> None:
     assert not RobotCapabilities("toy", 6, 0.002, frozenset({"shutdown"})).supports("shutdown")
 
 
-@pytest.mark.parametrize(
-    ("joints", "period", "says"), [(7, 0.002, "7 joints"), (6, 0.004, "every 0.004 s")]
-)
-async def test_a_kind_whose_trajectories_the_planner_cannot_make_is_refused_at_open(
-    fake_robot: FakeRobot, joints: int, period: float, says: str
+async def test_a_kind_whose_joints_the_configured_limits_do_not_fit_is_refused_at_open(
+    fake_robot: FakeRobot,
 ) -> None:
-    capabilities = RobotCapabilities("toy", joints, period)
-    register(RobotKind(capabilities, fake_robot.link_factory, ur3e_kinematics))
+    capabilities = RobotCapabilities("toy", 7, 0.002)
+    ur3e = robot_kind("ur3e")
+    register(
+        RobotKind(
+            capabilities,
+            fake_robot.link_factory,
+            ur3e.kinematics,
+            collision=ur3e.collision,
+            calibration=ur3e.calibration,
+        )
+    )
     try:
-        with pytest.raises(ConfigError, match=says):
+        with pytest.raises(ConfigError, match="7 joints"):
             async with Cell(config=_toy_config(), record=None):
                 pass
     finally:
@@ -171,3 +194,125 @@ def test_a_remote_client_gets_the_refusal_back_with_command_and_kind() -> None:
     again = build_error(error_info(refusal), 409)
     assert isinstance(again, UnsupportedCommandError)
     assert (again.command, again.kind, str(again)) == ("freedrive_start", "toy", str(refusal))
+
+
+# ----------------------------------------------------------------- toy5: no UR in it
+
+TOY5_PERIOD = 0.004
+TOY5_VELOCITY = (1.0, 1.0, 1.5, 2.0, 2.0)
+TOY5_BRAKING = (3.0, 3.0, 3.0, 6.0, 6.0)
+
+
+@pytest.fixture
+def toy5() -> Iterator[ToyRobot]:
+    """Register ``toy5``: the toy arm of five joints sampled every 4 ms."""
+    robot = ToyRobot(joints=5, period=TOY5_PERIOD)
+    register(toy_kind(robot, "toy5"))
+    try:
+        yield robot
+    finally:
+        unregister("toy5")
+
+
+def _toy5_config() -> CellConfig:
+    config = CellConfig.load()
+    # five joints' limits: past validation too (the configuration's vectors are the UR's six)
+    limits = config.limits.model_copy(
+        update={
+            "position_min": (-3.0,) * 5,
+            "position_max": (3.0,) * 5,
+            "velocity": TOY5_VELOCITY,
+            "acceleration": (2.0, 2.0, 2.0, 4.0, 4.0),
+            "jerk": (20.0,) * 5,
+            "braking_acceleration": TOY5_BRAKING,
+            "braking_jerk": (60.0,) * 5,
+        }
+    )
+    robot = config.robot.model_copy(update={"kind": "toy5"})
+    return config.model_copy(update={"robot": robot, "limits": limits})
+
+
+async def test_a_kind_of_five_joints_sampled_every_4_ms_is_driven_by_the_unchanged_cell(
+    toy5: ToyRobot,
+) -> None:
+    target = [1.5, -0.5, 0.3, 1.0, -0.4]
+    async with Cell(config=_toy5_config(), record=None) as cell:
+        events: list[MotionEvent] = []
+
+        def collect(event: Event) -> None:
+            if isinstance(event, MotionEvent):
+                events.append(event)
+
+        unsubscribe = cell.bus.subscribe(collect)
+        await cell.init()
+        assert cell.state is CellState.EXTERNAL_CONTROL_READY
+        # the kind's own calibration, read from its link, shown as the UR's is
+        status = cell.calibration_status
+        assert status is not None
+        assert (status["model"], status["checksum"]) == ("nominal", toy5.calibration.checksum)
+        assert isinstance(cell.calibration, ToyCalibration)
+
+        result = await cell.move_joint(target)
+        assert result.joint_error < 1e-9  # the toy arm tracks perfectly
+        np.testing.assert_allclose(toy5.q, target, atol=1e-12)
+        assert result.reached_pose == tuple(
+            cell.motion.planner.tcp_pose(target).as_quaternion_list()
+        )
+
+        # planned and streamed at the kind's period: 4 ms between samples, not the UR's 2
+        (trajectory,) = [e.data for e in events if e.kind == "trajectory"]
+        assert trajectory["dt"] == TOY5_PERIOD
+        assert trajectory["samples"] == math.ceil(result.planned_duration / TOY5_PERIOD - 1e-9) + 1
+        run = toy5.received[-1]
+        samples = run.given
+        hold = round(0.5 / TOY5_PERIOD)  # the target held 0.5 s for the arm to settle
+        assert len(samples) == trajectory["samples"] + hold
+        assert samples.shape[1] == 5
+        np.testing.assert_array_equal(samples[-hold:], np.tile(target, (hold, 1)))
+        # the joint that limits the move cruises at its velocity limit, samples 4 ms apart
+        speed = np.max(np.abs(np.diff(samples, axis=0)) / TOY5_PERIOD / TOY5_VELOCITY)
+        assert speed == pytest.approx(1.0, rel=1e-3)
+        # the move ended once the arm had played the plan and settled, early in the hold
+        end = await run.wait()
+        assert (end.status, end.reason) == ("stopped", StopReason.SETTLED)
+        assert trajectory["samples"] <= len(run.played) < trajectory["samples"] + hold
+
+        back = [-1.5, 0.5, -0.3, -1.0, 0.4]
+        move = asyncio.create_task(cell.move_joint(back))
+        async with asyncio.timeout(5.0):
+            with cell.robot_states(maxsize=8) as states:
+                async for sample in states:
+                    if abs(sample.actual_qd[0]) > 0.5:
+                        break
+        assert await cell.stop() is True
+        with pytest.raises(MoveStoppedError):
+            await move
+        unsubscribe()
+        assert float(toy5.q[0]) > back[0] + 0.5  # braked well short of it
+        assert not toy5.qd.any()
+        await cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY, timeout=5.0)
+        # the Cell's braking profile was spliced into the stream and played to rest; timed
+        # at the kind's period, it brakes the limiting joint at its braking limit, 4 ms apart
+        braked = toy5.received[-1]
+        (splice,) = braked.splices
+        braking = braked.played[splice[1] :]
+        assert len(braking) > 10
+        decel = np.abs(np.diff(braking, n=2, axis=0)) / TOY5_PERIOD**2 / TOY5_BRAKING
+        assert float(np.max(decel)) == pytest.approx(1.0, rel=0.02)
+        assert float(np.max(decel)) <= 1.0 + 1e-6
+
+
+def test_the_toy_kinds_model_is_its_own() -> None:
+    kind = toy_kind(ToyRobot(joints=5, period=TOY5_PERIOD), "toy5")
+    config = _toy5_config()
+    model = kind.kinematics(config, ToyCalibration((0.01, 0.0, 0.0, 0.0, 0.0)))
+    q = np.array([0.5, -0.2, 0.1, 0.7, -0.3])
+    pose = model.forward(q)
+    (solution,) = model.inverse_all(pose)
+    np.testing.assert_allclose(solution, q, atol=1e-12)
+    assert model.inverse_all(Pose.from_rpy(pose.position, (0.0, 0.4, 0.0))) == []  # no pitch
+    with pytest.raises(CalibrationError):
+        kind.kinematics(config, Calibration.nominal())  # a UR's calibration is not its form
+    with pytest.raises(CalibrationError):
+        robot_kind("ur3e").kinematics(CellConfig.load(), ToyCalibration())
+    assert kind.calibration.nominal().is_nominal

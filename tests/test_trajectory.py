@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 
 from fxcell.config import CellConfig
 from fxcell.errors import FxcellError, InvalidFactorError, PlanningError
+from fxcell.link.capabilities import UR3E
 from fxcell.motion.trajectory import (
-    DT,
     NEGLIGIBLE_MOVE,
     Limits,
     Trajectory,
@@ -27,7 +27,8 @@ from fxcell.motion.trajectory import (
 )
 
 CONFIG = CellConfig.load()
-LIMITS = Limits.from_config(CONFIG.limits)
+DT = UR3E.sample_period  # the UR3e's trajectories: one sample per 2 ms servo cycle
+LIMITS = Limits.from_config(CONFIG.limits, period=DT)
 HOME = np.array(CONFIG.home)
 
 
@@ -65,7 +66,7 @@ def test_factors_from_a_tenth_to_one_are_accepted() -> None:
 
 
 def test_factors_scale_the_limits() -> None:
-    scaled = Limits.from_config(CONFIG.limits, 0.5, 0.25)
+    scaled = Limits.from_config(CONFIG.limits, 0.5, 0.25, period=DT)
     np.testing.assert_allclose(scaled.velocity, LIMITS.velocity * 0.5)
     np.testing.assert_allclose(scaled.acceleration, LIMITS.acceleration * 0.25)
     np.testing.assert_allclose(scaled.jerk, LIMITS.jerk * 0.25)
@@ -101,7 +102,7 @@ JUST_MOVING = HOME + np.array([0, 0, 0, 0, 0, 2 * NEGLIGIBLE_MOVE])
 def test_direct_move_stays_on_the_joint_line_within_limits(
     start: np.ndarray, target: np.ndarray, vf: float, af: float
 ) -> None:
-    limits = Limits.from_config(CONFIG.limits, vf, af)
+    limits = Limits.from_config(CONFIG.limits, vf, af, period=DT)
     traj = rest_to_rest(start, target, limits)
     delta = target - start
     np.testing.assert_array_equal(traj.positions[-1], target)
@@ -117,6 +118,43 @@ def test_direct_move_stays_on_the_joint_line_within_limits(
     assert_within_limits(traj, limits)
     # Staying on the line can only cost time against Ruckig's free (curved) optimum.
     assert traj.duration >= minimum_duration(start, target, limits) - 1e-9
+
+
+FIVE_JOINTS_4MS = Limits(
+    velocity=np.array([1.0, 1.0, 1.5, 2.0, 2.0]),
+    acceleration=np.array([2.0, 2.0, 3.0, 4.0, 4.0]),
+    jerk=np.full(5, 20.0),
+    position_min=np.full(5, -3.0),
+    position_max=np.full(5, 3.0),
+    period=0.004,
+)
+"""Another robot kind's timing: five joints, a sample every 4 ms."""
+
+
+def test_another_kinds_trajectories_have_its_joints_and_sample_period() -> None:
+    start, target = np.zeros(5), np.array([0.8, -0.5, 0.3, 1.0, -1.2])
+    line = rest_to_rest(start, target, FIVE_JOINTS_4MS)
+    assert line.positions.shape == (math.ceil(line.duration / 0.004) + 1, 5)
+    assert line.period == 0.004
+    np.testing.assert_allclose(np.diff(line.times[:-1]), 0.004)
+    assert_within_limits(line, FIVE_JOINTS_4MS)  # velocities agree with 4 ms differences
+    corner = np.array([0.8, 0.5, 0.3, 0.0, 0.0])
+    path = through_waypoints([start, corner, target], FIVE_JOINTS_4MS)
+    assert path.positions.shape[1] == 5
+    assert path.period == 0.004
+    assert_within_limits(path, FIVE_JOINTS_4MS)
+    stop = braking(*line.state(len(line) // 3), FIVE_JOINTS_4MS)
+    assert stop.positions.shape[1] == 5
+    assert stop.period == 0.004
+    assert not stop.velocities[-1].any()
+    assert stop.duration == pytest.approx(
+        braking_duration(*line.state(len(line) // 3)[1:], FIVE_JOINTS_4MS), rel=1e-6
+    )
+
+
+def test_a_sample_period_must_be_positive() -> None:
+    with pytest.raises(ValueError, match="period"):
+        Limits.from_config(CONFIG.limits, period=0.0)
 
 
 def test_a_negligible_move_has_no_trajectory() -> None:

@@ -29,7 +29,6 @@ from collections.abc import (
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
-from fxcell.calibration import Calibration
 from fxcell.cell import handling, healing
 from fxcell.cell.camera import CellCamera
 from fxcell.cell.context import CellContext
@@ -83,6 +82,7 @@ from fxcell.robots import RobotKind, Simulator, robot_kind
 from fxcell.settling import REST_VELOCITY
 
 if TYPE_CHECKING:
+    from fxcell.link.backend import ArmCalibration
     from fxcell.motion.moves import MotionController
     from fxcell.vision.placement import PlacementReport
 
@@ -195,8 +195,9 @@ class Cell(CellCommands):
         self._move_queue = asyncio.Lock()
         self._stops = 0
         """Counts stop() calls: a queued move that sees it change while waiting ends."""
-        self.calibration: Calibration | None = None
-        """The arm's calibration the planner uses (None: not read, or unreadable)."""
+        self.calibration: ArmCalibration | None = None
+        """The arm's calibration the planner uses, in its kind's form (None: not read, or
+        unreadable)."""
         self._restore: asyncio.Task[None] | None = None
         self._remote_watch: asyncio.Task[None] | None = None
         self._move_started = asyncio.Event()
@@ -412,9 +413,10 @@ class Cell(CellCommands):
         from fxcell.motion.calibration import CONTROLLER, NOMINAL
 
         source = self.config.robot.calibration
-        calibration: Calibration | None = None
+        formats = self.kind.calibration
+        calibration: ArmCalibration | None = None
         if source == NOMINAL:
-            calibration = Calibration.nominal()
+            calibration = formats.nominal()
             source = "nominal (robot.calibration: nominal)"
         elif source is None or source == CONTROLLER:
             try:
@@ -426,12 +428,12 @@ class Cell(CellCommands):
                 return {
                     "calibration_model": "nominal (fallback)" if fallback else "uncalibrated",
                     "calibration_source": f"unreadable: {exc}",
-                    "calibration_checksum": Calibration.nominal().checksum if fallback else "",
+                    "calibration_checksum": formats.nominal().checksum if fallback else "",
                 }
             source = f"controller {self._host}"
             self._moves().planner.use_calibration(calibration)
         else:
-            calibration = Calibration.load(source)  # the planner read it already
+            calibration = formats.load(source)  # the planner read it already
         self.calibration = calibration
         return {
             "calibration_model": "nominal" if calibration.is_nominal else "calibrated",
@@ -1077,7 +1079,9 @@ class Cell(CellCommands):
                 self.config,
                 publish=self.bus.publish,
                 kinematics=self.kind.kinematics,
+                collision=self.kind.collision,
                 capabilities=self.kind.capabilities,
+                options=self.kind.execution,
             )
         return self._motion
 

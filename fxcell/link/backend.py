@@ -30,13 +30,13 @@ from fxcell.link.contract import (
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
-    from fxcell.calibration import Calibration
     from fxcell.config import RobotConfig
     from fxcell.link.subscription import StateSubscription
     from fxcell.protocol import RobotState
     from fxcell.results import ProgramStatus
 
 __all__ = [
+    "ArmCalibration",
     "ControllerInfo",
     "Guard",
     "LinkBackend",
@@ -47,6 +47,23 @@ __all__ = [
     "TrajectoryResult",
     "TrajectoryRun",
 ]
+
+
+class ArmCalibration(Protocol):
+    """An arm's calibration, of whatever form its kind's kinematic model factory takes
+    (:mod:`fxcell.robots`; a UR's: :class:`fxcell.calibration.Calibration`, DH deltas).
+    The Cell shows which one it plans on by these."""
+
+    @property
+    def checksum(self) -> str:
+        """Equal for equal calibrations (``fxcell info``, the status, the page)."""
+
+    @property
+    def is_nominal(self) -> bool:
+        """The arm as its maker publishes it (no corrections)."""
+
+    def summary(self) -> dict[str, object]:
+        """The calibration as plain data (MCAP metadata, JSON, the CLI)."""
 
 
 class TrajectoryRun(Protocol):
@@ -131,7 +148,7 @@ class LinkBackend(Protocol):
     async def controller_info(self, within: float = 5.0) -> ControllerInfo:
         """Controller version, serial number and model (a field it cannot read: None)."""
 
-    async def read_calibration(self) -> Calibration:
+    async def read_calibration(self) -> ArmCalibration:
         """The arm's factory calibration as the controller reports it, in the form the
         kind's kinematic model factory takes (:mod:`fxcell.robots`; a UR: the primary
         interface's DH deltas); CalibrationError when it cannot be read."""

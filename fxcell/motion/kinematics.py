@@ -231,6 +231,13 @@ class Kinematics:
             limits = (limits.position_min, limits.position_max)
         return cls(UR3E_DH, tcp, limits)
 
+    @property
+    def reach(self) -> float:
+        """No TCP position farther than this from the base origin is reachable (m): the
+        sum of the DH lengths and the TCP offset, plus 1 cm for calibration deltas."""
+        lengths = sum(abs(v) for v in (*self.dh.a, *self.dh.d))
+        return float(lengths + float(np.linalg.norm(self.tcp.position)) + 0.01)
+
     def with_tcp(self, tcp: Sequence[float] | Pose | None) -> Kinematics:
         """The same arm and limits with another TCP."""
         return Kinematics(self.dh, tcp, (self.lower, self.upper))

@@ -3,8 +3,9 @@
 :class:`MotionPlanner` turns a target into a :class:`MovePlan` — validated factors and
 target, IK nearest the current joints and free of collision, a collision-free path
 (straight joint line, else OMPL; or a Cartesian straight line) and a jerk-limited
-trajectory sampled at 2 ms — or raises before anything moves. :class:`MoveExecution`
-streams a plan through the robot link (servoJ at 500 Hz in the link process) and, when
+trajectory sampled at the robot kind's period (its capabilities' ``sample_period``: a
+UR3e's 2 ms) — or raises before anything moves. :class:`MoveExecution` streams a plan
+through the robot link (a UR3e's: servoJ at 500 Hz in the link process) and, when
 stopped or cancelled, replaces the samples not yet sent by a jerk-limited braking
 profile computed with Ruckig from the planned state where the replacement takes over.
 """
@@ -27,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from fxcell.calibration import Calibration
 from fxcell.config import CellConfig
 from fxcell.errors import (
+    CalibrationError,
     CollisionError,
     ConfigError,
     ConnectionLostError,
@@ -54,7 +56,6 @@ from fxcell.motion.runner import (
     RelativeTarget,
 )
 from fxcell.motion.trajectory import (
-    DT,
     Limits,
     Trajectory,
     along_path,
@@ -69,10 +70,14 @@ from fxcell.settling import ARRIVE_TOLERANCE, REST_VELOCITY, SETTLE_POSITION, SE
 
 if TYPE_CHECKING:
     from fxcell.link import StateSubscription, TrajectoryResult
-    from fxcell.link.backend import LinkBackend, TrajectoryRun
-    from fxcell.motion.collision import CollisionChecker
+    from fxcell.link.backend import ArmCalibration, LinkBackend, TrajectoryRun
     from fxcell.motion.kinematics import Kinematics
-    from fxcell.robots.registry import KinematicsFactory
+    from fxcell.robots.registry import (
+        CollisionFactory,
+        CollisionModel,
+        KinematicModel,
+        KinematicsFactory,
+    )
 
 Array = NDArray[np.float64]
 MoveKind = Literal["joint", "pose", "linear", "distance"]
@@ -118,12 +123,6 @@ MAX_ANGLE = 2 * math.pi
 """Largest roll, pitch or yaw (rad) a pose's 6-list may give."""
 
 
-def _reach(kinematics: Any) -> float:
-    dh = kinematics.dh
-    tcp = float(np.linalg.norm(kinematics.tcp.position))
-    return float(sum(abs(v) for v in (*dh.a, *dh.d))) + tcp + 0.01
-
-
 def _vector(value: object, n: int, what: str) -> Array:
     try:
         arr = np.asarray(value, dtype=float)
@@ -136,32 +135,40 @@ def _vector(value: object, n: int, what: str) -> Array:
     return arr
 
 
-def ur3e_kinematics(config: CellConfig, calibration: Calibration | None) -> Kinematics:
+def ur3e_kinematics(config: CellConfig, calibration: ArmCalibration | None) -> Kinematics:
     """The UR3e with the configuration's TCP and limits: calibrated with ``calibration``,
-    else as ``robot.calibration`` says (a file, or the nominal model until one is read)."""
+    else as ``robot.calibration`` says (a file, or the nominal model until one is read);
+    CalibrationError for a calibration that is not a UR's DH deltas."""
     if calibration is None:
         return kinematics_for(config)
+    if not isinstance(calibration, Calibration):
+        raise CalibrationError(
+            f"the UR3e's model takes UR DH deltas, not a {type(calibration).__name__}"
+        )
     return calibrated_kinematics(config, calibration)
 
 
-def _check_sampling(capabilities: RobotCapabilities, config: CellConfig) -> None:
-    """ConfigError unless the kind's link takes what the planner makes: joint vectors as
-    wide as the configured limits, sampled every :data:`DT` (the timing's period)."""
+def ur3e_collision(config: CellConfig) -> CollisionModel:
+    """The UR3e's and its gripper's collision bodies in the configured scene (Pinocchio and
+    coal, loaded on first use)."""
+    from fxcell.motion.collision import CollisionChecker
+
+    return CollisionChecker.for_config(config)
+
+
+def _check_joints(capabilities: RobotCapabilities, config: CellConfig) -> None:
+    """ConfigError unless the configured limits are as wide as the kind's joint vectors."""
     joints = len(config.limits.velocity)
     if capabilities.joints != joints:
         raise ConfigError(
             f"robot.kind {capabilities.kind!r}: {capabilities.joints} joints, but the "
             f"configured limits are for {joints}"
         )
-    if not math.isclose(capabilities.sample_period, DT, rel_tol=1e-9):
-        raise ConfigError(
-            f"robot.kind {capabilities.kind!r}: its link takes a trajectory sample every "
-            f"{capabilities.sample_period:g} s; moves are timed every {DT:g} s"
-        )
 
 
 class MotionPlanner:
-    """Plans moves in the configured cell: the UR3e with its TCP, limits and scene."""
+    """Plans moves in the configured cell: the robot kind's arm (default: the UR3e) with
+    its TCP, limits and scene; trajectories sampled at the kind's period."""
 
     def __init__(
         self,
@@ -169,22 +176,28 @@ class MotionPlanner:
         *,
         planner: str = DEFAULT_PLANNER,
         planning_timeout: float = 1.0,
-        checker: CollisionChecker | None = None,
+        checker: CollisionModel | None = None,
         seed: int | None = None,
         kinematics: KinematicsFactory | None = None,
+        collision: CollisionFactory | None = None,
+        capabilities: RobotCapabilities = UR3E,
     ) -> None:
+        _check_joints(capabilities, config)
         self.config = config
+        self.capabilities = capabilities
+        self.period = capabilities.sample_period
+        """Seconds between two trajectory samples (the kind's servo cycle)."""
+        self.joints = capabilities.joints
+        """The width of every joint vector."""
         self.limits = config.limits
-        self._kinematics_of = kinematics or ur3e_kinematics
+        self._kinematics_of: KinematicsFactory = kinematics or ur3e_kinematics
         """The robot kind's kinematic model factory (default: the UR3e's)."""
-        self.kinematics = self._kinematics_of(config, None)
+        self.kinematics: KinematicModel = self._kinematics_of(config, None)
         self.uncalibrated: str | None = None
         """Why pose moves are refused (the calibration could not be read), or None."""
         if checker is None:
-            from fxcell.motion.collision import CollisionChecker  # Pinocchio + coal: load on use
-
-            checker = CollisionChecker.for_config(config)
-        self.checker = checker
+            checker = (collision or ur3e_collision)(config)
+        self.checker: CollisionModel = checker
         self.joint_planner = JointPlanner(
             self.checker,
             config.limits.position_min,
@@ -195,9 +208,8 @@ class MotionPlanner:
         )
         self._lower = np.asarray(config.limits.position_min, float)
         self._upper = np.asarray(config.limits.position_max, float)
-        self.reach = _reach(self.kinematics)
-        """No TCP position farther than this from the base origin is reachable (m; the sum
-        of the DH lengths and the TCP offset, plus a margin for calibration deltas)."""
+        self.reach = self.kinematics.reach
+        """No TCP position farther than this from the base origin is reachable (m)."""
 
     @property
     def max_acceleration(self) -> tuple[float, ...]:
@@ -206,13 +218,15 @@ class MotionPlanner:
 
     def scaled_limits(self, velocity_factor: float, acceleration_factor: float) -> Limits:
         """Joint limits scaled by validated factors (InvalidFactorError otherwise)."""
-        return Limits.from_config(self.limits, velocity_factor, acceleration_factor)
+        return Limits.from_config(
+            self.limits, velocity_factor, acceleration_factor, period=self.period
+        )
 
     def braking_limits(self) -> Limits:
         """Limits for stopping: the configured braking limits, whatever the move's factors."""
-        return Limits.for_braking(self.limits)
+        return Limits.for_braking(self.limits, period=self.period)
 
-    def use_calibration(self, calibration: Calibration | None, why: str = "") -> None:
+    def use_calibration(self, calibration: ArmCalibration | None, why: str = "") -> None:
         """Plan on ``calibration`` (the controller's, read at connect); None: it could not
         be read (``why``), so pose moves raise UncalibratedError unless the configuration
         accepts the nominal model."""
@@ -229,8 +243,9 @@ class MotionPlanner:
     # ------------------------------------------------------------ checks
 
     def check_joints(self, target: object, what: str = "joint target") -> Array:
-        """Six finite joint values within the position limits, or InvalidTargetError."""
-        q = _vector(target, 6, what)
+        """The kind's number of finite joint values within the position limits, or
+        InvalidTargetError."""
+        q = _vector(target, self.joints, what)
         outside = np.flatnonzero((q < self._lower) | (q > self._upper))
         if len(outside):
             j = int(outside[0])
@@ -276,7 +291,7 @@ class MotionPlanner:
             d = _vector(distance, 3, "distance vector")
         except InvalidTargetError as exc:
             raise InvalidArgumentError(str(exc)) from None
-        here = self.tcp_pose(_vector(start, 6, "start joints"))
+        here = self.tcp_pose(_vector(start, self.joints, "start joints"))
         return Pose(here.position + d, here.rotation)
 
     def check(self, target: MoveTarget, start: ArrayLike) -> None:
@@ -284,7 +299,7 @@ class MotionPlanner:
         finite, outside the joint limits, no pose, beyond reach, or with no collision-free
         IK solution (each leg of a relative move). No path is searched."""
         self._check_calibrated(target)
-        q0 = _vector(start, 6, "start joints")
+        q0 = _vector(start, self.joints, "start joints")
         match target:
             case JointTarget(joints):
                 self.check_joints(joints)
@@ -361,7 +376,7 @@ class MotionPlanner:
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
         q1 = self.check_joints(target)
-        q0 = _vector(start, 6, "start joints")
+        q0 = _vector(start, self.joints, "start joints")
         for attempt in range(3):
             path = self.joint_planner.plan(q0, q1, search=search)
             if len(path.waypoints) == 2:
@@ -403,7 +418,7 @@ class MotionPlanner:
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
         pose = self.parse_pose(target)
-        q0 = _vector(start, 6, "start joints")
+        q0 = _vector(start, self.joints, "start joints")
         if linear:
             return self._plan_line(
                 q0, pose, limits, t0, "linear", velocity_factor, acceleration_factor
@@ -435,7 +450,7 @@ class MotionPlanner:
         t0 = time.perf_counter()
         limits = self.scaled_limits(velocity_factor, acceleration_factor)
         target = self.distance_target(start, distance)
-        q0 = _vector(start, 6, "start joints")
+        q0 = _vector(start, self.joints, "start joints")
         return self._plan_line(
             q0, target, limits, t0, "distance", velocity_factor, acceleration_factor
         )
@@ -476,7 +491,7 @@ class MotionPlanner:
         traj = along_path(line.joints, line.knots, limits)
         bad = self.checker.first_collision(traj.positions)
         if bad is not None:  # between two checked knots: rare, but the samples are what moves
-            raise CollisionError(f"the straight line collides after {bad * DT:.3f} s")
+            raise CollisionError(f"the straight line collides after {bad * traj.period:.3f} s")
         q1 = line.target_joints
         return MovePlan(
             kind,
@@ -546,16 +561,17 @@ def lead_setpoints(traj: Trajectory, lag: float) -> Array:
     servoJ behaves like a critically damped second-order tracker with lag = 2/ω; fed
     ``q + lag·q̇ + (lag²/4)·q̈`` it follows q without the lag. The derivatives are the
     samples' own differences (backward velocity, central acceleration), which is what a
-    tracker stepping once per 2 ms cycle needs to land on the next sample exactly.
+    tracker stepping once per sample period needs to land on the next sample exactly.
     Samples at rest are unchanged (the last one is the target).
     """
     q = traj.positions
     if len(q) < 2 or lag <= 0:
         return q.copy()
+    dt = traj.period
     prev = np.concatenate([q[:1], q[:-1]])
     nxt = np.concatenate([q[1:], q[-1:]])
-    qd = (q - prev) / DT
-    qdd = (nxt - 2 * q + prev) / (DT * DT)
+    qd = (q - prev) / dt
+    qdd = (nxt - 2 * q + prev) / (dt * dt)
     out: Array = q + lag * qd + (lag * lag / 4.0) * qdd
     out[-1] = q[-1]
     return out
@@ -640,7 +656,7 @@ class MoveExecution:
         samples[-1] = traj.positions[-1]
         # Hold the target after the last sample: servoJ converges onto it, and the
         # stream is ended as soon as the robot has settled there.
-        hold = np.repeat(samples[-1:], max(round(opts.settle_timeout / DT), 1), axis=0)
+        hold = np.repeat(samples[-1:], max(round(opts.settle_timeout / traj.period), 1), axis=0)
         with self.link.subscribe(maxsize=4096) as states:
             self._sent_at = time.monotonic()
             handle = await self.link.execute_trajectory(
@@ -688,6 +704,7 @@ class MoveExecution:
         the stream), the stream ends, or a stop request brakes it to rest."""
         opts = self.options
         target = self.plan.trajectory.positions[-1].tolist()
+        period = self.plan.trajectory.period
         # The link process sends one sample per controller cycle it sees; starved of CPU it
         # sees fewer, and the trajectory stretches (slower, never faster). So the patience
         # runs from the latest progress report: the samples still to send, plus margins.
@@ -701,12 +718,12 @@ class MoveExecution:
                 progress = handle.progress
                 if progress is not None and progress.index > reported:
                     reported = progress.index
-                    left = (progress.total - progress.index) * DT + margin
+                    left = (progress.total - progress.index) * period + margin
                     patience.reschedule(max(patience.when() or 0.0, loop.time() + left))
                 if self._stop.is_set() and not handle.done:
                     await self._braking(handle)
                 if state is not None:
-                    # plain floats: this runs for every 500 Hz sample
+                    # plain floats: this runs for every state sample (500 Hz on a UR)
                     moving = max(map(abs, state.actual_qd))
                     count += 1
                     if not self._braked and count % TRACKING_EVERY == 0:
@@ -771,14 +788,15 @@ class MoveExecution:
         p = handle.progress
         if p is None or p.timestamp is None:
             return self._current_index(handle)
-        return p.index + round((state.timestamp - p.timestamp) / DT)
+        return p.index + round((state.timestamp - p.timestamp) / self.plan.trajectory.period)
 
     def _current_index(self, handle: TrajectoryRun) -> float:
         """The link's sample index now, from its last progress report and the clock."""
         p = handle.progress
+        period = self.plan.trajectory.period
         if p is None:
-            return (time.monotonic() - self._sent_at) / DT
-        return p.index + max(time.time() - p.time, 0.0) / DT
+            return (time.monotonic() - self._sent_at) / period
+        return p.index + max(time.time() - p.time, 0.0) / period
 
     async def _brake(self, handle: TrajectoryRun) -> None:
         """Replace the samples not yet sent by the jerk-limited stop."""
@@ -797,11 +815,13 @@ class MoveExecution:
             # Lead the braking samples with the planned ones before them as history, so
             # the setpoints continue exactly where the replaced ones leave off.
             history = traj.positions[max(at - 1, 0) : at]
+            shape = (len(history) + len(stop), traj.positions.shape[1])
             joined = Trajectory(
                 np.concatenate([history, stop.positions]),
-                np.zeros((len(history) + len(stop), 6)),
-                np.zeros((len(history) + len(stop), 6)),
+                np.zeros(shape),
+                np.zeros(shape),
                 stop.duration,
+                stop.period,
             )
             samples = lead_setpoints(joined, self.options.lag)[len(history) :]
         samples[-1] = stop.positions[-1]
@@ -905,11 +925,13 @@ class MotionController:
         options: ExecutionOptions | None = None,
         planner: str = DEFAULT_PLANNER,
         kinematics: KinematicsFactory | None = None,
+        collision: CollisionFactory | None = None,
         capabilities: RobotCapabilities = UR3E,
     ) -> None:
-        _check_sampling(capabilities, config)
+        _check_joints(capabilities, config)
         self.config = config
         self._kinematics = kinematics
+        self._collision = collision
         self.capabilities = capabilities
         """The robot kind's joints and trajectory sample period."""
         self.options = options or ExecutionOptions()
@@ -927,7 +949,11 @@ class MotionController:
     def planner(self) -> MotionPlanner:
         if self._planner is None:
             self._planner = MotionPlanner(
-                self.config, planner=self._planner_name, kinematics=self._kinematics
+                self.config,
+                planner=self._planner_name,
+                kinematics=self._kinematics,
+                collision=self._collision,
+                capabilities=self.capabilities,
             )
         return self._planner
 
@@ -1138,20 +1164,21 @@ def _trajectory_data(plan: MovePlan) -> dict[str, Any]:
     return {
         "duration": traj.duration,
         "samples": len(traj),
-        "dt": DT,
+        "dt": traj.period,
         "stops": traj.stops,
         "preview": traj.positions[::step].tolist(),
     }
 
 
 def _within(start: ArrayLike, joints: object, span: float) -> bool:
-    """Whether ``joints`` (6 finite numbers) is within ``span`` rad of ``start`` on every
-    joint (False for anything malformed: the thread's planning reports it)."""
+    """Whether ``joints`` (finite numbers, as many as ``start``) is within ``span`` rad of
+    ``start`` on every joint (False for anything malformed: the thread's planning reports
+    it)."""
     try:
         a = np.asarray(start, dtype=float)
         b = np.asarray(joints, dtype=float)
     except (TypeError, ValueError):
         return False
-    if a.shape != (6,) or b.shape != (6,) or not np.all(np.isfinite(b)):
+    if a.ndim != 1 or b.shape != a.shape or not np.all(np.isfinite(b)):
         return False
     return float(np.max(np.abs(b - a))) <= span

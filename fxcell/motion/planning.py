@@ -23,10 +23,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from fxcell.errors import CollisionError, PlanningError, SingularityError, UnreachableError
 from fxcell.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
-from fxcell.motion.kinematics import Kinematics
 
 if TYPE_CHECKING:
-    from fxcell.motion.collision import CollisionChecker
+    from fxcell.robots.registry import CollisionModel, KinematicModel
 
 Array = NDArray[np.float64]
 
@@ -66,7 +65,7 @@ class JointPlanner:
 
     def __init__(
         self,
-        checker: CollisionChecker,
+        checker: CollisionModel,
         lower: Sequence[float],
         upper: Sequence[float],
         *,
@@ -96,12 +95,14 @@ class JointPlanner:
         self.range = float(planner_range)
         self._lower = np.asarray(lower, float)
         self._upper = np.asarray(upper, float)
+        self._joints = len(self._lower)
+        """The arm's joints: the dimension of the searched space."""
         self._lock = threading.Lock()
         self._ob, self._og = ob, og
 
     def _valid(self, state: object) -> bool:
         s = state  # a RealVectorStateType, indexable
-        q = np.array([s[0], s[1], s[2], s[3], s[4], s[5]])  # type: ignore[index]
+        q = np.array([s[i] for i in range(self._joints)])  # type: ignore[index]
         return not self.checker.in_collision(q)
 
     def _setup(self, a: Array, b: Array, window: float | None) -> tuple[Any, Any]:
@@ -112,9 +113,10 @@ class JointPlanner:
         if window is not None:
             lo = np.maximum(np.minimum(a, b) - window, lo)
             hi = np.minimum(np.maximum(a, b) + window, hi)
-        space = ob.RealVectorStateSpace(6)
-        bounds = ob.RealVectorBounds(6)
-        for i in range(6):
+        n = self._joints
+        space = ob.RealVectorStateSpace(n)
+        bounds = ob.RealVectorBounds(n)
+        for i in range(n):
             bounds.setLow(i, float(lo[i]))
             bounds.setHigh(i, float(hi[i]))
         space.setBounds(bounds)
@@ -128,7 +130,7 @@ class JointPlanner:
             planner.setRange(self.range)
         ss.setPlanner(planner)
         start, goal = space.allocState(), space.allocState()
-        for i in range(6):
+        for i in range(n):
             start[i], goal[i] = float(a[i]), float(b[i])
         ss.setStartAndGoalStates(start, goal)
         return ss, (space, start, goal)
@@ -188,7 +190,10 @@ class JointPlanner:
             ss.simplifySolution(self.simplify_timeout)
         path = ss.getSolutionPath()
         pts = np.array(
-            [[path.getState(k)[i] for i in range(6)] for k in range(path.getStateCount())]
+            [
+                [path.getState(k)[i] for i in range(self._joints)]
+                for k in range(path.getStateCount())
+            ]
         )
         del keep
         pts[0], pts[-1] = a, b
@@ -240,8 +245,8 @@ def interpolate_pose(start: Pose, target: Pose, s: float) -> Pose:
 
 
 def cartesian_line(
-    kin: Kinematics,
-    checker: CollisionChecker,
+    kin: KinematicModel,
+    checker: CollisionModel,
     start_joints: ArrayLike,
     target: Pose,
     *,
@@ -261,7 +266,7 @@ def cartesian_line(
     dist = float(np.linalg.norm(target.position - start.position))
     angle = float(np.linalg.norm(matrix_to_rotvec(start.rotation.T @ target.rotation)))
     n = max(math.ceil(dist / step), math.ceil(angle / angle_step), 2)
-    knots = np.empty((n + 1, 6))
+    knots = np.empty((n + 1, len(q0)))
     knots[0] = q0
     for k in range(1, n + 1):
         pose = target if k == n else interpolate_pose(start, target, k / n)

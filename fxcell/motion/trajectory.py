@@ -1,4 +1,8 @@
-"""Jerk-limited time parameterisation with Ruckig, sampled at the controller's 2 ms cycle.
+"""Jerk-limited time parameterisation with Ruckig, sampled at the robot kind's period.
+
+The sample period and the joint count come with the :class:`Limits` (the kind's
+:class:`~fxcell.link.capabilities.RobotCapabilities`: a UR3e's 2 ms servo cycle and six
+joints); nothing here assumes a robot.
 
 Three kinds of trajectories, all time-optimal within the scaled joint limits for what
 they are asked to do:
@@ -34,9 +38,6 @@ from numpy.typing import ArrayLike, NDArray
 from fxcell.config import JointLimits
 from fxcell.errors import InvalidFactorError, MoveTooLongError, PlanningError
 
-DT = 0.002
-"""Sample period: the UR e-series control cycle (500 Hz)."""
-DOF = 6
 NEGLIGIBLE_MOVE = 1e-9
 """rad: a move no joint of which travels farther than this is no move (zero duration).
 
@@ -45,7 +46,8 @@ magnitude below the joint encoders' resolution, so such a target is already reac
 
 Array = NDArray[np.float64]
 Validator = Callable[[Array], int | None]
-"""Checks sampled joint positions (N, 6); returns the index of the first bad sample or None."""
+"""Checks sampled joint positions (N, joints); returns the index of the first bad sample or
+None."""
 
 
 def validate_factor(name: str, value: object, minimum: float = 0.0) -> float:
@@ -62,22 +64,39 @@ def validate_factor(name: str, value: object, minimum: float = 0.0) -> float:
 
 @dataclass(frozen=True)
 class Limits:
-    """Per-joint kinematic limits a trajectory must respect (already scaled)."""
+    """Per-joint kinematic limits a trajectory must respect (already scaled), and the
+    period it is sampled at; the joint count is the vectors' length."""
 
     velocity: Array
     acceleration: Array
     jerk: Array
     position_min: Array
     position_max: Array
+    period: float
+    """Seconds between two samples: the robot kind's trajectory sample period."""
     max_duration: float = math.inf
     """A trajectory longer than this (s) is refused before it is sampled (bounds memory)."""
 
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.period) and self.period > 0):
+            raise ValueError(f"the sample period must be > 0 s, got {self.period!r}")
+
+    @property
+    def joints(self) -> int:
+        return len(self.velocity)
+
     @classmethod
     def from_config(
-        cls, limits: JointLimits, velocity_factor: float = 1.0, acceleration_factor: float = 1.0
+        cls,
+        limits: JointLimits,
+        velocity_factor: float = 1.0,
+        acceleration_factor: float = 1.0,
+        *,
+        period: float,
     ) -> Limits:
         """Scale the configured limits: velocity by ``velocity_factor``, acceleration and
-        jerk by ``acceleration_factor`` (both validated to be in (0, 1])."""
+        jerk by ``acceleration_factor`` (both validated to be in (0, 1]); samples every
+        ``period`` s."""
         vf = validate_factor("velocity_factor", velocity_factor)
         af = validate_factor("acceleration_factor", acceleration_factor)
         return cls(
@@ -86,11 +105,12 @@ class Limits:
             jerk=np.asarray(limits.jerk, float) * af,
             position_min=np.asarray(limits.position_min, float),
             position_max=np.asarray(limits.position_max, float),
+            period=period,
             max_duration=limits.max_move_duration,
         )
 
     @classmethod
-    def for_braking(cls, limits: JointLimits) -> Limits:
+    def for_braking(cls, limits: JointLimits, *, period: float) -> Limits:
         """The limits a stop brakes with: the configured braking deceleration and jerk."""
         return cls(
             velocity=np.asarray(limits.velocity, float),
@@ -98,6 +118,7 @@ class Limits:
             jerk=np.asarray(limits.braking_jerk, float),
             position_min=np.asarray(limits.position_min, float),
             position_max=np.asarray(limits.position_max, float),
+            period=period,
         )
 
     def with_velocity(self, velocity: ArrayLike) -> Limits:
@@ -107,22 +128,25 @@ class Limits:
             self.jerk,
             self.position_min,
             self.position_max,
+            self.period,
             self.max_duration,
         )
 
 
 @dataclass(frozen=True)
 class Trajectory:
-    """Joint positions, velocities and accelerations sampled every :data:`DT` seconds.
+    """Joint positions, velocities and accelerations sampled every ``period`` seconds.
 
-    Sample ``k`` is the state at ``t = k·DT``; the last sample is the exact end state
-    (at ``duration``, which need not be a multiple of DT).
+    Sample ``k`` is the state at ``t = k·period``; the last sample is the exact end state
+    (at ``duration``, which need not be a multiple of the period).
     """
 
     positions: Array
     velocities: Array
     accelerations: Array
     duration: float
+    period: float
+    """Seconds between two samples (the robot kind's trajectory sample period)."""
     segments: int = 1
     """Ruckig segments it was built from (1 for a direct move)."""
     stops: int = 0
@@ -130,7 +154,7 @@ class Trajectory:
 
     @property
     def times(self) -> Array:
-        t = np.arange(len(self.positions), dtype=float) * DT
+        t = np.arange(len(self.positions), dtype=float) * self.period
         t[-1] = self.duration
         return t
 
@@ -147,7 +171,7 @@ class Trajectory:
 
 
 def _input(limits: Limits) -> ruckig.InputParameter:
-    inp = ruckig.InputParameter(DOF)
+    inp = ruckig.InputParameter(limits.joints)
     inp.max_velocity = limits.velocity.tolist()
     inp.max_acceleration = limits.acceleration.tolist()
     inp.max_jerk = limits.jerk.tolist()
@@ -155,8 +179,9 @@ def _input(limits: Limits) -> ruckig.InputParameter:
 
 
 def _solve(inp: ruckig.InputParameter) -> ruckig.Trajectory:
-    traj = ruckig.Trajectory(DOF)
-    result = ruckig.Ruckig(DOF).calculate(inp, traj)
+    dof = inp.degrees_of_freedom
+    traj = ruckig.Trajectory(dof)
+    result = ruckig.Ruckig(dof).calculate(inp, traj)
     if result not in (ruckig.Result.Working, ruckig.Result.Finished):
         raise PlanningError(f"Ruckig could not time the motion: {result}")
     return traj
@@ -174,10 +199,10 @@ def _segment(
     inp = _input(limits)
     inp.current_position = start.tolist()
     inp.current_velocity = v0.tolist()
-    inp.current_acceleration = [0.0] * DOF
+    inp.current_acceleration = [0.0] * limits.joints
     inp.target_position = target.tolist()
     inp.target_velocity = v1.tolist()
-    inp.target_acceleration = [0.0] * DOF
+    inp.target_acceleration = [0.0] * limits.joints
     inp.min_position = limits.position_min.tolist()
     inp.max_position = limits.position_max.tolist()
     inp.synchronization = ruckig.Synchronization.Phase if phase else ruckig.Synchronization.Time
@@ -248,26 +273,26 @@ class Piece(Protocol):
     def evaluate(self, times: Array) -> tuple[Array, Array, Array]: ...
 
 
-def _grid(total: float, max_duration: float = math.inf) -> Array:
-    """Sample times every DT from 0, the last one at ``total`` exactly."""
+def _grid(total: float, period: float, max_duration: float = math.inf) -> Array:
+    """Sample times every ``period`` from 0, the last one at ``total`` exactly."""
     if not total <= max_duration:
         raise MoveTooLongError(
             f"the move would take {total:.1f} s, longer than the {max_duration:g} s allowed "
             "(limits.max_move_duration): raise the speed factors or split the move"
         )
-    n = max(round(math.ceil(total / DT - 1e-9)), 1) + 1
-    t = np.arange(n, dtype=float) * DT
+    n = max(round(math.ceil(total / period - 1e-9)), 1) + 1
+    t = np.arange(n, dtype=float) * period
     t[-1] = total
     return t
 
 
-def _sample(pieces: Sequence[Piece], max_duration: float = math.inf) -> Trajectory:
-    """Sample consecutive pieces on one global 2 ms grid."""
+def _sample(pieces: Sequence[Piece], limits: Limits, max_duration: float = math.inf) -> Trajectory:
+    """Sample consecutive pieces on one grid, every ``limits.period`` from their start."""
     ends = np.cumsum([p.duration for p in pieces])
     total = float(ends[-1])
-    t = _grid(total, max_duration)
-    n = len(t)
-    pos, vel, acc = np.empty((n, DOF)), np.empty((n, DOF)), np.empty((n, DOF))
+    t = _grid(total, limits.period, max_duration)
+    n, dof = len(t), limits.joints
+    pos, vel, acc = np.empty((n, dof)), np.empty((n, dof)), np.empty((n, dof))
     which = np.minimum(np.searchsorted(ends, t, side="left"), len(pieces) - 1)
     starts = np.concatenate(([0.0], ends[:-1]))
     for j, piece in enumerate(pieces):
@@ -275,7 +300,7 @@ def _sample(pieces: Sequence[Piece], max_duration: float = math.inf) -> Trajecto
         if mask.any():
             local = np.clip(t[mask] - starts[j], 0.0, piece.duration)
             pos[mask], vel[mask], acc[mask] = piece.evaluate(local)
-    return Trajectory(pos, vel, acc, total, segments=len(pieces))
+    return Trajectory(pos, vel, acc, total, limits.period, segments=len(pieces))
 
 
 def _scalar(v: float, a: float, j: float) -> ruckig.Trajectory:
@@ -297,14 +322,14 @@ def _scalar(v: float, a: float, j: float) -> ruckig.Trajectory:
 
 
 def _profile(
-    v: float, a: float, j: float, max_duration: float = math.inf
+    v: float, a: float, j: float, period: float, max_duration: float = math.inf
 ) -> tuple[Array, Array, Array, Array]:
     """Sample the time-optimal rest-to-rest profile of a scalar s from 0 to 1.
 
-    Returns times, s, ds/dt and d²s/dt² on the 2 ms grid (last sample at the end time).
+    Returns times, s, ds/dt and d²s/dt² every ``period`` (last sample at the end time).
     """
     traj = _scalar(v, a, j)
-    t = _grid(float(traj.duration), max_duration)
+    t = _grid(float(traj.duration), period, max_duration)
     s, sd, sdd = (x[:, 0] for x in _evaluate(traj, t))
     s[-1], sd[-1], sdd[-1] = 1.0, 0.0, 0.0
     return t, np.clip(s, 0.0, 1.0), sd, sdd
@@ -324,7 +349,7 @@ def _line_limits(delta: Array, limits: Limits) -> tuple[float, float, float]:
 def minimum_duration(start: ArrayLike, target: ArrayLike, limits: Limits) -> float:
     """Time-optimal rest-to-rest duration of a joint move under ``limits`` (the bound
     Ruckig computes with every joint free to move independently)."""
-    zero = np.zeros(DOF)
+    zero = np.zeros(limits.joints)
     return float(
         _segment(
             np.asarray(start, float), np.asarray(target, float), zero, zero, limits, phase=False
@@ -342,12 +367,12 @@ def rest_to_rest(start: ArrayLike, target: ArrayLike, limits: Limits) -> Traject
     q1 = np.asarray(target, float)
     delta = q1 - q0
     if not np.any(np.abs(delta) > NEGLIGIBLE_MOVE):
-        z = np.zeros((1, DOF))
-        return Trajectory(q1[None, :].copy(), z, z.copy(), 0.0)
-    t, s, sd, sdd = _profile(*_line_limits(delta, limits), limits.max_duration)
+        z = np.zeros((1, limits.joints))
+        return Trajectory(q1[None, :].copy(), z, z.copy(), 0.0, limits.period)
+    t, s, sd, sdd = _profile(*_line_limits(delta, limits), limits.period, limits.max_duration)
     pos = q0 + s[:, None] * delta
     pos[-1] = q1
-    return Trajectory(pos, sd[:, None] * delta, sdd[:, None] * delta, float(t[-1]))
+    return Trajectory(pos, sd[:, None] * delta, sdd[:, None] * delta, float(t[-1]), limits.period)
 
 
 def waypoint_velocities(waypoints: Array, limits: Limits) -> Array:
@@ -359,7 +384,7 @@ def waypoint_velocities(waypoints: Array, limits: Limits) -> Array:
     adjacent segments' cruise speeds, and stops where it reverses direction.
     """
     m = len(waypoints)
-    v = np.zeros((m, DOF))
+    v = np.zeros((m, limits.joints))
     if m < 3:
         return v
     deltas = np.diff(waypoints, axis=0)
@@ -423,7 +448,7 @@ def through_waypoints(
                 vel[k] = vel[k + 1] = 0.0
                 break
         else:
-            traj = _sample(pieces, limits.max_duration)
+            traj = _sample(pieces, limits, limits.max_duration)
             traj.positions[-1] = wp[-1]
             traj.velocities[-1] = 0.0
             traj.accelerations[-1] = 0.0
@@ -435,11 +460,12 @@ def through_waypoints(
                     traj.velocities,
                     traj.accelerations,
                     traj.duration,
+                    limits.period,
                     segments=len(pieces),
                     stops=stops,
                 )
             ends = np.cumsum([p.duration for p in pieces])
-            seg = min(int(np.searchsorted(ends, bad * DT)), len(pieces) - 1)
+            seg = min(int(np.searchsorted(ends, bad * limits.period)), len(pieces) - 1)
             if not vel[seg].any() and not vel[seg + 1].any():
                 raise PlanningError("the timed path left the collision-free corridor")
             vel[seg] = vel[seg + 1] = 0.0
@@ -478,7 +504,7 @@ def along_path(
         v_s = min(v_s, v_cap)
         a_s = safety * float(np.min((limits.acceleration - d2 * v_s**2) / d1))
         j_s = safety * float(np.min(limits.jerk / d1))
-        t, s, _, _ = _profile(v_s, a_s, j_s, limits.max_duration)
+        t, s, _, _ = _profile(v_s, a_s, j_s, limits.period, limits.max_duration)
         total = float(t[-1])
         n = len(t)
         pos = np.array([path(float(sk)) for sk in s])
@@ -489,7 +515,7 @@ def along_path(
         v_ratio = float(np.max(np.abs(vel) / limits.velocity))
         a_ratio = float(np.max(np.abs(acc[1:-1]) / limits.acceleration)) if n > 2 else 0.0
         if v_ratio <= 1.0 + 1e-3 and a_ratio <= 1.05:
-            return Trajectory(pos, vel, acc, total)
+            return Trajectory(pos, vel, acc, total, limits.period)
         safety *= 0.8 / max(v_ratio, math.sqrt(a_ratio), 1.0)
     raise PlanningError("could not time the path within the joint limits")
 
@@ -510,9 +536,9 @@ def braking(
     inp.current_position = np.asarray(position, float).tolist()
     inp.current_velocity = np.asarray(velocity, float).tolist()
     inp.current_acceleration = np.asarray(acceleration, float).tolist()
-    inp.target_velocity = [0.0] * DOF
-    inp.target_acceleration = [0.0] * DOF
-    traj = _sample([_Ruckig(_solve(inp))])
+    inp.target_velocity = [0.0] * limits.joints
+    inp.target_acceleration = [0.0] * limits.joints
+    traj = _sample([_Ruckig(_solve(inp))], limits)
     traj.velocities[-1] = 0.0
     traj.accelerations[-1] = 0.0
     return traj
@@ -523,9 +549,9 @@ def braking_duration(velocity: ArrayLike, acceleration: ArrayLike, limits: Limit
     inp = _input(limits)
     inp.control_interface = ruckig.ControlInterface.Velocity
     inp.synchronization = ruckig.Synchronization.No
-    inp.current_position = [0.0] * DOF
+    inp.current_position = [0.0] * limits.joints
     inp.current_velocity = np.asarray(velocity, float).tolist()
     inp.current_acceleration = np.asarray(acceleration, float).tolist()
-    inp.target_velocity = [0.0] * DOF
-    inp.target_acceleration = [0.0] * DOF
+    inp.target_velocity = [0.0] * limits.joints
+    inp.target_acceleration = [0.0] * limits.joints
     return float(_solve(inp).duration)

@@ -3,14 +3,21 @@
 A kind is one :class:`RobotKind`: its capabilities (joints, trajectory sample period,
 commands it refuses: :mod:`fxcell.link.capabilities`), its link factory (an
 implementation of :class:`~fxcell.link.backend.LinkBackend`), its kinematic model factory
-(what the motion planner plans on) and its simulator launcher (started when no controller
-address is configured). Adding a robot is one package holding those and one
-:func:`register` call; the Cell never names a kind.
+(a :class:`KinematicModel`, what the motion planner plans on), its collision model (a
+:class:`CollisionModel` of the arm in the configured scene), its calibration forms
+(:class:`CalibrationFormat`: nominal, from a file; the link reads the arm's own), how its
+link takes a streamed plan (``execution``) and its simulator launcher (started when no
+controller address is configured). Adding a robot is one package holding those and one
+:func:`register` call; the Cell and the motion layer never name a kind.
 """
 
 from __future__ import annotations
 
 from fxcell.robots.registry import (
+    CalibrationFormat,
+    CollisionFactory,
+    CollisionModel,
+    KinematicModel,
     KinematicsFactory,
     RobotKind,
     Simulator,
@@ -26,6 +33,10 @@ register(UR3E_KIND)
 
 __all__ = [
     "UR3E_KIND",
+    "CalibrationFormat",
+    "CollisionFactory",
+    "CollisionModel",
+    "KinematicModel",
     "KinematicsFactory",
     "RobotKind",
     "Simulator",

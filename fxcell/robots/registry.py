@@ -9,13 +9,20 @@ from typing import TYPE_CHECKING, Any, Protocol
 from fxcell.errors import ConfigError, InvalidArgumentError
 
 if TYPE_CHECKING:
-    from fxcell.calibration import Calibration
+    import numpy as np
+    from numpy.typing import ArrayLike, NDArray
+
     from fxcell.config import CellConfig
-    from fxcell.link.backend import LinkFactory
+    from fxcell.geometry import Pose
+    from fxcell.link.backend import ArmCalibration, LinkFactory
     from fxcell.link.capabilities import RobotCapabilities
-    from fxcell.motion.kinematics import Kinematics
+    from fxcell.motion.moves import ExecutionOptions
 
 __all__ = [
+    "CalibrationFormat",
+    "CollisionFactory",
+    "CollisionModel",
+    "KinematicModel",
     "KinematicsFactory",
     "RobotKind",
     "Simulator",
@@ -26,9 +33,78 @@ __all__ = [
     "unregister",
 ]
 
-KinematicsFactory = Callable[["CellConfig", "Calibration | None"], "Kinematics"]
+
+class KinematicModel(Protocol):
+    """The arm as the planner plans on it: joint vectors as wide as the kind's
+    capabilities say, poses of the TCP in the robot's base frame (the UR3e's:
+    :class:`fxcell.motion.kinematics.Kinematics`)."""
+
+    @property
+    def reach(self) -> float:
+        """No TCP position farther than this from the base origin is reachable (m)."""
+
+    def forward(self, q: ArrayLike) -> Pose:
+        """The TCP pose at joints ``q``."""
+
+    def inverse(self, pose: Pose, seed: ArrayLike | None = None) -> NDArray[np.float64]:
+        """The joints within the limits reaching ``pose`` nearest ``seed``
+        (UnreachableError when there are none)."""
+
+    def inverse_all(self, pose: Pose, seed: ArrayLike | None = None) -> list[NDArray[np.float64]]:
+        """Every solution within the limits (one per branch), nearest ``seed`` first."""
+
+
+class CollisionModel(Protocol):
+    """The arm and the cell's scene as the planner checks them (the UR3e's:
+    :class:`fxcell.motion.collision.CollisionChecker`)."""
+
+    def in_collision(self, q: ArrayLike) -> bool:
+        """Whether the arm at joints ``q`` touches the scene or itself."""
+
+    def colliding_pairs(self, q: ArrayLike) -> list[tuple[str, str]]:
+        """The bodies in contact at ``q`` (for error messages)."""
+
+    def check(self, q: ArrayLike, what: str = "target") -> None:
+        """CollisionError naming ``what`` when ``q`` collides."""
+
+    def first_collision(self, samples: ArrayLike) -> int | None:
+        """Index of the first colliding state among consecutive ``samples``, or None."""
+
+    def motion_free(self, start: ArrayLike, end: ArrayLike) -> bool:
+        """Whether the straight joint line from ``start`` to ``end`` is free."""
+
+    def separating_wall(self, start: ArrayLike, end: ArrayLike) -> tuple[int, float] | None:
+        """A joint value every configuration collides at which lies between ``start`` and
+        ``end`` (``(joint, value)``; None: none known): no path can exist."""
+
+    def attach(self, kind: str) -> None:
+        """The gripper now holds an object of ``kind`` (of the layout's objects)."""
+
+    def detach(self) -> None:
+        """The gripper holds nothing."""
+
+
+KinematicsFactory = Callable[["CellConfig", "ArmCalibration | None"], KinematicModel]
 """The arm the planner plans on: ``factory(config, calibration)`` with the configuration's
-TCP and limits, and the calibration the link read (None: none read, the nominal model)."""
+TCP and limits, and the calibration the link read or :class:`CalibrationFormat` made (None:
+none, the model as ``robot.calibration`` says; a kind's factory refuses a calibration of
+another kind with CalibrationError)."""
+
+CollisionFactory = Callable[["CellConfig"], CollisionModel]
+"""The arm's collision bodies in the configured scene (``config.scene``, the layout's
+objects for :meth:`CollisionModel.attach`)."""
+
+
+@dataclass(frozen=True)
+class CalibrationFormat:
+    """A kind's calibrations apart from the one its link reads
+    (:meth:`~fxcell.link.backend.LinkBackend.read_calibration`)."""
+
+    nominal: Callable[[], ArmCalibration]
+    """The arm as its maker publishes it (``robot.calibration: nominal``, the fallback)."""
+    load: Callable[[str], ArmCalibration]
+    """Read a calibration file (``robot.calibration: <path>``); CalibrationError when it
+    cannot be read."""
 
 
 class Simulator(Protocol):
@@ -52,8 +128,13 @@ class RobotKind:
     capabilities: RobotCapabilities
     link: LinkFactory
     kinematics: KinematicsFactory
+    collision: CollisionFactory
+    calibration: CalibrationFormat
     simulator: SimulatorLauncher | None = None
     """None: the kind has no simulator (a controller address must be configured)."""
+    execution: ExecutionOptions | None = None
+    """How its link takes a streamed plan: servo lookahead and gain, whether setpoints lead
+    the servo's lag, settling (None: the defaults, made for a UR's servoJ)."""
 
     @property
     def name(self) -> str:
