@@ -109,6 +109,31 @@ HAND_E: tuple[FlangeBox, ...] = (
 direction does not matter)."""
 
 
+def _lever_arms(model: pin.Model, gm: pin.GeometryModel, bodies: list[int]) -> Array:
+    """For each joint, the farthest any point of a body it moves can be from its origin,
+    whatever the joints (so a joint step δ moves no point more than lever·δ): the bound
+    :data:`LEVER_ARMS` gives the UR3e by hand, here from the chain and the shapes'
+    bounding boxes (the distances between successive joint origins, then the farthest
+    corner of the body's box from its joint), rounded up to the centimetre."""
+    data = model.createData()
+    pin.forwardKinematics(model, data, np.zeros(model.nq))
+    origins = [np.asarray(data.oMi[k].translation) for k in range(model.njoints)]
+    links = [float(np.linalg.norm(origins[k + 1] - origins[k])) for k in range(model.nq)]
+    reach = np.zeros(model.nq)
+    for g, body in zip(gm.geometryObjects, bodies, strict=True):
+        if body == 0:
+            continue
+        g.geometry.computeLocalAABB()
+        box = g.geometry.aabb_local
+        lo, hi = np.asarray(box.min_), np.asarray(box.max_)
+        corners = [g.placement.act(np.where([i & 1, i & 2, i & 4], hi, lo)) for i in range(8)]
+        far = max(float(np.linalg.norm(c)) for c in corners)  # from the body's joint
+        for joint in range(1, body + 1):
+            chain = sum(links[joint:body])  # joint's origin to the body's joint origin
+            reach[joint - 1] = max(reach[joint - 1], chain + far)
+    return np.asarray(np.ceil(reach * 100) / 100, dtype=np.float64)
+
+
 def _segment_placement(p: Array, q: Array) -> pin.SE3:
     """The frame of a z-aligned shape centred between ``p`` and ``q``."""
     axis = q - p
@@ -139,6 +164,8 @@ class CollisionChecker:
         gripper: bool = True,
         scene_margin: float = DEFAULT_SCENE_MARGIN,
         resolution: float = DEFAULT_RESOLUTION,
+        arm: Sequence[pin.GeometryObject] | None = None,
+        never: Iterable[tuple[str, str]] = (),
     ) -> None:
         if model.nq != 6:
             raise ValueError(f"expected a 6-joint arm model, got nq={model.nq}")
@@ -155,16 +182,23 @@ class CollisionChecker:
 
         gm = pin.GeometryModel()
         self._body: list[int] = []
+        self._names: list[str] = []
         self._scene: set[int] = set()
-        for c in UR3E_CAPSULES:
-            p, q = np.asarray(c.start, float), np.asarray(c.end, float)
-            world = _segment_placement(p, q)
-            shape = coal.Capsule(c.radius, float(np.linalg.norm(q - p)))
-            self._add(gm, c.name, c.body, oMi[c.body].inverse() * world, shape)
-        if gripper:
-            for box in HAND_E:
-                placement = flange_in_joint6 * pin.SE3(np.eye(3), np.asarray(box.center, float))
-                self._add(gm, box.name, 6, placement, coal.Box(*box.size))
+        self._never = {frozenset(pair) for pair in never}
+        if arm is not None:  # the arm's (and its gripper's) own bodies, e.g. from a URDF
+            for g in arm:
+                self._add(gm, g.name, int(g.parentJoint), g.placement, g.geometry)
+        else:  # the UR3e's capsules and the Hand-E
+            for c in UR3E_CAPSULES:
+                p, q = np.asarray(c.start, float), np.asarray(c.end, float)
+                world = _segment_placement(p, q)
+                shape = coal.Capsule(c.radius, float(np.linalg.norm(q - p)))
+                self._add(gm, c.name, c.body, oMi[c.body].inverse() * world, shape)
+            if gripper:
+                for box in HAND_E:
+                    centre = np.asarray(box.center, float)
+                    placement = flange_in_joint6 * pin.SE3(np.eye(3), centre)
+                    self._add(gm, box.name, 6, placement, coal.Box(*box.size))
         for obj in scene.objects:
             placement = pin.SE3(rpy_to_matrix(obj.rpy), np.asarray(obj.position, float))
             gid = self._add(gm, obj.name, 0, placement, coal.Box(*obj.size))
@@ -200,6 +234,8 @@ class CollisionChecker:
             if pair.first in self._scene or pair.second in self._scene:
                 self.geometry_data.collisionRequests[k].security_margin = self.scene_margin
         self.names = [g.name for g in gm.geometryObjects]
+        self.lever_arms = LEVER_ARMS if arm is None else _lever_arms(model, gm, self._body)
+        """Farthest point of the arm, gripper and held objects from each joint (m)."""
         self._walls: tuple[tuple[int, float], ...] | None = None
         self._held_pairs: dict[str, list[int]] = {kind: [] for kind in self._held_geoms}
         for k, pair in enumerate(gm.collisionPairs):
@@ -230,12 +266,15 @@ class CollisionChecker:
     def _add(self, gm: pin.GeometryModel, name: str, body: int, M: pin.SE3, shape: object) -> int:
         gid = int(gm.addGeometryObject(pin.GeometryObject(name, body, M, shape)))
         self._body.append(body)
+        self._names.append(name)
         return gid
 
     def _checked(self, a: int, b: int) -> bool:
         ba, bb = self._body[a], self._body[b]
         if ba == 0 and bb == 0:  # fixed against fixed (base, table, machine)
             return False
+        if frozenset((self._names[a], self._names[b])) in self._never:
+            return False  # the arm's maker: the joint limits keep these apart
         return abs(ba - bb) >= 2 or a in self._scene or b in self._scene
 
     @classmethod
@@ -249,6 +288,41 @@ class CollisionChecker:
             layout=Layout(config.layout),
             tcp=pin.SE3(tcp.rotation, tcp.position),
             flange_in_joint6=robot.flange_in_joint6,
+            **options,  # type: ignore[arg-type]
+        )
+
+    @classmethod
+    def from_urdf(
+        cls,
+        urdf: str,
+        scene: SceneConfig,
+        *,
+        tool_frame: str,
+        never: Iterable[tuple[str, str]] = (),
+        layout: Layout | None = None,
+        tcp: pin.SE3 | None = None,
+        **options: float,
+    ) -> CollisionChecker:
+        """The checker for an arm described by a URDF with collision shapes (no meshes):
+        its links' and gripper's bodies (named by their links), the scene, and the
+        layout's objects held at ``tcp`` in ``tool_frame`` (the flange or tool link).
+        ``never``: pairs of links its maker never checks (the joint limits keep them
+        apart)."""
+        model = pin.buildModelFromXML(urdf)
+        geometry = pin.buildGeomFromUrdfString(model, urdf, pin.COLLISION)
+        arm = []
+        for g in geometry.geometryObjects:
+            g.name = model.frames[g.parentFrame].name  # the link's name, not "<link>_0"
+            arm.append(g)
+        flange = model.frames[model.getFrameId(tool_frame)].placement
+        return cls(
+            model,
+            scene,
+            layout=layout,
+            tcp=tcp,
+            flange_in_joint6=flange,
+            arm=arm,
+            never=never,
             **options,  # type: ignore[arg-type]
         )
 
@@ -338,7 +412,7 @@ class CollisionChecker:
             coarse = fine = np.zeros(1)
         else:
             coarse = np.linspace(lo[free], hi[free], 37)
-            step = 2 * WALL_SLACK / LEVER_ARMS[free]
+            step = 2 * WALL_SLACK / self.lever_arms[free]
             fine = np.linspace(lo[free], hi[free], math.ceil((hi[free] - lo[free]) / step) + 1)
         values = np.arange(lo[joint] + WALL_STEP, hi[joint], WALL_STEP)
         hits = [blocked(float(v), coarse) for v in values]
@@ -405,7 +479,7 @@ class CollisionChecker:
         (checked every ``resolution`` metres of motion, default :attr:`resolution`)."""
         a, b = np.asarray(start, float), np.asarray(end, float)
         step = self.resolution if resolution is None else float(resolution)
-        n = max(math.ceil(float(np.max(np.abs(b - a) * LEVER_ARMS)) / step), 1)
+        n = max(math.ceil(float(np.max(np.abs(b - a) * self.lever_arms)) / step), 1)
         # Check the end first (cheap rejection of a bad target), then bisect the middle.
         order = [n, *_bisection_order(n)]
         return not any(self.in_collision(a + (b - a) * (k / n)) for k in order)
@@ -413,7 +487,7 @@ class CollisionChecker:
     def _checkpoints(self, s: Array) -> Iterable[int]:
         if len(s) == 0:
             return []
-        moved = np.abs(np.diff(s, axis=0)) * LEVER_ARMS
+        moved = np.abs(np.diff(s, axis=0)) * self.lever_arms
         steps = np.max(moved, axis=1) if len(s) > 1 else np.zeros(0)
         travelled = np.concatenate(([0.0], np.cumsum(steps)))
         idx = np.searchsorted(travelled, np.arange(0.0, travelled[-1], self.resolution))

@@ -37,6 +37,7 @@ __all__ = [
     "HOME",
     "JOINT_NAMES",
     "LOWER",
+    "NEVER_IN_CONTACT",
     "TOOL_OFFSET",
     "UPPER",
     "VELOCITY_LIMITS",
@@ -351,6 +352,24 @@ _COLLISION: dict[str, tuple[str, tuple[float, ...], tuple[float, ...], tuple[flo
     # Niryo's Gripper 1 (custom gripper fingers), approach along tool_link's x
     "gripper_link": ("box", (0.075, 0.06, 0.03), (0.0375, 0.0, 0.0), (0.0, 0.0, 0.0)),
 }
+
+
+NEVER_IN_CONTACT: tuple[tuple[str, str], ...] = (
+    ("arm_link", "base_link"),
+    ("arm_link", "forearm_link"),
+    ("base_link", "elbow_link"),
+    ("elbow_link", "hand_link"),
+    ("elbow_link", "shoulder_link"),
+    ("elbow_link", "wrist_link"),
+    ("forearm_link", "hand_link"),
+    ("forearm_link", "shoulder_link"),
+    ("gripper_link", "elbow_link"),
+    ("gripper_link", "forearm_link"),
+    ("gripper_link", "wrist_link"),
+)
+"""Pairs of links two or more joints apart that Niryo's MoveIt configuration never
+checks (``niryo_moveit_config_w_gripper1``'s SRDF, reasons "Never" and "User": the joint
+limits keep them apart); ``gripper_link`` stands for its ``base_gripper_1``."""
 
 
 def _geometry(shape: str, size: tuple[float, ...]) -> str:
