@@ -11,8 +11,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fxcell.errors import InvalidArgumentError
+from fxcell.errors import InvalidArgumentError, UnreachableError
+from fxcell.geometry import Pose
 from fxcell.motion import ned2
+from fxcell.robots import KinematicModel
 
 pytestmark = pytest.mark.timeout(300)
 # two solutions closer than this (rad) are one: near a wrist singularity the solver stops
@@ -106,3 +108,34 @@ def test_bad_seeds_and_targets_are_refused(bad: list[float]) -> None:
 def test_pose_round_trips_through_niryo_rpy(q: np.ndarray) -> None:
     t = ned2.forward(q)
     assert np.allclose(ned2.pose_to_matrix(ned2.matrix_to_pose(t)), t, atol=1e-9)
+
+
+# ---------------------------------------------------------------- the planner's model
+
+TCP = Pose([0.075, 0.0, 0.0], np.eye(3))  # Gripper 1's finger centre along tool_link's x
+
+
+@settings(max_examples=60, deadline=None)
+@given(q=joints)
+def test_the_planners_model_inverts_its_forward_with_the_tcp(q: np.ndarray) -> None:
+    model: KinematicModel = ned2.Ned2Kinematics(TCP)
+    pose = model.forward(q)
+    assert np.linalg.norm(pose.position) <= model.reach
+    tool = ned2.forward(q)
+    assert pose.position == pytest.approx(tool[:3, 3] + 0.075 * tool[:3, 0], abs=1e-12)
+    found = model.inverse(pose, seed=q)
+    assert np.max(np.abs(found - q)) < SAME  # the seed's own branch
+    assert np.linalg.norm(model.forward(found).position - pose.position) < 1e-6
+    assert found.tolist() == model.inverse_all(pose, seed=q)[0].tolist()
+
+
+def test_the_planners_model_keeps_to_narrower_limits_and_says_what_it_cannot_reach() -> None:
+    q = np.array([0.6, -0.3, 0.2, 0.4, -0.5, 0.3])
+    pose = ned2.Ned2Kinematics().forward(q)
+    narrow = ned2.Ned2Kinematics(lower=ned2.LOWER, upper=[*ned2.UPPER[:1], -0.4, *ned2.UPPER[2:]])
+    for solution in narrow.inverse_all(pose, seed=q):
+        assert solution[1] <= -0.4
+    with pytest.raises(UnreachableError, match="Ned2"):
+        ned2.Ned2Kinematics().inverse(Pose([0.9, 0.0, 0.2], np.eye(3)))
+    with pytest.raises(InvalidArgumentError):
+        ned2.Ned2Kinematics(lower=ned2.UPPER, upper=ned2.LOWER)

@@ -26,8 +26,10 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from numpy.typing import ArrayLike
 
-from fxcell.errors import InvalidArgumentError
+from fxcell.errors import InvalidArgumentError, UnreachableError
+from fxcell.geometry import Pose
 
 Array = npt.NDArray[np.float64]
 Joints = Sequence[float] | npt.NDArray[np.floating[Any]]  # six joint positions (rad)
@@ -42,6 +44,7 @@ __all__ = [
     "UPPER",
     "VELOCITY_LIMITS",
     "IkResult",
+    "Ned2Kinematics",
     "forward",
     "forward_batch",
     "inverse",
@@ -327,6 +330,52 @@ def inverse(
             distinct.append(row)
     distinct.sort(key=lambda row: float(np.linalg.norm(row - s)))
     return IkResult(distinct[0] if distinct else None, tuple(distinct))
+
+
+class Ned2Kinematics:
+    """The Ned2 as the motion planner plans on it (a
+    :class:`~fxcell.robots.registry.KinematicModel`): poses of a TCP given in
+    ``tool_link``'s frame, in ``base_link``, as :class:`~fxcell.geometry.Pose`; joint
+    solutions within ``lower``..``upper`` (default Niryo's limits), nearest the seed."""
+
+    def __init__(
+        self,
+        tcp: Pose | None = None,
+        lower: Joints | None = None,
+        upper: Joints | None = None,
+    ) -> None:
+        self.tcp = tcp if tcp is not None else Pose.identity()
+        self._tcp = self.tcp.matrix
+        self._tcp_inverse = np.linalg.inv(self._tcp)
+        self.lower = np.maximum(LOWER, np.asarray(LOWER if lower is None else lower, float))
+        self.upper = np.minimum(UPPER, np.asarray(UPPER if upper is None else upper, float))
+        if self.lower.shape != (6,) or np.any(self.lower > self.upper):
+            raise InvalidArgumentError("the Ned2's joint limits: six lower <= upper values")
+
+    @property
+    def reach(self) -> float:
+        """No TCP position is farther than this from the base origin (m): the chain's
+        lengths from the shoulder on, the tool link and the TCP added up."""
+        lengths = [float(np.linalg.norm(o[:3, 3])) for o in ORIGINS[2:]]
+        shoulder = float(np.linalg.norm((ORIGINS[0] @ ORIGINS[1])[:3, 3]))
+        tool = float(np.linalg.norm(TOOL[:3, 3])) + float(np.linalg.norm(self._tcp[:3, 3]))
+        return shoulder + sum(lengths) + tool
+
+    def forward(self, q: ArrayLike) -> Pose:
+        return Pose.from_matrix(forward(np.asarray(q, dtype=float)) @ self._tcp)
+
+    def inverse_all(self, pose: Pose, seed: ArrayLike | None = None) -> list[Array]:
+        start = np.clip(
+            np.asarray(HOME if seed is None else seed, dtype=float), self.lower, self.upper
+        )
+        result = inverse(pose.matrix @ self._tcp_inverse, start)
+        return [q for q in result.solutions if np.all(q >= self.lower) and np.all(q <= self.upper)]
+
+    def inverse(self, pose: Pose, seed: ArrayLike | None = None) -> Array:
+        solutions = self.inverse_all(pose, seed)
+        if not solutions:
+            raise UnreachableError(f"the Ned2 cannot reach {pose} within its joint limits")
+        return solutions[0]
 
 
 _LINKS = (
