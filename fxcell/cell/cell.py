@@ -109,9 +109,10 @@ EXPLAIN_SAMPLES = 25
 """State samples a failed move waits for the one that shows why (a safety or program stop)..."""
 EXPLAIN_WITHIN = 0.25
 """...and seconds at most (the state stream may have stopped)."""
-REST_SAMPLES = 25
-"""State samples in a row (50 ms at 500 Hz) that must show the arm at rest before a
-recovery takes control back or a move is sent again."""
+REST_TIME = 0.05
+"""Seconds of controller time over which every state sample must show the arm at rest
+before a recovery takes control back or a move is sent again (26 samples of a UR's 500 Hz,
+whatever rate a robot kind streams at)."""
 REMOTE_POLL = 0.25
 """Seconds between two queries of the pendant's Local/Remote switch while no move runs."""
 REMOTE_POLL_MOVING = 0.02
@@ -498,18 +499,23 @@ class Cell(CellCommands):
         )
 
     async def _wait_at_rest(self, within: float, command: str) -> None:
-        """Return once :data:`REST_SAMPLES` state samples in a row show every joint slower
-        than ``REST_VELOCITY`` (the controller's own joint speeds)."""
-        quiet = 0
+        """Return once the state samples of :data:`REST_TIME` s of controller time in a
+        row show every joint slower than ``REST_VELOCITY`` (the controller's own joint
+        speeds)."""
+        quiet_since: float | None = None  # controller time of the first quiet sample
         try:
             async with asyncio.timeout(within):
                 with self._link().subscribe(256) as samples:
                     latest = self.robot_state
                     if latest is not None and _at_rest(latest):
-                        quiet = 1
+                        quiet_since = latest.timestamp
                     async for sample in samples:
-                        quiet = quiet + 1 if _at_rest(sample) else 0
-                        if quiet >= REST_SAMPLES:
+                        if not _at_rest(sample):
+                            quiet_since = None
+                            continue
+                        if quiet_since is None:
+                            quiet_since = sample.timestamp
+                        if sample.timestamp - quiet_since >= REST_TIME - 1e-9:
                             return
         except TimeoutError:
             raise RobotTimeoutError(

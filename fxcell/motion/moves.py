@@ -549,8 +549,9 @@ class ExecutionOptions:
 INLINE_SPAN = 0.25
 """rad: joint moves at most this long on every joint are planned on the event loop (a free
 straight line then costs ~0.5-1.2 ms: collision checks along it and Ruckig)."""
-TRACKING_EVERY = 25
-"""State samples (50 ms) between two tracking reports of a running move."""
+TRACKING_EVERY = 0.05
+"""Seconds of controller time between two tracking reports of a running move (25 state
+samples of a UR)."""
 STATE_PATIENCE = 0.25
 """Seconds without a state sample after which a running move counts the link as lost."""
 
@@ -712,7 +713,7 @@ class MoveExecution:
         loop = asyncio.get_running_loop()
         reported = -1
         state = self.link.latest
-        count = 0
+        tracked: float | None = None  # controller time of the last tracking report
         async with asyncio.timeout(self.plan.duration + margin) as patience:
             while True:
                 progress = handle.progress
@@ -725,8 +726,10 @@ class MoveExecution:
                 if state is not None:
                     # plain floats: this runs for every state sample (500 Hz on a UR)
                     moving = max(map(abs, state.actual_qd))
-                    count += 1
-                    if not self._braked and count % TRACKING_EVERY == 0:
+                    if tracked is None:
+                        tracked = state.timestamp
+                    elif not self._braked and state.timestamp - tracked >= TRACKING_EVERY - 1e-9:
+                        tracked = state.timestamp
                         self._track(handle, state)
                     if self._braked:
                         if handle.done and moving < opts.rest_velocity:
