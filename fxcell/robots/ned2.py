@@ -1,0 +1,98 @@
+"""The Ned2 kind: its rosbridge link (:class:`~fxcell.link.ned2.link.Ned2Link`), its
+kinematic model (:class:`~fxcell.motion.ned2.Ned2Kinematics`), its collision bodies (its
+URDF's shapes), its calibration (the nominal model: the robot calibrates its encoders
+itself). No power or shutdown over the network: those commands are refused for it. No
+embedded simulator launcher yet: a Ned2 host (its simulator's address, in tests) must be
+given."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from fxcell.geometry import Pose
+from fxcell.link.capabilities import RobotCapabilities
+from fxcell.link.ned2.link import Ned2Calibration, Ned2Link
+from fxcell.motion.moves import ExecutionOptions
+from fxcell.robots.registry import CalibrationFormat, RobotKind
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from fxcell.config import CellConfig, RobotConfig
+    from fxcell.link.backend import ArmCalibration
+    from fxcell.link.contract import LinkStatus
+    from fxcell.motion.ned2 import Ned2Kinematics
+    from fxcell.protocol import RobotState
+    from fxcell.robots.registry import CollisionModel
+
+__all__ = ["NED2", "NED2_KIND"]
+
+NED2 = RobotCapabilities(
+    kind="ned2",
+    joints=6,
+    sample_period=0.01,
+    unsupported=frozenset({"power_on", "power_off", "shutdown"}),
+)
+"""Six joints, trajectories planned every 10 ms (handed to the robot a point every
+50 ms); no remote power or shutdown."""
+
+
+def ned2_kinematics(config: CellConfig, calibration: ArmCalibration | None) -> Ned2Kinematics:
+    from fxcell.errors import CalibrationError
+    from fxcell.motion.ned2 import Ned2Kinematics
+
+    if calibration is not None and not isinstance(calibration, Ned2Calibration):
+        raise CalibrationError(
+            f"the Ned2's model takes its own calibration, not a {type(calibration).__name__}"
+        )
+    limits = config.limits
+    return Ned2Kinematics(Pose.from_ur(config.tool.tcp), limits.position_min, limits.position_max)
+
+
+def ned2_collision(config: CellConfig) -> CollisionModel:
+    import pinocchio as pin
+
+    from fxcell.layout import Layout
+    from fxcell.motion import ned2
+    from fxcell.motion.collision import CollisionChecker
+
+    tcp = Pose.from_ur(config.tool.tcp)
+    return CollisionChecker.from_urdf(
+        ned2.urdf(),
+        config.scene,
+        tool_frame="tool_link",
+        never=ned2.NEVER_IN_CONTACT,
+        layout=Layout(config.layout),
+        tcp=pin.SE3(tcp.rotation, tcp.position),
+    )
+
+
+def ned2_link(
+    host: str | None,
+    robot: RobotConfig,
+    *,
+    on_state: Callable[[RobotState], None],
+    on_status: Callable[[LinkStatus, str], None],
+    on_control: Callable[[bool, str], None],
+) -> Ned2Link:
+    from fxcell.motion.ned2 import Ned2Kinematics
+
+    return Ned2Link(
+        host,
+        robot,
+        on_state=on_state,
+        on_status=on_status,
+        on_control=on_control,
+        sample_period=NED2.sample_period,
+        forward=Ned2Kinematics().forward,
+    )
+
+
+NED2_KIND = RobotKind(
+    capabilities=NED2,
+    link=ned2_link,
+    kinematics=ned2_kinematics,
+    collision=ned2_collision,
+    calibration=CalibrationFormat(nominal=Ned2Calibration.nominal, load=Ned2Calibration.load),
+    execution=ExecutionOptions(compensate_lag=False),
+)
