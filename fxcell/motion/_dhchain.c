@@ -43,6 +43,9 @@ static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
 static const double VALLEY_NEAR = 0.05;    /* as kinematics._VALLEY_NEAR */
 static const double VALLEY_FINISH = 1e-5; /* as kinematics._VALLEY_FINISH */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
+#define STALL_STEPS 16                    /* as kinematics._STALL_STEPS */
+static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
+static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -334,10 +337,17 @@ settle(const Chain *c, double *q, const double *target, long iterations, double 
     twist_to(frame, target, err);
     double norm = norm6(err);
     double g = gradient_ratio(jac, err, norm);
-    double lam = 1e-3;
+    double lam = 1e-3, mark = norm;
     for (long it = 0; it < iterations; it++) {
         if (norm < converged || g < stationary)
             break;
+        if (stationary > 0.0 && it > 0 && it % STALL_STEPS == 0) {
+            if (norm > STALL_FLOOR && norm > (1.0 - STALL_GAIN) * mark) {
+                g = 0.0; /* stalled far from a root: a local minimum's basin */
+                break;
+            }
+            mark = norm;
+        }
         if (!solve6(jac, err, lam, 1, step)) {
             lam *= 5.0;
             if (lam > 1e9)
