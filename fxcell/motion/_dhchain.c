@@ -43,7 +43,7 @@ static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
 static const double VALLEY_NEAR = 0.05;    /* as kinematics._VALLEY_NEAR */
 static const double VALLEY_FINISH = 1e-5; /* as kinematics._VALLEY_FINISH */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
-#define STALL_STEPS 16                    /* as kinematics._STALL_STEPS */
+#define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
 

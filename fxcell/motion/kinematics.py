@@ -123,7 +123,7 @@ _VALLEY_FINISH = 1e-5
 _VALLEY_FLOOR = 1e-2
 """Pose error (m and rad together) above which a point is off the valley (the arm out of
 reach at that θ6): no root is looked for next to it."""
-_STALL_STEPS = 16
+_STALL_STEPS = 8
 _STALL_GAIN = 1e-3
 _STALL_FLOOR = 1e-7
 """With ``stationary`` > 0, :meth:`DHChain.settle` reports a local minimum of the error (no
