@@ -11,6 +11,7 @@ built.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.machinery
 import importlib.util
 import math
@@ -24,6 +25,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fxcell.calibration import Calibration
+from fxcell.errors import UnreachableError
+from fxcell.geometry import Pose
 from fxcell.motion import calibration, kinematics
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -223,3 +227,51 @@ def test_the_c_chain_rejects_malformed_input() -> None:
         chain.nearest(
             [[0.0] * 6], [0.0] * 12, [0.0] * 6, *lims, 8, 60, 0.0, 0.0, 0.0, 0.0, 3.0, 0.2
         )
+
+
+def _shoulder_pose(kin: calibration.CalibratedKinematics, q: np.ndarray, offset: float) -> Pose:
+    """The pose at ``q`` moved so that its wrist centre is ``offset`` (m) off the nominal
+    shoulder singularity (at d4 from axis 1)."""
+    pose = kin.forward(q)
+    flange = pose @ kin.tcp.inverse()
+    d4, d6 = kinematics.UR3E_DH.d[3], kinematics.UR3E_DH.d[5]
+    centre = flange.position - d6 * flange.rotation[:, 2]
+    rho = math.hypot(centre[0], centre[1])
+    scale = math.hypot(d4, offset) / rho if rho > 0.0 else 1.0
+    shift = np.array([centre[0] * (scale - 1.0), centre[1] * (scale - 1.0), 0.0])
+    return Pose(pose.position + shift, pose.rotation)
+
+
+@pytest.mark.parametrize("tcp", [None, (0.01, -0.02, 0.146, 0.1, 0.0, 0.2)], ids=["flange", "tcp"])
+def test_the_calibrated_hot_path_in_c_computes_what_the_python_one_does(
+    tcp: tuple[float, ...] | None,
+) -> None:
+    # Chain.fast is CalibratedKinematics._nearest_python (the nominal closed form of
+    # Kinematics.nearest_within, then Chain.nearest) in one C call, bit for bit; next to the
+    # wrist singularity it hands the call back (undecided)
+    _require_native_chain()
+    rng = np.random.default_rng(2026)
+    decided = undecided = 0
+    for round_ in range(4):
+        dh = rng.uniform(-2e-3, 2e-3, (4, 6))
+        cal = Calibration(*(tuple(row.tolist()) for row in dh))
+        kin = calibration.CalibratedKinematics.ur3e_calibrated(cal, tcp)
+        configs = _configs(rng, 150)
+        poses = [kin.forward(q) for q in configs]
+        poses += [_shoulder_pose(kin, q, 10.0 ** rng.uniform(-9, -2)) for q in configs[:50]]
+        for pose in poses:
+            seed = rng.uniform(-2.0 * math.pi, 2.0 * math.pi, 6).tolist()
+            if round_ % 2:  # seeds next to the pose's own joints, as a path's
+                with contextlib.suppress(UnreachableError):
+                    own = kin.inverse(pose, seed) + rng.uniform(-0.05, 0.05, 6)
+                    seed = own.tolist()
+            goal = calibration._rows(pose)
+            got, done = kin._chain.fast(goal, seed)
+            if not done:
+                undecided += 1
+                continue
+            decided += 1
+            want = kin._nearest_python(pose, goal, seed)
+            assert got == (None if want is None else want.tolist()), f"{pose!r} seed={seed!r}"
+    assert decided > 600
+    assert undecided > 20  # the wrist-singular configurations

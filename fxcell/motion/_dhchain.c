@@ -12,9 +12,23 @@
 #include <Python.h>
 #include <math.h>
 
+/* The calibrated inverse's hot path (Chain.hot_path sets it; see Chain.fast): the nominal
+ * model's closed form for the starts and the settings of the refinement. */
+typedef struct {
+    int ready, tcp_identity;
+    double geom[6]; /* nominal d1, d4, d5, d6, a2, a3 */
+    double tcp[12], tcp_inv[12];
+    double start_lower[6], start_upper[6], lower[6], upper[6];
+    long newton_iterations, settle_iterations;
+    double converged, rounding, stationary, accepted, factor, near, singular_move;
+    double lenient_h2, lenient_c3, edge_c3, lenient_wrist, wrist_eps;
+    int branches;
+} Hot;
+
 typedef struct {
     PyObject_HEAD
     double theta[6], a[6], d[6], ca[6], sa[6], tcp[12];
+    Hot hot;
 } Chain;
 
 static const double TWO_PI = 6.283185307179586;
@@ -29,6 +43,9 @@ static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
 static const double VALLEY_NEAR = 0.05;    /* as kinematics._VALLEY_NEAR */
 static const double VALLEY_FINISH = 1e-5; /* as kinematics._VALLEY_FINISH */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
+#define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
+static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
+static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -320,10 +337,17 @@ settle(const Chain *c, double *q, const double *target, long iterations, double 
     twist_to(frame, target, err);
     double norm = norm6(err);
     double g = gradient_ratio(jac, err, norm);
-    double lam = 1e-3;
+    double lam = 1e-3, mark = norm;
     for (long it = 0; it < iterations; it++) {
         if (norm < converged || g < stationary)
             break;
+        if (stationary > 0.0 && it > 0 && it % STALL_STEPS == 0) {
+            if (norm > STALL_FLOOR && norm > (1.0 - STALL_GAIN) * mark) {
+                g = 0.0; /* stalled far from a root: a local minimum's basin */
+                break;
+            }
+            mark = norm;
+        }
         if (!solve6(jac, err, lam, 1, step)) {
             lam *= 5.0;
             if (lam > 1e9)
@@ -693,52 +717,19 @@ wrist_bound(const double *start, const double *seed)
 
 #define MAX_STARTS 64
 
-/* nearest(starts, target, seed, lower, upper, newton_iterations, settle_iterations,
- *         converged, rounding, stationary, accepted, factor, near): DHChain.nearest in C. */
-static PyObject *
-Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
+/* DHChain.nearest on starts[0..n) (joints only): the best joints into best (returns whether
+ * any), their distance² into *best_d, the largest move, the smallest distance of a start that
+ * neither converged nor reached a local minimum, and singular_target's flags. */
+static int
+nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *target,
+             const double *seed, const double *lower, const double *upper, long n_newton,
+             long n_settle, double converged, double rounding, double stationary,
+             double accepted, double factor, double near, double *best, double *best_d_out,
+             double *moved_out, double *unrefined_out, int *singular_out)
 {
-    if (nargs != 13) {
-        PyErr_SetString(PyExc_TypeError, "nearest() takes 13 arguments");
-        return NULL;
-    }
-    double target[12], seed[6], lower[6], upper[6];
-    if (read_floats(args[1], target, 12, "target") || read_floats(args[2], seed, 6, "seed") ||
-        read_floats(args[3], lower, 6, "lower") || read_floats(args[4], upper, 6, "upper"))
-        return NULL;
-    long n_newton = PyLong_AsLong(args[5]);
-    long n_settle = PyLong_AsLong(args[6]);
-    double converged = PyFloat_AsDouble(args[7]);
-    double rounding = PyFloat_AsDouble(args[8]);
-    double stationary = PyFloat_AsDouble(args[9]);
-    double accepted = PyFloat_AsDouble(args[10]);
-    double factor = PyFloat_AsDouble(args[11]);
-    double near = PyFloat_AsDouble(args[12]);
-    if (PyErr_Occurred())
-        return NULL;
-    PyObject *seq = PySequence_Fast(args[0], "starts");
-    if (seq == NULL)
-        return NULL;
-    Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
-    if (n > MAX_STARTS) {
-        Py_DECREF(seq);
-        PyErr_Format(PyExc_ValueError, "at most %d starts", MAX_STARTS);
-        return NULL;
-    }
-    PyObject **items = PySequence_Fast_ITEMS(seq);
-    double starts[MAX_STARTS][6], distance[MAX_STARTS];
+    double distance[MAX_STARTS];
     int order[MAX_STARTS];
     for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *pair = items[i];
-        if (!PyTuple_Check(pair) || PyTuple_GET_SIZE(pair) != 2) {
-            Py_DECREF(seq);
-            PyErr_SetString(PyExc_TypeError, "starts: (distance², joints) pairs expected");
-            return NULL;
-        }
-        if (read_floats(PyTuple_GET_ITEM(pair, 1), starts[i], 6, "start")) {
-            Py_DECREF(seq);
-            return NULL;
-        }
         distance[i] = sqrt(free_distance(starts[i], seed));
         /* insertion sort by distance (stable: ties keep the caller's order) */
         Py_ssize_t k = i;
@@ -748,10 +739,9 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         }
         order[k] = (int)i;
     }
-    Py_DECREF(seq);
     int singular_at = singular_target(self, target, near);
     int shoulder = singular_at & 1;
-    double best[6], best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
+    double best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
     int found_any = 0;
     for (Py_ssize_t r = 0; r < n; r++) {
         int i = order[r];
@@ -808,12 +798,71 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
                 d += (shifted[k] - seed[k]) * (shifted[k] - seed[k]);
             }
             if (inside && d < best_d) {
-                memcpy(best, shifted, sizeof best);
+                memcpy(best, shifted, 6 * sizeof(double));
                 best_d = d;
                 found_any = 1;
             }
         }
     }
+    *best_d_out = best_d;
+    *moved_out = moved;
+    *unrefined_out = unrefined;
+    *singular_out = singular_at;
+    return found_any;
+}
+
+/* nearest(starts, target, seed, lower, upper, newton_iterations, settle_iterations,
+ *         converged, rounding, stationary, accepted, factor, near): DHChain.nearest in C. */
+static PyObject *
+Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 13) {
+        PyErr_SetString(PyExc_TypeError, "nearest() takes 13 arguments");
+        return NULL;
+    }
+    double target[12], seed[6], lower[6], upper[6];
+    if (read_floats(args[1], target, 12, "target") || read_floats(args[2], seed, 6, "seed") ||
+        read_floats(args[3], lower, 6, "lower") || read_floats(args[4], upper, 6, "upper"))
+        return NULL;
+    long n_newton = PyLong_AsLong(args[5]);
+    long n_settle = PyLong_AsLong(args[6]);
+    double converged = PyFloat_AsDouble(args[7]);
+    double rounding = PyFloat_AsDouble(args[8]);
+    double stationary = PyFloat_AsDouble(args[9]);
+    double accepted = PyFloat_AsDouble(args[10]);
+    double factor = PyFloat_AsDouble(args[11]);
+    double near = PyFloat_AsDouble(args[12]);
+    if (PyErr_Occurred())
+        return NULL;
+    PyObject *seq = PySequence_Fast(args[0], "starts");
+    if (seq == NULL)
+        return NULL;
+    Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
+    if (n > MAX_STARTS) {
+        Py_DECREF(seq);
+        PyErr_Format(PyExc_ValueError, "at most %d starts", MAX_STARTS);
+        return NULL;
+    }
+    PyObject **items = PySequence_Fast_ITEMS(seq);
+    double starts[MAX_STARTS][6];
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *pair = items[i];
+        if (!PyTuple_Check(pair) || PyTuple_GET_SIZE(pair) != 2) {
+            Py_DECREF(seq);
+            PyErr_SetString(PyExc_TypeError, "starts: (distance², joints) pairs expected");
+            return NULL;
+        }
+        if (read_floats(PyTuple_GET_ITEM(pair, 1), starts[i], 6, "start")) {
+            Py_DECREF(seq);
+            return NULL;
+        }
+    }
+    Py_DECREF(seq);
+    double best[6], best_d, moved, unrefined;
+    int singular_at;
+    int found_any = nearest_core(self, starts, n, target, seed, lower, upper, n_newton, n_settle,
+                                 converged, rounding, stationary, accepted, factor, near, best,
+                                 &best_d, &moved, &unrefined, &singular_at);
     PyObject *q_out;
     if (found_any) {
         q_out = float_list(best, 6);
@@ -824,6 +873,347 @@ Chain_nearest(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         q_out = Py_NewRef(Py_None);
     }
     return Py_BuildValue("(Ndddi)", q_out, best_d, moved, unrefined, singular_at);
+}
+
+/* ------------------------------------------------------------------ the hot path */
+
+/* Product of two transforms given as 12 floats (kinematics._compose). */
+static void
+compose(const double *a, const double *b, double *out)
+{
+    double r[12];
+    for (int i = 0; i < 3; i++) {
+        const double *row = a + 3 * i;
+        for (int j = 0; j < 3; j++)
+            r[3 * i + j] = row[0] * b[j] + row[1] * b[3 + j] + row[2] * b[6 + j];
+        r[9 + i] = row[0] * b[9] + row[1] * b[10] + row[2] * b[11] + a[9 + i];
+    }
+    memcpy(out, r, sizeof r);
+}
+
+/* The inverse of a rigid transform given as 12 floats (calibration._inverse_rows). */
+static void
+inverse_rows(const double *f, double *out)
+{
+    double x = f[9], y = f[10], z = f[11];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            out[3 * i + j] = f[3 * j + i];
+    out[9] = -(f[0] * x + f[3] * y + f[6] * z);
+    out[10] = -(f[1] * x + f[4] * y + f[7] * z);
+    out[11] = -(f[2] * x + f[5] * y + f[8] * z);
+}
+
+/* The nominal model's TCP frame at q (Kinematics.forward_rows: _flange, then the TCP). */
+static void
+nominal_frame(const Hot *h, const double *q, double *out)
+{
+    double d1 = h->geom[0], d4 = h->geom[1], d5 = h->geom[2], d6 = h->geom[3];
+    double a2 = h->geom[4], a3 = h->geom[5];
+    double c1 = cos(q[0]), s1 = sin(q[0]);
+    double q23 = q[1] + q[2];
+    double q234 = q23 + q[3];
+    double c2 = cos(q[1]), s2 = sin(q[1]);
+    double c23 = cos(q23), s23 = sin(q23);
+    double c234 = cos(q234), s234 = sin(q234);
+    double c5 = cos(q[4]), s5 = sin(q[4]);
+    double c6 = cos(q[5]), s6 = sin(q[5]);
+    double x4x = c234 * c1, x4y = c234 * s1, x4z = s234;
+    double z4x = s234 * c1, z4y = s234 * s1, z4z = -c234;
+    double x5x = c5 * x4x + s5 * s1, x5y = c5 * x4y - s5 * c1, x5z = c5 * x4z;
+    double z5x = -s5 * x4x + c5 * s1, z5y = -s5 * x4y - c5 * c1, z5z = -s5 * x4z;
+    double x6x = c6 * x5x - s6 * z4x, x6y = c6 * x5y - s6 * z4y, x6z = c6 * x5z - s6 * z4z;
+    double y6x = -s6 * x5x - c6 * z4x, y6y = -s6 * x5y - c6 * z4y, y6z = -s6 * x5z - c6 * z4z;
+    double reach = a2 * c2 + a3 * c23;
+    double f[12] = {
+        x6x, y6x, z5x, x6y, y6y, z5y, x6z, y6z, z5z,
+        reach * c1 + d4 * s1 + d5 * z4x + d6 * z5x,
+        reach * s1 - d4 * c1 + d5 * z4y + d6 * z5y,
+        d1 + a2 * s2 + a3 * s23 + d5 * z4z + d6 * z5z,
+    };
+    if (h->tcp_identity)
+        memcpy(out, f, sizeof f);
+    else
+        compose(f, h->tcp, out);
+}
+
+/* v's 2π-equivalent nearest s, as Kinematics.nearest_within writes it inline: NaN if none
+ * within [lo, hi]. */
+static double
+toward(double v, double s, double lo, double hi)
+{
+    double w = v + TWO_PI * floor((s - v) * INV_TWO_PI + 0.5);
+    if (!(lo <= w && w <= hi))
+        w = near_angle(v, s, lo, hi);
+    return w;
+}
+
+#define MAX_CANDIDATES 8
+#define STARTS_SINGULAR (-1)
+
+/* Kinematics.nearest_within(g, seed, inf, lenient=True) on the nominal model with the
+ * starts' limits: the candidates' joints into q (sorted as Python sorts (distance², joints)
+ * pairs), their number; STARTS_SINGULAR where a shoulder branch is within lenient_wrist of
+ * the wrist singularity (the continuum's members: Kinematics._singular_arms, left to
+ * Python). */
+static int
+nominal_starts(const Hot *H, const double *g, const double *seed, double q[][6])
+{
+    double r00 = g[0], r01 = g[1], r02 = g[2], r10 = g[3], r11 = g[4], r12 = g[5];
+    double r20 = g[6], r21 = g[7], r22 = g[8], px = g[9], py = g[10], pz = g[11];
+    if (!H->tcp_identity) { /* flange = target · tcp⁻¹, written out */
+        const double *b = H->tcp_inv;
+        double nx = r00 * b[9] + r01 * b[10] + r02 * b[11] + px;
+        double ny = r10 * b[9] + r11 * b[10] + r12 * b[11] + py;
+        double nz = r20 * b[9] + r21 * b[10] + r22 * b[11] + pz;
+        px = nx, py = ny, pz = nz;
+        double m[9];
+        const double rr[9] = {r00, r01, r02, r10, r11, r12, r20, r21, r22};
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++)
+                m[3 * i + j] =
+                    rr[3 * i] * b[j] + rr[3 * i + 1] * b[3 + j] + rr[3 * i + 2] * b[6 + j];
+        r00 = m[0], r01 = m[1], r02 = m[2], r10 = m[3], r11 = m[4], r12 = m[5];
+        r20 = m[6], r21 = m[7], r22 = m[8];
+    }
+    double d1 = H->geom[0], d4 = H->geom[1], d5 = H->geom[2], d6 = H->geom[3];
+    double a2 = H->geom[4], a3 = H->geom[5];
+    const double *lo = H->start_lower, *hi = H->start_upper;
+    double p5x = px - d6 * r02, p5y = py - d6 * r12, p5z = pz - d6 * r22;
+    double rho2 = p5x * p5x + p5y * p5y;
+    double h2 = rho2 - d4 * d4;
+    int clamped = 0;
+    if (h2 < H->lenient_h2 * d4 * d4) {
+        if (h2 < -H->edge_c3 * d4 * d4 || rho2 == 0.0)
+            return 0;
+        h2 = H->lenient_h2 * d4 * d4;
+        clamped = 1;
+    }
+    if (h2 < 0.0) {
+        if (h2 < -1e-12 * d4 * d4) /* _CLIP_EPS */
+            return 0;
+        h2 = 0.0;
+    }
+    double h = sqrt(h2);
+    double norm = h2 > 1e-12 && !clamped ? rho2 : sqrt(rho2 * (h2 + d4 * d4));
+    double k3 = 1.0 / (2.0 * a2 * a3);
+    double l3 = a2 * a2 + a3 * a3;
+    /* shoulders: e1, v1, c1, sn1 */
+    double sh[2][4];
+    int n_sh = 0;
+    for (int side = 0; side < (h > 0.0 ? 2 : 1); side++) {
+        double hs = side ? -h : h;
+        double c1 = (p5x * hs - p5y * d4) / norm;
+        double sn1 = (p5y * hs + p5x * d4) / norm;
+        double t = atan2(sn1, c1);
+        double v1 = toward(t, seed[0], lo[0], hi[0]);
+        if (v1 != v1)
+            continue;
+        sh[n_sh][0] = (v1 - seed[0]) * (v1 - seed[0]);
+        sh[n_sh][1] = v1;
+        sh[n_sh][2] = c1;
+        sh[n_sh][3] = sn1;
+        n_sh++;
+    }
+    if (n_sh == 2 && sh[1][0] < sh[0][0]) {
+        double tmp[4];
+        memcpy(tmp, sh[0], sizeof tmp);
+        memcpy(sh[0], sh[1], sizeof tmp);
+        memcpy(sh[1], tmp, sizeof tmp);
+    }
+    double es[MAX_CANDIDATES];
+    int n = 0;
+    for (int i = 0; i < n_sh; i++) {
+        double e1 = sh[i][0], v1 = sh[i][1], c1 = sh[i][2], sn1 = sh[i][3];
+        double zx = r00 * sn1 - r10 * c1;
+        double zy = r01 * sn1 - r11 * c1;
+        double zz = r02 * sn1 - r12 * c1;
+        double s5a = sqrt(zx * zx + zy * zy);
+        if (s5a <= H->wrist_eps || s5a < H->lenient_wrist)
+            return STARTS_SINGULAR;
+        double c6 = zx / s5a, sn6 = -zy / s5a;
+        double t6 = atan2(-zy, zx);
+        double t5 = atan2(s5a, zz);
+        double z4x = -(sn6 * r00 + c6 * r01);
+        double z4y = -(sn6 * r10 + c6 * r11);
+        double z4z = -(sn6 * r20 + c6 * r21);
+        double u = zz * c6, v = -zz * sn6, w = -s5a;
+        double x4x = r00 * u + r01 * v + r02 * w;
+        double x4y = r10 * u + r11 * v + r12 * w;
+        double x4z = r20 * u + r21 * v + r22 * w;
+        double x4p = c1 * x4x + sn1 * x4y;
+        double wr[2][4]; /* e6, sign, v5, v6 */
+        int n_wr = 0;
+        for (int flip = 0; flip < 2; flip++) {
+            double sign = flip ? -1.0 : 1.0;
+            double t5w = flip ? -t5 : t5, t6w = flip ? t6 + M_PI : t6;
+            double v5 = toward(t5w, seed[4], lo[4], hi[4]);
+            if (v5 != v5)
+                continue;
+            double v6 = toward(t6w, seed[5], lo[5], hi[5]);
+            if (v6 != v6)
+                continue;
+            wr[n_wr][0] = e1 + (v5 - seed[4]) * (v5 - seed[4]) + (v6 - seed[5]) * (v6 - seed[5]);
+            wr[n_wr][1] = sign;
+            wr[n_wr][2] = v5;
+            wr[n_wr][3] = v6;
+            n_wr++;
+        }
+        if (n_wr == 2 && wr[1][0] < wr[0][0]) {
+            double tmp[4];
+            memcpy(tmp, wr[0], sizeof tmp);
+            memcpy(wr[0], wr[1], sizeof tmp);
+            memcpy(wr[1], tmp, sizeof tmp);
+        }
+        for (int k = 0; k < n_wr; k++) {
+            double e6 = wr[k][0], sign = wr[k][1], v5 = wr[k][2], v6 = wr[k][3];
+            double t234 = atan2(sign * x4z, sign * x4p);
+            double sd5 = sign * d5;
+            double ox = p5x - sd5 * z4x, oy = p5y - sd5 * z4y, oz = p5z - sd5 * z4z;
+            double X = c1 * ox + sn1 * oy;
+            double Y = oz - d1;
+            double c3 = (X * X + Y * Y - l3) * k3;
+            if (fabs(c3) > H->lenient_c3) {
+                if (fabs(c3) >= 1.0 + H->edge_c3)
+                    continue;
+                c3 = c3 > 0.0 ? H->lenient_c3 : -H->lenient_c3;
+            }
+            double s3a = sqrt(1.0 - c3 * c3);
+            double base = atan2(Y, X);
+            double gg = atan2(a3 * s3a, a2 + a3 * c3);
+            double t3 = atan2(s3a, c3);
+            for (int elbow = 0; elbow < 2; elbow++) {
+                double t2 = elbow ? base + gg : base - gg, t3e = elbow ? -t3 : t3;
+                double v2 = toward(t2, seed[1], lo[1], hi[1]);
+                if (v2 != v2)
+                    continue;
+                double e = e6 + (v2 - seed[1]) * (v2 - seed[1]);
+                double v3 = toward(t3e, seed[2], lo[2], hi[2]);
+                if (v3 != v3)
+                    continue;
+                double t4 = t234 - t2 - t3e;
+                double v4 = toward(t4, seed[3], lo[3], hi[3]);
+                if (v4 != v4)
+                    continue;
+                e += (v3 - seed[2]) * (v3 - seed[2]) + (v4 - seed[3]) * (v4 - seed[3]);
+                double sol[6] = {v1, v2, v3, v4, v5, v6};
+                /* insert, sorted as Python sorts (e, joints) pairs */
+                int at = n;
+                while (at > 0) {
+                    const double *prev = q[at - 1];
+                    int after = es[at - 1] < e;
+                    if (es[at - 1] == e) {
+                        int j = 0;
+                        while (j < 6 && prev[j] == sol[j])
+                            j++;
+                        after = j == 6 || prev[j] < sol[j];
+                    }
+                    if (after)
+                        break;
+                    es[at] = es[at - 1];
+                    memcpy(q[at], q[at - 1], sizeof sol);
+                    at--;
+                }
+                es[at] = e;
+                memcpy(q[at], sol, sizeof sol);
+                n++;
+            }
+        }
+    }
+    return n;
+}
+
+/* hot_path(geom, tcp, tcp_inv, tcp_identity, start_lower, start_upper, lower, upper,
+ *          newton_iterations, settle_iterations, converged, rounding, stationary, accepted,
+ *          factor, near, singular_move, lenient_h2, lenient_c3, edge_c3, lenient_wrist,
+ *          wrist_eps, branches): the settings of fast(). */
+static PyObject *
+Chain_hot_path(Chain *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 23) {
+        PyErr_SetString(PyExc_TypeError, "hot_path() takes 23 arguments");
+        return NULL;
+    }
+    Hot H;
+    if (read_floats(args[0], H.geom, 6, "geom") || read_floats(args[1], H.tcp, 12, "tcp") ||
+        read_floats(args[2], H.tcp_inv, 12, "tcp_inv") ||
+        read_floats(args[4], H.start_lower, 6, "start_lower") ||
+        read_floats(args[5], H.start_upper, 6, "start_upper") ||
+        read_floats(args[6], H.lower, 6, "lower") || read_floats(args[7], H.upper, 6, "upper"))
+        return NULL;
+    H.tcp_identity = PyObject_IsTrue(args[3]);
+    H.newton_iterations = PyLong_AsLong(args[8]);
+    H.settle_iterations = PyLong_AsLong(args[9]);
+    double *v[] = {&H.converged, &H.rounding, &H.stationary, &H.accepted, &H.factor, &H.near,
+                   &H.singular_move, &H.lenient_h2, &H.lenient_c3, &H.edge_c3,
+                   &H.lenient_wrist, &H.wrist_eps};
+    for (int i = 0; i < 12; i++)
+        *v[i] = PyFloat_AsDouble(args[10 + i]);
+    H.branches = (int)PyLong_AsLong(args[22]);
+    if (H.tcp_identity < 0 || PyErr_Occurred())
+        return NULL;
+    H.ready = 1;
+    self->hot = H;
+    Py_RETURN_NONE;
+}
+
+/* fast(target, seed): CalibratedKinematics._nearest_fast's Python path in one call, as
+ * (joints or None, decided). decided False: a start is next to the wrist singularity, where
+ * the continuum's members are starts too (Kinematics._singular_arms): the caller takes the
+ * Python path. Joints None (decided): the general path decides. */
+static PyObject *
+Chain_fast(Chain *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "fast() takes 2 arguments");
+        return NULL;
+    }
+    const Hot *H = &self->hot;
+    if (!H->ready) {
+        PyErr_SetString(PyExc_RuntimeError, "fast() before hot_path()");
+        return NULL;
+    }
+    double goal[12], seed[6];
+    if (read_floats(args[0], goal, 12, "target") || read_floats(args[1], seed, 6, "seed"))
+        return NULL;
+    double starts[MAX_CANDIDATES][6];
+    int n = nominal_starts(H, goal, seed, starts);
+    if (n == STARTS_SINGULAR)
+        return Py_BuildValue("(OO)", Py_None, Py_False);
+    if (n == 0)
+        return Py_BuildValue("(OO)", Py_None, Py_True);
+    double best[6], best_d, moved, unrefined;
+    int singular;
+    int found = nearest_core(self, starts, n, goal, seed, H->lower, H->upper,
+                             H->newton_iterations, H->settle_iterations, H->converged,
+                             H->rounding, H->stationary, H->accepted, H->factor, H->near, best,
+                             &best_d, &moved, &unrefined, &singular);
+    if (!found || unrefined <= sqrt(best_d) + H->factor * moved)
+        return Py_BuildValue("(OO)", Py_None, Py_True);
+    if (n < H->branches && (singular || moved > H->singular_move)) {
+        /* the branches of the target corrected by the offset at the seed too */
+        double nominal[12], calibrated[12], inv[12], corrected[12];
+        nominal_frame(H, seed, nominal);
+        evaluate(self, seed, calibrated, NULL);
+        inverse_rows(calibrated, inv);
+        compose(nominal, inv, corrected);
+        compose(corrected, goal, corrected);
+        n = nominal_starts(H, corrected, seed, starts);
+        if (n == STARTS_SINGULAR)
+            return Py_BuildValue("(OO)", Py_None, Py_False);
+        if (n > 0) {
+            double own[6], own_d, m, u;
+            int s;
+            if (nearest_core(self, starts, n, goal, seed, H->lower, H->upper,
+                             H->newton_iterations, H->settle_iterations, H->converged,
+                             H->rounding, H->stationary, H->accepted, H->factor, H->near, own,
+                             &own_d, &m, &u, &s) &&
+                own_d < best_d)
+                memcpy(best, own, sizeof best);
+        }
+    }
+    PyObject *q_out = float_list(best, 6);
+    return q_out == NULL ? NULL : Py_BuildValue("(NO)", q_out, Py_True);
 }
 
 static PyMethodDef Chain_methods[] = {
@@ -839,6 +1229,10 @@ static PyMethodDef Chain_methods[] = {
      "The solutions along the wrist's self-motion through q: (joints, error norm) pairs."},
     {"nearest", (PyCFunction)(void (*)(void))Chain_nearest, METH_FASTCALL,
      "Each start refined; the solution nearest the seed (see the C source)."},
+    {"hot_path", (PyCFunction)(void (*)(void))Chain_hot_path, METH_FASTCALL,
+     "The settings of fast(): the nominal model's closed form and the refinement's."},
+    {"fast", (PyCFunction)(void (*)(void))Chain_fast, METH_FASTCALL,
+     "The calibrated inverse's hot path in one call: (joints or None, decided)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -53,3 +53,33 @@ class Chain:
         near: float,
         /,
     ) -> tuple[list[float] | None, float, float, float, int]: ...
+    def hot_path(
+        self,
+        geom: Sequence[float],
+        tcp: Sequence[float],
+        tcp_inv: Sequence[float],
+        tcp_identity: bool,
+        start_lower: Sequence[float],
+        start_upper: Sequence[float],
+        lower: Sequence[float],
+        upper: Sequence[float],
+        newton_iterations: int,
+        settle_iterations: int,
+        converged: float,
+        rounding: float,
+        stationary: float,
+        accepted: float,
+        factor: float,
+        near: float,
+        singular_move: float,
+        lenient_h2: float,
+        lenient_c3: float,
+        edge_c3: float,
+        lenient_wrist: float,
+        wrist_eps: float,
+        branches: int,
+        /,
+    ) -> None: ...
+    def fast(
+        self, target: Sequence[float], seed: Sequence[float], /
+    ) -> tuple[list[float] | None, bool]: ...

@@ -33,6 +33,11 @@ from fxcell.calibration import Calibration
 from fxcell.errors import SingularityError, UnreachableError
 from fxcell.geometry import Pose, rotvec_to_matrix
 from fxcell.motion.kinematics import (
+    _EDGE_C3,
+    _LENIENT_C3,
+    _LENIENT_H2,
+    _LENIENT_WRIST,
+    _WRIST_EPS,
     JOINT_NAMES,
     UR3E_DH,
     DHChain,
@@ -138,6 +143,15 @@ class CalibratedKinematics(Kinematics):
         # Rz(q + θ)·Tz(d)·Tx(a)·Rx(α) = Rz(q)·C with C fixed per joint
         self._links = [dh_transform(theta[j], d[j], a[j], alpha[j]) for j in range(6)]
         self._chain = Chain(theta, a, d, alpha, self._tcp)
+        if NATIVE:  # the hot path in one call (Chain.fast): the starts' closed form too
+            s = self._starts
+            self._chain.hot_path(
+                s._geom, s._tcp, s._tcp_inv, s._tcp_is_identity, s.lower, s.upper,
+                self.lower, self.upper, _FAST_ITERATIONS, _SETTLE_ITERATIONS, CONVERGED,
+                _ROUNDING, _STATIONARY, ACCEPTED, _RIVAL_FACTOR, _NEAR_SINGULAR,
+                _SINGULAR_MOVE, _LENIENT_H2, _LENIENT_C3, _EDGE_C3, _LENIENT_WRIST,
+                _WRIST_EPS, _BRANCHES,
+            )  # fmt: skip
         self.fallbacks = 0
         """Calls of :meth:`inverse` (without ``valid`` or a margin) that the hot path left to
         the general one (the benchmark reports it)."""
@@ -353,8 +367,26 @@ class CalibratedKinematics(Kinematics):
         the nominal arm lacks a branch there, or at the edge of its workspace, the branches
         of the target corrected by the offset at the seed are refined too: the deltas can
         take the seed's own branch out of the nominal solutions of the target (a wrist near
-        θ5 = 0 turns by tenths of a radian per millimetre)."""
+        θ5 = 0 turns by tenths of a radian per millimetre).
+
+        With the C extension (:data:`NATIVE`) all of this is one call, ``Chain.fast`` (the
+        nominal closed form written out in C as well), except where a start is within
+        _LENIENT_WRIST of the wrist singularity: there the continuum's members nearest the
+        seed are starts too (:meth:`Kinematics._singular_arms`), found by
+        :meth:`_nearest_python`, the reference ``Chain.fast`` computes bit for bit
+        (tests/test_native.py)."""
         goal = _rows(target)
+        if NATIVE:
+            best, decided = self._chain.fast(goal, seed)
+            if decided:
+                return None if best is None else np.array(best)
+        return self._nearest_python(target, goal, seed)
+
+    def _nearest_python(
+        self, target: Pose, goal: list[float], seed: list[float]
+    ) -> FloatArray | None:
+        """:meth:`_nearest_fast` with the nominal closed form of :class:`Kinematics`
+        (``goal``: ``target`` as 12 floats)."""
         starts = self._starts
         nearest, candidates, _, edge = starts.nearest_within(target, seed, math.inf, lenient=True)
         if nearest is None:

@@ -123,6 +123,14 @@ _VALLEY_FINISH = 1e-5
 _VALLEY_FLOOR = 1e-2
 """Pose error (m and rad together) above which a point is off the valley (the arm out of
 reach at that θ6): no root is looked for next to it."""
+_STALL_STEPS = 8
+_STALL_GAIN = 1e-3
+_STALL_FLOOR = 1e-7
+"""With ``stationary`` > 0, :meth:`DHChain.settle` reports a local minimum of the error (no
+solution near) when _STALL_STEPS steps lowered an error above _STALL_FLOOR by less than the
+fraction _STALL_GAIN: next to a singular local minimum (the arm stretched or folded) the
+gradient ratio falls to ``stationary`` only after hundreds of steps that leave the error as
+it was (to three digits), while a run toward a root lowers it steadily."""
 
 
 @dataclass(frozen=True)
@@ -1488,16 +1496,24 @@ class DHChain:
         singularity): the joints, the error norm left and how far that point is from
         stationary, ``‖Jᵀe‖ / (‖J‖·‖e‖)``. A last value below ``stationary`` (where the steps
         stop) with an error left is a local minimum of the error: no solution near ``q`` (the
-        target beyond this branch's reach, as a stretched arm's)."""
+        target beyond this branch's reach, as a stretched arm's). With ``stationary`` > 0 an
+        error that stalls far from a root (_STALL_STEPS) ends the steps too, reported as
+        stationary (0)."""
         qq = [float(v) for v in q]
         frame, jac = self.frame_and_jacobian(qq)
         err = _twist_to(frame, target)
         norm = _norm6(err)
         gradient = _gradient_ratio(jac, err, norm)
         lam = 1e-3
-        for _ in range(iterations):
+        mark = norm  # the error at the start of the current _STALL_STEPS
+        for it in range(iterations):
             if norm < converged or gradient < stationary:
                 break
+            if stationary > 0.0 and it > 0 and it % _STALL_STEPS == 0:
+                if norm > _STALL_FLOOR and norm > (1.0 - _STALL_GAIN) * mark:
+                    gradient = 0.0  # stalled far from a root: a local minimum's basin
+                    break
+                mark = norm
             step = _solve6(jac, err, lam, True)
             if step is None:
                 lam *= 5.0
