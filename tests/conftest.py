@@ -1,10 +1,12 @@
 import contextlib
 import inspect
+import json
 import os
 import subprocess
 import tempfile
 import types
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -106,6 +108,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             and _starts_processes(item)
         ):
             item.add_marker(pytest.mark.system)
+    _longest_files_first(items)
 
 
 _popen_init = subprocess.Popen.__init__
@@ -153,3 +156,35 @@ def _collector_given_back() -> Iterator[None]:
         while collector.holds():
             collector.release()
         pytest.fail("a trajectory's pause of the garbage collector outlived the test")
+
+
+# ----------------------------------------------------------------- parallel workers
+# `./dev test` runs the suite on pytest-xdist workers, a whole file to a worker (`--dist
+# loadfile`: a module's shared simulator and cell stay in one process), files handed out in
+# collection order (`--no-loadscope-reorder`). A worker takes its next file when it ends
+# one, so the run ends soonest when the longest files go first: files are ordered by their
+# seconds in a measured run (tests/file_durations.json; stale figures cost only speed),
+# a file not listed by an estimate from its marks. The order is the same in every worker
+# and every run; tests keep their order within a file.
+_DURATIONS = Path(__file__).with_name("file_durations.json")  # absent in pytester's copies
+FILE_DURATIONS = json.loads(_DURATIONS.read_text()) if _DURATIONS.exists() else {}
+ESTIMATE = {"slow": 10.0, "system": 1.0}  # s per test of a file not in file_durations.json
+ESTIMATE_UNIT = 0.02
+
+
+def _estimate(item: pytest.Item) -> float:
+    for mark, seconds in ESTIMATE.items():
+        if item.get_closest_marker(mark) is not None:
+            return seconds
+    return ESTIMATE_UNIT
+
+
+def _longest_files_first(items: list[pytest.Item]) -> None:
+    seconds: dict[str, float] = {}
+    for item in items:
+        path = item.nodeid.split("::")[0]
+        seconds[path] = seconds.get(path, 0.0) + _estimate(item)
+    for path in seconds:
+        seconds[path] = FILE_DURATIONS.get(path, seconds[path])
+    rank = {path: (-s, i) for i, (path, s) in enumerate(seconds.items())}
+    items.sort(key=lambda item: rank[item.nodeid.split("::")[0]])

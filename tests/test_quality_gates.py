@@ -73,7 +73,7 @@ GATES = (
     ("ruff", "check fxcell tests bench"),
     ("ruff", "format --check fxcell tests bench"),
     ("mypy", ""),
-    ("pytest", "-q tests/test_x.py"),
+    ("pytest", "-n 3 --dist loadfile --no-loadscope-reorder -q tests/test_x.py"),
 )
 
 
@@ -97,6 +97,7 @@ def _dev_with_recording_tools(tmp_path: Path, failing: str | None) -> tuple[int,
         stand_in.chmod(0o755)
     env = {**os.environ, "FXCELL_CHROMIUM": "/bin/true"}  # never install a browser here
     env.pop("PYTEST_ADDOPTS", None)
+    env.pop("FXCELL_TEST_WORKERS", None)
     status = subprocess.run(
         [str(tmp_path / "dev"), "test", "-q", "tests/test_x.py"],
         env=env, capture_output=True, timeout=60,
