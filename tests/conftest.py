@@ -108,7 +108,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             and _starts_processes(item)
         ):
             item.add_marker(pytest.mark.system)
-    _longest_files_first(items)
+    _into_work_units_longest_first(items)
 
 
 _popen_init = subprocess.Popen.__init__
@@ -159,32 +159,53 @@ def _collector_given_back() -> Iterator[None]:
 
 
 # ----------------------------------------------------------------- parallel workers
-# `./dev test` runs the suite on pytest-xdist workers, a whole file to a worker (`--dist
-# loadfile`: a module's shared simulator and cell stay in one process), files handed out in
-# collection order (`--no-loadscope-reorder`). A worker takes its next file when it ends
-# one, so the run ends soonest when the longest files go first: files are ordered by their
-# seconds in a measured run (tests/file_durations.json; stale figures cost only speed),
-# a file not listed by an estimate from its marks. The order is the same in every worker
-# and every run; tests keep their order within a file.
-_DURATIONS = Path(__file__).with_name("file_durations.json")  # absent in pytester's copies
-FILE_DURATIONS = json.loads(_DURATIONS.read_text()) if _DURATIONS.exists() else {}
-ESTIMATE = {"slow": 10.0, "system": 1.0}  # s per test of a file not in file_durations.json
-ESTIMATE_UNIT = 0.02
+# `./dev test` runs the suite on pytest-xdist workers (`--dist loadgroup`). A test that uses
+# a fixture shared by its module or class (a simulator, a cell, a daemon started once for
+# the file) goes with the rest of its file to one worker; any other test is a work unit of
+# its own. Units are handed out in collection order (`--no-loadscope-reorder`) and a worker
+# takes its next unit when it ends one, so the run ends soonest when the longest units go
+# first: they are ordered by the seconds their tests took in a measured run
+# (tests/test_durations.json: setup + call + teardown of each test over 0.5 s, from
+# `./dev test --durations=0`; stale figures cost only speed), the same in every worker and
+# every run. Tests keep their order within a unit.
+_DURATIONS = Path(__file__).with_name("test_durations.json")  # absent in pytester's copies
+TEST_DURATIONS: dict[str, float] = json.loads(_DURATIONS.read_text()) if _DURATIONS.exists() else {}
+_MEASURED_FILES = {nodeid.split("::")[0] for nodeid in TEST_DURATIONS}
+UNDER = 0.05  # s: a test of a measured file that is not listed (it took under 0.5 s)
+UNMEASURED = {"slow": 10.0, "system": 1.0}  # s: a test of a file not measured yet
+UNMEASURED_UNIT = 0.02
+_SHARED_SCOPES = frozenset({"module", "class", "package"})
 
 
-def _estimate(item: pytest.Item) -> float:
-    for mark, seconds in ESTIMATE.items():
+def _seconds(item: pytest.Item) -> float:
+    if item.nodeid in TEST_DURATIONS:
+        return TEST_DURATIONS[item.nodeid]
+    if item.nodeid.split("::")[0] in _MEASURED_FILES:
+        return UNDER
+    for mark, seconds in UNMEASURED.items():
         if item.get_closest_marker(mark) is not None:
             return seconds
-    return ESTIMATE_UNIT
+    return UNMEASURED_UNIT
 
 
-def _longest_files_first(items: list[pytest.Item]) -> None:
+def _work_unit(item: pytest.Item) -> str:
+    """The file of a test that shares a module or class fixture, else the test itself."""
+    path = item.nodeid.split("::")[0]
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return path
+    for defs in info.name2fixturedefs.values():
+        if any(d.scope in _SHARED_SCOPES for d in defs):
+            return path
+    return item.nodeid
+
+
+def _into_work_units_longest_first(items: list[pytest.Item]) -> None:
+    units = {id(item): _work_unit(item) for item in items}
     seconds: dict[str, float] = {}
     for item in items:
-        path = item.nodeid.split("::")[0]
-        seconds[path] = seconds.get(path, 0.0) + _estimate(item)
-    for path in seconds:
-        seconds[path] = FILE_DURATIONS.get(path, seconds[path])
-    rank = {path: (-s, i) for i, (path, s) in enumerate(seconds.items())}
-    items.sort(key=lambda item: rank[item.nodeid.split("::")[0]])
+        seconds[units[id(item)]] = seconds.get(units[id(item)], 0.0) + _seconds(item)
+    rank = {unit: (-s, i) for i, (unit, s) in enumerate(seconds.items())}
+    items.sort(key=lambda item: rank[units[id(item)]])
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(units[id(item)]))
