@@ -100,6 +100,7 @@ def _starts_processes(item: pytest.Function) -> bool:
     return not SYSTEM_NAMES.isdisjoint(names)
 
 
+@pytest.hookimpl(tryfirst=True)  # before -m deselects and before xdist reads the groups
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if (
@@ -189,7 +190,11 @@ def _seconds(item: pytest.Item) -> float:
 
 
 def _work_unit(item: pytest.Item) -> str:
-    """The file of a test that shares a module or class fixture, else the test itself."""
+    """The group a test declares (``@pytest.mark.xdist_group``), else the file of a test that
+    shares a module or class fixture, else the test itself."""
+    declared = item.get_closest_marker("xdist_group")
+    if declared is not None:
+        return str(declared.args[0] if declared.args else declared.kwargs["name"])
     path = item.nodeid.split("::")[0]
     info = getattr(item, "_fixtureinfo", None)
     if info is None:
@@ -208,4 +213,5 @@ def _into_work_units_longest_first(items: list[pytest.Item]) -> None:
     rank = {unit: (-s, i) for i, (unit, s) in enumerate(seconds.items())}
     items.sort(key=lambda item: rank[units[id(item)]])
     for item in items:
-        item.add_marker(pytest.mark.xdist_group(units[id(item)]))
+        if item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(units[id(item)]))
