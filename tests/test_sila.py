@@ -34,7 +34,9 @@ from fxcell.job.plan import location
 from fxcell.layout import Layout
 from fxcell.testing import SimulatorHandle, simulator
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+# one xdist work unit: discovery browses every SiLA server on loopback, and a run's daemon on
+# another worker (another certificate) made the reference client's discovery fail
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.xdist_group("test_sila")]
 RUN_LOCK = 600
 """s: a lock held through a whole run (SiLA's lock timeout restarts only with a call under
 the lock, and Run Job is one call; 120 s ran out on a busy machine)."""
