@@ -49,6 +49,11 @@ def shared() -> Iterator[SimulatorHandle]:
 def _fresh(handle: SimulatorHandle, joints: Sequence[float]) -> None:
     if str(handle.state()["safety_mode"]) != "NORMAL" or handle.state()["remote_control"] is False:
         handle.inject("remote_control")
+    # the simulator places only an arm with no joint speed at all: the previous test's arm,
+    # braked to under 1e-6 rad/s, may still be settling on its last servo target
+    wait_until(
+        lambda: not any(handle.state()["qd"]), timeout=10.0, what="the previous test's arm at rest"
+    )
     handle.set_joints(list(joints))
 
 
