@@ -542,17 +542,33 @@ def _numeric_deviation(a: Any, b: Any) -> float | None:
     return None if a == b else math.inf
 
 
+PATH_STEP = 1e-3
+"""rad: the spacing to which a compared joint path is filled in between its samples."""
+
+
 def _path_deviation(rec: Any, new: Any, block: int = 64) -> float | None:
     """Largest joint distance (max over joints) between two joint paths, either way round.
 
-    A symmetric Hausdorff distance between the sample sets: where the robot went, free of
+    A symmetric Hausdorff distance between the paths: where the robot went, free of
     when it got there (streaming jitter on a busy host shifts the timing, not the path).
+    Each sample is measured to the other path's line between its samples (filled in every
+    :data:`PATH_STEP`), not to its samples alone: a controller running late streams one
+    sample for several cycles, and such a gap in the stream is not a step in the path.
     """
     import numpy as np
 
     a, b = np.asarray(rec, dtype=float), np.asarray(new, dtype=float)
     if len(a) == 0 or len(b) == 0:
         return None
+
+    def filled(y: Any) -> Any:
+        if len(y) < 2:
+            return y
+        steps = np.maximum(np.ceil(np.max(np.abs(np.diff(y, axis=0)), axis=1) / PATH_STEP), 1)
+        starts = np.repeat(y[:-1], steps.astype(int), axis=0)
+        deltas = np.repeat(np.diff(y, axis=0) / steps[:, None], steps.astype(int), axis=0)
+        within = np.concatenate([np.arange(n) for n in steps.astype(int)])
+        return np.vstack([starts + deltas * within[:, None], y[-1:]])
 
     def directed(x: Any, y: Any) -> float:
         worst = 0.0
@@ -561,7 +577,7 @@ def _path_deviation(rec: Any, new: Any, block: int = 64) -> float | None:
             worst = max(worst, float(np.max(np.min(d, axis=1))))
         return worst
 
-    return max(directed(a, b), directed(b, a))
+    return max(directed(a, filled(b)), directed(b, filled(a)))
 
 
 async def reexecute(

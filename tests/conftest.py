@@ -1,10 +1,12 @@
 import contextlib
 import inspect
+import json
 import os
 import subprocess
 import tempfile
 import types
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -98,6 +100,7 @@ def _starts_processes(item: pytest.Function) -> bool:
     return not SYSTEM_NAMES.isdisjoint(names)
 
 
+@pytest.hookimpl(tryfirst=True)  # before -m deselects and before xdist reads the groups
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if (
@@ -106,6 +109,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             and _starts_processes(item)
         ):
             item.add_marker(pytest.mark.system)
+    _into_work_units_longest_first(items)
 
 
 _popen_init = subprocess.Popen.__init__
@@ -153,3 +157,61 @@ def _collector_given_back() -> Iterator[None]:
         while collector.holds():
             collector.release()
         pytest.fail("a trajectory's pause of the garbage collector outlived the test")
+
+
+# ----------------------------------------------------------------- parallel workers
+# `./dev test` runs the suite on pytest-xdist workers (`--dist loadgroup`). A test that uses
+# a fixture shared by its module or class (a simulator, a cell, a daemon started once for
+# the file) goes with the rest of its file to one worker; any other test is a work unit of
+# its own. Units are handed out in collection order (`--no-loadscope-reorder`) and a worker
+# takes its next unit when it ends one, so the run ends soonest when the longest units go
+# first: they are ordered by the seconds their tests took in a measured run
+# (tests/test_durations.json: setup + call + teardown of each test over 0.5 s, from
+# `./dev test --durations=0`; stale figures cost only speed), the same in every worker and
+# every run. Tests keep their order within a unit.
+_DURATIONS = Path(__file__).with_name("test_durations.json")  # absent in pytester's copies
+TEST_DURATIONS: dict[str, float] = json.loads(_DURATIONS.read_text()) if _DURATIONS.exists() else {}
+_MEASURED_FILES = {nodeid.split("::")[0] for nodeid in TEST_DURATIONS}
+UNDER = 0.05  # s: a test of a measured file that is not listed (it took under 0.5 s)
+UNMEASURED = {"slow": 10.0, "system": 1.0}  # s: a test of a file not measured yet
+UNMEASURED_UNIT = 0.02
+_SHARED_SCOPES = frozenset({"module", "class", "package"})
+
+
+def _seconds(item: pytest.Item) -> float:
+    if item.nodeid in TEST_DURATIONS:
+        return TEST_DURATIONS[item.nodeid]
+    if item.nodeid.split("::")[0] in _MEASURED_FILES:
+        return UNDER
+    for mark, seconds in UNMEASURED.items():
+        if item.get_closest_marker(mark) is not None:
+            return seconds
+    return UNMEASURED_UNIT
+
+
+def _work_unit(item: pytest.Item) -> str:
+    """The group a test declares (``@pytest.mark.xdist_group``), else the file of a test that
+    shares a module or class fixture, else the test itself."""
+    declared = item.get_closest_marker("xdist_group")
+    if declared is not None:
+        return str(declared.args[0] if declared.args else declared.kwargs["name"])
+    path = item.nodeid.split("::")[0]
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return path
+    for defs in info.name2fixturedefs.values():
+        if any(d.scope in _SHARED_SCOPES for d in defs):
+            return path
+    return item.nodeid
+
+
+def _into_work_units_longest_first(items: list[pytest.Item]) -> None:
+    units = {id(item): _work_unit(item) for item in items}
+    seconds: dict[str, float] = {}
+    for item in items:
+        seconds[units[id(item)]] = seconds.get(units[id(item)], 0.0) + _seconds(item)
+    rank = {unit: (-s, i) for i, (unit, s) in enumerate(seconds.items())}
+    items.sort(key=lambda item: rank[units[id(item)]])
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(units[id(item)]))

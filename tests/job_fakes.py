@@ -15,6 +15,7 @@ starts the run (or recovers and resumes it, answering from the world file) and e
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import os
 import sys
@@ -22,7 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from fxcell.config import CellConfig, JobConfig
+from fxcell.config import CellConfig, JobConfig, LayoutConfig
 from fxcell.errors import FxcellError, GripperError, IOTimeoutError, NothingGraspedError
 from fxcell.job import Job, JobStore, Run
 from fxcell.job.plan import location
@@ -37,8 +38,16 @@ class SimulatedCrash(BaseException):
     """The process died here: nothing after this point runs (not even ``except Exception``)."""
 
 
+@functools.cache
+def _shipped_layout() -> LayoutConfig:
+    """The shipped configuration's layout, read once (the crash tests build a fake cell for
+    each of their 100+ crash points; reading the configuration's YAML was half their time)."""
+    return CellConfig.load().layout
+
+
 def default_layout() -> Layout:
-    return Layout(CellConfig.load().layout)
+    """A layout of the shipped configuration's stations (a new one each time)."""
+    return Layout(_shipped_layout().model_copy(deep=True))
 
 
 class World:

@@ -30,9 +30,16 @@ TIME_SCALE = 0.05
 OBSERVE_WITHIN = 0.05  # s from the simulator's change to cell.state
 
 
+UNLOCK_DELAY = 2.0
+"""s of controller time before the shared simulator unlocks a protective stop: the real
+controller's 5 s rule is tested in tests/sim/test_sim_safety.py and test_cell_fake.py; 2 s
+still leave a busy machine time to ask too soon once."""
+
+
 @pytest.fixture(scope="module")
 def shared_sim() -> Iterator[SimulatorHandle]:
-    with simulator(time_scale=TIME_SCALE) as handle:
+    args = ["--unlock-delay", str(UNLOCK_DELAY)]
+    with simulator(time_scale=TIME_SCALE, extra_args=args) as handle:
         yield handle
 
 

@@ -101,3 +101,15 @@ def test_the_job_section_has_defaults_and_rejects_typos(tmp_path: Path) -> None:
         CellConfig.from_dict({"job": {"done_timout": 5}})
     with pytest.raises(ConfigError, match=r"job\.start_timeout"):
         CellConfig.from_dict({"job": {"start_timeout": 0}})
+
+
+def test_yaml_is_parsed_as_safe_load_parses_it() -> None:
+    import yaml
+
+    from fxcell.config import CONFIG_DIR, parse_yaml
+
+    for path in sorted(CONFIG_DIR.glob("*.yaml")):
+        text = path.read_text()
+        assert parse_yaml(text) == yaml.safe_load(text), path.name
+    with pytest.raises(yaml.YAMLError):  # no Python objects from a file
+        parse_yaml("!!python/object/apply:os.system ['true']")

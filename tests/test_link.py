@@ -23,7 +23,9 @@ TIME_SCALE = 0.05
 
 @pytest.fixture(scope="module")
 def sim() -> Iterator[Any]:
-    with simulator(time_scale=TIME_SCALE) as handle:
+    # a protective stop unlocks after 0.5 s of controller time, not the real 5 s (tested in
+    # tests/sim/test_sim_safety.py): no test here is about that rule
+    with simulator(time_scale=TIME_SCALE, extra_args=["--unlock-delay", "0.5"]) as handle:
         yield handle
 
 
@@ -245,7 +247,7 @@ async def test_trajectory_fails_on_protective_stop(link: LinkClient, sim: Any) -
     assert result.reason == "protective_stop"
     assert link.latest is not None
     assert link.latest.runtime_state == RuntimeState.STOPPED
-    # leave the shared simulator usable: the controller allows unlocking after 5 s
+    # leave the shared simulator usable: it allows unlocking after its unlock delay
     deadline = time.monotonic() + 8
     while "releasing" not in (await link.dashboard("unlock protective stop")).lower():
         assert time.monotonic() < deadline

@@ -267,11 +267,14 @@ def test_a_next_move_right_after_the_end_report_takes_servo_mode_over_at_once(en
             traj.stop(StopReason.SETTLED)
         assert link.end_sent.wait(5.0)
         assert not traj.hold_started.is_set()  # reported, not yet holding
+        streamed = len(link.control.calls)
         assert traj.release(keep_servo=True)  # what the next trajectory does
         link.let_go.set()
-        released = time.monotonic()
         traj.thread.join(5.0)
-        assert time.monotonic() - released < _Trajectory.HOLD / 2  # not after the hold
+        assert not traj.thread.is_alive()
+        # handed over at once, not after holding the target: not one servoJ after the
+        # report (a hold servos the target every cycle until its time is up)
+        assert link.control.calls[streamed:] == []
         assert traj.servo_kept
         assert link.control.count("servoStop") == 0
     finally:

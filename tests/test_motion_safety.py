@@ -49,6 +49,11 @@ def shared() -> Iterator[SimulatorHandle]:
 def _fresh(handle: SimulatorHandle, joints: Sequence[float]) -> None:
     if str(handle.state()["safety_mode"]) != "NORMAL" or handle.state()["remote_control"] is False:
         handle.inject("remote_control")
+    # the simulator places only an arm with no joint speed at all: the previous test's arm,
+    # braked to under 1e-6 rad/s, may still be settling on its last servo target
+    wait_until(
+        lambda: not any(handle.state()["qd"]), timeout=10.0, what="the previous test's arm at rest"
+    )
     handle.set_joints(list(joints))
 
 
@@ -126,23 +131,27 @@ async def test_a_late_event_loop_does_not_stop_a_healthy_move(shared: SimulatorH
 
 
 def _hold_the_gil(seconds: float) -> float:
-    """Hold the GIL for about ``seconds`` in one C call (a sort of shuffled numbers); the
-    time it took. The size is calibrated first on this machine."""
-    rng = np.random.default_rng(7)
-    probe = rng.permutation(200_000).tolist()
-    started = time.perf_counter()
-    sorted(probe)
-    per_item = (time.perf_counter() - started) / len(probe)
-    data = rng.permutation(max(len(probe), int(seconds / per_item))).tolist()
-    started = time.perf_counter()
-    sorted(data)
-    return time.perf_counter() - started
+    """Hold the GIL for ``seconds`` of wall-clock time; the time it was held. Python lets
+    another thread that asks for the GIL have it after the switch interval (5 ms): raised
+    above ``seconds`` for the while, this thread keeps it until its deadline, as one long C
+    call would, but for a given time, not for a given amount of work (a sort calibrated
+    beforehand took three times as long when a busy machine took the CPU away)."""
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(10 * seconds)
+    try:
+        started = time.perf_counter()
+        deadline = started + seconds
+        while time.perf_counter() < deadline:
+            pass
+        return time.perf_counter() - started
+    finally:
+        sys.setswitchinterval(interval)
 
 
 async def test_a_loop_holding_the_gil_a_while_does_not_stop_a_healthy_move(
     shared: SimulatorHandle,
 ) -> None:
-    # 150 ms in one C call that keeps the GIL (on a busy machine: a thread descheduled while
+    # 150 ms with the GIL kept (a long C call; on a busy machine: a thread descheduled while
     # it holds it): the beat thread cannot beat, but the kernel says the process runs, so
     # the link process gives it BUSY_CLIENT_LIMIT instead of braking after 100 ms.
     async with ready_cell(shared) as cell:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import os
 import shutil
 import subprocess
@@ -73,7 +74,7 @@ GATES = (
     ("ruff", "check fxcell tests bench"),
     ("ruff", "format --check fxcell tests bench"),
     ("mypy", ""),
-    ("pytest", "-q tests/test_x.py"),
+    ("pytest", "-n 2 --dist loadgroup --no-loadscope-reorder -q tests/test_x.py"),
 )
 
 
@@ -97,6 +98,7 @@ def _dev_with_recording_tools(tmp_path: Path, failing: str | None) -> tuple[int,
         stand_in.chmod(0o755)
     env = {**os.environ, "FXCELL_CHROMIUM": "/bin/true"}  # never install a browser here
     env.pop("PYTEST_ADDOPTS", None)
+    env.pop("FXCELL_TEST_WORKERS", None)
     status = subprocess.run(
         [str(tmp_path / "dev"), "test", "-q", "tests/test_x.py"],
         env=env, capture_output=True, timeout=60,
@@ -206,3 +208,58 @@ def test_tests_that_start_processes_are_system_tests_and_the_fast_run_has_none(
     result = pytester.runpytest("-m", "not system", "-p", "no:cacheprovider", *INNER_OPTS)
     result.assert_outcomes(passed=1, failed=1, deselected=2)
     result.stdout.fnmatch_lines(["*test_unmarked_yet_starting_a_process*", "*mark*system*"])
+
+
+def test_parallel_work_units_keep_shared_fixtures_together_and_go_longest_first(
+    pytester: pytest.Pytester,
+) -> None:
+    """A file whose tests share a module fixture is one xdist work unit, any other test is
+    its own; the units are collected longest first by tests/test_durations.json."""
+    pytester.makeconftest((ROOT / "tests" / "conftest.py").read_text())
+    durations = {"test_short.py::test_long_alone": 9.0, "test_shared.py::test_b": 5.0}
+    (pytester.path / "test_durations.json").write_text(json.dumps(durations))
+    pytester.makepyfile(
+        test_shared="""
+        import pytest
+
+        @pytest.fixture(scope="module")
+        def shared():
+            return object()
+
+        def test_a(shared):
+            pass
+
+        def test_b(shared):
+            pass
+        """,
+        test_short="""
+        def test_quick():
+            pass
+
+        def test_long_alone():
+            pass
+        """,
+    )
+    result = pytester.runpytest("--collect-only", "-q", "-p", "no:cacheprovider", *INNER_OPTS)
+    order = [line for line in result.outlines if "::" in line]
+    assert order == [
+        "test_short.py::test_long_alone",  # 9 s, a unit of its own
+        "test_shared.py::test_a",  # 5 s + 0.05 s, one unit: its module fixture
+        "test_shared.py::test_b",
+        "test_short.py::test_quick",
+    ]
+    pytester.makeconftest(
+        (ROOT / "tests" / "conftest.py").read_text()
+        + "\n\ndef pytest_collection_finish(session):\n"
+        + "    import json, pathlib\n"
+        + "    pathlib.Path('groups.json').write_text(json.dumps({i.nodeid: "
+        + "i.get_closest_marker('xdist_group').args[0] for i in session.items}))\n"
+    )
+    pytester.runpytest("--collect-only", "-q", "-p", "no:cacheprovider", *INNER_OPTS)
+    items = json.loads((pytester.path / "groups.json").read_text())
+    assert items == {
+        "test_short.py::test_long_alone": "test_short.py::test_long_alone",
+        "test_shared.py::test_a": "test_shared.py",
+        "test_shared.py::test_b": "test_shared.py",
+        "test_short.py::test_quick": "test_short.py::test_quick",
+    }

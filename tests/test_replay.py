@@ -236,6 +236,11 @@ def test_reexecute_compares_where_the_robot_went_not_when() -> None:
     assert _path_deviation(q[: len(q) // 2], slower) == pytest.approx(0, abs=2e-3)
     offset = q + np.array([0, 0, 0.05, 0, 0, 0])  # another path
     assert _path_deviation(q, offset) == pytest.approx(0.05, abs=2e-3)
+    # a controller running late streams one sample for 15 cycles (60 mrad apart here):
+    # the same path, measured to the line between the samples
+    gappy = np.vstack([q[::15], q[-1:]])
+    assert _path_deviation(q, gappy) == pytest.approx(0, abs=1e-3)
+    assert _path_deviation(gappy, offset) == pytest.approx(0.05, abs=2e-3)
     assert _path_deviation(q, q[: len(q) // 2]) > 0.5  # stopped half way
     assert _numeric_deviation([0.1, [0.2, 0.3]], [0.1, [0.2, 0.35]]) == pytest.approx(0.05)
     assert _numeric_deviation("a", "a") is None

@@ -7,6 +7,12 @@ of their own; where crucibles end up is read from the simulator's own object pos
 
 Discovery runs on loopback only: the test set-up binds zeroconf to 127.0.0.1 (the daemons
 announce on the interface of their address, here loopback), so no packet leaves the machine.
+Loopback's mDNS is machine-wide, though: a suite running beside this one (another worker,
+another checkout) announces its own test cells there, with certificates of their own. The
+reference client's browser connects to every server it hears of with the certificates it
+was given, and warns (an error here) when one does not verify; so the browser listens only
+to the servers this run started (by their SiLA Server UUID, unique to each daemon's state),
+as a lab's scheduler would to the cells it was told about.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ import pytest
 import yaml
 from sila2.client import SilaClient
 from sila2.discovery.browser import SilaDiscoveryBrowser
+from sila2.discovery.listener import SilaServiceListener
 from sila2.framework import SilaError
 from zeroconf import IPVersion, Zeroconf
 
@@ -54,19 +61,49 @@ class Cell:
         self.name = name
         self.port = int(yaml.safe_load((state / "cell.yaml").read_text())["daemon"]["sila"]["port"])
         self.certificate = (state / "sila-cert.pem").read_bytes()
+        self.server_uuid = uuid.UUID((state / "sila-server-uuid").read_text().strip())
+        OWN_SERVERS.add(self.server_uuid)
 
     def client(self) -> SilaClient:
         return SilaClient("127.0.0.1", self.port, root_certs=self.certificate)
 
 
+OWN_SERVERS: set[uuid.UUID] = set()
+"""The SiLA Server UUIDs of the daemons this test process started."""
+RUN = uuid.uuid4().hex[:8]
+"""Part of this run's server names: two suites at once on one machine never share one."""
+
+
+def _own_server(name: str) -> bool:
+    """Whether a ``<uuid>._sila._tcp.local.`` service is one of this run's daemons."""
+    try:
+        return uuid.UUID(name.split(".")[0]) in OWN_SERVERS
+    except ValueError:
+        return False
+
+
+class _OwnServersListener(SilaServiceListener):
+    """The reference client's listener, deaf to SiLA servers this run did not start."""
+
+    def add_service(self, zc: Zeroconf, type_: str, name: str) -> None:
+        if _own_server(name):
+            super().add_service(zc, type_, name)
+
+    def update_service(self, zc: Zeroconf, type_: str, name: str) -> None:
+        if _own_server(name):
+            super().update_service(zc, type_, name)
+
+
 @functools.cache
 def _loopback_zeroconf() -> None:
-    """Zeroconf of the reference client on loopback only (its default is every interface)."""
+    """The reference client's discovery on loopback only (its default is every interface),
+    hearing only this run's servers (see the module's docstring)."""
     import sila2.discovery.browser as browser
 
     browser.Zeroconf = functools.partial(  # type: ignore[misc]
         Zeroconf, interfaces=["127.0.0.1"], ip_version=IPVersion.V4Only
     )
+    browser.SilaServiceListener = _OwnServersListener  # type: ignore[misc]
 
 
 def start_cell(tmp: Path, name: str) -> Iterator[Cell]:
@@ -91,14 +128,14 @@ def start_cell(tmp: Path, name: str) -> Iterator[Cell]:
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
     """The cell most tests share (they use disjoint crucibles)."""
-    yield from start_cell(tmp_path_factory.mktemp("cell-1"), "fxcell test cell 1")
+    yield from start_cell(tmp_path_factory.mktemp("cell-1"), f"fxcell test cell 1 {RUN}")
 
 
 @pytest.fixture
 def job_cell(tmp_path: Path) -> Iterator[Cell]:
     """A cell of its own for a run: whatever a run leaves (a fault on an overloaded machine
     stops the arm where it was) stays out of the other tests."""
-    yield from start_cell(tmp_path, "fxcell test job cell")
+    yield from start_cell(tmp_path, f"fxcell test job cell {RUN}")
 
 
 def token(client: SilaClient) -> list[Any]:
@@ -362,7 +399,7 @@ def test_two_cells_discovered_and_driven_at_once(
     cell: Cell, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
     _loopback_zeroconf()
-    second = start_cell(tmp_path_factory.mktemp("cell-2"), "fxcell test cell 2")
+    second = start_cell(tmp_path_factory.mktemp("cell-2"), f"fxcell test cell 2 {RUN}")
     other = next(second)
     try:
         names = {cell.name: cell, other.name: other}

@@ -23,6 +23,7 @@ from typing import Any, Literal
 import yaml
 from transitions.extensions.asyncio import HierarchicalAsyncMachine, NestedAsyncState
 
+from fxcell.config import parse_yaml
 from fxcell.errors import ConfigError, InvalidStateError
 from fxcell.events import TransitionEvent, now
 from fxcell.protocol import AT_REST_SPEED, SAFETY_STOPS, RobotMode, RobotState, RuntimeState
@@ -151,7 +152,7 @@ def read_statechart(path: str | Path) -> Statechart:
     """Read any statechart YAML file (the robot's, the job's): states, transitions, commands."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = parse_yaml(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(f"cannot read statechart {path}: {exc}") from None
     if not isinstance(data, dict):

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from fxcell.link.embedded import FAULTS
+from fxcell.sim.constants import UNLOCK_DELAY
 from fxcell.sim.lifetime import watch_parent
 from fxcell.sim.ned2 import FAULTS as NED2_FAULTS
 
@@ -66,6 +67,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=_positive,
         default=1.0,
         help="multiply controller delays (boot, power on, brake release, program start)",
+    )
+    p.add_argument(
+        "--unlock-delay",
+        type=_positive,
+        default=UNLOCK_DELAY,
+        metavar="S",
+        help="controller seconds after a protective stop before it may be unlocked; default "
+        "5 as on the real controller (tests that are not about that rule shorten it)",
     )
     p.add_argument("--config", help="cell configuration (scene, home): default config/cell.yaml")
     p.add_argument("--joints", type=_joints, help="initial joint positions q1,...,q6 (rad)")
@@ -331,6 +340,7 @@ def run(args: argparse.Namespace) -> int:
         cooling_time=args.cooling_time,
         crucibles=args.crucibles,
         programs=args.programs,
+        unlock_delay=args.unlock_delay,
     )
 
 

@@ -6,7 +6,9 @@ servers call its methods. Everything runs on one event loop, so there is no lock
 
 Controller delays (power on, brake release, program start, safety restart) are
 multiplied by ``time_scale``; the control cycle and motion always run in real time,
-and so does the 5 s protective-stop unlock rule.
+and so does the protective-stop unlock rule: refused until ``unlock_delay`` s of controller
+time after the stop (5 s as on the real controller; a test that is not about the rule may
+shorten it, ``--unlock-delay``).
 """
 
 from __future__ import annotations
@@ -163,11 +165,17 @@ class Controller:
     """The state of the simulated robot and its controller."""
 
     def __init__(
-        self, arm: Arm, *, time_scale: float = 1.0, programs: ProgramStore | None = None
+        self,
+        arm: Arm,
+        *,
+        time_scale: float = 1.0,
+        programs: ProgramStore | None = None,
+        unlock_delay: float = UNLOCK_DELAY,
     ) -> None:
         self.arm = arm
         self.programs = programs or ProgramStore()
         self.time_scale = time_scale
+        self.unlock_delay = unlock_delay
         self.time = 0.0  # controller time, s (ticks x 2 ms)
         self.ticks = 0
         self.robot_mode = RobotMode.POWER_OFF
@@ -357,7 +365,7 @@ class Controller:
         """Clear a protective stop; returns why not (reply text) or None."""
         if self.safety_mode != SafetyMode.PROTECTIVE_STOP or self.protective_stop_time is None:
             return "Cannot unlock protective stop, safetymode is not PROTECTIVE_STOP"
-        if self.time - self.protective_stop_time < UNLOCK_DELAY:
+        if self.time - self.protective_stop_time < self.unlock_delay:
             return (
                 "Cannot unlock protective stop until 5s after occurrence. "
                 "Always inspect cause of protective stop before unlocking"

@@ -46,7 +46,7 @@ from fxcell.protocol import (
     URCAP_SCRIPT_PORT,
     RobotMode,
 )
-from fxcell.sim.constants import DELAYS
+from fxcell.sim.constants import DELAYS, UNLOCK_DELAY
 from fxcell.sim.controller import Controller, FaultError
 from fxcell.sim.dashboard import Dashboard, DashboardConnection
 from fxcell.sim.fusion import (
@@ -217,6 +217,7 @@ class SimServer:
         cooling_time: float = COOLING_TIME,
         crucibles: str | None = None,
         programs: str | Path | None = None,
+        unlock_delay: float = UNLOCK_DELAY,
     ) -> None:
         from fxcell.motion.calibration import CalibratedKinematics
         from fxcell.motion.kinematics import Kinematics
@@ -240,7 +241,9 @@ class SimServer:
         start = joints if joints is not None else self.config.home
         self.arm = Arm(make_kinematics(None), start, table=guard, make_kinematics=make_kinematics)
         store = ProgramStore(programs) if programs is not None else ProgramStore()
-        self.controller = Controller(self.arm, time_scale=time_scale, programs=store)
+        self.controller = Controller(
+            self.arm, time_scale=time_scale, programs=store, unlock_delay=unlock_delay
+        )
         self.controller.client_host = "127.0.0.1"
         self.hub = RTDEHub(self.controller)
         self.dashboard = Dashboard(self.controller)
@@ -986,8 +989,8 @@ def run(
     """Run the simulator until SIGINT/SIGTERM or a dashboard ``shutdown``; exit code.
 
     ``world``: the fusion machine and objects (:class:`SimServer`'s ``machine``,
-    ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``) and the program
-    store (``programs``).
+    ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``), the program
+    store (``programs``) and the protective stop's ``unlock_delay``.
     """
     _raise_priority(realtime)
     try:
