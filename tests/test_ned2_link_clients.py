@@ -18,12 +18,16 @@ from fxcell.errors import (
     RobotCommandError,
     RobotCommandStatusError,
 )
-from fxcell.link.ned2.rosbridge import (
+from fxcell.link.ned2 import (
     ABORTED,
+    ARM_ACTION,
+    EXECUTE_FULL_TRAJ,
+    JOINT_NAMES,
+    MOVE_ACTION,
     PREEMPTED,
     SUCCEEDED,
-    RosbridgeClient,
 )
+from fxcell.link.ned2.rosbridge import RosbridgeClient
 from fxcell.link.ned2.tcp import NiryoTcpClient, joints, robot_bool
 from fxcell.motion import ned2
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
@@ -32,10 +36,6 @@ pytestmark = [pytest.mark.system, pytest.mark.timeout(60)]
 
 FAR = [-1.5, -0.8, 0.8, 1.0, 1.0, 1.0]
 CALIBRATION_NOT_DONE, STOPPED, INVALID_PARAMETERS = -113, -4, -52
-ARM_ACTION = "/niryo_robot_arm_commander/robot_action"
-MOVE_ACTION = "niryo_robot_arm_commander/RobotMoveAction"
-EXECUTE_FULL_TRAJ = 11
-JOINT_NAMES = [f"joint_{i}" for i in range(1, 7)]
 
 
 def quintic_trajectory(
@@ -56,7 +56,7 @@ def quintic_trajectory(
                 "time_from_start": {"secs": secs, "nsecs": round((t - secs) * 1e9)},
             }
         )
-    return {"joint_names": JOINT_NAMES, "points": points}
+    return {"joint_names": list(JOINT_NAMES), "points": points}
 
 
 def trajectory_goal(trajectory: dict[str, Any]) -> dict[str, Any]:

@@ -15,3 +15,13 @@ TCP_PORT = 40001
 """The robot's TCP server (pyniryo's protocol)."""
 ROSBRIDGE_PORT = 9090
 """The robot's rosbridge WebSocket."""
+JOINT_NAMES = tuple(f"joint_{i}" for i in range(1, 7))
+"""The arm's joints as ``/joint_states`` and trajectories name them."""
+ARM_ACTION = "/niryo_robot_arm_commander/robot_action"
+"""The arm commander's action server (moves, trajectories)."""
+MOVE_ACTION = "niryo_robot_arm_commander/RobotMoveAction"
+"""Its action type."""
+EXECUTE_FULL_TRAJ = 11
+"""``ArmMoveCommand.cmd_type`` of a timed ``trajectory_msgs/JointTrajectory``."""
+PENDING, ACTIVE, PREEMPTED, SUCCEEDED, ABORTED, REJECTED = 0, 1, 2, 3, 4, 5
+"""``actionlib_msgs/GoalStatus`` values."""

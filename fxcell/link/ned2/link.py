@@ -46,7 +46,15 @@ from fxcell.link.contract import (
     TrajectoryProgress,
     TrajectoryResult,
 )
-from fxcell.link.ned2.rosbridge import PREEMPTED, SUCCEEDED, ActionGoal, RosbridgeClient
+from fxcell.link.ned2 import (
+    ARM_ACTION,
+    EXECUTE_FULL_TRAJ,
+    JOINT_NAMES,
+    MOVE_ACTION,
+    PREEMPTED,
+    SUCCEEDED,
+)
+from fxcell.link.ned2.rosbridge import ActionGoal, RosbridgeClient
 from fxcell.link.ned2.tcp import NiryoTcpClient
 from fxcell.link.subscription import StateSubscription
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
@@ -57,10 +65,6 @@ if TYPE_CHECKING:
 
 __all__ = ["POINT_SPACING", "Ned2Calibration", "Ned2Link"]
 
-ARM_ACTION = "/niryo_robot_arm_commander/robot_action"
-MOVE_ACTION = "niryo_robot_arm_commander/RobotMoveAction"
-EXECUTE_FULL_TRAJ = 11
-JOINT_NAMES = [f"joint_{i}" for i in range(1, 7)]
 POINT_SPACING = 0.05
 """Seconds between two points of a trajectory handed to the robot."""
 CALIBRATION_TIMEOUT = 60.0
@@ -111,7 +115,7 @@ def trajectory_message(samples: np.ndarray, period: float) -> dict[str, Any]:
                 "time_from_start": {"secs": secs, "nsecs": round((t - secs) * 1e9)},
             }
         )
-    return {"joint_names": JOINT_NAMES, "points": points}
+    return {"joint_names": list(JOINT_NAMES), "points": points}
 
 
 class Ned2Link:

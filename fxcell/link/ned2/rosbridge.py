@@ -31,17 +31,13 @@ from fxcell.errors import (
     RobotCommandStatusError,
     RobotTimeoutError,
 )
-from fxcell.link.ned2 import ROSBRIDGE_PORT
+from fxcell.link.ned2 import ABORTED, ROSBRIDGE_PORT
 
 __all__ = ["ActionGoal", "RosbridgeClient", "Subscription"]
 
 log = logging.getLogger(__name__)
 
 Message = dict[str, Any]
-
-
-# actionlib_msgs/GoalStatus
-PENDING, ACTIVE, PREEMPTED, SUCCEEDED, ABORTED, REJECTED = 0, 1, 2, 3, 4, 5
 
 
 @dataclass

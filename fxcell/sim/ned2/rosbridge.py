@@ -38,6 +38,17 @@ from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
 from fxcell.geometry import matrix_to_quaternion
+from fxcell.link.ned2 import (
+    ABORTED,
+    ACTIVE,
+    ARM_ACTION,
+    EXECUTE_FULL_TRAJ,
+    JOINT_NAMES,
+    PENDING,
+    PREEMPTED,
+    REJECTED,
+    SUCCEEDED,
+)
 from fxcell.motion import ned2
 from fxcell.sim.ned2 import ROSBRIDGE_PORT
 from fxcell.sim.ned2.robot import (
@@ -52,19 +63,15 @@ from fxcell.sim.ned2.robot import (
 log = logging.getLogger(__name__)
 
 SUCCESS = 1  # niryo_robot_msgs/CommandStatus.SUCCESS
-JOINT_NAMES = tuple(f"joint_{i}" for i in range(1, 7))
 PARAMETERS: dict[str, Any] = {
     "/niryo_robot/hardware_version": "ned2",
     "/niryo_robot/simulation_mode": True,
 }
-ARM_ACTION = "/niryo_robot_arm_commander/robot_action"
 TOOL_ACTION = "/niryo_robot_tools_commander/action_server"
 STATUS_PERIOD = 0.2  # s: actionlib servers publish their goals' status at 5 Hz
 
-# actionlib_msgs/GoalStatus
-PENDING, ACTIVE, PREEMPTED, SUCCEEDED, ABORTED, REJECTED = 0, 1, 2, 3, 4, 5
 # niryo_robot_arm_commander ArmMoveCommand.cmd_type, niryo_robot_tools_commander ToolCommand
-MOVE_JOINTS, MOVE_POSE, MOVE_LINEAR_POSE, EXECUTE_FULL_TRAJ = 0, 1, 5, 11
+MOVE_JOINTS, MOVE_POSE, MOVE_LINEAR_POSE = 0, 1, 5
 OPEN_GRIPPER, CLOSE_GRIPPER = 1, 2
 
 
