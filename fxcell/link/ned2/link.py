@@ -406,7 +406,8 @@ class _Run:
         self.goal = goal
         self.total = total
         self.started = time.monotonic()
-        self.start_stamp: float | None = None
+        latest = link.latest  # progress counts from the robot's time when the goal went out
+        self.start_stamp: float | None = latest.timestamp if latest is not None else None
         self._result: TrajectoryResult | None = None
         self._stop_reason: StopReason | None = None
         self._waiter = asyncio.ensure_future(self._wait())
