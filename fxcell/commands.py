@@ -30,6 +30,7 @@ import inspect
 import math
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
 
 from fxcell.errors import InvalidArgumentError
@@ -117,6 +118,27 @@ ARG_TYPES: tuple[ArgType, ...] = (
 )  # fmt: skip
 
 
+# ----------------------------------------------------------------- robot features
+
+
+class Feature(StrEnum):
+    """What a command needs of the robot beyond moving its joints. Each entry of the
+    table names the features it needs (``requires``); a robot kind lists the features it
+    has (:class:`fxcell.link.capabilities.RobotCapabilities`), and the Cell refuses a
+    command whose features its kind lacks, before anything is sent."""
+
+    REMOTE_POWER = "remote_power"
+    """The arm's power switched on and off over the network."""
+    REMOTE_SHUTDOWN = "remote_shutdown"
+    """The controller shut down over the network."""
+    FREEDRIVE = "freedrive"
+    """The arm moved by hand (UR freedrive, the Ned2's learning mode)."""
+    GRIPPER = "gripper"
+    """A gripper fxcell drives (and so picks and places)."""
+    IO = "io"
+    """Digital and analog IO by configured names."""
+
+
 # ----------------------------------------------------------------- result types
 
 
@@ -183,6 +205,8 @@ class Command:
     needs_control: bool
     """Over the daemon: needs control of the cell (``stop`` needs only the token)."""
     signature: inspect.Signature
+    requires: frozenset[Feature] = frozenset()
+    """The robot features the command needs (a kind without one of them refuses it)."""
 
     @property
     def changes_robot(self) -> bool:
@@ -275,6 +299,7 @@ class _Spec:
     guard: str | Literal[True] | None
     needs_control: bool
     docs: Mapping[str, str]
+    requires: frozenset[Feature]
 
 
 def command(
@@ -285,12 +310,20 @@ def command(
     guard: str | Literal[True] | None = True,
     needs_control: bool = True,
     docs: Mapping[str, str] | None = None,
+    requires: Sequence[Feature] = (),
 ) -> Callable[[F], F]:
-    """Mark a :class:`CellCommands` method as a command (``guard=True``: its own name)."""
+    """Mark a :class:`CellCommands` method as a command (``guard=True``: its own name;
+    ``requires``: the robot features it needs)."""
 
     def mark(fn: F) -> F:
         fn.__fxcell_command__ = _Spec(  # type: ignore[attr-defined]
-            kind, result, dict(args or {}), guard, needs_control, dict(docs or {})
+            kind,
+            result,
+            dict(args or {}),
+            guard,
+            needs_control,
+            dict(docs or {}),
+            frozenset(requires),
         )
         return fn
 
@@ -333,7 +366,9 @@ class CellCommands(Protocol):
 
     # ------------------------------------------------------------- general
 
-    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    @command(
+        "command", NONE, args={"timeout": SECONDS}, docs=_DOCS, requires=[Feature.REMOTE_POWER]
+    )
     async def power_on(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         """Power the arm on; returns when the robot mode is IDLE."""
         return await self.run_command("power_on", **_given(locals()))  # type: ignore[no-any-return]
@@ -343,7 +378,9 @@ class CellCommands(Protocol):
         """Release the brakes; returns when the robot mode is RUNNING."""
         return await self.run_command("brake_release", **_given(locals()))  # type: ignore[no-any-return]
 
-    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    @command(
+        "command", NONE, args={"timeout": SECONDS}, docs=_DOCS, requires=[Feature.REMOTE_POWER]
+    )
     async def power_off(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         """Power the arm off; returns when the robot mode is POWER_OFF."""
         return await self.run_command("power_off", **_given(locals()))  # type: ignore[no-any-return]
@@ -401,7 +438,9 @@ class CellCommands(Protocol):
         """
         return await self.run_command("unlock_protective_stop", **_given(locals()))  # type: ignore[no-any-return]
 
-    @command("command", NONE, args={"timeout": SECONDS}, docs=_DOCS)
+    @command(
+        "command", NONE, args={"timeout": SECONDS}, docs=_DOCS, requires=[Feature.REMOTE_SHUTDOWN]
+    )
     async def shutdown(self, *, timeout: float | None = None) -> None:  # noqa: ASYNC109
         """Shut down the robot and its controller; returns when the controller is gone."""
         return await self.run_command("shutdown", **_given(locals()))  # type: ignore[no-any-return]
@@ -571,12 +610,18 @@ class CellCommands(Protocol):
 
     # ------------------------------------------------------------- gripper
 
-    @command("command", NONE, guard="gripper")
+    @command("command", NONE, guard="gripper", requires=[Feature.GRIPPER])
     async def gripper_activate(self) -> None:
         """Activate the Robotiq Hand-E (needs the arm powered; once after each power-up)."""
         return await self.run_command("gripper_activate")  # type: ignore[no-any-return]
 
-    @command("command", GRIP_RESULT, args={"speed": GRIP_SPEED}, guard="gripper")
+    @command(
+        "command",
+        GRIP_RESULT,
+        args={"speed": GRIP_SPEED},
+        guard="gripper",
+        requires=[Feature.GRIPPER],
+    )
     async def gripper_open(self, *, speed: float = 0.150) -> GripResult:
         """Open the gripper fully; returns where the fingers stopped and whether they hold."""
         return await self.run_command("gripper_open", **_given(locals()))  # type: ignore[no-any-return]
@@ -587,6 +632,7 @@ class CellCommands(Protocol):
         args={"speed": GRIP_SPEED, "grip_force": GRIP_FORCE, "expect_object": FLAG},
         guard="gripper",
         docs=_GRIP_DOCS,
+        requires=[Feature.GRIPPER],
     )
     async def gripper_close(
         self, *, speed: float = 0.150, grip_force: float = 185.0, expect_object: bool = False
@@ -608,6 +654,7 @@ class CellCommands(Protocol):
         },
         guard="gripper",
         docs=_GRIP_DOCS,
+        requires=[Feature.GRIPPER],
     )
     async def gripper_move(
         self,
@@ -620,25 +667,31 @@ class CellCommands(Protocol):
         """Move the fingers to an opening (m) at a speed (m/s) with at most a force (N)."""
         return await self.run_command("gripper_move", **_given(locals()))  # type: ignore[no-any-return]
 
-    @command("query", FLOAT, guard="gripper")
+    @command("query", FLOAT, guard="gripper", requires=[Feature.GRIPPER])
     async def get_gripper_width(self) -> float:
         """The gripper's finger opening (m)."""
         return await self.run_command("get_gripper_width")  # type: ignore[no-any-return]
 
     # ------------------------------------------------------------- IO
 
-    @command("query", MAPPING, guard="io")
+    @command("query", MAPPING, guard="io", requires=[Feature.IO])
     async def get_io(self) -> dict[str, Any]:
         """Every configured IO signal's value: digital ones true/false, analog ones in V or A."""
         return await self.run_command("get_io")  # type: ignore[no-any-return]
 
-    @command("command", NONE, args={"signal": SIGNAL, "value": LEVEL}, guard="io")
+    @command(
+        "command", NONE, args={"signal": SIGNAL, "value": LEVEL}, guard="io", requires=[Feature.IO]
+    )
     async def io_set(self, signal: str, value: bool | float) -> None:
         """Set an output by its configured name; returns once the controller reports it."""
         return await self.run_command("io_set", **_given(locals()))  # type: ignore[no-any-return]
 
     @command(
-        "command", FLOAT, args={"signal": SIGNAL, "value": LEVEL, "timeout": SECONDS}, guard="io"
+        "command",
+        FLOAT,
+        args={"signal": SIGNAL, "value": LEVEL, "timeout": SECONDS},
+        guard="io",
+        requires=[Feature.IO],
     )
     async def io_wait_for(
         self,
@@ -652,13 +705,13 @@ class CellCommands(Protocol):
 
     # ------------------------------------------------------------- teach-in
 
-    @command("command", NONE)
+    @command("command", NONE, requires=[Feature.FREEDRIVE])
     async def freedrive_start(self) -> None:
         """Put the arm in freedrive (teach mode): it can be guided by hand until
         ``freedrive_stop``. Moves are refused meanwhile."""
         return await self.run_command("freedrive_start")  # type: ignore[no-any-return]
 
-    @command("command", NONE)
+    @command("command", NONE, requires=[Feature.FREEDRIVE])
     async def freedrive_stop(self) -> None:
         """End freedrive; the arm holds where it was left."""
         return await self.run_command("freedrive_stop")  # type: ignore[no-any-return]
@@ -711,7 +764,9 @@ class CellCommands(Protocol):
         ``{"applied", "pending", "frame"}``."""
         return await self.run_command("teach_frame_point", **_given(locals()))  # type: ignore[no-any-return]
 
-    @command("move", GRIP_RESULT, args=_AT_SLOT, guard="move", docs=_DOCS)
+    @command(
+        "move", GRIP_RESULT, args=_AT_SLOT, guard="move", docs=_DOCS, requires=[Feature.GRIPPER]
+    )
     async def pick(
         self,
         station: str,
@@ -729,7 +784,9 @@ class CellCommands(Protocol):
         """
         return await self.run_command("pick", **_given(locals()))  # type: ignore[no-any-return]
 
-    @command("move", GRIP_RESULT, args=_AT_SLOT, guard="move", docs=_DOCS)
+    @command(
+        "move", GRIP_RESULT, args=_AT_SLOT, guard="move", docs=_DOCS, requires=[Feature.GRIPPER]
+    )
     async def place(
         self,
         station: str,
@@ -801,7 +858,15 @@ def _build() -> dict[str, Command]:
         guard = name if spec.guard is True else spec.guard
         doc = inspect.cleandoc(fn.__doc__ or "")
         table[name] = Command(
-            name, spec.kind, doc, args, spec.result, guard, spec.needs_control, signature
+            name,
+            spec.kind,
+            doc,
+            args,
+            spec.result,
+            guard,
+            spec.needs_control,
+            signature,
+            spec.requires,
         )
     return table
 

@@ -19,6 +19,7 @@ import pytest
 
 from fxcell import Cell, CellState
 from fxcell.calibration import Calibration
+from fxcell.commands import COMMANDS, Feature
 from fxcell.config import CellConfig
 from fxcell.errors import (
     CalibrationError,
@@ -35,6 +36,7 @@ from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.moves import ur3e_kinematics
 from fxcell.protocol import CONTROL_PERIOD
 from fxcell.robots import RobotKind, kind_names, register, robot_kind, unregister
+from fxcell.robots.ned2 import NED2_KIND
 from fxcell.testing import FakeRobot
 from fxcell.testing.toy import ToyCalibration, ToyRobot, toy_kind
 
@@ -52,8 +54,9 @@ def toy(fake_robot: FakeRobot) -> Iterator[list[Calibration | None]]:
         built.append(calibration)
         return ur3e_kinematics(config, calibration)
 
+    no_freedrive = frozenset(Feature) - {Feature.FREEDRIVE}
     capabilities = RobotCapabilities(
-        "toy", joints=6, sample_period=CONTROL_PERIOD, unsupported=frozenset({"freedrive_start"})
+        "toy", joints=6, sample_period=CONTROL_PERIOD, features=no_freedrive
     )
     ur3e = robot_kind("ur3e")
     register(
@@ -111,8 +114,9 @@ async def test_a_command_the_kind_cannot_do_is_refused_naming_the_kind(
         with pytest.raises(UnsupportedCommandError, match="toy") as info:
             await cell.freedrive_start()
         assert (info.value.command, info.value.kind) == ("freedrive_start", "toy")
-        with pytest.raises(UnsupportedCommandError):
-            await cell.check_command("freedrive_start")
+        for refused in ("freedrive_start", "freedrive_stop"):  # both need the feature
+            with pytest.raises(UnsupportedCommandError):
+                await cell.check_command(refused)
         assert cell._link().messages_sent == sent  # nothing sent
         assert not fake_robot.controller.teach_mode
         assert cell.state is CellState.EXTERNAL_CONTROL_READY
@@ -137,12 +141,27 @@ def test_a_kind_fxcell_does_not_drive_is_a_config_error() -> None:
         Cell(config=unknown, record=None)
 
 
-def test_capabilities_name_only_commands_of_the_table() -> None:
+def test_capabilities_name_only_features_of_the_table() -> None:
     with pytest.raises(InvalidArgumentError, match="fly"):
-        RobotCapabilities("toy", 6, 0.002, frozenset({"fly"}))
+        RobotCapabilities("toy", 6, 0.002, frozenset({"fly"}))  # type: ignore[arg-type]
     with pytest.raises(InvalidArgumentError):
         RobotCapabilities("toy", 0, 0.002)
-    assert not RobotCapabilities("toy", 6, 0.002, frozenset({"shutdown"})).supports("shutdown")
+    no_power = RobotCapabilities("toy", 6, 0.002, frozenset(Feature) - {Feature.REMOTE_POWER})
+    assert not no_power.supports("power_on")
+    assert no_power.supports("brake_release")
+
+
+def test_the_command_table_says_which_features_each_command_needs() -> None:
+    needing = {f: sorted(n for n, c in COMMANDS.items() if f in c.requires) for f in Feature}
+    assert needing[Feature.REMOTE_POWER] == ["power_off", "power_on"]
+    assert needing[Feature.REMOTE_SHUTDOWN] == ["shutdown"]
+    assert needing[Feature.FREEDRIVE] == ["freedrive_start", "freedrive_stop"]
+    assert {"pick", "place", "gripper_close"} <= set(needing[Feature.GRIPPER])
+    assert needing[Feature.IO] == ["get_io", "io_set", "io_wait_for"]
+    # a kind refuses exactly the commands needing a feature it lacks; moves need none
+    assert NED2_KIND.capabilities.unsupported == {"power_on", "power_off", "shutdown"}
+    assert not COMMANDS["move_joint"].requires
+    assert not COMMANDS["stop"].requires
 
 
 async def test_a_kind_whose_joints_the_configured_limits_do_not_fit_is_refused_at_open(

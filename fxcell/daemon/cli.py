@@ -114,7 +114,8 @@ def register(sub: Any) -> None:
     )
     # One subcommand per entry of the command table (power-on, move-joint, stop, ...).
     for command in COMMANDS.values():
-        c = client_parser(command.name.replace("_", "-"), command.summary)
+        needs = f" (robots with: {', '.join(sorted(command.requires))})" if command.requires else ""
+        c = client_parser(command.name.replace("_", "-"), command.summary + needs)
         _add_arguments(c, command)
         if command.kind == "move":
             c.add_argument(

@@ -260,6 +260,7 @@ class CellService:
                 "guard": c.guard,
                 "allowed": self._allowed_states(name),
                 "supported": robot_kind(self.config.robot.kind).capabilities.supports(name),
+                "requires": sorted(c.requires),
                 "changes_robot": c.changes_robot,
                 "needs_control": c.needs_control,
             }

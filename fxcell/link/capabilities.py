@@ -1,9 +1,11 @@
 """What a robot kind can do: :class:`RobotCapabilities`, data beside the link contract.
 
 A robot kind (``robot.kind`` in the configuration) names its joint count, the period of
-the trajectory samples its link streams, and the commands of the command table
-(:data:`fxcell.commands.COMMANDS`) it cannot do. The Cell refuses such a command before
-anything is sent, with :class:`~fxcell.errors.UnsupportedCommandError` naming the kind.
+the trajectory samples its link streams, and the robot features it has
+(:class:`fxcell.commands.Feature`). Each entry of the command table
+(:data:`fxcell.commands.COMMANDS`) says which features it needs; the Cell refuses a
+command whose features the kind lacks before anything is sent, with
+:class:`~fxcell.errors.UnsupportedCommandError` naming the kind.
 The registry of kinds (link, kinematic model, simulator) is :mod:`fxcell.robots`.
 """
 
@@ -11,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from fxcell.commands import COMMANDS
+from fxcell.commands import COMMANDS, Feature
 from fxcell.errors import InvalidArgumentError, UnsupportedCommandError
 from fxcell.protocol import CONTROL_PERIOD
 
@@ -20,7 +22,7 @@ __all__ = ["UR3E", "RobotCapabilities"]
 
 @dataclass(frozen=True)
 class RobotCapabilities:
-    """A robot kind's shape and the commands it cannot do."""
+    """A robot kind's shape and the features it has."""
 
     kind: str
     """The kind's name, as ``robot.kind`` says it (``ur3e``)."""
@@ -28,25 +30,32 @@ class RobotCapabilities:
     """Joints of the arm: the width of every joint vector and trajectory sample."""
     sample_period: float
     """Seconds between two samples of a streamed trajectory (the link's servo cycle)."""
-    unsupported: frozenset[str] = frozenset()
-    """Commands of the command table this kind refuses."""
+    features: frozenset[Feature] = frozenset(Feature)
+    """The robot features this kind has (default: every one)."""
 
     def __post_init__(self) -> None:
-        unknown = sorted(self.unsupported - COMMANDS.keys())
+        unknown = sorted(str(f) for f in self.features if f not in set(Feature))
         if unknown:
-            raise InvalidArgumentError(f"{self.kind}: no such commands {unknown}")
+            raise InvalidArgumentError(f"{self.kind}: no such features {unknown}")
         if self.joints < 1 or not self.sample_period > 0:
             raise InvalidArgumentError(f"{self.kind}: joints and sample_period must be > 0")
 
+    @property
+    def unsupported(self) -> frozenset[str]:
+        """The commands of the table this kind refuses (they need a feature it lacks)."""
+        return frozenset(n for n, c in COMMANDS.items() if not c.requires <= self.features)
+
     def supports(self, command: str) -> bool:
-        """Whether this kind can do ``command`` (a name of the command table)."""
-        return command not in self.unsupported
+        """Whether this kind can do ``command`` (a name of the command table; a name the
+        table lacks needs no feature)."""
+        entry = COMMANDS.get(command)
+        return entry is None or entry.requires <= self.features
 
     def check(self, command: str) -> None:
         """Raise :class:`UnsupportedCommandError` unless this kind can do ``command``."""
-        if command in self.unsupported:
+        if not self.supports(command):
             raise UnsupportedCommandError(command, self.kind)
 
 
 UR3E = RobotCapabilities(kind="ur3e", joints=6, sample_period=CONTROL_PERIOD)
-"""The UR3e does every command of the table; servoJ at the e-Series' 500 Hz."""
+"""The UR3e has every feature of the table; servoJ at the e-Series' 500 Hz."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from fxcell.commands import Feature
 from fxcell.geometry import Pose
 from fxcell.link.capabilities import RobotCapabilities
 from fxcell.link.ned2.link import Ned2Calibration, Ned2Link
@@ -31,7 +32,7 @@ NED2 = RobotCapabilities(
     kind="ned2",
     joints=6,
     sample_period=0.01,
-    unsupported=frozenset({"power_on", "power_off", "shutdown"}),
+    features=frozenset(Feature) - {Feature.REMOTE_POWER, Feature.REMOTE_SHUTDOWN},
 )
 """Six joints, trajectories planned every 10 ms (handed to the robot a point every
 50 ms); no remote power or shutdown."""

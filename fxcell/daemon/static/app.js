@@ -254,9 +254,20 @@ function allowed(cmd) {
   return entry ? entry.allowed.includes(page.state) : false;
 }
 
+// ... and whether the cell's robot kind can do it at all (a Ned2 has no remote power):
+// what it cannot do is not offered.
+function supported(cmd) {
+  const entry = page.commands && page.commands[cmd];
+  return !entry || entry.supported !== false;
+}
+
 function updateButtons() {
-  for (const b of $$("button[data-command]")) b.disabled = !allowed(b.dataset.command);
+  for (const b of $$("button[data-command]")) {
+    b.hidden = !supported(b.dataset.command);
+    b.disabled = !allowed(b.dataset.command);
+  }
   for (const f of $$("form.move[data-command]")) {
+    f.hidden = !supported(f.dataset.command);
     for (const b of f.querySelectorAll("button[type=submit]")) b.disabled = !allowed(f.dataset.command);
   }
 }
