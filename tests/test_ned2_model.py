@@ -129,6 +129,20 @@ def test_the_planners_model_inverts_its_forward_with_the_tcp(q: np.ndarray) -> N
     assert found.tolist() == model.inverse_all(pose, seed=q)[0].tolist()
 
 
+@given(q=joints, step=st.lists(st.floats(-0.01, 0.01), min_size=6, max_size=6))
+def test_a_paths_next_point_is_solved_on_the_seeds_branch(
+    q: np.ndarray, step: list[float]
+) -> None:
+    # a straight line's knots: the next pose is a small step from the seed's
+    model = ned2.Ned2Kinematics(TCP)
+    nxt = np.clip(q + np.asarray(step), ned2.LOWER, ned2.UPPER)
+    pose = model.forward(nxt)
+    found = model.inverse_near(pose, q)
+    assert model.forward(found).distance(pose) < 1e-6
+    assert model.forward(found).angle_to(pose) < 1e-6
+    assert np.max(np.abs(found - nxt)) < SAME  # continuous with the seed, not another branch
+
+
 def test_the_planners_model_keeps_to_narrower_limits_and_says_what_it_cannot_reach() -> None:
     q = np.array([0.6, -0.3, 0.2, 0.4, -0.5, 0.3])
     pose = ned2.Ned2Kinematics().forward(q)

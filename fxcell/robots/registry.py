@@ -50,6 +50,11 @@ class KinematicModel(Protocol):
         """The joints within the limits reaching ``pose`` nearest ``seed``
         (UnreachableError when there are none)."""
 
+    def inverse_near(self, pose: Pose, seed: ArrayLike) -> NDArray[np.float64]:
+        """The solution continuous with ``seed``, for a path's next point (a straight
+        line's knots and samples): the nearest where the seed is close, found as fast as
+        the model can (UnreachableError when there is none)."""
+
     def inverse_all(self, pose: Pose, seed: ArrayLike | None = None) -> list[NDArray[np.float64]]:
         """Every solution within the limits (one per branch), nearest ``seed`` first."""
 

@@ -143,6 +143,9 @@ class ToyKinematics:
             raise UnreachableError(f"the toy arm cannot reach {pose!r}")
         return solutions[0]
 
+    def inverse_near(self, pose: Pose, seed: ArrayLike) -> Array:
+        return self.inverse(pose, seed)
+
     def inverse_all(self, pose: Pose, seed: ArrayLike | None = None) -> list[Array]:
         r = pose.rotation
         qz = math.atan2(r[1, 0], r[0, 0])
