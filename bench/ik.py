@@ -43,7 +43,10 @@ the pose was made from, on the first ``--reference`` poses), median ≤ 1.5 × u
 p99 ≤ 200 µs, max ≤ 2 ms.
 
     ./dev bench ik [--poses N] [--tcp flange|seed|both] [--family F ...] [--clik-poses N]
-                   [--interleave] [--reference N]
+                   [--interleave] [--reference N] [--ned2-poses N]
+
+The last rows are the Niryo Ned2's (``bench/ik_ned2.py``: its solver against a dense
+reference and pinocchio's generic CLIK, in the same run).
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ import time
 from collections.abc import Callable
 from importlib.machinery import EXTENSION_SUFFIXES
 
+import ik_ned2
 import numpy as np
 import pinocchio as pin
 import ur_analytic_ik
@@ -425,6 +429,10 @@ def main() -> int:
     parser.add_argument(
         "--interleave", action="store_true", help="switch solver at every pose (cold caches)"
     )
+    parser.add_argument(
+        "--ned2-poses", type=int, default=200,
+        help="the Ned2's rows (bench/ik_ned2.py): random poses; 0 leaves them out",
+    )  # fmt: skip
     args = parser.parse_args()
     names = ("flange", "seed") if args.tcp == "both" else (args.tcp,)
     compiled = str(kinematics.__file__).endswith(tuple(EXTENSION_SUFFIXES))
@@ -478,6 +486,8 @@ def main() -> int:
                 peer=peer["p99"], peer_name="ur_analytic_ik (nominal)",
             )  # fmt: skip
             targets.check(f"{label}: max", ours["max"], "<=", 2000.0, "µs")
+    if args.ned2_poses > 0:
+        ik_ned2.report(ik_ned2.measure(args.ned2_poses), targets)
     return targets.finish()
 
 
