@@ -216,6 +216,8 @@ def from_urdf(kind: str, name: str, urdf: str, tool: str, tcp: Pose) -> ArmDescr
         ordered.extend(ready)
         pending = [j for j in pending if j.parent not in known]
         known.update(j.child for j in ready)
+    if tool not in known:
+        raise InvalidArgumentError(f"the tool frame {tool!r} is no frame of the {name}")
     ordered.append(tcp_joint(tool, tcp))
     return ArmDescription(kind, name, roots[0], tuple(ordered), tool, _with_tcp(urdf, tool, tcp))
 
