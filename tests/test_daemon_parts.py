@@ -3,6 +3,7 @@ decimation, and the HTTP layer's refusals (which happen before any robot is invo
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
@@ -36,7 +37,7 @@ from fxcell.errors import ConfigError, ControlHeldError
 from fxcell.geometry import Pose
 from fxcell.motion import ned2
 from fxcell.motion.kinematics import Kinematics
-from fxcell.robots import kind_names, register, unregister
+from fxcell.robots import UR3E_KIND, kind_names, register, unregister
 from fxcell.robots.ned2 import NED2_KIND
 
 TOKEN = "s3cret-token-for-tests-0123456789"
@@ -406,6 +407,27 @@ async def test_a_ned2_cells_page_draws_the_ned2_from_its_own_model() -> None:
     for q in ([0.0] * 6, list(ned2.HOME), [0.6, -0.3, 0.2, 0.4, -0.5, 0.3]):
         frame = _page_chain(model, q, list(tcp))
         assert np.allclose(frame, kinematics.forward(np.array(q)).matrix, atol=1e-12)
+
+
+async def test_a_kind_without_a_description_has_no_arm_model_to_draw() -> None:
+    plain = dataclasses.replace(
+        UR3E_KIND, capabilities=dataclasses.replace(UR3E_KIND.capabilities, kind="plain"),
+        description=None,
+    )  # fmt: skip
+    register(plain)
+    try:
+        config = CellConfig()
+        config = config.model_copy(
+            update={"robot": config.robot.model_copy(update={"kind": "plain"})}
+        )
+        transport = httpx.ASGITransport(app=create_app(CellService(config, TOKEN)))
+        async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as client:
+            r = await client.get("/api/robot/model")
+    finally:
+        unregister("plain")
+    assert r.status_code == 409
+    assert r.json()["error"]["type"] == "UnsupportedCommandError"
+    assert "plain" in r.json()["error"]["message"]
 
 
 async def test_page_and_its_assets_are_served_without_external_resources(
