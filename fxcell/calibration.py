@@ -32,20 +32,8 @@ UR3E_NOMINAL_D: Six = (0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921)
 UR3E_NOMINAL_A: Six = (0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0)
 UR3E_NOMINAL_ALPHA: Six = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
 """UR's published UR3e DH parameters (nominal θ are zero; the seed thesis's table has d5/d6
-wrong): the one table, which :data:`fxcell.motion.kinematics.UR3E_DH` and the page's arm
-view (``GET /api/robot/model``) take."""
-
-
-def nominal_model() -> dict[str, object]:
-    """The arm's nominal kinematic model as JSON for clients that draw it (the page)."""
-    return {
-        "robot": "UR3e",
-        "dh": {
-            "d": list(UR3E_NOMINAL_D),
-            "a": list(UR3E_NOMINAL_A),
-            "alpha": list(UR3E_NOMINAL_ALPHA),
-        },
-    }
+wrong): the one table, which :data:`fxcell.motion.kinematics.UR3E_DH` and the UR3e's
+description for the views (:func:`fxcell.robots.ur3e.ur3e_description`) take."""
 
 
 KINEMATICS_INFO_TYPE = 5

@@ -74,6 +74,26 @@ class Summary:
         n = self.counts.get(topic, 0)
         return (n - 1) / d if d > 0 and n > 1 else 0.0
 
+    @property
+    def robot_kind(self) -> str:
+        """The robot kind the log was recorded on (its configuration's ``robot.kind``;
+        logs from before there were kinds: ``ur3e``)."""
+        return recorded_robot_kind(self.metadata)
+
+
+def recorded_robot_kind(metadata: dict[str, dict[str, str]]) -> str:
+    """``robot.kind`` of the configuration a log's metadata carries (``ur3e`` without)."""
+    text = metadata.get(topics.METADATA_NAME, {}).get("config")
+    try:
+        kind = json.loads(text)["robot"]["kind"] if text else DEFAULT_KIND
+    except (ValueError, TypeError, KeyError):
+        return DEFAULT_KIND
+    return str(kind)
+
+
+DEFAULT_KIND = "ur3e"
+"""The robot kind of logs whose configuration names none (recorded before the Ned2)."""
+
 
 def commands_of(messages: Iterable[tuple[LogMessage, Any]]) -> list[CommandRecord]:
     """Pair the start and end records of each command, in start order."""
@@ -169,6 +189,7 @@ def format_summary(s: Summary) -> str:
     lines = [f"file: {s.path}" + ("" if s.finished else "  (unfinished: read to its last chunk)")]
     lines.append(f"time: {_utc(s.start)} → {_utc(s.end)} ({s.duration:.3f} s)")
     meta = s.metadata.get(topics.METADATA_NAME, {})
+    lines.append(f"robot kind: {s.robot_kind}")
     for key in ("fxcell_version", "controller_version", "serial", "robot"):
         if key in meta:
             lines.append(f"{key}: {meta[key]}")
@@ -595,19 +616,27 @@ async def reexecute(
     has finished). Outcomes, numeric results and, for moves, the joint paths (where the
     robot went, not when: a busy host shifts the timing) are compared with the recording.
     ``config`` (a CellConfig, default the standard configuration) is the setup under
-    test: a different TCP shows up as a deviation of pose results and pose moves.
+    test: a different TCP shows up as a deviation of pose results and pose moves; its
+    robot kind must be the one the log was recorded on (InvalidArgumentError).
     """
     import asyncio
     import time
 
     from fxcell.cell import Cell
+    from fxcell.config import CellConfig
     from fxcell.events import Event, Origin, StateEvent
 
+    summary = summarize(path)
+    config = config if config is not None else CellConfig()
+    if summary.robot_kind != config.robot.kind:
+        raise InvalidArgumentError(
+            f"{path} was recorded on a {summary.robot_kind} cell: re-execute it with the "
+            f"configuration of a {summary.robot_kind} cell, not a {config.robot.kind} one"
+        )
     reader = LogReader(path)
     recorded = Trace()
     for msg, sample in reader.decoded([topics.ROBOT_STATE]):
         recorded.add(msg.time, sample)
-    summary = summarize(path)
     commands = top_level_commands(summary.commands)
     if not commands:
         raise RecorderError(f"{path} has no commands to re-execute")

@@ -3,8 +3,8 @@ decimation, and the HTTP layer's refusals (which happen before any robot is invo
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import math
 import os
 import platform
 import socket
@@ -15,6 +15,7 @@ import time
 import urllib.parse
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -33,7 +34,11 @@ from fxcell.daemon.server import check_bind, is_loopback
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import Watcher, parse_rate, parse_topics
 from fxcell.errors import ConfigError, ControlHeldError
+from fxcell.geometry import Pose
+from fxcell.motion import ned2
 from fxcell.motion.kinematics import Kinematics
+from fxcell.robots import UR3E_KIND, kind_names, register, unregister
+from fxcell.robots.ned2 import NED2_KIND
 
 TOKEN = "s3cret-token-for-tests-0123456789"
 
@@ -353,23 +358,76 @@ async def test_openapi_documents_every_cell_function(http: httpx.AsyncClient) ->
     assert schema["minItems"] == schema["maxItems"] == 6
 
 
+def _page_chain(model: dict[str, Any], q: list[float], tcp: list[float]) -> np.ndarray:
+    """The page's arm chain (app.js armPoints): each joint's origin, a turn about its axis
+    by q, then the tool frame and the TCP (UR x, y, z, rx, ry, rz)."""
+    frame = np.eye(4)
+    for joint, angle in zip(model["joints"], q, strict=True):
+        frame = frame @ np.array(joint["origin"]).reshape(4, 4)
+        frame = frame @ Pose.from_rotvec((0, 0, 0), np.array(joint["axis"]) * angle).matrix
+    frame = frame @ np.array(model["tool"]).reshape(4, 4)
+    return frame @ Pose.from_ur(tcp).matrix
+
+
 async def test_the_page_draws_the_arm_with_the_runtimes_kinematics(
     http: httpx.AsyncClient,
 ) -> None:
     model = (await http.get("/api/robot/model")).json()
     assert model["robot"] == "UR3e"
-    dh = model["dh"]
-    kinematics = Kinematics.ur3e()
+    assert model["tool_frame"] == "flange"
+    tcp = (await http.get("/api/info")).json()["tcp"]
+    kinematics = Kinematics.ur3e(tcp)
     for q in ([0.0] * 6, [0.3, -1.2, 1.1, -0.4, 1.3, 0.7], [-2.0, -0.5, -1.9, 2.2, -0.8, 3.0]):
-        frame = np.eye(4)  # the page's chain: standard DH, link by link
-        for i in range(6):
-            ct, st = math.cos(q[i]), math.sin(q[i])
-            ca, sa = math.cos(dh["alpha"][i]), math.sin(dh["alpha"][i])
-            a, d = dh["a"][i], dh["d"][i]
-            link = [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
-                    [0, sa, ca, d], [0, 0, 0, 1]]  # fmt: skip
-            frame = frame @ np.array(link)
-        assert np.allclose(frame[:3, 3], kinematics.forward(np.array(q)).position, atol=1e-12)
+        frame = _page_chain(model, q, tcp)
+        assert np.allclose(frame, kinematics.forward(np.array(q)).matrix, atol=1e-12)
+
+
+async def test_a_ned2_cells_page_draws_the_ned2_from_its_own_model() -> None:
+    added = "ned2" not in kind_names()  # registered here until the Ned2 ships
+    if added:
+        register(NED2_KIND)
+    try:
+        config = CellConfig()
+        tcp = (0.05, 0.0, 0.01, 0.0, 0.2, 0.0)
+        config = config.model_copy(
+            update={
+                "robot": config.robot.model_copy(update={"kind": "ned2"}),
+                "tool": config.tool.model_copy(update={"tcp": tcp}),
+            }
+        )
+        transport = httpx.ASGITransport(app=create_app(CellService(config, TOKEN)))
+        async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as client:
+            model = (await client.get("/api/robot/model")).json()
+    finally:
+        if added:
+            unregister("ned2")
+    assert (model["robot"], model["tool_frame"]) == ("Ned2", "tool_link")
+    assert [j["name"] for j in model["joints"]] == list(ned2.JOINT_NAMES)
+    kinematics = ned2.Ned2Kinematics(Pose.from_ur(tcp))
+    for q in ([0.0] * 6, list(ned2.HOME), [0.6, -0.3, 0.2, 0.4, -0.5, 0.3]):
+        frame = _page_chain(model, q, list(tcp))
+        assert np.allclose(frame, kinematics.forward(np.array(q)).matrix, atol=1e-12)
+
+
+async def test_a_kind_without_a_description_has_no_arm_model_to_draw() -> None:
+    plain = dataclasses.replace(
+        UR3E_KIND, capabilities=dataclasses.replace(UR3E_KIND.capabilities, kind="plain"),
+        description=None,
+    )  # fmt: skip
+    register(plain)
+    try:
+        config = CellConfig()
+        config = config.model_copy(
+            update={"robot": config.robot.model_copy(update={"kind": "plain"})}
+        )
+        transport = httpx.ASGITransport(app=create_app(CellService(config, TOKEN)))
+        async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as client:
+            r = await client.get("/api/robot/model")
+    finally:
+        unregister("plain")
+    assert r.status_code == 409
+    assert r.json()["error"]["type"] == "UnsupportedCommandError"
+    assert "plain" in r.json()["error"]["message"]
 
 
 async def test_page_and_its_assets_are_served_without_external_resources(

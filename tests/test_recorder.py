@@ -23,10 +23,11 @@ from waiting import wait_until
 
 from fxcell.errors import InvalidArgumentError, RecorderError
 from fxcell.events import CommandEvent, EventBus, LogEvent, Origin, StateEvent, TransitionEvent
+from fxcell.motion.kinematics import JOINT_NAMES as JOINTS
 from fxcell.motion.kinematics import Kinematics
 from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.recorder import Recorder, is_finished, recover, topics
-from fxcell.recorder.frames import JOINTS, LinkFrames
+from fxcell.recorder.frames import LinkFrames
 from fxcell.recorder.protobuf import (
     _decode_robot_state_general,
     decode_robot_state,

@@ -410,3 +410,34 @@ async def test_the_page_says_why_the_robot_is_not_connected(
             "no link",
         )
         (SCREENSHOT_DIR / "fxcell-page-not-connected.png").write_bytes(await browser.screenshot())
+
+
+async def test_the_pages_arm_view_draws_each_robot_kind_from_its_own_model(
+    browser: Browser, daemon: DaemonProcess
+) -> None:
+    """app.js's own chain code, run in the browser: the UR3e from the daemon's model and a
+    Ned2 from its kind's description end on the TCP each kind's kinematics computes."""
+    from fxcell.geometry import Pose
+    from fxcell.motion import ned2
+    from fxcell.motion.kinematics import Kinematics
+    from fxcell.robots.ned2 import ned2_description
+
+    await browser.call("Page.navigate", url=f"{daemon.url}/#token={TOKEN}")
+    await browser.wait_for("ARM !== null && page.info !== null && page.info.tcp !== undefined")
+    tcp = await browser.js("page.info.tcp")
+    q = [0.6, -0.3, 0.2, 0.4, -0.5, 0.3]
+    drawn = await browser.js(f"armPoints({json.dumps(q)})")
+    assert drawn["joints"] == [1, 3, 5, 7, 9, 11]  # a marker at each joint, as before
+    expected = Kinematics.ur3e(tcp).forward(q).position
+    assert max(abs(a - b) for a, b in zip(drawn["pts"][-1], expected, strict=True)) < 1e-9
+
+    model = ned2_description(Pose.identity()).chain_json()
+    ned2_tcp = [0.05, 0.0, 0.01, 0.0, 0.2, 0.0]
+    drawn = await browser.js(
+        f"(() => {{ const ur = [ARM, page.info.tcp]; ARM = {json.dumps(model)}; "
+        f"page.info.tcp = {json.dumps(ned2_tcp)}; const out = armPoints({json.dumps(q)}); "
+        "[ARM, page.info.tcp] = ur; return out; })()"
+    )
+    assert len(drawn["joints"]) == 6
+    expected = ned2.Ned2Kinematics(Pose.from_ur(ned2_tcp)).forward(q).position
+    assert max(abs(a - b) for a, b in zip(drawn["pts"][-1], expected, strict=True)) < 1e-9

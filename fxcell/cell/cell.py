@@ -1495,8 +1495,11 @@ def _running_states() -> set[CellState]:
 
 def _start_recorder(directory: Path, cell: Cell) -> Any:
     from fxcell.recorder import Recorder, Retention
+    from fxcell.recorder.recorder import TF_RATE
 
     rec = cell.config.recorder
+    describe = cell.kind.description
+    arm = describe(Pose.from_ur(cell.config.tool.tcp)) if describe is not None else None
     recorder = Recorder(
         directory,
         chunk_duration=rec.chunk_duration,
@@ -1507,7 +1510,8 @@ def _start_recorder(directory: Path, cell: Cell) -> Any:
             "external_control": cell.external_control,
             "config": cell.config.model_dump(mode="json"),
         },
-        tcp=cell.config.tool.tcp,
+        arm=arm,
+        tf_rate=TF_RATE if arm is not None else 0.0,  # no description: no frames, no URDF
         retention=Retention(rec.max_total_size, rec.max_age),
     )
     recorder.attach(cell.bus)

@@ -34,7 +34,6 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fxcell._version import __version__
-from fxcell.calibration import nominal_model
 from fxcell.client import CLIENT_HEADER, decode_client_name
 from fxcell.commands import COMMANDS, Command
 from fxcell.daemon import models
@@ -212,9 +211,17 @@ def create_app(service: CellService) -> FastAPI:
     async def get_info() -> dict[str, Any]:
         return service.info()
 
-    @api.get("/robot/model", summary="The arm's kinematic model: UR's nominal DH table (m, rad)")
+    @api.get(
+        "/robot/model",
+        summary="The arm's kinematic chain as the page draws it (m, rad)",
+        description=(
+            "The configured robot kind's joints from the base to the tool frame: each an "
+            "origin (4x4, row-major, in the previous joint's frame) and an axis; then the tool "
+            "frame's transform from the last joint (the TCP, `tcp` of /api/info, is on it)."
+        ),
+    )
     async def get_robot_model() -> dict[str, object]:
-        return nominal_model()
+        return service.arm_model()
 
     @api.get("/statechart", summary="The robot-mode state machine as data")
     async def get_statechart() -> dict[str, Any]:

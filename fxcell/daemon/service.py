@@ -24,8 +24,9 @@ from fxcell.daemon.encoding import jsonable
 from fxcell.daemon.jobs import JobService
 from fxcell.daemon.operations import Operation, OperationRegistry
 from fxcell.daemon.stream import StreamHub
-from fxcell.errors import ConnectionLostError, MoveInProgressError
+from fxcell.errors import ConnectionLostError, MoveInProgressError, UnsupportedCommandError
 from fxcell.events import COMMAND_ORIGIN, Event, EventBus, StateEvent, TransitionEvent
+from fxcell.geometry import Pose
 from fxcell.protocol import RobotState
 from fxcell.robots import robot_kind
 
@@ -235,6 +236,15 @@ class CellService:
             "io": dict(cfg.io.signals),
             "recorder": jsonable(cfg.recorder),
         }
+
+    def arm_model(self) -> dict[str, object]:
+        """The configured robot's arm as the page draws it (its kind's description: the
+        joints from the base to the tool frame, each an origin and an axis);
+        UnsupportedCommandError for a kind without one."""
+        describe = robot_kind(self.config.robot.kind).description
+        if describe is None:
+            raise UnsupportedCommandError("robot_model", self.config.robot.kind)
+        return describe(Pose.from_ur(self.config.tool.tcp)).chain_json()
 
     def commands_data(self) -> dict[str, Any]:
         """The command table as data (for clients and the operator page)."""

@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import IO, Any, Final
+from typing import IO, TYPE_CHECKING, Any, Final
 
 from mcap.writer import CompressionType, Writer
 
@@ -53,10 +53,15 @@ from fxcell.recorder.schemas import (
     topic_schemas,
 )
 
+if TYPE_CHECKING:
+    from fxcell.robots.description import ArmDescription
+
 log = logging.getLogger(__name__)
 
 MAX_CHUNK_BYTES: Final = 8 * 1024 * 1024
 """Upper bound of a chunk in memory; chunks normally close on time, not on size."""
+TF_RATE: Final = 30.0
+"""Hz: how often the arm's ``/tf`` frames are written (from the robot states)."""
 RETRY_INTERVAL: Final = 5.0
 """Seconds between attempts to open a new file after a write failed."""
 REPORT_INTERVAL: Final = 5.0
@@ -109,8 +114,9 @@ class Recorder:
     Unfinished files of earlier sessions in ``directory`` are recovered first.
 
     ``metadata`` (fxcell version, config snapshot, controller version, serial, ...)
-    is written into every file; non-string values are stored as JSON. ``tcp`` is the
-    tool centre point in the flange frame for the ``/tf`` frames (``None``: flange).
+    is written into every file; non-string values are stored as JSON. ``arm`` is the
+    robot kind's description (its URDF and the ``/tf`` frames; None: the UR3e with
+    ``tcp``, its tool centre point in the flange frame, None: the flange).
     ``on_error(message)`` is called from the writer thread when the recorder starts
     dropping messages or cannot write; use ``loop.call_soon_threadsafe`` in it.
     ``clock`` stamps each event's log time (ns since the epoch) as it is submitted.
@@ -129,7 +135,8 @@ class Recorder:
         rotate_duration: float = 3600.0,
         metadata: Mapping[str, Any] | None = None,
         tcp: Sequence[float] | None = None,
-        tf_rate: float = 30.0,
+        arm: ArmDescription | None = None,
+        tf_rate: float = TF_RATE,
         max_queue: int = 30_000,
         fsync: bool = True,
         compression: str = "zstd",
@@ -179,7 +186,7 @@ class Recorder:
         # warm (0.1 s cost 0.1-0.15 % of a core more), and a crash loses at most a chunk.
         self._poll = min(0.25, self.chunk_duration / 4)
         self._tf_period_ns = int(1e9 / tf_rate) if tf_rate > 0 else 0
-        self._frames = LinkFrames(tcp) if tf_rate > 0 else None
+        self._frames = LinkFrames(tcp, arm) if tf_rate > 0 else None
         self._schemas = topic_schemas()
 
         # shared with the submitting thread: the deque, and counters each side owns
@@ -539,7 +546,7 @@ class Recorder:
                 if urdf is not None:
                     ns = self._clock()
                     writer.add_attachment(
-                        ns, ns, topics.URDF_ATTACHMENT, topics.URDF_MEDIA_TYPE, urdf.encode()
+                        ns, ns, self._frames.attachment, topics.URDF_MEDIA_TYPE, urdf.encode()
                     )
                     self._add(topics.ROBOT_DESCRIPTION, ns, dumps({"data": urdf}), ns)
             self._flush(rotate=False)  # a new file holds at least one chunk of events

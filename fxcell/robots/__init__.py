@@ -6,9 +6,11 @@ implementation of :class:`~fxcell.link.backend.LinkBackend`), its kinematic mode
 (a :class:`KinematicModel`, what the motion planner plans on), its collision model (a
 :class:`CollisionModel` of the arm in the configured scene), its calibration forms
 (:class:`CalibrationFormat`: nominal, from a file; the link reads the arm's own), how its
-link takes a streamed plan (``execution``) and its simulator launcher (started when no
-controller address is configured). Adding a robot is one package holding those and one
-:func:`register` call; the Cell and the motion layer never name a kind.
+link takes a streamed plan (``execution``), its simulator launcher (started when no
+controller address is configured) and its description for the views
+(:class:`~fxcell.robots.description.ArmDescription`: frames as a tree of joints, URDF).
+Adding a robot is one package holding those and one :func:`register` call; the Cell and
+the motion layer never name a kind.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from fxcell.robots.registry import (
     CalibrationFormat,
     CollisionFactory,
     CollisionModel,
+    DescriptionFactory,
     KinematicModel,
     KinematicsFactory,
     RobotKind,
@@ -36,6 +39,7 @@ __all__ = [
     "CalibrationFormat",
     "CollisionFactory",
     "CollisionModel",
+    "DescriptionFactory",
     "KinematicModel",
     "KinematicsFactory",
     "RobotKind",

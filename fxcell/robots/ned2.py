@@ -14,6 +14,7 @@ from fxcell.geometry import Pose
 from fxcell.link.capabilities import RobotCapabilities
 from fxcell.link.ned2.link import Ned2Calibration, Ned2Link
 from fxcell.motion.moves import ExecutionOptions
+from fxcell.robots.description import ArmDescription, from_urdf
 from fxcell.robots.registry import CalibrationFormat, RobotKind
 
 if TYPE_CHECKING:
@@ -89,6 +90,14 @@ def ned2_link(
     )
 
 
+def ned2_description(tcp: Pose) -> ArmDescription:
+    """The Ned2 for the views: its URDF's frames (:func:`fxcell.motion.ned2.urdf`), the
+    TCP on ``tool_link``."""
+    from fxcell.motion import ned2
+
+    return from_urdf("ned2", "Ned2", ned2.urdf(), "tool_link", tcp)
+
+
 NED2_KIND = RobotKind(
     capabilities=NED2,
     link=ned2_link,
@@ -96,4 +105,5 @@ NED2_KIND = RobotKind(
     collision=ned2_collision,
     calibration=CalibrationFormat(nominal=Ned2Calibration.nominal, load=Ned2Calibration.load),
     execution=ExecutionOptions(compensate_lag=False),
+    description=ned2_description,
 )

@@ -17,11 +17,13 @@ if TYPE_CHECKING:
     from fxcell.link.backend import ArmCalibration, LinkFactory
     from fxcell.link.capabilities import RobotCapabilities
     from fxcell.motion.moves import ExecutionOptions
+    from fxcell.robots.description import ArmDescription
 
 __all__ = [
     "CalibrationFormat",
     "CollisionFactory",
     "CollisionModel",
+    "DescriptionFactory",
     "KinematicModel",
     "KinematicsFactory",
     "RobotKind",
@@ -125,6 +127,10 @@ class Simulator(Protocol):
 SimulatorLauncher = Callable[[Mapping[str, Any]], Simulator]
 """Makes a kind's simulator from the Cell's ``simulator_options`` (not started yet)."""
 
+DescriptionFactory = Callable[["Pose"], "ArmDescription"]
+"""The arm for the views (the page's arm view, the recorder's frames and URDF):
+``factory(tcp)`` with the configured TCP in the kind's tool frame."""
+
 
 @dataclass(frozen=True)
 class RobotKind:
@@ -140,6 +146,8 @@ class RobotKind:
     execution: ExecutionOptions | None = None
     """How its link takes a streamed plan: servo lookahead and gain, whether setpoints lead
     the servo's lag, settling (None: the defaults, made for a UR's servoJ)."""
+    description: DescriptionFactory | None = None
+    """The arm's frames and URDF for the page and the recorder (None: they draw no arm)."""
 
     @property
     def name(self) -> str:

@@ -465,12 +465,13 @@ $("#copy-pose").addEventListener("click", async () => {
   } catch (e) { log(`current pose: ${e.message}`, "error"); }
 });
 
-// ------------------------------------------------------------------ arm view (UR3e, DH)
+// ------------------------------------------------------------------ arm view
 
-// The arm's DH table (d, a, alpha in m and rad) comes from the daemon: one source in Python.
-let DH = null;
+// The arm's chain comes from the daemon (the configured robot kind's own model): each joint
+// an origin (4x4 row-major, in the previous joint's frame) and an axis, then the tool frame.
+let ARM = null;
 (async () => {
-  try { DH = (await api("GET", "/api/robot/model")).dh; requestDraw(); }
+  try { ARM = await api("GET", "/api/robot/model"); requestDraw(); }
   catch (e) { log(`cannot load the robot model: ${e.message}`, "error"); }
 })();
 
@@ -480,9 +481,10 @@ function matMul(A, B) {
     for (let k = 0; k < 4; k++) C[r * 4 + c] += A[r * 4 + k] * B[k * 4 + c];
   return C;
 }
-function dh(theta, d, a, alpha) {
-  const ct = Math.cos(theta), st = Math.sin(theta), ca = Math.cos(alpha), sa = Math.sin(alpha);
-  return [ct, -st * ca, st * sa, a * ct, st, ct * ca, -ct * sa, a * st, 0, sa, ca, d, 0, 0, 0, 1];
+function turn([x, y, z], th) {  // rotation by th about the unit axis (x, y, z), 4x4
+  const c = Math.cos(th), s = Math.sin(th), C = 1 - c;
+  return [c + x * x * C, x * y * C - z * s, x * z * C + y * s, 0, y * x * C + z * s, c + y * y * C, y * z * C - x * s, 0,
+    z * x * C - y * s, z * y * C + x * s, c + z * z * C, 0, 0, 0, 0, 1];
 }
 function rotvec(rx, ry, rz) {
   const th = Math.hypot(rx, ry, rz);
@@ -492,23 +494,33 @@ function rotvec(rx, ry, rz) {
     z * x * C - y * s, z * y * C + x * s, c + z * z * C];
 }
 const P = (T) => [T[3], T[7], T[11]];
+const at = (T, [x, y, z]) => [T[0] * x + T[1] * y + T[2] * z + T[3], T[4] * x + T[5] * y + T[6] * z + T[7],
+  T[8] * x + T[9] * y + T[10] * z + T[11]];
 
-// Points along the arm: joint origins with the link offsets between them, then the TCP.
+// Points along the arm: from each joint, the offset to the next joint (or the tool frame)
+// first along the joint's axis (a joint marker there), then the rest; then the TCP.
 function armPoints(q) {
   let T = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
-  const pts = [P(T)];
-  if (!DH) return pts;  // the model has not arrived yet
-  for (let i = 0; i < 6; i++) {
-    const Tz = matMul(T, dh(q[i], DH.d[i], 0, 0));
-    pts.push(P(Tz));
-    T = matMul(T, dh(q[i], DH.d[i], DH.a[i], DH.alpha[i]));
+  const pts = [P(T)], joints = [];
+  if (!ARM || !ARM.joints.length) return { pts, joints };  // the model has not arrived yet
+  const J = ARM.joints;
+  T = J[0].origin;
+  if (Math.hypot(...P(T)) > 1e-9) pts.push(P(T));  // a base below the first joint
+  for (let i = 0; i < J.length; i++) {
+    const axis = J[i].axis;
+    T = matMul(T, turn(axis, q[i] || 0));
+    const next = i + 1 < J.length ? J[i + 1].origin : ARM.tool;
+    const along = next[3] * axis[0] + next[7] * axis[1] + next[11] * axis[2];
+    joints.push(pts.length);
+    pts.push(at(T, axis.map((v) => v * along)));
+    T = matMul(T, next);
     pts.push(P(T));
   }
   const tcp = (page.info && page.info.tcp) || [0, 0, 0, 0, 0, 0];
   const R = rotvec(tcp[3], tcp[4], tcp[5]);
   const Tt = [R[0], R[1], R[2], tcp[0], R[3], R[4], R[5], tcp[1], R[6], R[7], R[8], tcp[2], 0, 0, 0, 1];
   pts.push(P(matMul(T, Tt)));
-  return pts;
+  return { pts, joints };
 }
 
 let drawPending = false;
@@ -596,8 +608,9 @@ function drawObject(g, project, seat, kind, who) {
   g.textAlign = "left";
 }
 
-function drawChain(g, project, pts, colour, width) {
+function drawChain(g, project, { pts, joints }, colour, width) {
   const xy = pts.map(project);
+  if (xy.length < 2) return;
   g.lineCap = "round"; g.lineJoin = "round";
   g.strokeStyle = colour; g.lineWidth = width;
   g.beginPath(); xy.slice(0, -1).forEach(([x, y], i) => (i ? g.lineTo(x, y) : g.moveTo(x, y))); g.stroke();
@@ -605,7 +618,7 @@ function drawChain(g, project, pts, colour, width) {
   const [fx, fy] = xy[xy.length - 2], [tx, ty] = xy[xy.length - 1];
   g.beginPath(); g.moveTo(fx, fy); g.lineTo(tx, ty); g.stroke();
   g.fillStyle = "#17202b";
-  for (let i = 1; i < xy.length - 1; i += 2) { g.beginPath(); g.arc(xy[i][0], xy[i][1], width * 0.45, 0, 2 * Math.PI); g.fill(); }
+  for (const i of joints) { g.beginPath(); g.arc(xy[i][0], xy[i][1], width * 0.45, 0, 2 * Math.PI); g.fill(); }
   g.fillStyle = "#f08c00"; g.beginPath(); g.arc(tx, ty, 5, 0, 2 * Math.PI); g.fill();
 }
 
