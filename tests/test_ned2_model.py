@@ -130,9 +130,7 @@ def test_the_planners_model_inverts_its_forward_with_the_tcp(q: np.ndarray) -> N
 
 
 @given(q=joints, step=st.lists(st.floats(-0.01, 0.01), min_size=6, max_size=6))
-def test_a_paths_next_point_is_solved_on_the_seeds_branch(
-    q: np.ndarray, step: list[float]
-) -> None:
+def test_a_paths_next_point_is_solved_on_the_seeds_branch(q: np.ndarray, step: list[float]) -> None:
     # a straight line's knots: the next pose is a small step from the seed's
     model = ned2.Ned2Kinematics(TCP)
     nxt = np.clip(q + np.asarray(step), ned2.LOWER, ned2.UPPER)
