@@ -274,6 +274,16 @@ class NothingGraspedError(GripperError):
     """An object was expected between the fingers, but they closed on nothing."""
 
 
+class UnsupportedGripError(InvalidArgumentError):
+    """The robot kind's gripper cannot do this opening, speed or force (its
+    :class:`~fxcell.link.gripper.GripperSpec`); nothing was sent."""
+
+    def __init__(self, kind: str, argument: str, message: str) -> None:
+        self.kind = kind
+        self.argument = argument
+        super().__init__(message)
+
+
 class HoldingError(GripperError):
     """Refused for what the gripper holds: a pick while it holds something, a place while it
     holds nothing or an object the station does not take; nothing moved."""

@@ -167,7 +167,7 @@ async def pick(
     await resilient(cell, f"check {where}", _checked(cell, context, station, slot))
     kind = station.kind
     vf, af = velocity_factor, acceleration_factor
-    open_width = min(0.050, kind.width + CLEARANCE)
+    open_width = cell.gripper.opening(kind.width + CLEARANCE)
     await resilient(cell, "open the gripper", lambda: cell.gripper_move(open_width))
     await resilient(
         cell, f"approach {where}", lambda: cell.move_pose(station.approach_pose(slot), vf, af)
@@ -229,7 +229,7 @@ async def place(
         f"descend to {where}",
         lambda: cell.move_pose(station.grip_pose(slot), vf, af, linear=True),
     )
-    width = min(0.050, station.kind.width + CLEARANCE)
+    width = cell.gripper.opening(station.kind.width + CLEARANCE)
     released = await resilient(cell, f"release at {where}", lambda: cell.gripper_move(width))
     await resilient(cell, "let go", lambda: context.hold(None))
     await resilient(

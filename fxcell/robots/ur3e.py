@@ -1,5 +1,6 @@
 """The UR3e kind: the supervised ur_rtde link, the UR3e's (calibrated) kinematics, its
-collision bodies, UR's calibration files and the embedded UR controller simulator."""
+collision bodies, UR's calibration files, the embedded UR controller simulator and the
+Robotiq Hand-E (through the URCap's socket)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from fxcell.calibration import Calibration
 from fxcell.link.capabilities import UR3E
 from fxcell.link.client import process_link
 from fxcell.link.embedded import EmbeddedSimulator
+from fxcell.link.gripper import hand_e
 from fxcell.robots.registry import CalibrationFormat, RobotKind
 
 if TYPE_CHECKING:
@@ -49,4 +51,5 @@ UR3E_KIND = RobotKind(
     collision=ur3e_collision,
     calibration=CalibrationFormat(nominal=Calibration.nominal, load=Calibration.load),
     simulator=ur3e_simulator,
+    gripper=hand_e,
 )
