@@ -15,6 +15,8 @@ import pytest
 from fxcell import Cell
 from fxcell.config import CellConfig, IOConfig, JointLimits, SceneConfig, SceneObject
 from fxcell.errors import (
+    GripperError,
+    GripperNotActivatedError,
     NothingGraspedError,
     ObjectLostError,
     UnknownSignalError,
@@ -147,6 +149,22 @@ async def test_an_object_between_the_fingers_is_gripped_and_its_loss_detected(
         await cell.gripper.check_holding()
     assert cell.gripper.state == "empty"
     await cell.gripper_open()
+
+
+async def test_without_a_gripper_on_the_tool_port_its_commands_are_refused(
+    cell: Cell, sim: Ned2SimulatorHandle
+) -> None:
+    await asyncio.to_thread(sim.inject, "tool_disconnect")
+    try:
+        with pytest.raises(GripperNotActivatedError):
+            await cell.gripper_close()
+        assert cell.gripper.state == "inactive"
+        with pytest.raises(GripperError, match="not a Gripper 1"):
+            await cell.gripper_activate()
+    finally:
+        await asyncio.to_thread(sim.inject, "tool_connect")
+    await cell.gripper_activate()
+    assert (await cell.gripper_open()).width == pytest.approx(GRIPPER_1.stroke)
 
 
 async def test_io_by_configured_names_sets_and_reads_the_ned2s_pins(

@@ -179,7 +179,10 @@ class Gripper:
     async def open(self, *, speed: float | None = None) -> GripResult:
         """Open fully; returns where the fingers stopped (``speed``: m/s, None: the
         gripper's own)."""
-        stroke = self._io().spec.stroke
+        try:
+            stroke: float | None = self._io().spec.stroke
+        except (ConnectionLostError, UnsupportedCommandError):
+            stroke = None  # refused inside the recorded command
         return await self._run("gripper_open", stroke, speed, None, expect_object=False)
 
     async def close(
@@ -262,15 +265,18 @@ class Gripper:
     async def _run(
         self,
         name: str,
-        width: float,
+        width: float | None,
         speed: float | None,
         force: float | None,
         *,
         expect_object: bool,
     ) -> GripResult:
+        """Run a finger move (``width`` None: fully open) as the recorded command ``name``."""
         args = {"width": width, "speed": speed, "force": force, "expect_object": expect_object}
         async with self._context.record(name, **args) as outcome, self._lock:
             io = self._io()
+            if width is None:
+                width = io.spec.stroke
             self._check_args(io.spec, width, speed, force)
             self._check_power(name)
             await self._check_ready(io)
