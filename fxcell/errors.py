@@ -251,7 +251,8 @@ class ProgramStoppedError(MoveStoppedError):
 
 
 class GripperError(FxcellError):
-    """The Robotiq Hand-E (through the Robotiq URCap's socket) failed a command."""
+    """The robot kind's gripper (the UR3e's Robotiq Hand-E through the URCap's socket, the
+    Ned2's Gripper 1 through its TCP server) failed a command."""
 
 
 class GripperNotPoweredError(GripperError):
@@ -259,7 +260,8 @@ class GripperNotPoweredError(GripperError):
 
 
 class GripperNotActivatedError(GripperError):
-    """The gripper is not activated (``STA`` is not 3): call ``activate()`` first."""
+    """The gripper is not activated (the Hand-E: ``STA`` is not 3; the Ned2: no Gripper 1
+    on its tool port): call ``activate()`` first."""
 
 
 class GripperFaultError(GripperError):

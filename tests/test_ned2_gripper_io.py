@@ -203,3 +203,21 @@ async def test_a_vial_picked_from_the_rack_lands_on_the_tray_within_1_mm(
     assert state["held"] is None
     landed = np.array(state["objects"]["vial1"])
     assert np.linalg.norm(landed - target) < 1e-3
+
+
+async def test_a_pick_of_an_object_wider_than_gripper_1_opens_is_refused_before_it_moves(
+    sim: Ned2SimulatorHandle,
+) -> None:
+    wide = LAYOUT.model_copy(update={"objects": {"vial": VIAL.model_copy(update={"width": 0.03})}})
+    register(NED2_KIND)
+    try:
+        config = _config().model_copy(update={"layout": wide})
+        async with Cell(config=config, host=sim.host, record=None) as c:
+            await c.init()
+            before = sim.state()["joints"]
+            with pytest.raises(UnsupportedGripError, match="ned2") as refused:
+                await c.pick("rack", "A1")
+            assert refused.value.argument == "width"
+            assert sim.state()["joints"] == before
+    finally:
+        unregister("ned2")

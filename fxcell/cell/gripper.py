@@ -118,6 +118,23 @@ class Gripper:
         object's width and a clearance): see :meth:`GripperSpec.opening`."""
         return self.spec.opening(width)
 
+    def check_fits(self, width: float, what: str) -> None:
+        """Refuse (:class:`UnsupportedGripError`, naming the kind) an object ``width`` m
+        across that the fingers cannot open around (``what``: the object, for the
+        message). Without a controller address there is no gripper to ask: its own
+        commands refuse then."""
+        try:
+            spec = self.spec
+        except ConnectionLostError:
+            return
+        if width >= spec.stroke:
+            raise UnsupportedGripError(
+                self._kind,
+                "width",
+                f"a {what} is {width * 1e3:.1f} mm across: the {self._kind}'s {spec.name} "
+                f"opens only {spec.stroke * 1e3:.1f} mm",
+            )
+
     def _state_changed(self, source: str, dest: str, trigger: str) -> None:
         self.last["state"] = dest
         data = {"event": "state", "source": source, "state": dest, "trigger": trigger}

@@ -92,13 +92,15 @@ def check_interlock(cell: SlotCell, station: Station) -> None:
 
 def admit_pick(cell: SlotCell, station_name: str, slot_name: str) -> tuple[Station, str]:
     """The station and slot of a pick, or the error that refuses it (names, interlock,
-    a held object): no IK yet (see :func:`reach_slot`)."""
+    a held object, an object wider than the gripper opens): no IK yet (see
+    :func:`reach_slot`)."""
     station, slot = cell.layout.slot(station_name, slot_name)
     check_interlock(cell, station)
     if cell.held is not None:
         raise HoldingError(
             f"pick refused: the gripper holds a {cell.held}; place or release it first"
         )
+    cell.gripper.check_fits(station.kind.width, station.config.holds)
     return station, slot
 
 
