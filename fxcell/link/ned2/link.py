@@ -18,7 +18,7 @@
   them. A stop is the commander's ``stop_command``; progress is read from the joint states.
   The TCP server (pyniryo's protocol) has no timed-trajectory command and answers one
   command at a time, so it serves only what the rosbridge lacks here (clearing a detected
-  collision).
+  collision; the gripper's tool commands and position, :mod:`fxcell.link.ned2.gripper`).
 """
 
 from __future__ import annotations
