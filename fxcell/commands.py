@@ -86,14 +86,19 @@ GRIP_SPEED_RANGE = (0.020, 0.150)
 GRIP_FORCE_RANGE = (20.0, 185.0)
 """The Hand-E's grip forces (N)."""
 GRIP_WIDTH = ArgType(
-    "grip_width", "finger opening, 0 (closed) to 0.050 (open)", "m", bounds=GRIP_WIDTH_RANGE,
+    "grip_width", "finger opening, 0 (closed) to the stroke (Hand-E 0.050)", "m",
+    bounds=GRIP_WIDTH_RANGE,
     closed=True,
 )  # fmt: skip
 GRIP_SPEED = ArgType(
-    "grip_speed", "finger speed, 0.020 to 0.150", "m/s", bounds=GRIP_SPEED_RANGE, closed=True
+    "grip_speed",
+    "finger speed (Hand-E 0.020 to 0.150)",
+    "m/s",
+    bounds=GRIP_SPEED_RANGE,
+    closed=True,
 )
 GRIP_FORCE = ArgType(
-    "grip_force", "grip force, 20 to 185", "N", bounds=GRIP_FORCE_RANGE, closed=True
+    "grip_force", "grip force (Hand-E 20 to 185)", "N", bounds=GRIP_FORCE_RANGE, closed=True
 )
 
 NAME = ArgType("name", "a name (letters, digits, '_', '-')", scalar="str")
@@ -612,7 +617,7 @@ class CellCommands(Protocol):
 
     @command("command", NONE, guard="gripper", requires=[Feature.GRIPPER])
     async def gripper_activate(self) -> None:
-        """Activate the Robotiq Hand-E (needs the arm powered; once after each power-up)."""
+        """Activate the gripper (the Hand-E: needs the arm powered; once after each power-up)."""
         return await self.run_command("gripper_activate")  # type: ignore[no-any-return]
 
     @command(
@@ -622,7 +627,7 @@ class CellCommands(Protocol):
         guard="gripper",
         requires=[Feature.GRIPPER],
     )
-    async def gripper_open(self, *, speed: float = 0.150) -> GripResult:
+    async def gripper_open(self, *, speed: float | None = None) -> GripResult:
         """Open the gripper fully; returns where the fingers stopped and whether they hold."""
         return await self.run_command("gripper_open", **_given(locals()))  # type: ignore[no-any-return]
 
@@ -635,7 +640,11 @@ class CellCommands(Protocol):
         requires=[Feature.GRIPPER],
     )
     async def gripper_close(
-        self, *, speed: float = 0.150, grip_force: float = 185.0, expect_object: bool = False
+        self,
+        *,
+        speed: float | None = None,
+        grip_force: float | None = None,
+        expect_object: bool = False,
     ) -> GripResult:
         """Close the gripper fully or until an object stops the fingers.
 
@@ -660,11 +669,13 @@ class CellCommands(Protocol):
         self,
         width: float,
         *,
-        speed: float = 0.150,
-        grip_force: float = 185.0,
+        speed: float | None = None,
+        grip_force: float | None = None,
         expect_object: bool = False,
     ) -> GripResult:
-        """Move the fingers to an opening (m) at a speed (m/s) with at most a force (N)."""
+        """Move the fingers to an opening (m) at a speed (m/s) with at most a force (N);
+        speed and force left out: the gripper's own. A two-position gripper (the Ned2's)
+        takes only 0 and its full opening."""
         return await self.run_command("gripper_move", **_given(locals()))  # type: ignore[no-any-return]
 
     @command("query", FLOAT, guard="gripper", requires=[Feature.GRIPPER])

@@ -251,7 +251,8 @@ class ProgramStoppedError(MoveStoppedError):
 
 
 class GripperError(FxcellError):
-    """The Robotiq Hand-E (through the Robotiq URCap's socket) failed a command."""
+    """The robot kind's gripper (the UR3e's Robotiq Hand-E through the URCap's socket, the
+    Ned2's Gripper 1 through its TCP server) failed a command."""
 
 
 class GripperNotPoweredError(GripperError):
@@ -259,7 +260,8 @@ class GripperNotPoweredError(GripperError):
 
 
 class GripperNotActivatedError(GripperError):
-    """The gripper is not activated (``STA`` is not 3): call ``activate()`` first."""
+    """The gripper is not activated (the Hand-E: ``STA`` is not 3; the Ned2: no Gripper 1
+    on its tool port): call ``activate()`` first."""
 
 
 class GripperFaultError(GripperError):
@@ -272,6 +274,16 @@ class GripperFaultError(GripperError):
 
 class NothingGraspedError(GripperError):
     """An object was expected between the fingers, but they closed on nothing."""
+
+
+class UnsupportedGripError(InvalidArgumentError):
+    """The robot kind's gripper cannot do this opening, speed or force (its
+    :class:`~fxcell.link.gripper.GripperSpec`); nothing was sent."""
+
+    def __init__(self, kind: str, argument: str, message: str) -> None:
+        self.kind = kind
+        self.argument = argument
+        super().__init__(message)
 
 
 class HoldingError(GripperError):

@@ -141,7 +141,7 @@ async def test_a_command_its_guard_refuses_raises_and_sends_nothing(
     """The guard of the command table, applied by the Cell itself: every command is refused
     with InvalidStateError in a state its guard does not admit, and nothing reaches the
     robot (no request on the link, the gripper's socket never opened)."""
-    import fxcell.cell.gripper
+    import fxcell.link.gripper
 
     opened: list[str] = []
 
@@ -149,7 +149,7 @@ async def test_a_command_its_guard_refuses_raises_and_sends_nothing(
         def __init__(self, host: str) -> None:
             opened.append(host)
 
-    monkeypatch.setattr(fxcell.cell.gripper, "URCapGripperClient", NoGripper)
+    monkeypatch.setattr(fxcell.link.gripper, "URCapGripperClient", NoGripper)
     robot = FakeRobot(time_scale=TIME_SCALE)
     config = CellConfig.load().model_copy(update={"positions_file": tmp_path / "p.yaml"})
     async with Cell(link_factory=robot.link_factory, config=config, record=None) as cell:

@@ -244,16 +244,17 @@ class Cell(CellCommands):
 
     @property
     def gripper(self) -> Gripper:
-        """The Robotiq Hand-E (through the Robotiq URCap's socket on the controller)."""
+        """The robot kind's gripper (the UR3e's Robotiq Hand-E through the URCap's socket,
+        the Ned2's Gripper 1 through its TCP server), in SI units."""
         if self._gripper is None:
-            self._gripper = Gripper(self._context)
+            self._gripper = Gripper(self._context, self.kind.gripper, self.kind.name)
         return self._gripper
 
     @property
     def io(self) -> CellIO:
         """The configured IO signals by name (``cell.io.get("machine_done")``)."""
         if self._io is None:
-            self._io = CellIO(self._context)
+            self._io = CellIO(self._context, self.kind.signals, self.kind.name)
         return self._io
 
     @property
@@ -1237,7 +1238,7 @@ class Cell(CellCommands):
         self._check_guard("gripper_activate")
         await self.gripper.activate()
 
-    async def gripper_open(self, *, speed: float = 0.150) -> GripResult:
+    async def gripper_open(self, *, speed: float | None = None) -> GripResult:
         self._check_guard("gripper_open")
         result = await self.gripper.open(speed=speed)
         if not result.holding and self.held is not None:
@@ -1245,7 +1246,11 @@ class Cell(CellCommands):
         return result
 
     async def gripper_close(
-        self, *, speed: float = 0.150, grip_force: float = 185.0, expect_object: bool = False
+        self,
+        *,
+        speed: float | None = None,
+        grip_force: float | None = None,
+        expect_object: bool = False,
     ) -> GripResult:
         self._check_guard("gripper_close")
         return await self.gripper.close(speed=speed, force=grip_force, expect_object=expect_object)
@@ -1254,8 +1259,8 @@ class Cell(CellCommands):
         self,
         width: float,
         *,
-        speed: float = 0.150,
-        grip_force: float = 185.0,
+        speed: float | None = None,
+        grip_force: float | None = None,
         expect_object: bool = False,
     ) -> GripResult:
         self._check_guard("gripper_move")

@@ -92,13 +92,15 @@ def check_interlock(cell: SlotCell, station: Station) -> None:
 
 def admit_pick(cell: SlotCell, station_name: str, slot_name: str) -> tuple[Station, str]:
     """The station and slot of a pick, or the error that refuses it (names, interlock,
-    a held object): no IK yet (see :func:`reach_slot`)."""
+    a held object, an object wider than the gripper opens): no IK yet (see
+    :func:`reach_slot`)."""
     station, slot = cell.layout.slot(station_name, slot_name)
     check_interlock(cell, station)
     if cell.held is not None:
         raise HoldingError(
             f"pick refused: the gripper holds a {cell.held}; place or release it first"
         )
+    cell.gripper.check_fits(station.kind.width, station.config.holds)
     return station, slot
 
 
@@ -167,7 +169,7 @@ async def pick(
     await resilient(cell, f"check {where}", _checked(cell, context, station, slot))
     kind = station.kind
     vf, af = velocity_factor, acceleration_factor
-    open_width = min(0.050, kind.width + CLEARANCE)
+    open_width = cell.gripper.opening(kind.width + CLEARANCE)
     await resilient(cell, "open the gripper", lambda: cell.gripper_move(open_width))
     await resilient(
         cell, f"approach {where}", lambda: cell.move_pose(station.approach_pose(slot), vf, af)
@@ -229,7 +231,7 @@ async def place(
         f"descend to {where}",
         lambda: cell.move_pose(station.grip_pose(slot), vf, af, linear=True),
     )
-    width = min(0.050, station.kind.width + CLEARANCE)
+    width = cell.gripper.opening(station.kind.width + CLEARANCE)
     released = await resilient(cell, f"release at {where}", lambda: cell.gripper_move(width))
     await resilient(cell, "let go", lambda: context.hold(None))
     await resilient(

@@ -1,9 +1,12 @@
 """``cell.io``: the controller's IO by the names the configuration gives them.
 
 ``io.signals`` in the configuration maps names to addresses (``machine_done: DI2``); task
-code uses only the names. Outputs are set through RTDE's IO recipe (ur_rtde's
-``RTDEIOInterface`` in the robot-link process) and confirmed on the state stream; inputs and
-outputs are read from the newest 500 Hz sample. Every set and wait is the Cell's command of
+code uses only the names. Outputs are set through the link (``set_output``: the UR's RTDE IO
+recipe, ur_rtde's ``RTDEIOInterface`` in the robot-link process; the Ned2's IO panel
+service) and confirmed on the state stream; inputs and outputs are read from the newest
+state sample. A robot kind that has only some addresses (the Ned2: ``DI1``-``DI5``,
+``DO1``-``DO4``) names them (``RobotKind.signals``); a signal configured at another address
+is refused, naming the kind, before anything is sent. Every set and wait is the Cell's command of
 that name (``io_set``, ``io_wait_for``): recorded, and refused by the command table's guard
 before anything is sent; the recorder also logs the IO bits on ``/robot/io`` whenever one
 changes.
@@ -27,8 +30,12 @@ Value = bool | float
 class CellIO:
     """The configured IO signals of a :class:`~fxcell.cell.Cell` (``cell.io``)."""
 
-    def __init__(self, context: CellContext) -> None:
+    def __init__(
+        self, context: CellContext, addresses: frozenset[str] | None = None, kind: str = ""
+    ) -> None:
         self._context = context
+        self._addresses = addresses
+        self._kind = kind
         self._signals = {
             name: parse_signal(address) for name, address in context.config().io.signals.items()
         }
@@ -41,10 +48,16 @@ class CellIO:
     def signal(self, name: str) -> Signal:
         """The signal called ``name``, or :class:`UnknownSignalError` listing the known ones."""
         try:
-            return self._signals[name]
+            signal = self._signals[name]
         except (KeyError, TypeError):
             known = ", ".join(self.names) or "none (configure io.signals)"
             raise UnknownSignalError(f"no IO signal {name!r} (known: {known})") from None
+        if self._addresses is not None and signal.address not in self._addresses:
+            raise UnknownSignalError(
+                f"{name} is configured at {signal.address}, which a {self._kind} robot does "
+                f"not have (its IO: {', '.join(sorted(self._addresses))})"
+            )
+        return signal
 
     def get(self, name: str) -> Value:
         """The signal's value in the newest state sample (bool, or V/A for analog)."""
@@ -56,7 +69,11 @@ class CellIO:
         sample = self._context.latest()
         if sample is None:
             return {}
-        return {name: s.read(sample) for name, s in sorted(self._signals.items())}
+        return {
+            name: s.read(sample)
+            for name, s in sorted(self._signals.items())
+            if self._addresses is None or s.address in self._addresses
+        }
 
     def check_set(self, name: str, value: object) -> tuple[Signal, bool | float]:
         """The output ``name`` and ``value`` as it takes it, or the error refusing them."""

@@ -43,7 +43,16 @@ _STATUS: tuple[tuple[type[BaseException], int], ...] = (
     (errors.CameraError, 502),
     (errors.FxcellError, 500),
 )
-_DETAIL_ATTRS = ("command", "state", "allowed", "next_step", "remaining", "failures", "kind")
+_DETAIL_ATTRS = (
+    "command",
+    "state",
+    "allowed",
+    "next_step",
+    "remaining",
+    "failures",
+    "kind",
+    "argument",
+)
 
 
 def http_status(exc: BaseException) -> int:

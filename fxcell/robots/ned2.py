@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING
 from fxcell.commands import Feature
 from fxcell.geometry import Pose
 from fxcell.link.capabilities import RobotCapabilities
-from fxcell.link.ned2.link import Ned2Calibration, Ned2Link
+from fxcell.link.ned2.gripper import ned2_gripper
+from fxcell.link.ned2.link import NED2_SIGNALS, Ned2Calibration, Ned2Link
 from fxcell.motion.moves import ExecutionOptions
 from fxcell.robots.description import ArmDescription, from_urdf
 from fxcell.robots.registry import CalibrationFormat, RobotKind
@@ -106,4 +107,6 @@ NED2_KIND = RobotKind(
     calibration=CalibrationFormat(nominal=Ned2Calibration.nominal, load=Ned2Calibration.load),
     execution=ExecutionOptions(compensate_lag=False),
     description=ned2_description,
+    gripper=ned2_gripper,
+    signals=NED2_SIGNALS,
 )

@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from fxcell.geometry import Pose
     from fxcell.link.backend import ArmCalibration, LinkFactory
     from fxcell.link.capabilities import RobotCapabilities
+    from fxcell.link.gripper import GripperFactory
     from fxcell.motion.moves import ExecutionOptions
     from fxcell.robots.description import ArmDescription
 
@@ -148,6 +149,15 @@ class RobotKind:
     the servo's lag, settling (None: the defaults, made for a UR's servoJ)."""
     description: DescriptionFactory | None = None
     """The arm's frames and URDF for the page and the recorder (None: they draw no arm)."""
+    gripper: GripperFactory | None = None
+    """Its gripper's driver for a controller address (:mod:`fxcell.link.gripper`; the
+    UR3e's: the Robotiq Hand-E through the URCap's socket). None: ``cell.gripper``'s
+    commands are refused with UnsupportedCommandError naming the kind."""
+    signals: frozenset[str] | None = None
+    """The IO addresses (:mod:`fxcell.signals`: ``DI2``, ``DO1``) its controller has and its
+    link reads and sets; None: every address :func:`fxcell.signals.parse_signal` takes
+    (the UR's). ``cell.io`` refuses a configured signal at another address, naming the
+    kind, before anything is sent."""
 
     @property
     def name(self) -> str:

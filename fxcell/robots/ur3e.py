@@ -1,6 +1,7 @@
 """The UR3e kind: the supervised ur_rtde link, the UR3e's (calibrated) kinematics, its
-collision bodies, UR's calibration files, the embedded UR controller simulator and its
-description for the views (frames from UR's nominal DH table, a primitive-geometry URDF)."""
+collision bodies, UR's calibration files, the embedded UR controller simulator, the
+Robotiq Hand-E (through the URCap's socket) and its description for the views (frames from
+UR's nominal DH table, a primitive-geometry URDF)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from fxcell.geometry import Pose
 from fxcell.link.capabilities import UR3E
 from fxcell.link.client import process_link
 from fxcell.link.embedded import EmbeddedSimulator
+from fxcell.link.gripper import hand_e
 from fxcell.robots.description import TCP_FRAME, ArmDescription, ArmJoint, tcp_joint
 from fxcell.robots.registry import CalibrationFormat, RobotKind
 
@@ -165,4 +167,5 @@ UR3E_KIND = RobotKind(
     calibration=CalibrationFormat(nominal=Calibration.nominal, load=Calibration.load),
     simulator=ur3e_simulator,
     description=ur3e_description,
+    gripper=hand_e,
 )

@@ -2,7 +2,8 @@
 unmodified, against the Ned2 simulator: it connects (its action clients wait for their
 servers' status), reads joints, pose, hardware status, learning mode and velocity
 scaling, calibrates, moves through the arm commander's action, uses the gripper through
-the tools commander's action, and stops a running move with ``stop_command``, whether
+the tools commander's action, sets and reads the digital pins through the IO panel's
+services and state topic, and stops a running move with ``stop_command``, whether
 the move came through the rosbridge or through the TCP server (pyniryo). Protocol errors
 are answered as rosbridge answers them."""
 
@@ -221,3 +222,30 @@ def test_a_power_loss_closes_the_rosbridge_and_the_restore_opens_it(
         assert robot.arm.need_calibration() is True
     finally:
         robot.end()
+
+
+def test_pyniryo2_sets_and_reads_the_digital_pins_through_the_io_panel(
+    robot: Any, sim: Ned2SimulatorHandle
+) -> None:
+    from pyniryo2.exceptions import RobotCommandException
+    from pyniryo2.io.enums import PinID, PinState
+
+    shown = threading.Event()
+
+    def on_state(pins: list[Any]) -> None:
+        if any(p.name == "DO1" and p.value for p in pins):
+            shown.set()
+
+    robot.io.get_digital_io_states.subscribe(on_state)
+    try:
+        robot.io.digital_write(PinID.DO1, PinState.HIGH)
+        assert sim.state()["digital_out"]["DO1"] is True
+        assert robot.io.digital_read(PinID.DO1) is True
+        assert shown.wait(5.0)  # the IO panel's state topic shows it
+    finally:
+        robot.io.get_digital_io_states.unsubscribe()
+    sim.set_input("DI2", 1)
+    assert robot.io.digital_read(PinID.DI2) is True
+    with pytest.raises(RobotCommandException, match="-114"):  # DIGITAL_IO_PANEL_ERROR
+        robot.io.digital_write(PinID.DI2, PinState.HIGH)  # an input cannot be set
+    assert sim.state()["digital_in"]["DI2"] is True

@@ -5,9 +5,12 @@
   holds the connection until the arm arrives.
 - :mod:`~fxcell.link.ned2.rosbridge`: the robot's rosbridge WebSocket (port 9090): topics
   streamed while a move runs (joint states, hardware status, learning mode, collision
-  detection) and services that reach a running move (``stop_command``).
+  detection, the IO panel's pins) and services that reach a running move
+  (``stop_command``) or set an output (``set_digital_io``).
+- :mod:`~fxcell.link.ned2.gripper`: Gripper 1 as ``cell.gripper`` drives it, through the
+  TCP server's tool commands.
 
-Both are asyncio clients with typed errors (:mod:`fxcell.errors`); neither knows the
+The clients are asyncio, with typed errors (:mod:`fxcell.errors`); none knows the
 Cell. Facts about the interfaces: ``docs/guides/ned2.md``.
 """
 

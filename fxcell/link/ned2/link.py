@@ -8,13 +8,17 @@
   brakes), a calibrated arm is ``RUNNING``, a detected collision is a protective stop, a
   motor error a fault. External control is ready while fxcell holds it (``enable_control``)
   and the arm is calibrated and out of learning mode.
+- **IO**: the IO panel's ``/niryo_robot_rpi/digital_io_state`` is folded into every state:
+  pin ``DIn`` is bit n of ``digital_input_bits``, ``DOn`` bit n of ``digital_output_bits``
+  (so the configuration's ``DI2``/``DO1`` name the Ned2's own pins, :data:`NED2_SIGNALS`);
+  an output is set through the panel's ``set_digital_io`` service. Analog IO is not driven.
 - **Moves**: a planned trajectory goes to the arm commander's action as a timed
   ``trajectory_msgs/JointTrajectory`` (``EXECUTE_FULL_TRAJ``), a point every
   :data:`POINT_SPACING` s with its velocities; the robot's controller interpolates between
   them. A stop is the commander's ``stop_command``; progress is read from the joint states.
   The TCP server (pyniryo's protocol) has no timed-trajectory command and answers one
   command at a time, so it serves only what the rosbridge lacks here (clearing a detected
-  collision).
+  collision; the gripper's tool commands and position, :mod:`fxcell.link.ned2.gripper`).
 """
 
 from __future__ import annotations
@@ -63,7 +67,13 @@ from fxcell.results import ProgramStatus
 if TYPE_CHECKING:
     from fxcell.config import RobotConfig
 
-__all__ = ["POINT_SPACING", "Ned2Calibration", "Ned2Link"]
+__all__ = ["NED2_SIGNALS", "POINT_SPACING", "Ned2Calibration", "Ned2Link"]
+
+NED2_SIGNALS = frozenset({"DI1", "DI2", "DI3", "DI4", "DI5", "DO1", "DO2", "DO3", "DO4"})
+"""The Ned2's digital pins fxcell drives: the IO panel's DI1-DI3, DI5 and DO1-DO3, and the
+tool connector's DI4 and DO4 (ned_ros ``niryo_robot_rpi``)."""
+IO_STATE_TOPIC = "/niryo_robot_rpi/digital_io_state"
+SET_DIGITAL_IO = "/niryo_robot_rpi/set_digital_io"
 
 POINT_SPACING = 0.05
 """Seconds between two points of a trajectory handed to the robot."""
@@ -146,6 +156,7 @@ class Ned2Link:
         self._hardware: dict[str, Any] = {}
         self._learning = True
         self._collision = False
+        self._io_bits = (0, 0)  # digital inputs, outputs: bit n is pin n
         self._control_wanted = False
         self._control = False
         self._up = False
@@ -188,8 +199,9 @@ class Ned2Link:
         await bridge.subscribe(
             "/niryo_robot_arm_commander/collision_detected", "std_msgs/Bool", self._on_collision
         )
+        await bridge.subscribe(IO_STATE_TOPIC, "niryo_robot_rpi/DigitalIOState", self._on_io)
         await bridge.subscribe("/joint_states", "sensor_msgs/JointState", self._on_joints)
-        self._messages += 4
+        self._messages += 5
         if wait:
             try:
                 async with asyncio.timeout(5.0):
@@ -212,6 +224,12 @@ class Ned2Link:
     def _on_learning(self, msg: dict[str, Any]) -> None:
         self._learning = bool(msg.get("data"))
         self._update_control("learning mode " + ("on" if self._learning else "off"))
+
+    def _on_io(self, msg: dict[str, Any]) -> None:
+        self._io_bits = (
+            _pin_bits(msg.get("digital_inputs"), "DI"),
+            _pin_bits(msg.get("digital_outputs"), "DO"),
+        )
 
     def _on_collision(self, msg: dict[str, Any]) -> None:
         self._collision = bool(msg.get("data"))
@@ -264,6 +282,8 @@ class Ned2Link:
             actual_qd=qd,
             target_tcp_pose=tuple(tcp),
             actual_tcp_pose=tuple(tcp),
+            digital_input_bits=self._io_bits[0],
+            digital_output_bits=self._io_bits[1],
             received_at=time.monotonic(),
         )
         self._latest = state
@@ -348,7 +368,16 @@ class Ned2Link:
     async def set_output(
         self, group: OutputGroup, index: int, value: float, within: float = 5.0
     ) -> bool:
-        return False  # IO through the Ned2's TCP server: not driven yet
+        """Set digital output ``DO{index}`` through the IO panel's service (False for an
+        output the Ned2 does not have; a refusal raises RobotCommandStatusError)."""
+        name = f"DO{index}"
+        if group != "standard" or name not in NED2_SIGNALS:
+            return False
+        self._messages += 1
+        await self._bridge.call(
+            SET_DIGITAL_IO, {"name": name, "value": value >= 0.5}, within=within
+        )
+        return True
 
     async def set_tool(
         self,
@@ -396,6 +425,18 @@ class Ned2Link:
     async def _next_state(self) -> RobotState:
         with self.subscribe(4) as states:
             return await states.next_within(1.0)
+
+
+def _pin_bits(pins: object, prefix: str) -> int:
+    """The levels of ``DigitalIO`` entries (``{name, value}``) named ``<prefix><n>`` as bits."""
+    bits = 0
+    for pin in pins if isinstance(pins, list) else []:
+        name = pin.get("name") if isinstance(pin, dict) else None
+        if isinstance(name, str) and name.startswith(prefix) and name[len(prefix) :].isdigit():
+            n = int(name[len(prefix) :])
+            if n < 16 and pin.get("value"):
+                bits |= 1 << n
+    return bits
 
 
 class _Run:

@@ -36,8 +36,8 @@ GRIPPER_TIME = 0.5  # s: fingers open or close
 GRIPPER_1_STROKE = 0.027  # m between open and closed fingers
 GRIPPER_TCP = 0.075  # m along tool_link's x: where the fingers close (Gripper 1)
 GRASP_TOLERANCE = 0.01  # m: an object's grip point this close to the fingers is caught
-# Gripper 1 position in motor steps (closed, open): the simulator's assumption
-GRIPPER_STEPS = (1000, 2300)
+# Gripper 1 position in motor steps (closed, open): Niryo's tools_definition.yaml (ned2)
+GRIPPER_STEPS = (900, 2200)
 TOOLS = {"NONE": 0, "GRIPPER_1": 11}
 DIGITAL_INPUTS = ("DI1", "DI2", "DI3", "DI4", "DI5")
 DIGITAL_OUTPUTS = ("DO1", "DO2", "DO3", "DO4")

@@ -4,13 +4,15 @@
 It speaks the rosbridge v2 protocol (JSON objects with an ``op``):
 
 - **topics** the robot publishes (joint states, the tool pose, hardware status, learning
-  mode, collision detection, velocity scaling, whether a move is active, the tool's id):
+  mode, collision detection, velocity scaling, whether a move is active, the tool's id,
+  the digital IO's levels at the IO panel's 10 Hz):
   a subscription gets the latest message at once, then one every period (or every
   ``throttle_rate`` ms if slower);
-- **services** (stop, learning mode, calibration, velocity scaling, the tool, rosapi's
-  parameters), each call served concurrently so that ``stop_command`` reaches a move that
-  another connection (the TCP server or an action) is running; a service nobody offers
-  or arguments of the wrong type are answered ``result: false`` with a status message;
+- **services** (stop, learning mode, calibration, velocity scaling, the tool, the IO
+  panel's digital pins, rosapi's parameters), each call served concurrently so that
+  ``stop_command`` reaches a move that another connection (the TCP server or an action)
+  is running; a service nobody offers or arguments of the wrong type are answered
+  ``result: false`` with a status message;
 - **actions** over topics as ROS 1's actionlib does it (``goal``, ``cancel``, ``status``,
   ``result``): the arm commander's ``robot_action`` (moves by joints, pose and linear
   pose, and a timed ``trajectory_msgs/JointTrajectory``: ``EXECUTE_FULL_TRAJ``) and the
@@ -63,6 +65,7 @@ from fxcell.sim.ned2.robot import (
 log = logging.getLogger(__name__)
 
 SUCCESS = 1  # niryo_robot_msgs/CommandStatus.SUCCESS
+DIGITAL_IO_PANEL_ERROR = -114
 PARAMETERS: dict[str, Any] = {
     "/niryo_robot/hardware_version": "ned2",
     "/niryo_robot/simulation_mode": True,
@@ -178,6 +181,14 @@ def _hardware_status(robot: Ned2Robot, seq: int) -> dict[str, Any]:
     }
 
 
+def _digital_io_state(robot: Ned2Robot) -> dict[str, Any]:
+    """``niryo_robot_rpi/DigitalIOState``: each pin's name and level, inputs and outputs."""
+    return {
+        "digital_inputs": [{"name": n, "value": v} for n, v in sorted(robot.digital_in.items())],
+        "digital_outputs": [{"name": n, "value": v} for n, v in sorted(robot.digital_out.items())],
+    }
+
+
 # ------------------------------------------------------------------------ services
 
 Service = Callable[[Ned2Robot, dict[str, Any]], Awaitable[dict[str, Any]]]
@@ -232,6 +243,27 @@ async def _update_tool(robot: Ned2Robot, args: dict[str, Any]) -> dict[str, Any]
     return {"status": SUCCESS, "message": f"Tool {robot.tool} ({TOOLS[robot.tool]}) found"}
 
 
+async def _set_digital_io(robot: Ned2Robot, args: dict[str, Any]) -> dict[str, Any]:
+    """``niryo_robot_rpi/SetDigitalIO`` as the robot's IO panel answers it: only a digital
+    output can be set."""
+    name = _field(args, "name", str, "set_digital_io")
+    value = _field(args, "value", bool, "set_digital_io")
+    if name in robot.digital_out:
+        robot.digital_out[name] = value
+        return {"status": SUCCESS, "message": f"Successfully set value for {name}"}
+    if name in robot.digital_in or name in robot.analog_in or name in robot.analog_out:
+        return {"status": DIGITAL_IO_PANEL_ERROR, "message": f"{name} is not a digital output."}
+    return {"status": DIGITAL_IO_PANEL_ERROR, "message": f"No IO found for {name}"}
+
+
+async def _get_digital_io(robot: Ned2Robot, args: dict[str, Any]) -> dict[str, Any]:
+    name = _field(args, "name", str, "get_digital_io")
+    levels = {**robot.digital_in, **robot.digital_out}
+    if name not in levels:
+        return {"status": DIGITAL_IO_PANEL_ERROR, "message": f"No GPIO found for {name}"}
+    return {"status": SUCCESS, "message": "OK", "value": levels[name]}
+
+
 async def _get_param(robot: Ned2Robot, args: dict[str, Any]) -> dict[str, Any]:
     # rosapi: the value as JSON, else the request's default (JSON) or null
     name = canonical(_field(args, "name", str, "rosapi/get_param"))
@@ -258,6 +290,8 @@ SERVICES: dict[str, Service] = {
     "/niryo_robot/joints_interface/request_new_calibration": _request_new_calibration,
     "/niryo_robot_arm_commander/set_max_velocity_scaling_factor": _velocity_scaling,
     "/niryo_robot_tools_commander/update_tool": _update_tool,
+    "/niryo_robot_rpi/set_digital_io": _set_digital_io,
+    "/niryo_robot_rpi/get_digital_io": _get_digital_io,
     "/rosapi/get_param": _get_param,
     "/rosapi/get_param_names": _get_param_names,
 }
@@ -422,6 +456,9 @@ class Rosbridge:
             ),
             "/niryo_robot/max_velocity_scaling_factor": Topic(
                 "std_msgs/Int32", 0.1, lambda s, n: {"data": round(r.velocity_percent)}
+            ),
+            "/niryo_robot_rpi/digital_io_state": Topic(
+                "niryo_robot_rpi/DigitalIOState", 0.1, lambda s, n: _digital_io_state(r)
             ),
             "/niryo_robot_tools_commander/current_id": Topic(
                 "std_msgs/Int32", 0.1, lambda s, n: {"data": TOOLS[r.tool]}
