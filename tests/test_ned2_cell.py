@@ -12,11 +12,8 @@ import numpy as np
 import pytest
 
 from fxcell import Cell, CellState
-from fxcell.config import CellConfig, JointLimits, SceneConfig, SceneObject
+from fxcell.config import CellConfig, SceneObject
 from fxcell.errors import MoveStoppedError, UnsupportedCommandError
-from fxcell.motion import ned2
-from fxcell.robots import register, unregister
-from fxcell.robots.ned2 import NED2_KIND
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
@@ -32,36 +29,18 @@ def sim() -> Iterator[Ned2SimulatorHandle]:
         yield handle
 
 
-@pytest.fixture
-def kind() -> Iterator[None]:
-    register(NED2_KIND)
-    try:
-        yield
-    finally:
-        unregister("ned2")
-
-
 def _config() -> CellConfig:
-    limits = JointLimits(
-        position_min=tuple(ned2.LOWER),
-        position_max=tuple(ned2.UPPER),
-        velocity=tuple(ned2.VELOCITY_LIMITS),
-        acceleration=tuple(ned2.ACCELERATION_LIMITS),
-    )
-    config = CellConfig()
-    robot = config.robot.model_copy(update={"kind": "ned2"})  # past validation: not shipped yet
-    tool = config.tool.model_copy(update={"tcp": (0.0,) * 6})
-    return config.model_copy(
-        update={
-            "robot": robot,
-            "tool": tool,
-            "limits": limits,
-            "scene": SceneConfig(objects=(TABLE,)),
+    # the Ned2's limits, home and TCP are the kind's defaults; the tool_link as TCP here
+    return CellConfig.from_dict(
+        {
+            "robot": {"kind": "ned2"},
+            "tool": {"tcp": [0.0] * 6},
+            "scene": {"objects": [TABLE.model_dump()]},
         }
     )
 
 
-async def test_the_cell_inits_moves_and_stops_a_ned2(kind: None, sim: Ned2SimulatorHandle) -> None:
+async def test_the_cell_inits_moves_and_stops_a_ned2(sim: Ned2SimulatorHandle) -> None:
     async with Cell(config=_config(), host=sim.host, record=None) as cell:
         assert cell.kind.name == "ned2"
         await cell.init()

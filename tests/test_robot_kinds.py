@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import asyncio
 import math
+import subprocess
+import sys
 from collections.abc import Iterator
 
 import numpy as np
@@ -34,7 +36,7 @@ from fxcell.link.contract import StopReason
 from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.moves import ur3e_kinematics
 from fxcell.protocol import CONTROL_PERIOD
-from fxcell.robots import RobotKind, kind_names, register, robot_kind, unregister
+from fxcell.robots import NED2_KIND, RobotKind, kind_names, register, robot_kind, unregister
 from fxcell.testing import FakeRobot
 from fxcell.testing.toy import ToyCalibration, ToyRobot, toy_kind
 
@@ -126,14 +128,33 @@ def test_the_ur3e_is_the_default_kind_and_does_every_command() -> None:
     assert "ur3e" in kind_names()
 
 
+def test_the_ned2_is_a_registered_kind_that_refuses_remote_power() -> None:
+    ned2 = robot_kind("ned2")
+    assert ned2 is NED2_KIND
+    assert set(kind_names()) >= {"ur3e", "ned2"}
+    assert ned2.capabilities.unsupported == frozenset({"power_on", "power_off", "shutdown"})
+
+
+def test_the_registry_loads_no_motion_stack() -> None:
+    code = (
+        "import sys, fxcell.robots\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('fxcell.motion.moves',"
+        " 'fxcell.motion.planning', 'pinocchio', 'ompl', 'ruckig', 'coal'))))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "[]"
+
+
 def test_a_kind_fxcell_does_not_drive_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match=r"robot\.kind"):
-        CellConfig.from_dict({"robot": {"kind": "ned2"}})
-    with pytest.raises(ConfigError, match="'ned2' is not a robot kind"):
-        robot_kind("ned2")
+        CellConfig.from_dict({"robot": {"kind": "abb"}})
+    with pytest.raises(ConfigError, match="'abb' is not a robot kind"):
+        robot_kind("abb")
     config = CellConfig.load()
     unknown = config.model_copy(update={"robot": config.robot.model_copy(update={"kind": "x"})})
-    with pytest.raises(ConfigError, match=r"known: .*ur3e"):
+    with pytest.raises(ConfigError, match=r"known: .*ned2.*ur3e"):
         Cell(config=unknown, record=None)
 
 

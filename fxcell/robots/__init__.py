@@ -13,6 +13,7 @@ controller address is configured). Adding a robot is one package holding those a
 
 from __future__ import annotations
 
+from fxcell.robots.ned2 import NED2_KIND
 from fxcell.robots.registry import (
     CalibrationFormat,
     CollisionFactory,
@@ -30,8 +31,10 @@ from fxcell.robots.registry import (
 from fxcell.robots.ur3e import UR3E_KIND
 
 register(UR3E_KIND)
+register(NED2_KIND)
 
 __all__ = [
+    "NED2_KIND",
     "UR3E_KIND",
     "CalibrationFormat",
     "CollisionFactory",

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from fxcell.geometry import Pose
 from fxcell.link.capabilities import RobotCapabilities
 from fxcell.link.ned2.link import Ned2Calibration, Ned2Link
-from fxcell.motion.moves import ExecutionOptions
+from fxcell.motion.execution import ExecutionOptions
 from fxcell.robots.registry import CalibrationFormat, RobotKind
 
 if TYPE_CHECKING:

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from fxcell.geometry import Pose
     from fxcell.link.backend import ArmCalibration, LinkFactory
     from fxcell.link.capabilities import RobotCapabilities
-    from fxcell.motion.moves import ExecutionOptions
+    from fxcell.motion.execution import ExecutionOptions
 
 __all__ = [
     "CalibrationFormat",
