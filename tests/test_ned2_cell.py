@@ -1,4 +1,6 @@
-"""The unchanged Cell drives a Ned2 (its simulator) through the Ned2 kind: init leaves
+"""The unchanged Cell drives a Ned2 (its simulator) through the Ned2 kind, chosen by
+``robot.kind: ned2`` in the configuration: with no host the Cell starts the embedded Ned2
+simulator, which boots needing calibration (init calibrates it); init leaves
 learning mode, move_joint lands on its target by the simulator's own joints, a stop ends a
 move short of its target with the arm at rest, and the commands a Ned2 cannot do over
 the network are refused naming it."""
@@ -6,6 +8,7 @@ the network are refused naming it."""
 from __future__ import annotations
 
 import asyncio
+import json
 from collections.abc import Iterator
 
 import numpy as np
@@ -13,7 +16,14 @@ import pytest
 
 from fxcell import Cell, CellState
 from fxcell.config import CellConfig, SceneObject
-from fxcell.errors import MoveStoppedError, UnsupportedCommandError
+from fxcell.errors import (
+    InvalidArgumentError,
+    MoveStoppedError,
+    SimulatorError,
+    UnsupportedCommandError,
+)
+from fxcell.link.ned2.embedded import request
+from fxcell.robots import robot_kind
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
@@ -62,3 +72,30 @@ async def test_the_cell_inits_moves_and_stops_a_ned2(sim: Ned2SimulatorHandle) -
         assert np.max(np.abs(np.array(state["joints"]) - FAR)) > 0.1  # stopped short
         with pytest.raises(UnsupportedCommandError, match="ned2"):
             await cell.power_off()
+
+
+async def test_a_ned2_cell_without_a_host_starts_its_simulator_which_init_calibrates() -> None:
+    config = _config()
+    assert config.robot.host is None
+    async with Cell(config=config, record=None, simulator_options={"time_scale": 0.1}) as cell:
+        host = cell.host
+        assert host is not None
+        state = json.loads(request(host, "state"))
+        # it boots as a real Ned2 does: needing calibration, in learning mode
+        assert (state["calibrated"], state["learning_mode"]) == (False, True)
+        assert cell.state is not CellState.EXTERNAL_CONTROL_READY
+        await cell.init()
+        assert cell.state is CellState.EXTERNAL_CONTROL_READY
+        state = json.loads(request(host, "state"))
+        assert (state["calibrated"], state["learning_mode"]) == (True, False)
+        await cell.move_joint(TARGET)
+        assert json.loads(request(host, "state"))["joints"] == pytest.approx(TARGET, abs=1e-6)
+    with pytest.raises(SimulatorError):  # closing the cell ended its simulator
+        request(host, "state", timeout=1.0)
+
+
+def test_the_ned2_simulator_refuses_options_it_does_not_take() -> None:
+    launch = robot_kind("ned2").simulator
+    assert launch is not None
+    with pytest.raises(InvalidArgumentError, match="fusion_time"):
+        launch({"time_scale": 0.5, "fusion_time": 60})

@@ -133,6 +133,7 @@ def test_the_ned2_is_a_registered_kind_that_refuses_remote_power() -> None:
     assert ned2 is NED2_KIND
     assert set(kind_names()) >= {"ur3e", "ned2"}
     assert ned2.capabilities.unsupported == frozenset({"power_on", "power_off", "shutdown"})
+    assert ned2.simulator is not None  # no host configured: its embedded simulator
 
 
 def test_the_registry_loads_no_motion_stack() -> None:
