@@ -15,14 +15,16 @@ import numpy as np
 import pytest
 
 from fxcell import Cell, CellState
-from fxcell.config import CellConfig, SceneObject
+from fxcell.config import CONFIG_DIR, CellConfig, SceneObject
 from fxcell.errors import (
     InvalidArgumentError,
     MoveStoppedError,
     SimulatorError,
     UnsupportedCommandError,
 )
+from fxcell.geometry import Pose
 from fxcell.link.ned2.embedded import request
+from fxcell.motion import ned2
 from fxcell.robots import robot_kind
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
@@ -99,3 +101,29 @@ def test_the_ned2_simulator_refuses_options_it_does_not_take() -> None:
     assert launch is not None
     with pytest.raises(InvalidArgumentError, match="fusion_time"):
         launch({"time_scale": 0.5, "fusion_time": 60})
+
+
+async def test_the_example_cells_slots_are_reached_to_within_a_millimetre() -> None:
+    # the shipped Ned2 cell as ./dev run --robot ned2 starts it: its TCP (Gripper 1's
+    # fingers), its layout; the simulator's own joints say where the fingers are
+    config = CellConfig.load(CONFIG_DIR / "ned2-cell.yaml")
+    tcp = Pose.from_ur(config.tool.tcp).matrix
+    async with Cell(config=config, record=None, simulator_options={"time_scale": 0.1}) as cell:
+        assert cell.host is not None
+        await cell.init()
+        rack, tray = cell.layout.station("rack"), cell.layout.station("tray")
+        # a straight descent is planned on Cartesian knots (each an IK solve): one here
+        moves = (
+            (rack.approach_pose("A1"), False),
+            (rack.grip_pose("A1"), True),
+            (tray.approach_pose("C3"), False),
+        )
+        for target, linear in moves:
+            await cell.move_pose(target.as_ur(), linear=linear)
+            joints = json.loads(request(cell.host, "state"))["joints"]
+            fingers = ned2.forward(np.array(joints)) @ tcp
+            assert np.linalg.norm(fingers[:3, 3] - target.position) < 1e-3
+            assert np.allclose(fingers[:3, :3], target.rotation, atol=1e-3)
+        await cell.go_home()
+        joints = json.loads(request(cell.host, "state"))["joints"]
+        assert joints == pytest.approx(config.home, abs=1e-6)
