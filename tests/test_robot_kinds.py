@@ -15,13 +15,14 @@ import math
 import subprocess
 import sys
 from collections.abc import Iterator
+from typing import get_args
 
 import numpy as np
 import pytest
 
 from fxcell import Cell, CellState
 from fxcell.calibration import Calibration
-from fxcell.config import CellConfig
+from fxcell.config import CONFIG_DIR, CellConfig, RobotKindName
 from fxcell.errors import (
     CalibrationError,
     ConfigError,
@@ -36,6 +37,7 @@ from fxcell.link.contract import StopReason
 from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.moves import ur3e_kinematics
 from fxcell.protocol import CONTROL_PERIOD
+from fxcell.robot_specs import SPECS
 from fxcell.robots import NED2_KIND, RobotKind, kind_names, register, robot_kind, unregister
 from fxcell.testing import FakeRobot
 from fxcell.testing.toy import ToyCalibration, ToyRobot, toy_kind
@@ -134,6 +136,15 @@ def test_the_ned2_is_a_registered_kind_that_refuses_remote_power() -> None:
     assert set(kind_names()) >= {"ur3e", "ned2"}
     assert ned2.capabilities.unsupported == frozenset({"power_on", "power_off", "shutdown"})
     assert ned2.simulator is not None  # no host configured: its embedded simulator
+
+
+def test_the_configurable_kinds_are_the_registered_ones_with_a_spec() -> None:
+    # robot.kind's values, the makers' figures and the registry name the same kinds
+    assert set(get_args(RobotKindName)) == set(SPECS) == set(kind_names())
+    for name, spec in SPECS.items():
+        assert robot_kind(name).capabilities.joints == len(spec.home)
+        assert (CONFIG_DIR / spec.shipped_config).is_file()
+        assert CellConfig.load(CONFIG_DIR / spec.shipped_config).robot.kind == name
 
 
 def test_the_registry_loads_no_motion_stack() -> None:
