@@ -465,7 +465,8 @@ class CellConfig(_Model):
 
 
 def _kind_of(robot: Any) -> object:
-    """``robot.kind`` of a configuration's raw ``robot`` section (None: not given)."""
+    """``robot.kind`` of a configuration's raw ``robot`` section (the UR3e when it names
+    none; whatever it gives, for the validation to judge)."""
     if isinstance(robot, RobotConfig):
         return robot.kind
     if isinstance(robot, dict):
@@ -495,8 +496,8 @@ def _check_kind(config: CellConfig, spec: RobotSpec) -> None:
         for joint, (v, lo, hi) in enumerate(zip(values, low, high, strict=True), start=1):
             if not lo - 1e-9 <= v <= hi + 1e-9:
                 raise ValueError(
-                    f"{name}: joint {joint} at {v:.4g} rad is outside the {kind}'s range "
-                    f"[{lo:.4g}, {hi:.4g}] rad"
+                    f"{name}: joint {joint} at {v:g} rad is outside the {kind}'s range "
+                    f"[{lo:.4f}, {hi:.4f}] rad"
                 )
     for joint, (lo, hi) in enumerate(
         zip(limits.position_min, limits.position_max, strict=True), start=1
@@ -506,8 +507,7 @@ def _check_kind(config: CellConfig, spec: RobotSpec) -> None:
     for joint, (v, top) in enumerate(zip(limits.velocity, spec.velocity_max, strict=True), 1):
         if v > top + 1e-9:
             raise ValueError(
-                f"limits.velocity: joint {joint} at {v:.4g} rad/s is above the {kind}'s "
-                f"{top:.4g} rad/s"
+                f"limits.velocity: joint {joint} at {v:g} rad/s is above the {kind}'s {top:g} rad/s"
             )
     if config.tool.payload > spec.payload_max:
         raise ValueError(
