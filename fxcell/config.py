@@ -26,6 +26,7 @@ from pydantic import (
 from fxcell.errors import ConfigError
 from fxcell.layout import LayoutConfig
 from fxcell.resources import resource_dir
+from fxcell.robot_specs import SPECS, UR3E_SPEC, RobotSpec
 from fxcell.signals import parse_signal
 
 CONFIG_DIR = resource_dir("config")
@@ -33,9 +34,11 @@ CONFIG_DIR = resource_dir("config")
 Vector6 = tuple[float, float, float, float, float, float]
 Vector3 = tuple[float, float, float]
 
-HOME_JOINTS: Vector6 = (0.0, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0)
+HOME_JOINTS: Vector6 = UR3E_SPEC.home
 # The seed's TCP (Robotiq Hand-E fingertip centre) in the flange frame: x, y, z, rx, ry, rz.
-SEED_TCP: Vector6 = (-0.00025, 0.00245, 0.14789, 0.0, 0.0, -1.5708)
+SEED_TCP: Vector6 = UR3E_SPEC.tcp
+RobotKindName = Literal["ur3e", "ned2"]
+"""The robot kinds fxcell ships (:data:`fxcell.robot_specs.SPECS`, :mod:`fxcell.robots`)."""
 
 
 class _Model(BaseModel):
@@ -45,13 +48,16 @@ class _Model(BaseModel):
 class RobotConfig(_Model):
     """Which robot, and how to reach its controller."""
 
-    kind: Literal["ur3e"] = "ur3e"
-    """The robot kind (:mod:`fxcell.robots`: its link, kinematic model and simulator);
-    the UR3e is the one fxcell drives so far."""
+    kind: RobotKindName = "ur3e"
+    """The robot kind (:mod:`fxcell.robots`: its link, kinematic model and simulator):
+    ``ur3e`` (Universal Robots UR3e) or ``ned2`` (Niryo Ned2). The kind's published limits,
+    home and gripper TCP (:mod:`fxcell.robot_specs`) are the defaults of ``limits``,
+    ``home`` and ``tool``."""
     host: str | None = None
-    """Controller address; ``None`` starts the embedded simulator."""
+    """Controller address; ``None`` starts the kind's embedded simulator."""
     external_control: Literal["script", "urcap"] = "script"
-    """``script``: ur_rtde uploads its control script; ``urcap``: play ``urcap_program``."""
+    """``script``: ur_rtde uploads its control script; ``urcap``: play ``urcap_program``
+    (UR only)."""
     urcap_program: str = "external_control.urp"
     receiver: Literal["stream", "ur_rtde"] = "stream"
     """Source of the 500 Hz state stream: ``stream`` reads every RTDE packet with fxcell's
@@ -94,9 +100,12 @@ class RobotConfig(_Model):
 
 class ToolConfig(_Model):
     tcp: Vector6 = SEED_TCP
-    """Tool centre point in the flange frame: x, y, z (m) and rotation vector (rad)."""
+    """Tool centre point in the flange frame: x, y, z (m) and rotation vector (rad). In a
+    :class:`CellConfig` the default is the kind's gripper's (the UR3e's Hand-E fingertips;
+    the Ned2's Gripper 1, 75 mm along ``tool_link``'s x)."""
     payload: float = Field(1.0, ge=0, le=3.0)
-    """Payload mass in kg (Hand-E with fingers is about 1 kg); what it holds is added."""
+    """Payload mass in kg (Hand-E with fingers is about 1 kg; the kind's default, at most
+    its rated payload); what it holds is added."""
     payload_cog: Vector3 = (0.0, 0.0, 0.055)
     """Centre of gravity of the payload in the flange frame (m)."""
 
@@ -104,17 +113,18 @@ class ToolConfig(_Model):
 class JointLimits(_Model):
     """Per-joint limits: base, shoulder, elbow, wrist 1, wrist 2, wrist 3."""
 
-    position_min: Vector6 = (-2 * math.pi,) * 6
-    position_max: Vector6 = (2 * math.pi,) * 6
-    velocity: Vector6 = (math.pi, math.pi, math.pi, 2 * math.pi, 2 * math.pi, 2 * math.pi)
-    acceleration: Vector6 = (0.7, 0.7, 0.7, 1.4, 1.4, 1.4)
-    """The seed's joint_limits.yaml accelerations (rad/s²)."""
-    jerk: Vector6 = (10.0,) * 6
-    braking_acceleration: Vector6 = (4.0, 4.0, 4.0, 8.0, 8.0, 8.0)
+    position_min: Vector6 = UR3E_SPEC.limits["position_min"]
+    position_max: Vector6 = UR3E_SPEC.limits["position_max"]
+    velocity: Vector6 = UR3E_SPEC.limits["velocity"]
+    acceleration: Vector6 = UR3E_SPEC.limits["acceleration"]
+    """The seed's joint_limits.yaml accelerations (rad/s²). These defaults are the UR3e's;
+    in a :class:`CellConfig` those of ``robot.kind`` (:mod:`fxcell.robot_specs`)."""
+    jerk: Vector6 = UR3E_SPEC.limits["jerk"]
+    braking_acceleration: Vector6 = UR3E_SPEC.limits["braking_acceleration"]
     """Deceleration a stop may use (rad/s²), whatever the move's factors. Higher than the
     planning accelerations so that a stop from full speed takes about a second (a UR3e's
     category-2 stop takes a few tenths), which also keeps the daemon's 3 s shutdown."""
-    braking_jerk: Vector6 = (40.0,) * 6
+    braking_jerk: Vector6 = UR3E_SPEC.limits["braking_jerk"]
     min_factor: float = Field(0.01, gt=0, le=1)
     """The smallest velocity or acceleration factor a move may use: slower moves are
     refused before planning (a 1e-6 factor would plan hours of samples)."""
@@ -360,8 +370,11 @@ class CellConfig(_Model):
 
     robot: RobotConfig = RobotConfig()
     tool: ToolConfig = ToolConfig()
+    """The tool; what it leaves out is the kind's (:mod:`fxcell.robot_specs`)."""
     home: Vector6 = HOME_JOINTS
+    """Home joints (rad); default: the kind's."""
     limits: JointLimits = JointLimits()
+    """Joint limits; what they leave out are the kind's, and all must fit its range."""
     scene: SceneConfig = SceneConfig()
     """Fixed obstacles that are not stations (the table); stations add their bodies."""
     layout: LayoutConfig = LayoutConfig()
@@ -374,18 +387,55 @@ class CellConfig(_Model):
     job: JobConfig = JobConfig()
     vision: VisionConfig = VisionConfig()
 
+    @model_validator(mode="before")
+    @classmethod
+    def _kind_defaults(cls, data: Any) -> Any:
+        """What ``home``, ``tool`` and ``limits`` leave out is the kind's (the defaults of
+        the models above are the UR3e's)."""
+        if not isinstance(data, dict):
+            return data
+        spec = SPECS.get(str(_kind_of(data.get("robot"))))
+        if spec is None:
+            return data  # the kind's own validation names the problem
+        out = dict(data)
+        out.setdefault("home", spec.home)
+        tool = out.get("tool")
+        if tool is None:
+            out["tool"] = {"tcp": spec.tcp, "payload": spec.payload}
+        elif isinstance(tool, dict):
+            out["tool"] = {"tcp": spec.tcp, "payload": spec.payload, **tool}
+        limits = out.get("limits")
+        if limits is None:
+            out["limits"] = dict(spec.limits)
+        elif isinstance(limits, dict):
+            out["limits"] = {**spec.limits, **limits}
+        return out
+
+    @model_validator(mode="after")
+    def _fits_kind(self) -> CellConfig:
+        spec = SPECS.get(self.robot.kind)
+        if spec is not None:
+            _check_kind(self, spec)
+        return self
+
     @classmethod
     def load(cls, path: str | Path | None = None) -> CellConfig:
         """Load ``cell.yaml``; ``limits_file``/``scene_file``/``layout_file`` are read beside it.
 
-        A user's file overrides the shipped configuration: what it leaves out (limits,
-        scene, layout, IO signals, ...) comes from the shipped files, mappings merged key by
-        key, so no cell ever plans without the cell's scene.
+        A user's file overrides the shipped configuration of its ``robot.kind``
+        (``config/cell.yaml`` for a UR3e, ``config/ned2-cell.yaml`` for a Ned2): what it
+        leaves out (limits, scene, layout, IO signals, ...) comes from the shipped files,
+        mappings merged key by key, so no cell ever plans without the cell's scene.
         """
-        shipped = CONFIG_DIR / "cell.yaml"
-        path = Path(path) if path is not None else shipped
+        path = Path(path) if path is not None else CONFIG_DIR / UR3E_SPEC.shipped_config
         data = _with_sections(_read_yaml(path), path)
-        own = path.resolve() == shipped.resolve()
+        spec = SPECS.get(str(_kind_of(data.get("robot")) or UR3E_SPEC.kind))
+        if spec is None:  # from_dict names the unknown kind
+            spec = UR3E_SPEC
+        shipped = CONFIG_DIR / spec.shipped_config
+        own = any(
+            path.resolve() == (CONFIG_DIR / s.shipped_config).resolve() for s in SPECS.values()
+        )
         if not own:
             data = _merged(_with_sections(_read_yaml(shipped), shipped), data)
         base = default_state_dir() if own else path.parent
@@ -406,9 +456,64 @@ class CellConfig(_Model):
             return cls.model_validate(data)
         except ValidationError as exc:
             problems = "; ".join(
-                f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in exc.errors()
+                f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}"
+                if err["loc"]
+                else str(err["msg"]).removeprefix("Value error, ")
+                for err in exc.errors()
             )
             raise ConfigError(f"{source}: {problems}") from None
+
+
+def _kind_of(robot: Any) -> object:
+    """``robot.kind`` of a configuration's raw ``robot`` section (the UR3e when it names
+    none; whatever it gives, for the validation to judge)."""
+    if isinstance(robot, RobotConfig):
+        return robot.kind
+    if isinstance(robot, dict):
+        return robot.get("kind", UR3E_SPEC.kind)
+    return UR3E_SPEC.kind
+
+
+def _check_kind(config: CellConfig, spec: RobotSpec) -> None:
+    """ValueError naming the kind for what it cannot take."""
+    kind = spec.kind
+    for option, allowed in spec.robot_options.items():
+        value = getattr(config.robot, option)
+        if value not in allowed:
+            shown = ", ".join("null" if a is None else str(a) for a in allowed)
+            raise ValueError(
+                f"robot.{option}: a {kind} ({spec.title}) takes {shown}, not {value!r}"
+            )
+    limits = config.limits
+    checks = (
+        ("home", config.home, spec.position_min, spec.position_max),
+        ("limits.position_min", limits.position_min, spec.position_min, spec.position_max),
+        ("limits.position_max", limits.position_max, spec.position_min, spec.position_max),
+    )
+    for name, values, low, high in checks:
+        if len(values) != len(low):
+            raise ValueError(f"{name}: a {kind} has {len(low)} joints, not {len(values)}")
+        for joint, (v, lo, hi) in enumerate(zip(values, low, high, strict=True), start=1):
+            if not lo - 1e-9 <= v <= hi + 1e-9:
+                raise ValueError(
+                    f"{name}: joint {joint} at {v:g} rad is outside the {kind}'s range "
+                    f"[{lo:.4f}, {hi:.4f}] rad"
+                )
+    for joint, (lo, hi) in enumerate(
+        zip(limits.position_min, limits.position_max, strict=True), start=1
+    ):
+        if lo >= hi:
+            raise ValueError(f"limits: joint {joint}'s position_min is not below its position_max")
+    for joint, (v, top) in enumerate(zip(limits.velocity, spec.velocity_max, strict=True), 1):
+        if v > top + 1e-9:
+            raise ValueError(
+                f"limits.velocity: joint {joint} at {v:g} rad/s is above the {kind}'s {top:g} rad/s"
+            )
+    if config.tool.payload > spec.payload_max:
+        raise ValueError(
+            f"tool.payload: {config.tool.payload} kg is above the {kind}'s rated "
+            f"{spec.payload_max} kg"
+        )
 
 
 def _with_sections(data: dict[str, Any], path: Path) -> dict[str, Any]:

@@ -34,9 +34,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"fxcell {__version__}")
     for dist, ver in stack_versions().items():
         print(f"  {dist:<12} {ver}")
+    from fxcell.robot_specs import SPECS
+
     config = CellConfig.load(args.config)
-    robot = config.robot.host or "embedded simulator"
-    print(f"robot: {robot} (external control: {config.robot.external_control})")
+    spec = SPECS[config.robot.kind]
+    robot = f"robot: {spec.kind} ({spec.title}), {config.robot.host or 'embedded simulator'}"
+    if "external_control" not in spec.robot_options:  # a UR's choice
+        robot += f" (external control: {config.robot.external_control})"
+    print(robot)
     print(f"arm model: {_arm_model(config)}")
     print(f"tcp: {list(config.tool.tcp)}")
     print(f"scene: {', '.join(o.name for o in config.scene.objects) or 'empty'}")
@@ -55,8 +60,11 @@ def _arm_model(config: Any) -> str:
     from fxcell.calibration import Calibration
     from fxcell.errors import CalibrationError
     from fxcell.motion.calibration import CONTROLLER, NOMINAL
+    from fxcell.robot_specs import SPECS
 
     source = config.robot.calibration
+    if "calibration" in SPECS[config.robot.kind].robot_options:  # a Ned2: no calibration file
+        return "nominal (the maker's model; the robot calibrates its own encoders)"
     if source == NOMINAL:
         return "nominal (robot.calibration: nominal; pose moves miss by millimetres on a real arm)"
     if source is None or source == CONTROLLER:

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from fxcell.config import HOME_JOINTS, SEED_TCP, CellConfig, default_state_dir
+from fxcell.config import CONFIG_DIR, HOME_JOINTS, SEED_TCP, CellConfig, default_state_dir
 from fxcell.errors import ConfigError, FxcellError
+from fxcell.robot_specs import NED2_SPEC
 
 
 def test_shipped_config_loads_with_the_seed_defaults() -> None:
@@ -113,3 +115,77 @@ def test_yaml_is_parsed_as_safe_load_parses_it() -> None:
         assert parse_yaml(text) == yaml.safe_load(text), path.name
     with pytest.raises(yaml.YAMLError):  # no Python objects from a file
         parse_yaml("!!python/object/apply:os.system ['true']")
+
+
+# ----------------------------------------------------------------- robot kinds
+
+
+def test_a_ned2_config_takes_the_ned2s_limits_home_and_gripper_tcp() -> None:
+    config = CellConfig.from_dict({"robot": {"kind": "ned2"}})
+    assert config.limits.position_min == NED2_SPEC.position_min
+    assert config.limits.position_max == NED2_SPEC.position_max
+    assert config.limits.velocity == (1.57, 1.047, 1.57, 3.14, 3.14, 3.14)
+    assert config.limits.acceleration == (2.0, 0.8, 2.0, 3.0, 3.0, 3.0)
+    assert config.home == (0.0, 0.3, -1.3, 0.0, 0.0, 0.0)
+    assert config.tool.tcp == pytest.approx((0.075, 0.0, 0.0, 0.0, math.pi / 2, 0.0))
+    # what the user gives is kept, the rest is the kind's
+    config = CellConfig.from_dict(
+        {"robot": {"kind": "ned2"}, "limits": {"velocity": [1.0] * 6}, "tool": {"payload": 0.1}}
+    )
+    assert config.limits.velocity == (1.0,) * 6
+    assert config.limits.acceleration == NED2_SPEC.limits["acceleration"]
+    assert (config.tool.payload, config.tool.tcp) == (0.1, NED2_SPEC.tcp)
+    # the UR3e's stay the default kind's
+    assert CellConfig().limits.velocity[0] == pytest.approx(math.pi)
+    assert CellConfig().home == pytest.approx(HOME_JOINTS)
+
+
+@pytest.mark.parametrize(
+    ("section", "message"),
+    [
+        ({"limits": {"position_max": [2 * math.pi] * 6}}, r"limits\.position_max: joint 1 .*ned2"),
+        ({"limits": {"velocity": [math.pi] * 6}}, r"limits\.velocity: joint 1 .*ned2's 1\.57"),
+        ({"home": [0.0, 1.0, 0.0, 0.0, 0.0, 0.0]}, r"home: joint 2 at 1 rad .*ned2"),
+        ({"tool": {"payload": 1.0}}, r"tool\.payload: .*ned2's rated 0\.3 kg"),
+        ({"robot": {"external_control": "urcap"}}, r"robot\.external_control: .*ned2.*'urcap'"),
+        ({"robot": {"receiver": "ur_rtde"}}, r"robot\.receiver: .*ned2"),
+        ({"robot": {"calibration": "calibration.conf"}}, r"robot\.calibration: .*ned2"),
+    ],
+)
+def test_what_a_ned2_cannot_take_is_a_config_error_naming_the_kind(
+    section: dict[str, Any], message: str
+) -> None:
+    data: dict[str, Any] = {"robot": {"kind": "ned2"}}
+    for key, value in section.items():
+        data[key] = {**data.get(key, {}), **value} if isinstance(value, dict) else value
+    with pytest.raises(ConfigError, match=message):
+        CellConfig.from_dict(data)
+    # the same on a UR3e is fine
+    data["robot"]["kind"] = "ur3e"
+    CellConfig.from_dict(data)
+
+
+def test_the_ur3es_shipped_limits_on_a_ned2_are_refused(tmp_path: Path) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text(f"robot:\n  kind: ned2\nlimits_file: {CONFIG_DIR / 'ur3e_limits.yaml'}\n")
+    with pytest.raises(ConfigError, match=r"limits\.position_min: joint 1 .*ned2's range"):
+        CellConfig.load(path)
+
+
+def test_a_ned2_user_config_inherits_the_shipped_ned2_cell(tmp_path: Path) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text("robot:\n  kind: ned2\n  host: 10.10.10.10\n")
+    config = CellConfig.load(path)
+    shipped = CellConfig.load(CONFIG_DIR / "ned2-cell.yaml")
+    assert config.robot.host == "10.10.10.10"
+    assert (config.limits, config.scene, config.layout) == (
+        shipped.limits,
+        shipped.scene,
+        shipped.layout,
+    )
+    assert set(config.layout.stations) == {"rack", "tray"}  # not the UR3e cell's machine
+    assert config.vision.camera.source is None
+    # the shipped Ned2 cell keeps its taught positions and job apart from the UR3e cell's
+    assert shipped.positions_file.parent == default_state_dir()
+    assert shipped.positions_file != CellConfig.load().positions_file
+    assert shipped.job.database != CellConfig.load().job.database

@@ -38,6 +38,7 @@ LAYERS: dict[str, int] = {
     "fxcell.settling": 0,
     "fxcell.layout": 0,
     "fxcell.signals": 0,
+    "fxcell.robot_specs": 0,
     "fxcell.link": 1,
     "fxcell.link.embedded": 1,
     "fxcell.vision": 1,

@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import asyncio
 import math
+import subprocess
+import sys
 from collections.abc import Iterator
+from typing import get_args
 
 import numpy as np
 import pytest
@@ -20,7 +23,7 @@ import pytest
 from fxcell import Cell, CellState
 from fxcell.calibration import Calibration
 from fxcell.commands import COMMANDS, Feature
-from fxcell.config import CellConfig
+from fxcell.config import CONFIG_DIR, CellConfig, RobotKindName
 from fxcell.errors import (
     CalibrationError,
     ConfigError,
@@ -35,8 +38,8 @@ from fxcell.link.contract import StopReason
 from fxcell.motion.kinematics import Kinematics
 from fxcell.motion.moves import ur3e_kinematics
 from fxcell.protocol import CONTROL_PERIOD
-from fxcell.robots import RobotKind, kind_names, register, robot_kind, unregister
-from fxcell.robots.ned2 import NED2_KIND
+from fxcell.robot_specs import SPECS
+from fxcell.robots import NED2_KIND, RobotKind, kind_names, register, robot_kind, unregister
 from fxcell.testing import FakeRobot
 from fxcell.testing.toy import ToyCalibration, ToyRobot, toy_kind
 
@@ -130,14 +133,43 @@ def test_the_ur3e_is_the_default_kind_and_does_every_command() -> None:
     assert "ur3e" in kind_names()
 
 
+def test_the_ned2_is_a_registered_kind_that_refuses_remote_power() -> None:
+    ned2 = robot_kind("ned2")
+    assert ned2 is NED2_KIND
+    assert set(kind_names()) >= {"ur3e", "ned2"}
+    assert ned2.capabilities.unsupported == frozenset({"power_on", "power_off", "shutdown"})
+    assert ned2.simulator is not None  # no host configured: its embedded simulator
+
+
+def test_the_configurable_kinds_are_the_registered_ones_with_a_spec() -> None:
+    # robot.kind's values, the makers' figures and the registry name the same kinds
+    assert set(get_args(RobotKindName)) == set(SPECS) == set(kind_names())
+    for name, spec in SPECS.items():
+        assert robot_kind(name).capabilities.joints == len(spec.home)
+        assert (CONFIG_DIR / spec.shipped_config).is_file()
+        assert CellConfig.load(CONFIG_DIR / spec.shipped_config).robot.kind == name
+
+
+def test_the_registry_loads_no_motion_stack() -> None:
+    code = (
+        "import sys, fxcell.robots\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('fxcell.motion.moves',"
+        " 'fxcell.motion.planning', 'pinocchio', 'ompl', 'ruckig', 'coal'))))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "[]"
+
+
 def test_a_kind_fxcell_does_not_drive_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match=r"robot\.kind"):
-        CellConfig.from_dict({"robot": {"kind": "ned2"}})
-    with pytest.raises(ConfigError, match="'ned2' is not a robot kind"):
-        robot_kind("ned2")
+        CellConfig.from_dict({"robot": {"kind": "abb"}})
+    with pytest.raises(ConfigError, match="'abb' is not a robot kind"):
+        robot_kind("abb")
     config = CellConfig.load()
     unknown = config.model_copy(update={"robot": config.robot.model_copy(update={"kind": "x"})})
-    with pytest.raises(ConfigError, match=r"known: .*ur3e"):
+    with pytest.raises(ConfigError, match=r"known: .*ned2.*ur3e"):
         Cell(config=unknown, record=None)
 
 

@@ -24,6 +24,24 @@ from fxcell.errors import FxcellError
 _SHORT = {"velocity_factor": "-v", "acceleration_factor": "-a"}
 
 
+SIM_CRUCIBLES = "16"
+SIM_FUSION_TIME = 60.0
+SIM_COOLING_TIME = 30.0
+"""The embedded UR simulator's fusion machine in the daemon (``--sim-*``)."""
+
+
+def _robot_kind(value: str) -> str:
+    """``--robot``: a robot kind fxcell ships (the address is ``--robot-host``)."""
+    from fxcell.robot_specs import SPECS
+
+    if value not in SPECS:
+        raise argparse.ArgumentTypeError(
+            f"{value!r} is not a robot kind ({', '.join(SPECS)}); "
+            "give the robot's address with --robot-host HOST"
+        )
+    return value
+
+
 def register(sub: Any) -> None:
     p = sub.add_parser(
         "daemon",
@@ -31,7 +49,11 @@ def register(sub: Any) -> None:
         description="Run the cell daemon. With no robot host configured it starts the "
         "embedded simulator. Stops cleanly on SIGTERM/SIGINT.",
     )
-    p.add_argument("--config", help="cell configuration file (default: config/cell.yaml)")
+    p.add_argument(
+        "--config",
+        help="cell configuration file (default: the shipped cell of --robot: config/cell.yaml "
+        "for a ur3e, config/ned2-cell.yaml for a ned2)",
+    )
     p.add_argument("--host", help="address to listen on (default: daemon.host, 127.0.0.1)")
     p.add_argument("--port", type=int, help="port to listen on (default: daemon.port, 8040)")
     p.add_argument(
@@ -40,7 +62,16 @@ def register(sub: Any) -> None:
         help="allow a non-loopback --host (every robot-changing command still needs the token)",
     )
     p.add_argument(
-        "--robot", metavar="HOST", help="robot controller address (overrides robot.host)"
+        "--robot",
+        type=_robot_kind,
+        metavar="KIND",
+        help="the robot kind: ur3e or ned2 (default: robot.kind of the configuration; "
+        "without --config, the shipped cell of that kind)",
+    )
+    p.add_argument(
+        "--robot-host",
+        metavar="HOST",
+        help="robot controller address (overrides robot.host)",
     )
     p.add_argument(
         "--sim-time-scale",
@@ -50,25 +81,23 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--sim-crucibles",
-        default="16",
         metavar="N|A1,B2,...",
-        help="embedded simulator only: crucibles with samples in the rack at start "
-        "(default 16: a full run; 0: none)",
+        help="embedded UR simulator only: crucibles with samples in the rack at start "
+        f"(default {SIM_CRUCIBLES}: a full run; 0: none)",
     )
     p.add_argument(
         "--sim-fusion-time",
         type=float,
-        default=60.0,
         metavar="S",
-        help="embedded simulator only: the fusion machine's fusion time (default 60 s; the "
-        "real Vitriox takes about 600)",
+        help=f"embedded UR simulator only: the fusion machine's fusion time (default "
+        f"{SIM_FUSION_TIME:g} s; the real Vitriox takes about 600)",
     )
     p.add_argument(
         "--sim-cooling-time",
         type=float,
-        default=30.0,
         metavar="S",
-        help="embedded simulator only: the fusion machine's cooling time (default 30 s)",
+        help=f"embedded UR simulator only: the fusion machine's cooling time (default "
+        f"{SIM_COOLING_TIME:g} s)",
     )
     p.add_argument(
         "--sila",
@@ -219,15 +248,15 @@ def _run_daemon(args: argparse.Namespace) -> int:
             f"the daemon needs the cell stack ({exc.name or exc}): pip install 'fxcell[cell]'"
         ) from None
 
-    config = CellConfig.load(args.config)
+    config = _daemon_config(args.config, args.robot)
     data = config.model_dump()
     for key, value in (("host", args.host), ("port", args.port)):
         if value is not None:
             data["daemon"][key] = value
     if args.allow_remote:
         data["daemon"]["allow_remote"] = True
-    if args.robot:
-        data["robot"]["host"] = args.robot
+    if args.robot_host:
+        data["robot"]["host"] = args.robot_host
     sila = data["daemon"]["sila"]
     if args.sila:
         sila["enabled"] = True
@@ -239,22 +268,58 @@ def _run_daemon(args: argparse.Namespace) -> int:
     config = CellConfig.from_dict(data, source="command line")
     if getattr(args, "no_simulator", False) and config.robot.host is None:
         raise FxcellError(
-            "no robot host configured (robot.host in the configuration, or --robot HOST); "
-            "--no-simulator refuses to start the embedded simulator"
+            "no robot host configured (robot.host in the configuration, or --robot-host "
+            "HOST); --no-simulator refuses to start the embedded simulator"
         )
     record = None if args.no_record else Path(args.log_dir or config.recorder.directory)
-    extra = [
-        "--fusion-time",
-        str(args.sim_fusion_time),
-        "--cooling-time",
-        str(args.sim_cooling_time),
-    ]
-    if args.sim_crucibles not in ("", "0"):
-        extra += ["--crucibles", args.sim_crucibles]
-    sim: dict[str, Any] = {"extra_args": extra}
+    sim = _simulator_options(args, config.robot.kind)
+    return serve(config, record=record, simulator_options=sim)
+
+
+def _daemon_config(path: str | None, kind: str | None) -> Any:
+    """The configuration: ``path``, else the shipped cell of ``kind`` (else the UR3e's);
+    FxcellError when ``kind`` is not the file's ``robot.kind``."""
+    from fxcell.config import CONFIG_DIR, CellConfig
+    from fxcell.robot_specs import SPECS
+
+    if path is None:
+        return CellConfig.load(None if kind is None else CONFIG_DIR / SPECS[kind].shipped_config)
+    config = CellConfig.load(path)
+    if kind is not None and config.robot.kind != kind:
+        raise FxcellError(
+            f"--robot {kind}: {path} configures a {config.robot.kind} (robot.kind); give a "
+            f"configuration of a {kind}, or leave out --config for the shipped one"
+        )
+    return config
+
+
+def _simulator_options(args: argparse.Namespace, kind: str) -> dict[str, Any]:
+    """What the kind's embedded simulator is started with: the time scale, and for the UR
+    simulator its fusion machine (FxcellError for a UR-only option on another kind)."""
+    sim: dict[str, Any] = {}
     if args.sim_time_scale:
         sim["time_scale"] = args.sim_time_scale
-    return serve(config, record=record, simulator_options=sim)
+    machine = {
+        "--sim-crucibles": args.sim_crucibles,
+        "--sim-fusion-time": args.sim_fusion_time,
+        "--sim-cooling-time": args.sim_cooling_time,
+    }
+    if kind != "ur3e":
+        given = [option for option, value in machine.items() if value is not None]
+        if given:
+            raise FxcellError(
+                f"{', '.join(given)}: the {kind}'s simulator has no fusion machine "
+                "(these options are the UR simulator's)"
+            )
+        return sim
+    crucibles = SIM_CRUCIBLES if args.sim_crucibles is None else args.sim_crucibles
+    fusion = SIM_FUSION_TIME if args.sim_fusion_time is None else args.sim_fusion_time
+    cooling = SIM_COOLING_TIME if args.sim_cooling_time is None else args.sim_cooling_time
+    extra = ["--fusion-time", str(fusion), "--cooling-time", str(cooling)]
+    if crucibles not in ("", "0"):
+        extra += ["--crucibles", crucibles]
+    sim["extra_args"] = extra
+    return sim
 
 
 # ----------------------------------------------------------------- client commands
@@ -309,6 +374,7 @@ async def _status(cell: Any, args: argparse.Namespace) -> Any:
     robot = snap.get("robot") or {}
     control = snap.get("control")
     lines = [
+        f"robot:        {snap.get('kind', '-')}",
         f"state:        {snap['state']}",
         f"robot mode:   {robot.get('robot_mode', '-')}",
         f"safety mode:  {robot.get('safety_mode', '-')}",

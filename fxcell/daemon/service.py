@@ -207,6 +207,7 @@ class CellService:
             }
         return {
             "state": self._state,
+            "kind": self.config.robot.kind,
             "connected": self.cell is not None,
             "cell_error": self.cell_error,
             "remote_control": (None if self.cell is None else not self.cell.local_control),
@@ -226,6 +227,7 @@ class CellService:
         cfg = self.config
         return {
             "version": __version__,
+            "kind": cfg.robot.kind,
             "robot": self.robot_description,
             "simulated": cfg.robot.host is None,
             "started": self.started,

@@ -1,7 +1,8 @@
 """The Niryo Ned2's model: kinematic chain, limits, forward and inverse kinematics.
 
 Values from Niryo's URDF (ned_ros ``niryo_robot_description/urdf/ned2``, v5.6.x) and its
-MoveIt planning limits; see ``/work/shared/reference/niryo-ned2.md`` and
+MoveIt planning limits (the limits and home written once in :mod:`fxcell.robot_specs`,
+where the configuration reads them too); see ``/work/shared/reference/niryo-ned2.md`` and
 ``docs/guides/ned2.md``. The pose is that of ``tool_link`` in ``base_link`` as Niryo's
 TCP server reports it (``GET_POSE``: x, y, z in m, roll, pitch, yaw in rad, extrinsic
 XYZ = ``Rz(yaw) Ry(pitch) Rx(roll)``).
@@ -30,6 +31,7 @@ from numpy.typing import ArrayLike
 
 from fxcell.errors import InvalidArgumentError, UnreachableError
 from fxcell.geometry import Pose
+from fxcell.robot_specs import NED2_SPEC
 
 Array = npt.NDArray[np.float64]
 Joints = Sequence[float] | npt.NDArray[np.floating[Any]]  # six joint positions (rad)
@@ -55,13 +57,13 @@ __all__ = [
 ]
 
 JOINT_NAMES = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6")
-_DEG = math.pi / 180.0
-LOWER: Array = np.array([-171.88, -105.0, -76.78, -119.75, -110.01, -144.96]) * _DEG
-UPPER: Array = np.array([171.88, 34.96, 89.96, 119.75, 110.17, 144.96]) * _DEG
+# The published figures live in fxcell.robot_specs (the configuration's defaults too)
+LOWER: Array = np.array(NED2_SPEC.position_min)
+UPPER: Array = np.array(NED2_SPEC.position_max)
 # niryo_moveit_config_standalone joint_limits.yaml (rad/s, rad/s^2)
-VELOCITY_LIMITS: Array = np.array([1.57, 1.047, 1.57, 3.14, 3.14, 3.14])
-ACCELERATION_LIMITS: Array = np.array([2.0, 0.8, 2.0, 3.0, 3.0, 3.0])
-HOME: Array = np.array([0.0, 0.3, -1.3, 0.0, 0.0, 0.0])  # Niryo's home ("forearm on shoulder")
+VELOCITY_LIMITS: Array = np.array(NED2_SPEC.velocity_max)
+ACCELERATION_LIMITS: Array = np.array(NED2_SPEC.limits["acceleration"])
+HOME: Array = np.array(NED2_SPEC.home)  # Niryo's home ("forearm on shoulder")
 TOOL_OFFSET = 0.0285  # hand_link -> tool_link along the hand's z (m)
 
 

@@ -15,6 +15,7 @@ the motion layer never name a kind.
 
 from __future__ import annotations
 
+from fxcell.robots.ned2 import NED2_KIND
 from fxcell.robots.registry import (
     CalibrationFormat,
     CollisionFactory,
@@ -33,8 +34,10 @@ from fxcell.robots.registry import (
 from fxcell.robots.ur3e import UR3E_KIND
 
 register(UR3E_KIND)
+register(NED2_KIND)
 
 __all__ = [
+    "NED2_KIND",
     "UR3E_KIND",
     "CalibrationFormat",
     "CollisionFactory",

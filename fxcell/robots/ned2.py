@@ -1,9 +1,10 @@
 """The Ned2 kind: its rosbridge link (:class:`~fxcell.link.ned2.link.Ned2Link`), its
 kinematic model (:class:`~fxcell.motion.ned2.Ned2Kinematics`), its collision bodies (its
 URDF's shapes), its calibration (the nominal model: the robot calibrates its encoders
-itself). No power or shutdown over the network: those commands are refused for it. No
-embedded simulator launcher yet: a Ned2 host (its simulator's address, in tests) must be
-given."""
+itself). No power or shutdown over the network: those commands are refused for it. With
+no host configured the Cell starts the embedded Ned2 simulator
+(:func:`~fxcell.link.ned2.embedded.ned2_simulator`), which boots needing calibration as
+the robot does."""
 
 from __future__ import annotations
 
@@ -12,9 +13,10 @@ from typing import TYPE_CHECKING
 from fxcell.commands import Feature
 from fxcell.geometry import Pose
 from fxcell.link.capabilities import RobotCapabilities
+from fxcell.link.ned2.embedded import ned2_simulator
 from fxcell.link.ned2.gripper import ned2_gripper
 from fxcell.link.ned2.link import NED2_SIGNALS, Ned2Calibration, Ned2Link
-from fxcell.motion.moves import ExecutionOptions
+from fxcell.motion.execution import ExecutionOptions
 from fxcell.robots.description import ArmDescription, from_urdf
 from fxcell.robots.registry import CalibrationFormat, RobotKind
 
@@ -105,6 +107,7 @@ NED2_KIND = RobotKind(
     kinematics=ned2_kinematics,
     collision=ned2_collision,
     calibration=CalibrationFormat(nominal=Ned2Calibration.nominal, load=Ned2Calibration.load),
+    simulator=ned2_simulator,
     execution=ExecutionOptions(compensate_lag=False),
     description=ned2_description,
     gripper=ned2_gripper,

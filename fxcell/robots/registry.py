@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from fxcell.link.backend import ArmCalibration, LinkFactory
     from fxcell.link.capabilities import RobotCapabilities
     from fxcell.link.gripper import GripperFactory
-    from fxcell.motion.moves import ExecutionOptions
+    from fxcell.motion.execution import ExecutionOptions
     from fxcell.robots.description import ArmDescription
 
 __all__ = [

@@ -218,7 +218,7 @@ class SimulationController(FeatureImplementationBase):
             return
         now = "the embedded simulator" if self.simulated else "a real robot (robot.host)"
         how = (
-            "restart the daemon with robot.host set (or --robot HOST)"
+            "restart the daemon with robot.host set (or --robot-host HOST)"
             if wanted == "real"
             else "restart the daemon without robot.host"
         )

@@ -10,8 +10,10 @@
 - :mod:`~fxcell.link.ned2.gripper`: Gripper 1 as ``cell.gripper`` drives it, through the
   TCP server's tool commands.
 
-The clients are asyncio, with typed errors (:mod:`fxcell.errors`); none knows the
-Cell. Facts about the interfaces: ``docs/guides/ned2.md``.
+Both are asyncio clients with typed errors (:mod:`fxcell.errors`); neither knows the
+Cell. Facts about the interfaces: ``docs/guides/ned2.md``. The embedded simulator's
+launcher (:mod:`~fxcell.link.ned2.embedded`) and its ports and faults are here too: the
+runtime starts it by module name, never importing :mod:`fxcell.sim`.
 """
 
 TCP_PORT = 40001
@@ -28,3 +30,24 @@ EXECUTE_FULL_TRAJ = 11
 """``ArmMoveCommand.cmd_type`` of a timed ``trajectory_msgs/JointTrajectory``."""
 PENDING, ACTIVE, PREEMPTED, SUCCEEDED, ABORTED, REJECTED = 0, 1, 2, 3, 4, 5
 """``actionlib_msgs/GoalStatus`` values."""
+
+SIMULATOR_CONTROL_PORT = 29990
+"""The embedded simulator's control port (fault injection, state; the UR simulator's line
+protocol)."""
+SIMULATOR_PORTS = (TCP_PORT, ROSBRIDGE_PORT, SIMULATOR_CONTROL_PORT)
+"""Every port the embedded Ned2 simulator serves on its address."""
+SIMULATOR_FAULTS = (
+    "collision",  # the arm detects a collision: a running move stops and fails
+    "stop",  # a running move stops (as the rosbridge's stop_command service does)
+    "drop_connection",  # the TCP server drops its client
+    "stall",  # SECONDS: the TCP server answers nothing for that long
+    "power_loss",  # the robot goes dark: connections close, nobody answers, calibration lost
+    "power_restore",  # the robot boots again (needs calibration)
+    "motor_error",  # [JOINT]: a motor reports a hardware error; moves are refused
+    "clear_motor_error",
+    "gripper_drop",  # the held object slips out of the fingers
+    "tool_disconnect",  # the tool goes away (GET_CURRENT_TOOL_ID says NONE)
+    "tool_connect",
+    "uncalibrate",  # the robot needs calibration again
+)
+"""The faults the embedded simulator injects (``fxcell sim inject --robot ned2``)."""

@@ -1,0 +1,142 @@
+"""Launch the embedded Ned2 simulator (``python -m fxcell.sim.ned2``) as a subprocess: the
+Ned2 kind's simulator, started by the Cell when a Ned2 cell has no robot host.
+
+Like the UR simulator's launcher (:class:`fxcell.link.embedded.EmbeddedSimulator`, whose
+process handling it reuses) it puts the simulator on a free loopback address of its own
+(its ports are the robot's fixed ones), waits for its ``listening`` line, and ends it at
+``stop()``; it never imports :mod:`fxcell.sim`. The simulated robot boots as a real Ned2
+does, needing calibration (``Cell.init()`` calibrates it), unless ``calibrated`` is set.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import socket
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from fxcell.errors import InvalidArgumentError, SimulatorError
+from fxcell.link.embedded import EmbeddedSimulator, address_is_free
+from fxcell.link.ned2 import SIMULATOR_CONTROL_PORT, SIMULATOR_FAULTS, SIMULATOR_PORTS
+
+__all__ = ["SIM_MODULE", "Ned2Simulator", "free_ned2_host", "ned2_simulator", "request"]
+
+SIM_MODULE = "fxcell.sim.ned2"
+
+OPTIONS = frozenset({"host", "time_scale", "calibrated", "startup_timeout", "python", "extra_args"})
+"""What :func:`ned2_simulator` takes of the Cell's ``simulator_options``."""
+
+
+def free_ned2_host(rng: random.Random | None = None, attempts: int = 200) -> str:
+    """A random 127.0.0.x (x in 2..253) on which every Ned2 simulator port is free."""
+    rng = rng or random.SystemRandom()
+    for _ in range(attempts):
+        host = f"127.0.0.{rng.randint(2, 253)}"
+        if address_is_free(host, SIMULATOR_PORTS):
+            return host
+    raise SimulatorError("no free loopback address for the Ned2 simulator (127.0.0.2-253 all busy)")
+
+
+def request(host: str, line: str, timeout: float = 5.0) -> str:
+    """One line to the simulator's control port and its one-line answer
+    (SimulatorError when it does not answer)."""
+    try:
+        with socket.create_connection((host, SIMULATOR_CONTROL_PORT), timeout=timeout) as s:
+            s.sendall(line.encode() + b"\n")
+            data = b""
+            while not data.endswith(b"\n"):
+                chunk = s.recv(65536)
+                if not chunk:
+                    break
+                data += chunk
+    except OSError as exc:
+        raise SimulatorError(f"Ned2 simulator at {host} does not answer: {exc}") from None
+    return data.decode("utf-8", "replace").strip()
+
+
+class Ned2Simulator(EmbeddedSimulator):
+    """One Ned2 simulator process. ``start()`` returns its address once it listens.
+
+    ``host=None`` picks a free loopback address (another one if that is taken before the
+    simulator binds it); ``time_scale`` multiplies the robot's durations (moves,
+    calibration, gripper); ``calibrated`` boots it calibrated."""
+
+    def __init__(
+        self,
+        host: str | None = None,
+        *,
+        time_scale: float = 1.0,
+        calibrated: bool = False,
+        startup_timeout: float = 30.0,
+        python: str | None = None,
+        extra_args: Sequence[str] = (),
+    ) -> None:
+        super().__init__(
+            host,
+            time_scale=time_scale,
+            startup_timeout=startup_timeout,
+            python=python,
+            extra_args=extra_args,
+        )
+        self.calibrated = calibrated
+
+    def command(self, host: str) -> list[str]:
+        cmd = [self.python, "-m", SIM_MODULE, "--host", host]
+        cmd += ["--time-scale", repr(self.time_scale), "--exit-with-parent"]
+        if self.calibrated:
+            cmd.append("--calibrated")
+        return cmd + self.extra_args
+
+    def start(self) -> str:
+        """Start the process and wait for its ``listening`` line; returns the address."""
+        if self.process is not None:
+            raise SimulatorError("simulator already started")
+        attempts = 1 if self.requested_host is not None else 5
+        last = ""
+        for _ in range(attempts):
+            host = self.requested_host or free_ned2_host()
+            ok, last = self._launch(host)
+            if ok:
+                self.host = host
+                return host
+        raise SimulatorError(f"Ned2 simulator did not start: {last}")
+
+    def request(self, line: str) -> str:
+        """A control-port request; InvalidArgumentError when the simulator refuses it."""
+        answer = request(self._host(), line)
+        if answer.startswith("error"):
+            raise InvalidArgumentError(f"Ned2 simulator refused {line!r}: {answer}")
+        return answer
+
+    def inject(self, fault: str, *args: object) -> str:
+        """Inject ``fault`` (:data:`fxcell.link.ned2.SIMULATOR_FAULTS`)."""
+        if fault not in SIMULATOR_FAULTS:
+            known = ", ".join(SIMULATOR_FAULTS)
+            raise InvalidArgumentError(f"unknown Ned2 fault {fault!r}; known: {known}")
+        return self.request(" ".join(["inject", fault, *map(str, args)]))
+
+    def state(self) -> Any:
+        """The simulator's own view of the robot (joints, calibration, learning mode, ...)."""
+        answer = self.request("state")
+        try:
+            return json.loads(answer)
+        except ValueError:
+            raise SimulatorError(f"Ned2 simulator sent a bad state reply: {answer!r}") from None
+
+    def set_joints(self, q: Sequence[float]) -> None:
+        """Place the resting arm at joints ``q`` without moving."""
+        self.request("set_joints " + ",".join(repr(float(v)) for v in q))
+
+
+def ned2_simulator(options: Mapping[str, Any]) -> Ned2Simulator:
+    """The Ned2 kind's simulator launcher: a :class:`Ned2Simulator` from the Cell's
+    ``simulator_options`` (``time_scale``, ``calibrated``, ...; InvalidArgumentError
+    naming an option it does not take)."""
+    unknown = sorted(set(options) - OPTIONS)
+    if unknown:
+        raise InvalidArgumentError(
+            f"the Ned2 simulator takes no option {', '.join(unknown)} "
+            f"(it takes {', '.join(sorted(OPTIONS))})"
+        )
+    return Ned2Simulator(**options)

@@ -1,0 +1,80 @@
+"""The shipped example Ned2 cell (``config/ned2-cell.yaml``): it loads as a Ned2 cell with
+the Ned2's own limits, home and gripper TCP, and every slot of its layout can be reached:
+grip, approach and retreat poses have joint solutions within the limits, free of the
+scene, and so has every point of the straight descent between them, with and without an
+object in the gripper."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fxcell.config import CONFIG_DIR, CellConfig
+from fxcell.geometry import Pose
+from fxcell.layout import Layout
+from fxcell.robot_specs import NED2_SPEC
+from fxcell.robots import CollisionModel, KinematicModel, robot_kind
+
+CONFIG = CellConfig.load(CONFIG_DIR / "ned2-cell.yaml")
+LAYOUT = Layout(CONFIG.layout)
+SLOTS = [(station.name, slot) for station in LAYOUT for slot in station.slots]
+STEPS = 10  # points checked along each descent
+Models = tuple[KinematicModel, CollisionModel]
+
+
+@pytest.fixture(scope="module")
+def models() -> Models:
+    kind = robot_kind("ned2")
+    return kind.kinematics(CONFIG, None), kind.collision(CONFIG)
+
+
+def test_the_example_is_a_ned2_cell_with_the_ned2s_own_figures() -> None:
+    assert CONFIG.robot.kind == "ned2"
+    assert CONFIG.robot.host is None  # the embedded Ned2 simulator
+    assert CONFIG.home == NED2_SPEC.home
+    assert CONFIG.tool.tcp == pytest.approx(NED2_SPEC.tcp)
+    for key, values in NED2_SPEC.limits.items():
+        assert getattr(CONFIG.limits, key) == pytest.approx(values), key
+    assert {s.name for s in LAYOUT} == {"rack", "tray"}
+    assert len(SLOTS) == 18
+    assert CONFIG.vision.camera.source is None  # the Ned2's simulator has no camera
+    # objects the Ned2's Gripper 1 can take (27 mm stroke, 0.3 kg payload)
+    for kind in CONFIG.layout.objects.values():
+        assert kind.width < 0.027
+        assert kind.mass <= NED2_SPEC.payload_max
+
+
+def test_home_is_free(models: Models) -> None:
+    _, collision = models
+    assert not collision.in_collision(np.array(CONFIG.home))
+
+
+@pytest.mark.parametrize(("station", "slot"), SLOTS, ids=[f"{s}-{n}" for s, n in SLOTS])
+def test_every_slot_is_reachable_and_free_along_its_descent(
+    models: Models, station: str, slot: str
+) -> None:
+    kinematics, collision = models
+    st = LAYOUT.station(station)
+    reach = kinematics.reach
+    grip = st.grip_pose(slot)
+    assert float(np.linalg.norm(grip.position)) < reach
+    for top in (st.approach_pose(slot), st.retreat_pose(slot)):
+        q = kinematics.inverse(top, np.array(CONFIG.home))
+        assert collision.colliding_pairs(q) == []
+        # down the straight line to the grip pose, each point from the one before
+        for t in np.linspace(0.0, 1.0, STEPS + 1)[1:]:
+            pose = Pose(top.position + t * (grip.position - top.position), grip.rotation)
+            nxt = kinematics.inverse(pose, q)
+            assert np.max(np.abs(nxt - q)) < 0.3, "the descent jumps to another branch"
+            q = nxt
+            assert np.all(q >= np.array(CONFIG.limits.position_min) - 1e-9)
+            assert np.all(q <= np.array(CONFIG.limits.position_max) + 1e-9)
+            assert collision.colliding_pairs(q) == [], (station, slot, t)
+        np.testing.assert_allclose(kinematics.forward(q).position, grip.position, atol=1e-6)
+    # with the object in the gripper, the approach pose is free too
+    collision.attach(st.config.holds)
+    try:
+        q = kinematics.inverse(st.approach_pose(slot), np.array(CONFIG.home))
+        assert collision.colliding_pairs(q) == []
+    finally:
+        collision.detach()
