@@ -1,7 +1,8 @@
 """The shared Cell behaviour suite: the same tests, unchanged, on every robot kind fxcell
 ships (the UR3e and the Ned2), each on its embedded simulator. A command the kind cannot
 do is skipped by the command table (its features), never by the test's own choice, and
-checked to be refused instead.
+checked to be refused instead. Each kind runs on its shipped cell (`config/cell.yaml`,
+`config/ned2-cell.yaml`).
 
 What each test asserts is robot-neutral: targets are reached by the robot's own joints
 and the Cell's pose, poses are taken from the arm itself (move to joints, read the pose,
@@ -11,29 +12,27 @@ target."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pytest
 
 from fxcell import Cell, CellState
 from fxcell.commands import COMMANDS
-from fxcell.config import CellConfig, JointLimits, SceneConfig, SceneObject
+from fxcell.config import CONFIG_DIR, CellConfig
 from fxcell.errors import (
-    FxcellError,
     InvalidArgumentError,
     MoveStoppedError,
     UnreachableError,
     UnsupportedCommandError,
 )
 from fxcell.geometry import Pose
-from fxcell.motion import ned2
-from fxcell.robots import kind_names, register, robot_kind, unregister
-from fxcell.robots.ned2 import NED2_KIND
-from fxcell.testing import simulator
-from fxcell.testing.handles import ProcessHandle
-from fxcell.testing.ned2 import ned2_simulator
+from fxcell.layout import Layout, Station
+from fxcell.robots import kind_names
+from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 
@@ -43,82 +42,97 @@ JOINT_TOLERANCE = 1e-4  # rad
 
 @dataclass(frozen=True)
 class Arm:
-    """What the suite needs to know of a kind: two collision-free joint positions far
-    enough apart that a move between them is under way for a while, and its config."""
+    """What the suite needs to know of a kind: its shipped cell (with a lamp output and
+    quicker limits where the shipped ones are the seed's slow ones), two collision-free
+    joint positions far enough apart that a move between them is under way for a while,
+    a slot to pick from and one to place at, and how its simulator is given an object and
+    tells where the object is."""
 
     kind: str
     config: CellConfig
     a: tuple[float, ...]
     b: tuple[float, ...]
+    pick: tuple[str, str]
+    place: tuple[str, str]
+    put: Callable[[Any, str, Station, str], None]
+    where: Callable[[Any, str], np.ndarray]
+
+
+def _ur3e_put(sim: SimulatorHandle, name: str, station: Station, slot: str) -> None:
+    obj, grip = station.kind, station.grip_pose(slot).position
+    sim.add_object(
+        name, station.config.holds, width=obj.width, height=obj.height, mass=obj.mass,
+        position=grip.tolist(),
+    )  # fmt: skip
+
+
+def _ned2_put(sim: Ned2SimulatorHandle, name: str, station: Station, slot: str) -> None:
+    sim.add_object(name, station.grip_pose(slot).position.tolist(), station.kind.width)
 
 
 def _ur3e() -> Arm:
+    config = CellConfig.load()
+    io = config.io.model_copy(update={"signals": {**config.io.signals, "lamp": "DO5"}})
+    limits = config.limits.model_copy(
+        update={"acceleration": (3.0,) * 3 + (6.0,) * 3, "jerk": (30.0,) * 6}
+    )
     return Arm(
         "ur3e",
-        CellConfig.load(),
+        config.model_copy(update={"io": io, "limits": limits}),
         (0.0, -1.8, 1.4, -1.2, -1.57, 0.0),
         (0.9, -1.4, 1.0, -1.2, -1.57, 0.5),
+        ("rack", "B2"),
+        ("rack", "C3"),
+        _ur3e_put,
+        lambda sim, name: np.array(sim.objects()[name]["pose"][:3]),
     )
 
 
 def _ned2() -> Arm:
-    limits = JointLimits(
-        position_min=tuple(ned2.LOWER),
-        position_max=tuple(ned2.UPPER),
-        velocity=tuple(ned2.VELOCITY_LIMITS),
-        acceleration=tuple(ned2.ACCELERATION_LIMITS),
+    config = CellConfig.load(CONFIG_DIR / "ned2-cell.yaml")
+    io = config.io.model_copy(update={"signals": {"lamp": "DO2"}})
+    return Arm(
+        "ned2",
+        config.model_copy(update={"io": io}),
+        (0.0, 0.3, -0.6, 0.0, -0.8, 0.0),
+        (0.8, 0.1, -0.4, 0.3, -0.9, 0.4),
+        ("rack", "A2"),
+        ("tray", "A1"),
+        _ned2_put,
+        lambda sim, name: np.array(sim.state()["objects"][name]),
     )
-    config = CellConfig()
-    table = SceneObject(name="table", size=(1.0, 1.0, 0.05), position=(0.0, 0.0, -0.025))
-    config = config.model_copy(
-        update={
-            "robot": config.robot.model_copy(update={"kind": "ned2"}),
-            "tool": config.tool.model_copy(update={"tcp": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)}),
-            "home": (0.0, 0.3, -1.3, 0.0, 0.0, 0.0),
-            "limits": limits,
-            "scene": SceneConfig(objects=(table,)),
-        }
-    )
-    return Arm("ned2", config, (0.0, 0.3, -0.6, 0.0, -0.8, 0.0), (0.8, 0.1, -0.4, 0.3, -0.9, 0.4))
-
-
-@pytest.fixture(scope="module")
-def _ned2_registered() -> Iterator[None]:
-    added = "ned2" not in kind_names()
-    if added:
-        register(NED2_KIND)
-    try:
-        yield
-    finally:
-        if added:
-            unregister("ned2")
 
 
 @pytest.fixture(scope="module", params=["ur3e", "ned2"])
-def arm(request: pytest.FixtureRequest) -> Iterator[tuple[Arm, ProcessHandle]]:
+def arm(request: pytest.FixtureRequest) -> Iterator[tuple[Arm, Any]]:
     """One simulator per kind for the module (the Cell is opened afresh per test)."""
     if request.param == "ur3e":
-        with simulator(time_scale=0.05) as sim:
+        with simulator(time_scale=0.2) as sim:
             yield _ur3e(), sim
     else:
-        request.getfixturevalue("_ned2_registered")
         with ned2_simulator(time_scale=1.0, calibrated=True) as ned2_sim:
             yield _ned2(), ned2_sim
 
 
 @pytest.fixture
-async def cell(arm: tuple[Arm, ProcessHandle]) -> AsyncIterator[Cell]:
+async def cell(arm: tuple[Arm, Any]) -> AsyncIterator[Cell]:
     spec, sim = arm
-    host = getattr(sim, "host")  # noqa: B009 - both handles name their controller's address
-    async with Cell(config=spec.config, host=host, record=None) as c:
+    async with Cell(config=spec.config, host=sim.host, record=None) as c:
         await c.init()
         assert c.state is CellState.EXTERNAL_CONTROL_READY
         yield c
+        if c.held is not None:
+            await c.gripper_open()
 
 
 @pytest.fixture
-def spec(arm: tuple[Arm, ProcessHandle]) -> Arm:
+def spec(arm: tuple[Arm, Any]) -> Arm:
     return arm[0]
+
+
+@pytest.fixture
+def sim(arm: tuple[Arm, Any]) -> Any:
+    return arm[1]
 
 
 def _supported(cell: Cell, command: str) -> None:
@@ -250,9 +264,44 @@ async def test_what_the_kind_cannot_do_is_refused_naming_it(cell: Cell) -> None:
     assert cell.state is CellState.EXTERNAL_CONTROL_READY
 
 
-def test_the_suite_covers_every_kind_fxcell_registers() -> None:
+async def test_the_gripper_opens_and_closes_on_nothing(cell: Cell) -> None:
+    _supported(cell, "gripper_close")
+    await cell.gripper_activate()
+    opened = await cell.gripper_open()
+    assert not opened.holding
+    assert opened.width > 0.02
+    closed = await cell.gripper_close()
+    assert not closed.holding
+    assert closed.width < 1e-3
+    assert await cell.get_gripper_width() == pytest.approx(closed.width, abs=1e-3)
+
+
+async def test_an_output_set_by_its_configured_name_reads_back(cell: Cell) -> None:
+    _supported(cell, "io_set")
+    for level in (True, False):
+        await cell.io_set("lamp", level)
+        assert (await cell.get_io())["lamp"] is level
+
+
+async def test_an_object_picked_from_a_slot_lands_in_another_within_1_mm(
+    cell: Cell, spec: Arm, sim: Any
+) -> None:
+    _supported(cell, "pick")
+    layout = Layout(spec.config.layout)
+    source, target = layout.station(spec.pick[0]), layout.station(spec.place[0])
+    await cell.gripper_activate()
+    await asyncio.to_thread(spec.put, sim, "sample-1", source, spec.pick[1])
+    picked = await cell.pick(*spec.pick)
+    assert picked.holding
+    holding = cell.held
+    assert holding == source.config.holds
+    released = await cell.place(*spec.place)
+    assert not released.holding
+    assert cell.held is None
+    landed = await asyncio.to_thread(spec.where, sim, "sample-1")
+    assert np.linalg.norm(landed - target.grip_pose(spec.place[1]).position) < POSITION_TOLERANCE
+
+
+def test_the_suite_runs_on_every_kind_fxcell_ships() -> None:
     # a kind registered without joining this suite's parameters fails here
-    shipped = {"ur3e", "ned2"}
-    assert set(kind_names()) - {"ned2"} <= shipped
-    assert robot_kind("ur3e").name == "ur3e"
-    assert issubclass(UnsupportedCommandError, FxcellError)
+    assert set(kind_names()) == {_ur3e().kind, _ned2().kind}

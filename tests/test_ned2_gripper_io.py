@@ -25,8 +25,6 @@ from fxcell.errors import (
 from fxcell.layout import Layout, LayoutConfig, ObjectKind, StationConfig, TaughtFrame
 from fxcell.link.ned2.gripper import GRIPPER_1
 from fxcell.motion import ned2
-from fxcell.robots import register, unregister
-from fxcell.robots.ned2 import NED2_KIND
 from fxcell.sim.ned2.robot import GRIPPER_TCP
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
@@ -85,15 +83,11 @@ def sim() -> Iterator[Ned2SimulatorHandle]:
 
 @pytest.fixture
 async def cell(sim: Ned2SimulatorHandle) -> AsyncIterator[Cell]:
-    register(NED2_KIND)
-    try:
-        async with Cell(config=_config(), host=sim.host, record=None) as c:
-            await c.init()
-            yield c
-            if c.held is not None:
-                await c.gripper_open()
-    finally:
-        unregister("ned2")
+    async with Cell(config=_config(), host=sim.host, record=None) as c:
+        await c.init()
+        yield c
+        if c.held is not None:
+            await c.gripper_open()
 
 
 def _fingers(sim: Ned2SimulatorHandle) -> list[float]:
@@ -209,15 +203,11 @@ async def test_a_pick_of_an_object_wider_than_gripper_1_opens_is_refused_before_
     sim: Ned2SimulatorHandle,
 ) -> None:
     wide = LAYOUT.model_copy(update={"objects": {"vial": VIAL.model_copy(update={"width": 0.03})}})
-    register(NED2_KIND)
-    try:
-        config = _config().model_copy(update={"layout": wide})
-        async with Cell(config=config, host=sim.host, record=None) as c:
-            await c.init()
-            before = sim.state()["joints"]
-            with pytest.raises(UnsupportedGripError, match="ned2") as refused:
-                await c.pick("rack", "A1")
-            assert refused.value.argument == "width"
-            assert sim.state()["joints"] == before
-    finally:
-        unregister("ned2")
+    config = _config().model_copy(update={"layout": wide})
+    async with Cell(config=config, host=sim.host, record=None) as c:
+        await c.init()
+        before = sim.state()["joints"]
+        with pytest.raises(UnsupportedGripError, match="ned2") as refused:
+            await c.pick("rack", "A1")
+        assert refused.value.argument == "width"
+        assert sim.state()["joints"] == before

@@ -5,12 +5,9 @@ replay`` summarises, lists, plots and re-executes it against a Ned2 simulator.""
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import json
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -25,8 +22,6 @@ from fxcell.motion import ned2
 from fxcell.recorder import topics
 from fxcell.recorder.protobuf import decode_robot_state
 from fxcell.replay import reexecute, summarize, timeline, top_level_commands
-from fxcell.robots import kind_names, register, robot_kind, unregister
-from fxcell.robots.ned2 import NED2_KIND
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(240)]
@@ -34,37 +29,6 @@ pytestmark = [pytest.mark.system, pytest.mark.timeout(240)]
 TCP = (0.05, 0.0, 0.01, 0.0, 0.2, 0.0)
 TABLE = SceneObject(name="table", size=(1.0, 1.0, 0.05), position=(0.0, 0.0, -0.025))
 TARGET = [0.6, -0.3, 0.2, 0.4, -0.5, 0.3]
-
-
-class _Simulator:
-    """The Ned2 simulator as a kind's embedded simulator (for re-execution)."""
-
-    def __init__(self, options: Mapping[str, Any]) -> None:
-        self._handle = Ned2SimulatorHandle(float(options.get("time_scale", 1.0)), True)
-
-    def start(self) -> str:
-        return self._handle.start().host
-
-    def stop(self, timeout: float = 10.0) -> None:
-        self._handle.stop()
-
-
-@pytest.fixture(scope="module")
-def kind() -> Iterator[None]:
-    """The Ned2 kind, with a simulator to re-execute on (registered here until it ships
-    with one)."""
-    previous = robot_kind("ned2") if "ned2" in kind_names() else None
-    if previous is not None and previous.simulator is not None:
-        yield
-        return
-    unregister("ned2")
-    register(dataclasses.replace(NED2_KIND, simulator=_Simulator))
-    try:
-        yield
-    finally:
-        unregister("ned2")
-        if previous is not None:
-            register(previous)
 
 
 def _config() -> CellConfig:
@@ -86,7 +50,7 @@ def _config() -> CellConfig:
 
 
 @pytest.fixture(scope="module")
-def recording(kind: None, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     directory = tmp_path_factory.mktemp("ned2_logs")
 
     async def record(sim: Ned2SimulatorHandle) -> None:

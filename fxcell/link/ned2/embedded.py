@@ -24,7 +24,9 @@ __all__ = ["SIM_MODULE", "Ned2Simulator", "free_ned2_host", "ned2_simulator", "r
 
 SIM_MODULE = "fxcell.sim.ned2"
 
-OPTIONS = frozenset({"host", "time_scale", "calibrated", "startup_timeout", "python", "extra_args"})
+OPTIONS = frozenset(
+    {"host", "time_scale", "calibrated", "joints", "startup_timeout", "python", "extra_args"}
+)
 """What :func:`ned2_simulator` takes of the Cell's ``simulator_options``."""
 
 
@@ -60,7 +62,8 @@ class Ned2Simulator(EmbeddedSimulator):
 
     ``host=None`` picks a free loopback address (another one if that is taken before the
     simulator binds it); ``time_scale`` multiplies the robot's durations (moves,
-    calibration, gripper); ``calibrated`` boots it calibrated."""
+    calibration, gripper); ``calibrated`` boots it calibrated; ``joints`` places the arm
+    there once it listens (re-execution starts where a recording started)."""
 
     def __init__(
         self,
@@ -68,6 +71,7 @@ class Ned2Simulator(EmbeddedSimulator):
         *,
         time_scale: float = 1.0,
         calibrated: bool = False,
+        joints: Sequence[float] | None = None,
         startup_timeout: float = 30.0,
         python: str | None = None,
         extra_args: Sequence[str] = (),
@@ -80,6 +84,7 @@ class Ned2Simulator(EmbeddedSimulator):
             extra_args=extra_args,
         )
         self.calibrated = calibrated
+        self.joints = None if joints is None else [float(v) for v in joints]
 
     def command(self, host: str) -> list[str]:
         cmd = [self.python, "-m", SIM_MODULE, "--host", host]
@@ -99,6 +104,8 @@ class Ned2Simulator(EmbeddedSimulator):
             ok, last = self._launch(host)
             if ok:
                 self.host = host
+                if self.joints is not None:
+                    self.set_joints(self.joints)
                 return host
         raise SimulatorError(f"Ned2 simulator did not start: {last}")
 
