@@ -160,6 +160,19 @@ async def test_move_joint_lands_on_its_target_by_the_robots_own_joints(
     assert np.max(np.abs(np.subtract(joints, spec.a))) < JOINT_TOLERANCE
 
 
+async def test_the_state_streams_the_tcp_pose_the_cell_reports(cell: Cell, spec: Arm) -> None:
+    # the page, the recorder and the daemon's status show the streamed pose: the configured
+    # TCP, as get_current_pose (the planner's model) has it
+    await cell.move_joint(list(spec.a))
+    with cell.robot_states(maxsize=1) as states:
+        async with asyncio.timeout(2.0):
+            sample = await anext(aiter(states))
+    streamed = Pose.from_ur(sample.actual_tcp_pose)
+    reported = Pose.parse(await cell.get_current_pose())
+    assert streamed.distance(reported) < 1e-4
+    assert streamed.angle_to(reported) < 1e-4
+
+
 async def test_go_home_goes_to_the_configured_home(cell: Cell, spec: Arm) -> None:
     await cell.move_joint(list(spec.a))
     await cell.go_home()

@@ -149,6 +149,7 @@ class Ned2Link:
         self.sample_period = sample_period
         self._on_state, self._on_status, self._on_control = on_state, on_status, on_control
         self._forward = forward
+        self._tcp = Pose.identity()  # the configured TCP in tool_link's frame (set_tool)
         self._bridge = RosbridgeClient(host)
         self._latest: RobotState | None = None
         self._subscriptions: set[StateSubscription] = set()
@@ -271,7 +272,11 @@ class Ned2Link:
         else:
             safety = SafetyMode.NORMAL
         self._update_control("state")
-        tcp = self._forward(np.asarray(q)).as_ur() if self._forward is not None else (0.0,) * 6
+        tcp = (
+            (self._forward(np.asarray(q)) @ self._tcp).as_ur()
+            if self._forward is not None
+            else (0.0,) * 6
+        )
         state = RobotState(
             timestamp=timestamp,
             robot_mode=mode,
@@ -386,7 +391,12 @@ class Ned2Link:
         cog: tuple[float, float, float],
         within: float = 5.0,
     ) -> bool:
-        return True  # fxcell's own model carries the TCP; the Ned2 plans nothing itself
+        """The TCP the state's ``actual_tcp_pose`` reports (the Ned2 plans nothing itself and
+        fxcell's own model carries the TCP; the robot's TCP setting is left alone, so its
+        pendant and pyniryo's ``get_pose`` keep showing ``tool_link``). No payload setting:
+        the Ned2 has none."""
+        self._tcp = Pose.from_ur(tcp)
+        return True
 
     async def teach_mode(self, on: bool, within: float = 5.0) -> bool:
         """Learning mode: the arm moved by hand."""
