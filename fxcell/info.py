@@ -50,7 +50,10 @@ def run(args: argparse.Namespace) -> int:
     ]
     print(f"stations: {', '.join(stations) or 'none'}")
     print(f"positions: {config.positions_file}")
-    print(f"robot link scheduling: {link_scheduling(config.robot.realtime_priority)}")
+    if spec.link_process:
+        print(f"robot link scheduling: {link_scheduling(config.robot.realtime_priority)}")
+    else:
+        print("robot link: in the cell process (it hands the robot whole trajectories)")
     print(sila_line(config))
     return 0
 

@@ -57,6 +57,10 @@ class RobotSpec:
     user's file leaves out comes from it."""
     robot_options: Mapping[str, tuple[object, ...]] = field(default_factory=dict)
     """``robot.*`` options the kind takes only some values of (absent: any value)."""
+    link_process: bool = True
+    """Its robot link runs in a process of its own that asks for real-time scheduling
+    (``robot.realtime_priority``; the UR's 500 Hz servo stream); False: in the cell process
+    (the Ned2's, which hands the robot whole trajectories)."""
 
 
 UR3E_SPEC = RobotSpec(
@@ -119,6 +123,7 @@ NED2_SPEC = RobotSpec(
         # the robot calibrates its encoders itself: no calibration file
         "calibration": ("controller", "nominal", None),
     },
+    link_process=False,
 )
 
 SPECS: Mapping[str, RobotSpec] = {spec.kind: spec for spec in (UR3E_SPEC, NED2_SPEC)}

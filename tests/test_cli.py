@@ -9,6 +9,7 @@ import pytest
 
 import fxcell
 from fxcell.cli import main
+from fxcell.config import CONFIG_DIR
 
 
 def test_version_flag_prints_the_package_version(capsys: pytest.CaptureFixture[str]) -> None:
@@ -53,6 +54,18 @@ def test_info_reports_the_robotics_stack(capsys: pytest.CaptureFixture[str]) -> 
         assert "missing" not in line
     assert "embedded simulator" in out
     assert "arm model: calibrated, read from the controller at connect" in out
+    assert "robot link scheduling: " in out  # the UR's link process asks for real time
+
+
+def test_info_on_a_ned2_cell_names_the_kind_and_where_its_link_runs(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["info", "--config", str(CONFIG_DIR / "ned2-cell.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "robot: ned2 (Niryo Ned2), embedded simulator" in out
+    assert "arm model: nominal" in out
+    assert "robot link: in the cell process" in out
+    assert "scheduling" not in out  # no link process to ask real time for
 
 
 def test_info_names_the_arm_model_and_a_calibration_files_checksum(
