@@ -1,5 +1,7 @@
 """The shipped example Ned2 cell (``config/ned2-cell.yaml``): it loads as a Ned2 cell with
-the Ned2's own limits, home and gripper TCP, and every slot of its layout can be reached:
+the Ned2's own limits, home and gripper TCP, it has what the fusion job needs (a crucible
+rack, the machine's four positions and moulds, a bead tray, the machine's signals on the
+Ned2's pins), and every slot of every station can be reached:
 grip, approach and retreat poses have joint solutions within the limits, free of the
 scene, and so has every point of the straight descent between them, with and without an
 object in the gripper."""
@@ -35,13 +37,31 @@ def test_the_example_is_a_ned2_cell_with_the_ned2s_own_figures() -> None:
     assert CONFIG.tool.tcp == pytest.approx(NED2_SPEC.tcp)
     for key, values in NED2_SPEC.limits.items():
         assert getattr(CONFIG.limits, key) == pytest.approx(values), key
-    assert {s.name for s in LAYOUT} == {"rack", "tray"}
-    assert len(SLOTS) == 18
+    assert {s.name for s in LAYOUT} == {"rack", "tray", "machine", "moulds"}
+    assert len(SLOTS) == 9 + 9 + 4 + 4
     assert CONFIG.vision.camera.source is None  # the Ned2's simulator has no camera
     # objects the Ned2's Gripper 1 can take (27 mm stroke, 0.3 kg payload)
     for kind in CONFIG.layout.objects.values():
         assert kind.width < 0.027
         assert kind.mass <= NED2_SPEC.payload_max
+
+
+def test_the_example_has_what_the_fusion_job_needs() -> None:
+    from fxcell.job.runner import BUSY, DONE, ERROR, READY, START_SIGNAL
+    from fxcell.link.ned2.link import NED2_SIGNALS
+
+    holds = {s.name: s.config.holds for s in LAYOUT}
+    assert holds == {"rack": "crucible", "machine": "crucible", "moulds": "bead", "tray": "bead"}
+    assert len(LAYOUT.station("machine").slots) == len(LAYOUT.station("moulds").slots) == 4
+    signals = CONFIG.io.signals
+    assert signals[START_SIGNAL] in NED2_SIGNALS
+    assert signals[START_SIGNAL].startswith("DO")
+    inputs = [signals[name] for name in (READY, BUSY, DONE, ERROR)]
+    assert set(inputs) <= NED2_SIGNALS
+    assert all(pin.startswith("DI") for pin in inputs)
+    assert len(set(inputs)) == 4
+    assert CONFIG.io.interlocks == {"machine": "machine_busy"}
+    assert {s.config.zone for s in LAYOUT if s.name in ("machine", "moulds")} == {"machine"}
 
 
 def test_home_is_free(models: Models) -> None:

@@ -107,7 +107,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--no-machine",
         dest="machine",
         action="store_false",
+        default=None,
         help="no simulated fusion machine (its input signals are free for set-input)",
+    )
+    machine.add_argument(
+        "--machine",
+        dest="machine",
+        action="store_true",
+        default=None,
+        help="host the fusion machine (the UR simulator's default; ned2: on its pins "
+        "start=DO1,ready=DI1,busy=DI2,done=DI3,error=DI5, off unless given)",
     )
     machine.add_argument(
         "--machine-io",
@@ -334,7 +343,7 @@ def run(args: argparse.Namespace) -> int:
         urcap_port=args.urcap_port,
         realtime=args.realtime,
         calibration=calibration,
-        machine=args.machine,
+        machine=args.machine is not False,
         machine_io=args.machine_io,
         fusion_time=args.fusion_time,
         cooling_time=args.cooling_time,
