@@ -27,14 +27,9 @@ pytestmark = [pytest.mark.system, pytest.mark.slow, pytest.mark.timeout(900)]
 
 CONFIG = CellConfig.load(CONFIG_DIR / "ned2-cell.yaml")
 LAYOUT = Layout(CONFIG.layout)
+# the guide's example run (docs/guides/ned2.md): its crucibles' rack slots
+RUN = Path(__file__).parent.parent / "docs" / "examples" / "ned2-run-4-samples.yaml"
 RACK = ["A1", "A2", "A3", "B1"]
-RUN = {
-    "name": "four samples on the Ned2",
-    "samples": [
-        {"id": f"S0{i + 1}", "rack": slot, "tray": tray}
-        for i, (slot, tray) in enumerate(zip(RACK, ["A1", "A2", "B1", "B2"], strict=True))
-    ],
-}
 # the machine's cycle shortened to 4 s of fusion and 2 s of cooling (the Vitriox: 600 + 300)
 MACHINE = ["--machine", "--fusion-time", "4", "--cooling-time", "2"]
 TIMEOUT = 600.0
