@@ -35,7 +35,16 @@ import numpy as np
 
 from fxcell.errors import FxcellError, InvalidArgumentError
 from fxcell.motion import ned2
-from fxcell.sim.fusion import COOLING_TIME, FUSION_TIME, SENSE_PERIOD, FusionMachine
+from fxcell.sim.fusion import (
+    COOLING_TIME,
+    FUSION_TIME,
+    SEAT_TOLERANCE,
+    SENSE_PERIOD,
+    FusionMachine,
+    object_at,
+    parse_machine_io,
+    slots_of,
+)
 from fxcell.sim.fusion import FAULTS as MACHINE_FAULTS
 from fxcell.sim.lifetime import watch_parent
 from fxcell.sim.ned2 import CONTROL_PORT, FAULTS, NED2_PORT, ROSBRIDGE_PORT
@@ -93,8 +102,6 @@ class Ned2Server:
                 signals=machine_io if machine_io is not None else ned2_machine_io(None),
             )
         if crucibles:
-            from fxcell.sim.fusion import slots_of
-
             assert self.layout is not None
             rack = self.layout.station("rack")
             for slot in slots_of(rack, crucibles):
@@ -284,8 +291,6 @@ class Ned2Server:
         st, slot = self.layout.slot(station, slot)
         if st.config.holds != kind:
             raise InvalidArgumentError(f"station {st.name!r} holds {st.config.holds}s, not {kind}s")
-        from fxcell.sim.fusion import object_at
-
         there = object_at(self.robot.objects, st, slot)
         if there is not None and there.name != name:
             raise InvalidArgumentError(f"{st.name} {slot} is taken by {there.name}")
@@ -321,8 +326,6 @@ class Ned2Server:
 
     def _object_json(self, obj: SimObject) -> dict[str, object]:
         """An object's JSON plus the layout slot it stands in (``station``/``slot``, or None)."""
-        from fxcell.sim.fusion import SEAT_TOLERANCE
-
         data = obj.as_json()
         data["station"] = data["slot"] = None
         if obj.held_from is None and self.layout is not None:
@@ -444,8 +447,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def ned2_machine_io(text: str | None) -> dict[str, Signal]:
     """``"start=DO1,ready=DI1"`` over :data:`MACHINE_SIGNALS`: the machine's signals on the
     Ned2's pins (InvalidArgumentError for a pin the Ned2 lacks)."""
-    from fxcell.sim.fusion import parse_machine_io
-
     return parse_machine_io(text, MACHINE_SIGNALS, (*DIGITAL_INPUTS, *DIGITAL_OUTPUTS))
 
 
@@ -456,6 +457,11 @@ def _layout(config: CellConfig | None) -> Layout:
 
     if config is None:
         config = CellConfig.load(CONFIG_DIR / NED2_SPEC.shipped_config)
+    if config.robot.kind != "ned2":
+        raise InvalidArgumentError(
+            f"--config: a {config.robot.kind} cell; the Ned2 simulator takes a Ned2 cell's "
+            "configuration (robot.kind: ned2)"
+        )
     return Layout(config.layout)
 
 
@@ -465,29 +471,23 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.exit_with_parent:
         watch_parent()
-    # `fxcell sim --robot ned2` shares the UR simulator's parser: there the machine is
-    # --machine (on) / --no-machine (off), and None (the default) means a bare Ned2
-    machine_io = getattr(args, "machine_io", None)
-    try:
-        from fxcell.config import CellConfig
+    from fxcell.config import CellConfig
 
+    try:
         config = None if args.config is None else CellConfig.load(Path(args.config))
-        if isinstance(machine_io, str):
-            machine_io = ned2_machine_io(machine_io)
-        elif machine_io is not None:  # parsed by the UR simulator's parser: check the pins
-            ned2_machine_io(",".join(f"{k}={v}" for k, v in machine_io.items()))
-        fusion_time = float(getattr(args, "fusion_time", FUSION_TIME))
-        cooling_time = float(getattr(args, "cooling_time", COOLING_TIME))
+        signals = None if args.machine_io is None else ned2_machine_io(args.machine_io)
         server = Ned2Server(
             args.host,
             time_scale=args.time_scale,
             calibrated=args.calibrated,
             config=config,
-            machine=getattr(args, "machine", None) is True,
-            machine_io=machine_io,
-            fusion_time=fusion_time,
-            cooling_time=cooling_time,
-            crucibles=getattr(args, "crucibles", None),
+            # `fxcell sim --robot ned2` shares the UR simulator's parser, whose --no-machine
+            # sets False: only --machine (True) hosts the machine on a Ned2
+            machine=args.machine is True,
+            machine_io=signals,
+            fusion_time=args.fusion_time,
+            cooling_time=args.cooling_time,
+            crucibles=args.crucibles,
         )
     except FxcellError as exc:
         print(f"fxcell sim: {exc}", file=sys.stderr)
