@@ -8,6 +8,9 @@ object in the gripper."""
 
 from __future__ import annotations
 
+import argparse
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -98,3 +101,36 @@ def test_every_slot_is_reachable_and_free_along_its_descent(
         assert collision.colliding_pairs(q) == []
     finally:
         collision.detach()
+
+
+def _daemon_args(**given: object) -> argparse.Namespace:
+    args = {"sim_time_scale": None, "sim_crucibles": None, "sim_fusion_time": None}
+    args |= {"sim_cooling_time": None, "config": None}
+    return argparse.Namespace(**(args | given))
+
+
+def test_the_daemon_starts_the_ned2_simulator_with_the_machine_and_a_full_rack() -> None:
+    from fxcell.daemon.cli import SIM_COOLING_TIME, SIM_FUSION_TIME, _simulator_options
+
+    extra = _simulator_options(_daemon_args(), CONFIG)["extra_args"]
+    assert extra[0] == "--machine"
+    assert extra[extra.index("--crucibles") + 1] == "9"  # the example's 3 x 3 rack
+    assert float(extra[extra.index("--fusion-time") + 1]) == SIM_FUSION_TIME
+    assert float(extra[extra.index("--cooling-time") + 1]) == SIM_COOLING_TIME
+    # a user's file: the simulator takes its layout from it
+    options = _simulator_options(_daemon_args(config="my-ned2.yaml", sim_crucibles="A1"), CONFIG)
+    extra = options["extra_args"]
+    assert Path(extra[extra.index("--config") + 1]).name == "my-ned2.yaml"
+    assert extra[extra.index("--crucibles") + 1] == "A1"
+
+
+def test_a_ned2_cell_without_the_machines_stations_refuses_the_machines_options() -> None:
+    from fxcell.daemon.cli import _simulator_options
+    from fxcell.errors import FxcellError
+
+    stations = {k: v for k, v in CONFIG.layout.stations.items() if k in ("rack", "tray")}
+    layout = CONFIG.layout.model_copy(update={"stations": stations})
+    bare = CONFIG.model_copy(update={"layout": layout})
+    assert "extra_args" not in _simulator_options(_daemon_args(), bare)  # a bare Ned2
+    with pytest.raises(FxcellError, match="--sim-crucibles: the layout has no"):
+        _simulator_options(_daemon_args(sim_crucibles="2"), bare)
