@@ -143,6 +143,7 @@ def fxcell_cli(url: str, *args: str) -> str:
     return done.stdout
 
 
+@pytest.mark.long  # minutes of robot time again: the long tier (./dev test -m long)
 async def test_the_same_run_through_the_daemon_and_the_cli(tmp_path: Path) -> None:
     samples = yaml.safe_load(RUN.read_text())["samples"]
     machine = [*MACHINE, "--crucibles", ",".join(RACK)]
