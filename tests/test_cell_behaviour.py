@@ -90,14 +90,14 @@ def _ur3e() -> Arm:
 
 def _ned2() -> Arm:
     config = CellConfig.load(CONFIG_DIR / "ned2-cell.yaml")
-    io = config.io.model_copy(update={"signals": {"lamp": "DO2"}})
+    io = config.io.model_copy(update={"signals": {**config.io.signals, "lamp": "DO2"}})
     return Arm(
         "ned2",
         config.model_copy(update={"io": io}),
         (0.0, 0.3, -0.6, 0.0, -0.8, 0.0),
         (0.8, 0.1, -0.4, 0.3, -0.9, 0.4),
         ("rack", "A2"),
-        ("tray", "A1"),
+        ("rack", "C3"),
         _ned2_put,
         lambda sim, name: np.array(sim.state()["objects"][name]),
     )

@@ -1,10 +1,15 @@
 """The shipped example Ned2 cell (``config/ned2-cell.yaml``): it loads as a Ned2 cell with
-the Ned2's own limits, home and gripper TCP, and every slot of its layout can be reached:
+the Ned2's own limits, home and gripper TCP, it has what the fusion job needs (a crucible
+rack, the machine's four positions and moulds, a bead tray, the machine's signals on the
+Ned2's pins), and every slot of every station can be reached:
 grip, approach and retreat poses have joint solutions within the limits, free of the
 scene, and so has every point of the straight descent between them, with and without an
 object in the gripper."""
 
 from __future__ import annotations
+
+import argparse
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,13 +40,31 @@ def test_the_example_is_a_ned2_cell_with_the_ned2s_own_figures() -> None:
     assert CONFIG.tool.tcp == pytest.approx(NED2_SPEC.tcp)
     for key, values in NED2_SPEC.limits.items():
         assert getattr(CONFIG.limits, key) == pytest.approx(values), key
-    assert {s.name for s in LAYOUT} == {"rack", "tray"}
-    assert len(SLOTS) == 18
+    assert {s.name for s in LAYOUT} == {"rack", "tray", "machine", "moulds"}
+    assert len(SLOTS) == 9 + 9 + 4 + 4
     assert CONFIG.vision.camera.source is None  # the Ned2's simulator has no camera
     # objects the Ned2's Gripper 1 can take (27 mm stroke, 0.3 kg payload)
     for kind in CONFIG.layout.objects.values():
         assert kind.width < 0.027
         assert kind.mass <= NED2_SPEC.payload_max
+
+
+def test_the_example_has_what_the_fusion_job_needs() -> None:
+    from fxcell.job.runner import BUSY, DONE, ERROR, READY, START_SIGNAL
+    from fxcell.link.ned2.link import NED2_SIGNALS
+
+    holds = {s.name: s.config.holds for s in LAYOUT}
+    assert holds == {"rack": "crucible", "machine": "crucible", "moulds": "bead", "tray": "bead"}
+    assert len(LAYOUT.station("machine").slots) == len(LAYOUT.station("moulds").slots) == 4
+    signals = CONFIG.io.signals
+    assert signals[START_SIGNAL] in NED2_SIGNALS
+    assert signals[START_SIGNAL].startswith("DO")
+    inputs = [signals[name] for name in (READY, BUSY, DONE, ERROR)]
+    assert set(inputs) <= NED2_SIGNALS
+    assert all(pin.startswith("DI") for pin in inputs)
+    assert len(set(inputs)) == 4
+    assert CONFIG.io.interlocks == {"machine": "machine_busy"}
+    assert {s.config.zone for s in LAYOUT if s.name in ("machine", "moulds")} == {"machine"}
 
 
 def test_home_is_free(models: Models) -> None:
@@ -78,3 +101,36 @@ def test_every_slot_is_reachable_and_free_along_its_descent(
         assert collision.colliding_pairs(q) == []
     finally:
         collision.detach()
+
+
+def _daemon_args(**given: object) -> argparse.Namespace:
+    args = {"sim_time_scale": None, "sim_crucibles": None, "sim_fusion_time": None}
+    args |= {"sim_cooling_time": None, "config": None}
+    return argparse.Namespace(**(args | given))
+
+
+def test_the_daemon_starts_the_ned2_simulator_with_the_machine_and_a_full_rack() -> None:
+    from fxcell.daemon.cli import SIM_COOLING_TIME, SIM_FUSION_TIME, _simulator_options
+
+    extra = _simulator_options(_daemon_args(), CONFIG)["extra_args"]
+    assert extra[0] == "--machine"
+    assert extra[extra.index("--crucibles") + 1] == "9"  # the example's 3 x 3 rack
+    assert float(extra[extra.index("--fusion-time") + 1]) == SIM_FUSION_TIME
+    assert float(extra[extra.index("--cooling-time") + 1]) == SIM_COOLING_TIME
+    # a user's file: the simulator takes its layout from it
+    options = _simulator_options(_daemon_args(config="my-ned2.yaml", sim_crucibles="A1"), CONFIG)
+    extra = options["extra_args"]
+    assert Path(extra[extra.index("--config") + 1]).name == "my-ned2.yaml"
+    assert extra[extra.index("--crucibles") + 1] == "A1"
+
+
+def test_a_ned2_cell_without_the_machines_stations_refuses_the_machines_options() -> None:
+    from fxcell.daemon.cli import _simulator_options
+    from fxcell.errors import FxcellError
+
+    stations = {k: v for k, v in CONFIG.layout.stations.items() if k in ("rack", "tray")}
+    layout = CONFIG.layout.model_copy(update={"stations": stations})
+    bare = CONFIG.model_copy(update={"layout": layout})
+    assert "extra_args" not in _simulator_options(_daemon_args(), bare)  # a bare Ned2
+    with pytest.raises(FxcellError, match="--sim-crucibles: the layout has no"):
+        _simulator_options(_daemon_args(sim_crucibles="2"), bare)

@@ -82,21 +82,21 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--sim-crucibles",
         metavar="N|A1,B2,...",
-        help="embedded UR simulator only: crucibles with samples in the rack at start "
-        f"(default {SIM_CRUCIBLES}: a full run; 0: none)",
+        help="embedded simulator: crucibles with samples in the rack at start "
+        f"(default: the full rack, {SIM_CRUCIBLES} for the UR3e cell; 0: none)",
     )
     p.add_argument(
         "--sim-fusion-time",
         type=float,
         metavar="S",
-        help=f"embedded UR simulator only: the fusion machine's fusion time (default "
+        help=f"embedded simulator: the fusion machine's fusion time (default "
         f"{SIM_FUSION_TIME:g} s; the real Vitriox takes about 600)",
     )
     p.add_argument(
         "--sim-cooling-time",
         type=float,
         metavar="S",
-        help=f"embedded UR simulator only: the fusion machine's cooling time (default "
+        help=f"embedded simulator: the fusion machine's cooling time (default "
         f"{SIM_COOLING_TIME:g} s)",
     )
     p.add_argument(
@@ -272,7 +272,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
             "HOST); --no-simulator refuses to start the embedded simulator"
         )
     record = None if args.no_record else Path(args.log_dir or config.recorder.directory)
-    sim = _simulator_options(args, config.robot.kind)
+    sim = _simulator_options(args, config)
     return serve(config, record=record, simulator_options=sim)
 
 
@@ -293,29 +293,45 @@ def _daemon_config(path: str | None, kind: str | None) -> Any:
     return config
 
 
-def _simulator_options(args: argparse.Namespace, kind: str) -> dict[str, Any]:
-    """What the kind's embedded simulator is started with: the time scale, and for the UR
-    simulator its fusion machine (FxcellError for a UR-only option on another kind)."""
+def _simulator_options(args: argparse.Namespace, config: Any) -> dict[str, Any]:
+    """What the kind's embedded simulator is started with: the time scale and the fusion
+    machine with crucibles in the rack (the UR simulator's machine on its DO0/DI0-DI3, the
+    Ned2 simulator's on the Ned2's pins, in the configuration's layout)."""
+    kind = config.robot.kind
     sim: dict[str, Any] = {}
     if args.sim_time_scale:
         sim["time_scale"] = args.sim_time_scale
-    machine = {
-        "--sim-crucibles": args.sim_crucibles,
-        "--sim-fusion-time": args.sim_fusion_time,
-        "--sim-cooling-time": args.sim_cooling_time,
-    }
-    if kind != "ur3e":
-        given = [option for option, value in machine.items() if value is not None]
-        if given:
-            raise FxcellError(
-                f"{', '.join(given)}: the {kind}'s simulator has no fusion machine "
-                "(these options are the UR simulator's)"
-            )
-        return sim
-    crucibles = SIM_CRUCIBLES if args.sim_crucibles is None else args.sim_crucibles
+    if kind == "ur3e":
+        crucibles = SIM_CRUCIBLES if args.sim_crucibles is None else args.sim_crucibles
+        extra = []
+    else:
+        # the Ned2 simulator is a bare robot unless told: the cell's machine, its layout
+        stations = config.layout.stations
+        if "machine" not in stations or "moulds" not in stations or "rack" not in stations:
+            given = [
+                option
+                for option, value in (
+                    ("--sim-crucibles", args.sim_crucibles),
+                    ("--sim-fusion-time", args.sim_fusion_time),
+                    ("--sim-cooling-time", args.sim_cooling_time),
+                )
+                if value is not None
+            ]
+            if given:
+                raise FxcellError(
+                    f"{', '.join(given)}: the layout has no rack, machine and moulds "
+                    "stations, so the simulator hosts no fusion machine"
+                )
+            return sim
+        rack = stations["rack"]
+        full = rack.rows * rack.columns
+        crucibles = str(full) if args.sim_crucibles is None else args.sim_crucibles
+        extra = ["--machine"]
+        if args.config is not None:
+            extra += ["--config", str(Path(args.config).resolve())]
     fusion = SIM_FUSION_TIME if args.sim_fusion_time is None else args.sim_fusion_time
     cooling = SIM_COOLING_TIME if args.sim_cooling_time is None else args.sim_cooling_time
-    extra = ["--fusion-time", str(fusion), "--cooling-time", str(cooling)]
+    extra += ["--fusion-time", str(fusion), "--cooling-time", str(cooling)]
     if crucibles not in ("", "0"):
         extra += ["--crucibles", crucibles]
     sim["extra_args"] = extra

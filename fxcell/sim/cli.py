@@ -38,16 +38,6 @@ def _positive(text: str) -> float:
     return value
 
 
-def _machine_io(text: str) -> Any:
-    from fxcell.errors import InvalidArgumentError
-    from fxcell.sim.fusion import parse_machine_io
-
-    try:
-        return parse_machine_io(text)
-    except InvalidArgumentError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="loopback address to serve on")
     p.add_argument(
@@ -107,13 +97,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--no-machine",
         dest="machine",
         action="store_false",
+        default=None,
         help="no simulated fusion machine (its input signals are free for set-input)",
     )
     machine.add_argument(
+        "--machine",
+        dest="machine",
+        action="store_true",
+        default=None,
+        help="host the fusion machine (the UR simulator's default; ned2: on its pins "
+        "start=DO1,ready=DI1,busy=DI2,done=DI3,error=DI5, off unless given)",
+    )
+    machine.add_argument(
         "--machine-io",
-        type=_machine_io,
         metavar="NAME=SIGNAL,...",
-        help="the machine's signals, default start=DO0,ready=DI0,busy=DI1,done=DI2,error=DI3",
+        help="the machine's signals, default start=DO0,ready=DI0,busy=DI1,done=DI2,error=DI3 "
+        "(ned2: start=DO1,ready=DI1,busy=DI2,done=DI3,error=DI5)",
     )
     machine.add_argument(
         "--fusion-time",
@@ -318,6 +317,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"fxcell sim: --programs {args.programs}: not a directory", file=sys.stderr)
         return 2
     config = CellConfig.load(args.config)
+    from fxcell.errors import InvalidArgumentError
+    from fxcell.sim.fusion import parse_machine_io
+
+    try:  # each robot's own pins: parsed here, not by the parser both robots share
+        machine_io = parse_machine_io(args.machine_io) if args.machine_io else None
+    except InvalidArgumentError as exc:
+        print(f"fxcell sim: --machine-io: {exc}", file=sys.stderr)
+        return 2
     try:
         if args.calibration == "nominal":
             calibration: Calibration | None = Calibration.nominal()
@@ -334,8 +341,8 @@ def run(args: argparse.Namespace) -> int:
         urcap_port=args.urcap_port,
         realtime=args.realtime,
         calibration=calibration,
-        machine=args.machine,
-        machine_io=args.machine_io,
+        machine=args.machine is not False,
+        machine_io=machine_io,
         fusion_time=args.fusion_time,
         cooling_time=args.cooling_time,
         crucibles=args.crucibles,

@@ -23,14 +23,14 @@ multiplied by the simulator's time scale.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from enum import StrEnum
+from typing import Protocol
 
 import numpy as np
 
 from fxcell.errors import InvalidArgumentError
 from fxcell.layout import Layout, Station
-from fxcell.sim.controller import IOState
 from fxcell.sim.gripper import SimObject
 from fxcell.sim.signals import Signal, parse_signal
 
@@ -54,6 +54,26 @@ OUTPUT_SIGNALS = ("start",)  # robot -> machine; the rest are machine -> robot
 FAULTS = ("machine_error", "machine_reset", "door_open", "door_close")
 
 
+class MachineIO(Protocol):
+    """The robot's digital IO as the machine wires to it: it reads the robot's outputs and
+    drives the inputs it owns (listed in ``input_owners``, pin name -> owner, so that nothing
+    else sets them)."""
+
+    input_owners: dict[str, str]
+
+    def output(self, signal: Signal) -> bool:
+        """The level of a digital output."""
+        ...
+
+    def input(self, signal: Signal) -> float:
+        """The value of an input (1.0/0.0 for digital ones)."""
+        ...
+
+    def set_input(self, signal: Signal, value: float, owner: str | None = None) -> None:
+        """Set an input (InvalidArgumentError when another owner drives it)."""
+        ...
+
+
 class MachineState(StrEnum):
     IDLE = "idle"
     LOADED = "loaded"
@@ -66,12 +86,18 @@ class MachineState(StrEnum):
 _BUSY = (MachineState.FUSING, MachineState.COOLING)  # looked up once, not every cycle
 
 
-def parse_machine_io(text: str | None) -> dict[str, Signal]:
-    """``"start=DO0,ready=DI0"`` over :data:`DEFAULT_SIGNALS` → every signal's :class:`Signal`.
+def parse_machine_io(
+    text: str | None,
+    defaults: Mapping[str, str] = DEFAULT_SIGNALS,
+    pins: Collection[str] | None = None,
+) -> dict[str, Signal]:
+    """``"start=DO0,ready=DI0"`` over ``defaults`` (the UR's :data:`DEFAULT_SIGNALS`) →
+    every signal's :class:`Signal`.
 
-    ``start`` must be a digital output, the others distinct digital inputs.
+    ``start`` must be a digital output, the others distinct digital inputs; with ``pins``
+    (the robot's pin names, e.g. the Ned2's DI1-DI5, DO1-DO4) every signal must be one.
     """
-    names = dict(DEFAULT_SIGNALS)
+    names = dict(defaults)
     for item in (text or "").split(","):
         if not item.strip():
             continue
@@ -85,6 +111,10 @@ def parse_machine_io(text: str | None) -> dict[str, Signal]:
         names[key] = value.strip()
     signals = {key: parse_signal(value) for key, value in names.items()}
     for key, sig in signals.items():
+        if pins is not None and str(sig) not in pins:
+            raise InvalidArgumentError(
+                f"machine IO: {key}={sig} is not a pin of the robot (it has {', '.join(pins)})"
+            )
         if not sig.is_digital:
             raise InvalidArgumentError(f"machine IO: {key}={sig} is not a digital signal")
         if sig.is_input == (key in OUTPUT_SIGNALS):
@@ -131,7 +161,7 @@ class FusionMachine:
         self,
         layout: Layout,
         objects: dict[str, SimObject],
-        io: IOState,
+        io: MachineIO,
         *,
         time_scale: float = 1.0,
         fusion_time: float = FUSION_TIME,

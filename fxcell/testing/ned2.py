@@ -6,6 +6,7 @@ Test support: the runtime never imports it.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -22,11 +23,15 @@ class Ned2SimulatorHandle(ProcessHandle):
     """A running Ned2 simulator (``.host``): pyniryo connects to ``host`` on 40001.
 
     ``inject`` a fault (:data:`fxcell.link.ned2.SIMULATOR_FAULTS`), read its ``state()``, put an
-    object where the gripper can take it (``add_object``), set an input
-    (``set_input``), or wait for a state value (``wait_for``)."""
+    object where the gripper can take it (``add_object``) or at a layout slot
+    (``place_object``), read its ``objects()`` and fusion ``machine()`` (started with
+    ``--machine`` in ``extra_args``), set an input (``set_input``), or wait for a state
+    value (``wait_for``)."""
 
-    def __init__(self, time_scale: float, calibrated: bool) -> None:
-        self._sim = Ned2Simulator(time_scale=time_scale, calibrated=calibrated)
+    def __init__(self, time_scale: float, calibrated: bool, extra_args: Sequence[str] = ()) -> None:
+        self._sim = Ned2Simulator(
+            time_scale=time_scale, calibrated=calibrated, extra_args=extra_args
+        )
 
     @property
     def host(self) -> str:
@@ -54,6 +59,23 @@ class Ned2SimulatorHandle(ProcessHandle):
         x, y, z = (float(v) for v in position)
         self._request(f"add_object {name} {x!r} {y!r} {z!r} {width!r}")
 
+    def place_object(
+        self, name: str, kind: str, station: str, slot: str, contents: str | None = None
+    ) -> None:
+        """An object of a layout kind at a slot's grip pose (a new crucible: with a sample)."""
+        words = [name, kind, station, slot] + ([] if contents is None else [contents])
+        self._request("place_object " + " ".join(words))
+
+    def objects(self) -> dict[str, Any]:
+        """Every object: kind, pose, held, contents and the layout slot it stands in."""
+        result: dict[str, Any] = json.loads(self._request("objects"))
+        return result
+
+    def machine(self) -> dict[str, Any]:
+        """The simulated fusion machine's report (state, positions, moulds, pins, log)."""
+        result: dict[str, Any] = json.loads(self._request("machine"))
+        return result
+
     def set_input(self, pin: str, value: object) -> None:
         self._request(f"set_input {pin} {value}")
 
@@ -70,11 +92,15 @@ class Ned2SimulatorHandle(ProcessHandle):
 
 
 def ned2_simulator(
-    time_scale: float = TEST_TIME_SCALE, *, calibrated: bool = False
+    time_scale: float = TEST_TIME_SCALE,
+    *,
+    calibrated: bool = False,
+    extra_args: Sequence[str] = (),
 ) -> Ned2SimulatorHandle:
-    """A Ned2 simulator process on a free loopback address, for ``with``/``async with``.
+    """A Ned2 simulator process on a free loopback address, for ``with``/``async with``
+    (``extra_args``: its command-line options, e.g. ``--machine``).
 
     >>> with ned2_simulator() as sim:  # doctest: +SKIP
     ...     robot = NiryoRobot(sim.host)
     """
-    return Ned2SimulatorHandle(time_scale, calibrated)
+    return Ned2SimulatorHandle(time_scale, calibrated, extra_args)

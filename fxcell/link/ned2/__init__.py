@@ -49,5 +49,10 @@ SIMULATOR_FAULTS = (
     "tool_disconnect",  # the tool goes away (GET_CURRENT_TOOL_ID says NONE)
     "tool_connect",
     "uncalibrate",  # the robot needs calibration again
+    # the simulated fusion machine's (a simulator started with --machine)
+    "machine_error",  # the machine faults: a running cycle aborts, error until machine_reset
+    "machine_reset",
+    "door_open",  # the machine's door opens: error, not ready; a running cycle aborts
+    "door_close",
 )
 """The faults the embedded simulator injects (``fxcell sim inject --robot ned2``)."""

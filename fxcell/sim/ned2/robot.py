@@ -1,6 +1,12 @@
 """The simulated Ned2: joints moving at the model's limits, calibration, learning mode,
 collision detection, the tool (Gripper 1) with objects, IO and the hardware status.
 
+Objects are the simulators' common :class:`~fxcell.sim.gripper.SimObject` (grip point, kind,
+size, contents), so that a simulated device such as the fusion machine
+(:mod:`fxcell.sim.fusion`) sees the same world on either robot; the robot is the machine's
+:class:`~fxcell.sim.fusion.MachineIO` (its digital pins, the inputs a device owns refused
+to anyone else).
+
 Errors the robot's ROS side reports are :class:`RobotError` (a ``CommandStatus`` code
 and a message); the TCP server wraps them as Niryo's server does.
 """
@@ -16,7 +22,11 @@ from typing import Any
 
 import numpy as np
 
+from fxcell.errors import InvalidArgumentError
+from fxcell.geometry import Pose
 from fxcell.motion import ned2
+from fxcell.sim.gripper import SimObject
+from fxcell.sim.signals import Signal
 
 # niryo_robot_msgs/CommandStatus values the simulator reports
 ABORTED = -3
@@ -43,6 +53,15 @@ DIGITAL_INPUTS = ("DI1", "DI2", "DI3", "DI4", "DI5")
 DIGITAL_OUTPUTS = ("DO1", "DO2", "DO3", "DO4")
 ANALOG_INPUTS = ("AI1", "AI2")
 ANALOG_OUTPUTS = ("AO1", "AO2")
+MACHINE_SIGNALS: dict[str, str] = {
+    "start": "DO1",
+    "ready": "DI1",
+    "busy": "DI2",
+    "done": "DI3",
+    "error": "DI5",
+}
+"""The fusion machine's signals by default (``--machine-io``): pins of the Ned2's IO panel
+(DI4 and DO4 are on the tool connector)."""
 MOTOR_NAMES = ["joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6", "tool"]
 MOTOR_TYPES = ["NIRYO_STEPPER"] * 3 + ["DXL_XL430"] * 2 + ["DXL_XL330"] * 2
 CYCLE = 0.01  # s of robot time per motion step
@@ -58,11 +77,18 @@ class RobotError(Exception):
         self.message = message
 
 
-@dataclass
-class SimObject:
-    name: str
-    position: np.ndarray  # grip point in base_link (m)
-    width: float = 0.02
+def new_object(
+    name: str,
+    position: np.ndarray | list[float],
+    width: float = 0.02,
+    *,
+    kind: str = "object",
+    height: float = 0.04,
+    mass: float = 0.02,
+    contents: str | None = None,
+) -> SimObject:
+    """An upright object whose grip point is at ``position`` (base_link, m)."""
+    return SimObject(name, kind, width, height, mass, Pose(position), contents=contents)
 
 
 @dataclass
@@ -92,6 +118,7 @@ class Ned2Robot:
     analog_in: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ANALOG_INPUTS, 0.0))
     moving: bool = False
     log: list[str] = field(default_factory=list)
+    input_owners: dict[str, str] = field(default_factory=dict)  # "DI1" -> the device driving it
     _abort: tuple[int, str] | None = None
 
     # ------------------------------------------------------------------ state
@@ -117,7 +144,7 @@ class Ned2Robot:
             "tool": self.tool,
             "gripper_open": self.gripper_open,
             "held": self.held,
-            "objects": {n: [float(v) for v in o.position] for n, o in self.objects.items()},
+            "objects": {n: o.pose.position.tolist() for n, o in self.objects.items()},
             "digital_out": dict(self.digital_out),
             "digital_in": dict(self.digital_in),
             "log": self.log[-20:],
@@ -141,6 +168,33 @@ class Ned2Robot:
             [12.1, 12.1, 12.1, 11.9, 11.9, 11.9, 11.9],
             errors,
         ]
+
+    # ------------------------------------------------------------------ IO (MachineIO)
+
+    def output(self, signal: Signal) -> bool:
+        """The level of digital output ``signal`` (DO1-DO4)."""
+        return self.digital_out[str(signal)]
+
+    def input(self, signal: Signal) -> float:
+        """The value of input ``signal`` (1.0/0.0 for DI1-DI5, volts for AI1-AI2)."""
+        name = str(signal)
+        if name in self.analog_in:
+            return self.analog_in[name]
+        return 1.0 if self.digital_in[name] else 0.0
+
+    def set_input(self, signal: Signal | str, value: float, owner: str | None = None) -> None:
+        """Set an input from outside the robot (a device wired to it, the control port);
+        an input a device drives only by that device (InvalidArgumentError)."""
+        name = str(signal)
+        if name not in self.digital_in and name not in self.analog_in:
+            raise InvalidArgumentError(f"the Ned2 has no input {name}")
+        holder = self.input_owners.get(name)
+        if holder is not None and holder != owner:
+            raise InvalidArgumentError(f"{name} is driven by {holder}")
+        if name in self.digital_in:
+            self.digital_in[name] = bool(value)
+        else:
+            self.analog_in[name] = float(value)
 
     # ------------------------------------------------------------------ faults
 
@@ -168,8 +222,10 @@ class Ned2Robot:
     def drop_held(self) -> None:
         if self.held is not None:
             obj = self.objects[self.held]
-            obj.position = obj.position.copy()
-            obj.position[2] = max(0.0, obj.position[2] - 0.05)  # it falls below the fingers
+            position = obj.pose.position.copy()
+            position[2] = max(0.0, position[2] - 0.05)  # it falls below the fingers
+            obj.pose = Pose(position)
+            obj.held_from = None
             self.log.append(f"{self.held} slipped out of the gripper")
             self.held = None
 
@@ -366,7 +422,7 @@ class Ned2Robot:
 
     def _carry(self) -> None:
         if self.held is not None:
-            self.objects[self.held].position = self.fingers()
+            self.objects[self.held].pose = Pose(self.fingers())
 
     # ------------------------------------------------------------------ tool
 
@@ -381,9 +437,10 @@ class Ned2Robot:
         if self.held is None:
             fingers = self.fingers()
             for obj in self.objects.values():
-                if np.linalg.norm(obj.position - fingers) <= GRASP_TOLERANCE:
+                if np.linalg.norm(obj.pose.position - fingers) <= GRASP_TOLERANCE:
                     self.held = obj.name
-                    obj.position = fingers
+                    obj.pose = Pose(fingers)
+                    obj.held_from = Pose()  # its grip point between the fingers
                     self.log.append(f"gripped {obj.name}")
                     break
 
@@ -392,6 +449,7 @@ class Ned2Robot:
         await self._sleep(GRIPPER_TIME)
         self.gripper_open = True
         if self.held is not None:
+            self.objects[self.held].held_from = None
             self.log.append(f"released {self.held}")
             self.held = None
 
