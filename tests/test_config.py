@@ -183,7 +183,9 @@ def test_a_ned2_user_config_inherits_the_shipped_ned2_cell(tmp_path: Path) -> No
         shipped.scene,
         shipped.layout,
     )
-    assert set(config.layout.stations) == {"rack", "tray"}  # not the UR3e cell's machine
+    # its own small stations, not the UR3e cell's (whose crucibles Gripper 1 could not take)
+    assert config.layout != CellConfig.load().layout
+    assert all(obj.width < 0.027 for obj in config.layout.objects.values())
     assert config.vision.camera.source is None
     # the shipped Ned2 cell keeps its taught positions and job apart from the UR3e cell's
     assert shipped.positions_file.parent == default_state_dir()
