@@ -162,6 +162,7 @@ async def assert_in_place(sim: SimulatorHandle, run: dict[str, Any], why: object
         assert place_of(bead) == location("tray", sample["tray"]), why
 
 
+@pytest.mark.long  # a 4-sample run with five restarts: minutes of robot time (./dev test -m long)
 @pytest.mark.injects_faults("the daemon SIGKILLed five times, mid-move")
 async def test_a_run_killed_five_times_ends_with_every_sample_in_place(
     sim: SimulatorHandle, tmp_path: Path

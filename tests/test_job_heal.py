@@ -82,6 +82,7 @@ async def kill_the_link_at_random(cell: Cell, job: Job, rng: random.Random) -> l
     return hit
 
 
+@pytest.mark.long  # a 4-sample run with ten restarts: minutes of robot time (./dev test -m long)
 async def test_a_run_whose_link_is_killed_ten_times_ends_in_place_without_the_operator(
     tmp_path: Path,
 ) -> None:

@@ -78,6 +78,7 @@ async def cell(tmp_path: Path) -> AsyncIterator[Cell]:
         yield c
 
 
+@pytest.mark.long  # four samples on the Ned2's speeds: minutes of robot time (./dev test -m long)
 async def test_four_samples_run_unattended_on_the_ned2_cell(cell: Cell, tmp_path: Path) -> None:
     host = cell.host
     assert host is not None

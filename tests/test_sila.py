@@ -287,6 +287,7 @@ def test_stop_over_sila_stops_a_move_started_over_http(cell: Cell) -> None:
         http.delete("/api/control").raise_for_status()
 
 
+@pytest.mark.long  # a 4-sample run: minutes of robot time (./dev test -m long)
 def test_four_sample_run_paused_and_resumed_to_its_end_with_a_response_per_step(
     job_cell: Cell,
 ) -> None:
