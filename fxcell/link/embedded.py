@@ -81,9 +81,13 @@ def free_loopback_host(rng: random.Random | None = None, attempts: int = 200) ->
     raise SimulatorError("no free loopback address for the simulator (127.0.0.2-253 all busy)")
 
 
-def _request(host: str, line: str, timeout: float) -> str:
+def control_request(
+    host: str, line: str, *, port: int = CONTROL_PORT, timeout: float = 5.0, what: str = "simulator"
+) -> str:
+    """One line to a simulator's control port and its one-line answer (every robot kind's
+    simulator speaks this; SimulatorError naming ``what`` when it does not answer)."""
     try:
-        with socket.create_connection((host, CONTROL_PORT), timeout=timeout) as s:
+        with socket.create_connection((host, port), timeout=timeout) as s:
             s.sendall(line.encode() + b"\n")
             data = b""
             while not data.endswith(b"\n"):
@@ -92,8 +96,12 @@ def _request(host: str, line: str, timeout: float) -> str:
                     break
                 data += chunk
     except OSError as exc:
-        raise SimulatorError(f"simulator at {host} does not answer: {exc}") from None
+        raise SimulatorError(f"{what} at {host} does not answer: {exc}") from None
     return data.decode("utf-8", "replace").strip()
+
+
+def _request(host: str, line: str, timeout: float) -> str:
+    return control_request(host, line, timeout=timeout)
 
 
 def inject(host: str, fault: str, *args: object, timeout: float = 5.0) -> str:

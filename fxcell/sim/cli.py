@@ -12,6 +12,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from fxcell.errors import SimulatorError
 from fxcell.link.embedded import FAULTS
 from fxcell.sim.constants import UNLOCK_DELAY
 from fxcell.sim.lifetime import watch_parent
@@ -213,15 +214,12 @@ def run_inject(args: argparse.Namespace) -> int:
     from fxcell.link.embedded import inject
 
     if args.robot == "ned2":
-        from fxcell.sim.ned2.server import request
+        from fxcell.link.ned2.embedded import request
 
         try:
             answer = request(args.host, " ".join(["inject", args.fault, *args.args]))
-        except OSError as exc:
-            print(
-                f"fxcell sim inject: simulator at {args.host} does not answer: {exc}",
-                file=sys.stderr,
-            )
+        except SimulatorError as exc:
+            print(f"fxcell sim inject: {exc}", file=sys.stderr)
             return 1
         if not answer.startswith("ok"):
             print(f"fxcell sim inject: {answer}", file=sys.stderr)

@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import json
 import random
-import socket
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 from fxcell.errors import InvalidArgumentError, SimulatorError
-from fxcell.link.embedded import EmbeddedSimulator, address_is_free
+from fxcell.link.embedded import EmbeddedSimulator, address_is_free, control_request
 from fxcell.link.ned2 import SIMULATOR_CONTROL_PORT, SIMULATOR_FAULTS, SIMULATOR_PORTS
 
 __all__ = ["SIM_MODULE", "Ned2Simulator", "free_ned2_host", "ned2_simulator", "request"]
@@ -41,20 +40,11 @@ def free_ned2_host(rng: random.Random | None = None, attempts: int = 200) -> str
 
 
 def request(host: str, line: str, timeout: float = 5.0) -> str:
-    """One line to the simulator's control port and its one-line answer
+    """One line to the Ned2 simulator's control port and its one-line answer
     (SimulatorError when it does not answer)."""
-    try:
-        with socket.create_connection((host, SIMULATOR_CONTROL_PORT), timeout=timeout) as s:
-            s.sendall(line.encode() + b"\n")
-            data = b""
-            while not data.endswith(b"\n"):
-                chunk = s.recv(65536)
-                if not chunk:
-                    break
-                data += chunk
-    except OSError as exc:
-        raise SimulatorError(f"Ned2 simulator at {host} does not answer: {exc}") from None
-    return data.decode("utf-8", "replace").strip()
+    return control_request(
+        host, line, port=SIMULATOR_CONTROL_PORT, timeout=timeout, what="Ned2 simulator"
+    )
 
 
 class Ned2Simulator(EmbeddedSimulator):

@@ -515,23 +515,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         stream=sys.stderr,
     )
     return run(args)
-
-
-def request(host: str, line: str, timeout: float = 5.0) -> str:
-    """One request on the simulator's control port (blocking)."""
-    import socket
-
-    with socket.create_connection((host, CONTROL_PORT), timeout=timeout) as s:
-        s.sendall(line.encode() + b"\n")
-        data = b""
-        while not data.endswith(b"\n"):
-            chunk = s.recv(65536)
-            if not chunk:
-                break
-            data += chunk
-    return data.decode("utf-8", "replace").strip()
-
-
-def state(host: str) -> dict[str, Any]:
-    result: dict[str, Any] = json.loads(request(host, "state"))
-    return result
