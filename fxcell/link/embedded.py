@@ -334,14 +334,25 @@ class EmbeddedSimulator:
         attempts = 1 if self.requested_host is not None else 5
         last = ""
         for _ in range(attempts):
-            host = self.requested_host or free_loopback_host()
+            host = self.requested_host or self._free_host()
             ok, last = self._launch(host)
             if ok:
                 self.host = host
-                for observer in tuple(EmbeddedSimulator.observers):
-                    observer(self, "started")
+                self._listening()
                 return host
-        raise SimulatorError(f"simulator did not start: {last}")
+        raise SimulatorError(f"{self.what} did not start: {last}")
+
+    what: ClassVar[str] = "simulator"
+    """How errors name this kind's simulator."""
+
+    def _free_host(self) -> str:
+        """A loopback address where this kind's simulator can bind every port it serves."""
+        return free_loopback_host()
+
+    def _listening(self) -> None:
+        """Once the process listens: tell the observers (the tests' fault watch)."""
+        for observer in tuple(EmbeddedSimulator.observers):
+            observer(self, "started")
 
     def _launch(self, host: str) -> tuple[bool, str]:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -390,9 +401,8 @@ class EmbeddedSimulator:
 
     def stop(self, timeout: float = 10.0) -> None:
         """Terminate the process (SIGTERM, then SIGKILL after ``timeout``)."""
-        if self.process is not None:
-            for observer in tuple(EmbeddedSimulator.observers):
-                observer(self, "stopping")
+        if self.process is not None and self.host is not None:
+            self._stopping()
         proc, self.process = self.process, None
         if proc is None:
             return
@@ -409,6 +419,10 @@ class EmbeddedSimulator:
         if proc.stdout is not None:
             with contextlib.suppress(OSError):
                 proc.stdout.close()
+
+    def _stopping(self) -> None:
+        for observer in tuple(EmbeddedSimulator.observers):
+            observer(self, "stopping")
 
     @property
     def running(self) -> bool:
