@@ -1,6 +1,7 @@
 """The light client for the lab PC: ``pip install "fxcell[client]"`` without the motion stack.
 
-A fresh virtual environment gets fxcell from this checkout (a real, non-editable install),
+A fresh virtual environment gets fxcell from this checkout (a real, non-editable install of
+the wheel built from it),
 with nothing but the base dependencies; the CLI and RemoteCell then drive a daemon that
 runs from the development environment, and the cell-only commands say what to install.
 """
@@ -26,7 +27,22 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
 @pytest.fixture(scope="module")
-def light_venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """fxcell's wheel built once from this checkout (the build compiles the native
+    kinematics), installed by both environments below as pip would install the checkout."""
+    where = tmp_path_factory.mktemp("wheel")
+    out = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--disable-pip-version-check",
+         "-w", str(where), str(ROOT)],
+        capture_output=True, text=True, timeout=900, check=False,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    (built,) = where.glob("fxcell-*.whl")
+    return built
+
+
+@pytest.fixture(scope="module")
+def light_venv(tmp_path_factory: pytest.TempPathFactory, wheel: Path) -> Path:
     venv = tmp_path_factory.mktemp("light") / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
     pip = [
@@ -38,7 +54,7 @@ def light_venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
         "--disable-pip-version-check",
     ]
     out = subprocess.run(
-        [*pip, f"{ROOT}[client]"], capture_output=True, text=True, timeout=600, check=False
+        [*pip, f"{wheel}[client]"], capture_output=True, text=True, timeout=600, check=False
     )
     assert out.returncode == 0, out.stderr[-3000:]
     return venv
@@ -111,7 +127,7 @@ def test_cell_commands_of_the_light_client_say_what_to_install(
 
 
 def test_a_full_install_runs_info_and_a_daemon_from_any_directory(
-    tmp_path_factory: pytest.TempPathFactory,
+    tmp_path_factory: pytest.TempPathFactory, wheel: Path
 ) -> None:
     # config/ and statecharts/ ship inside the wheel: nothing is read from this checkout.
     # fxcell itself is a real (non-editable) install; its dependencies are this environment's,
@@ -130,7 +146,7 @@ def test_a_full_install_runs_info_and_a_daemon_from_any_directory(
     )
     out = subprocess.run(
         [python, "-m", "pip", "install", "-q", "--no-deps", "--disable-pip-version-check",
-         str(ROOT)],
+         str(wheel)],
         capture_output=True, text=True, timeout=900, check=False,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr[-3000:]
