@@ -46,6 +46,7 @@ static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
 #define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
+static const double STALL_DONE = 1e-10;   /* as kinematics._STALL_DONE */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -346,6 +347,8 @@ settle(const Chain *c, double *q, const double *target, long iterations, double 
                 g = 0.0; /* stalled far from a root: a local minimum's basin */
                 break;
             }
+            if (norm < STALL_DONE && norm > 0.5 * mark)
+                break; /* crawling into a singular root: close enough */
             mark = norm;
         }
         if (!solve6(jac, err, lam, 1, step)) {

@@ -131,6 +131,11 @@ solution near) when _STALL_STEPS steps lowered an error above _STALL_FLOOR by le
 fraction _STALL_GAIN: next to a singular local minimum (the arm stretched or folded) the
 gradient ratio falls to ``stationary`` only after hundreds of steps that leave the error as
 it was (to three digits), while a run toward a root lowers it steadily."""
+_STALL_DONE = 1e-10
+"""With ``stationary`` > 0, an error below this that _STALL_STEPS steps did not halve ends
+:meth:`DHChain.settle`'s steps: a root where the Jacobian is singular (the arm exactly at
+the shoulder or elbow singularity), which the steps approach ever more slowly (from 1e-10 to
+1e-11 took ~600 more in one case), is reached to that."""
 
 
 @dataclass(frozen=True)
@@ -1503,7 +1508,7 @@ class DHChain:
         stop) with an error left is a local minimum of the error: no solution near ``q`` (the
         target beyond this branch's reach, as a stretched arm's). With ``stationary`` > 0 an
         error that stalls far from a root (_STALL_STEPS) ends the steps too, reported as
-        stationary (0)."""
+        stationary (0), and so does one that crawls into a root below _STALL_DONE."""
         qq = [float(v) for v in q]
         frame, jac = self.frame_and_jacobian(qq)
         err = _twist_to(frame, target)
@@ -1518,6 +1523,8 @@ class DHChain:
                 if norm > _STALL_FLOOR and norm > (1.0 - _STALL_GAIN) * mark:
                     gradient = 0.0  # stalled far from a root: a local minimum's basin
                     break
+                if norm < _STALL_DONE and norm > 0.5 * mark:
+                    break  # crawling into a singular root: close enough
                 mark = norm
             step = _solve6(jac, err, lam, True)
             if step is None:
