@@ -746,66 +746,88 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
     int shoulder = singular_at & 1;
     double best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
     int found_any = 0;
-    for (Py_ssize_t r = 0; r < n; r++) {
-        int i = order[r];
-        const double *start = starts[i];
-        int singular = shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
-        if (found_any && !singular && distance[i] > sqrt(best_d) + factor * regular + 1e-9)
-            continue; /* it cannot come nearer */
-        if (found_any && !shoulder && fabs(sin(start[4])) < near &&
-            wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
-            continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
-        double q[6];
-        memcpy(q, start, sizeof q);
-        double err = newton(self, q, target, n_newton, converged, rounding);
-        double found[MAX_ROOTS + 1][6], norms[MAX_ROOTS];
-        int n_found = 0;
-        if (err <= accepted)
-            memcpy(found[n_found++], q, sizeof q);
-        if (!n_found && !shoulder && fabs(sin(start[4])) < VALLEY_NEAR) {
-            /* along the wrist's self-motion: every solution on this branch's valley */
-            double roots[MAX_ROOTS][6];
-            int n_roots = valley(self, start, target, converged, roots, norms);
-            for (int k = 0; k < n_roots; k++)
-                if (norms[k] <= accepted)
-                    memcpy(found[n_found++], roots[k], sizeof q);
-        }
-        else if (!n_found) {
-            double gradient;
-            memcpy(q, start, sizeof q);
-            err = settle(self, q, target, n_settle, converged, stationary, &gradient);
-            if (err > accepted) {
-                if (!(gradient <= stationary) && distance[i] < unrefined)
-                    unrefined = distance[i];
-                continue;
-            }
-            memcpy(found[n_found++], q, sizeof q);
-        }
-        for (int f = 0; f < n_found; f++) {
-            const double *sol = found[f];
-            double m = 0.0, d = 0.0, shifted[6];
-            for (int k = 0; k < 6; k++)
-                m += (sol[k] - start[k]) * (sol[k] - start[k]);
-            m = sqrt(m);
-            if (m > moved)
-                moved = m;
-            if (!singular && m > regular)
-                regular = m;
-            int inside = 1;
-            for (int k = 0; k < 6; k++) {
-                shifted[k] = near_angle(sol[k], seed[k], lower[k], upper[k]);
-                if (shifted[k] != shifted[k]) {
-                    inside = 0;
-                    break;
+    int missed[MAX_STARTS]; /* starts whose valley walk found no root */
+    Py_ssize_t n_missed = 0, n_pending = n;
+    const int *pending = order;
+    int retry = 0;
+    for (;;) {
+        for (Py_ssize_t r = 0; r < n_pending; r++) {
+            int i = pending[r];
+            const double *start = starts[i];
+            int singular =
+                shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
+            double q[6];
+            double found[MAX_ROOTS + 1][6], norms[MAX_ROOTS];
+            int n_found = 0;
+            if (!retry) {
+                if (found_any && !singular &&
+                    distance[i] > sqrt(best_d) + factor * regular + 1e-9)
+                    continue; /* it cannot come nearer */
+                if (found_any && !shoulder && fabs(sin(start[4])) < near &&
+                    wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
+                    continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
+                memcpy(q, start, sizeof q);
+                double err = newton(self, q, target, n_newton, converged, rounding);
+                if (err <= accepted) {
+                    memcpy(found[n_found++], q, sizeof q);
                 }
-                d += (shifted[k] - seed[k]) * (shifted[k] - seed[k]);
+                else if (!shoulder && fabs(sin(start[4])) < VALLEY_NEAR) {
+                    /* along the wrist's self-motion: every solution on this branch's valley */
+                    double roots[MAX_ROOTS][6];
+                    int n_roots = valley(self, start, target, converged, roots, norms);
+                    for (int k = 0; k < n_roots; k++)
+                        if (norms[k] <= accepted)
+                            memcpy(found[n_found++], roots[k], sizeof q);
+                    if (!n_found) {
+                        missed[n_missed++] = i;
+                        continue;
+                    }
+                }
             }
-            if (inside && d < best_d) {
-                memcpy(best, shifted, 6 * sizeof(double));
-                best_d = d;
-                found_any = 1;
+            if (!n_found) {
+                double gradient;
+                memcpy(q, start, sizeof q);
+                double err = settle(self, q, target, n_settle, converged, stationary, &gradient);
+                if (err > accepted) {
+                    if (!(gradient <= stationary) && distance[i] < unrefined)
+                        unrefined = distance[i];
+                    continue;
+                }
+                memcpy(found[n_found++], q, sizeof q);
+            }
+            for (int f = 0; f < n_found; f++) {
+                const double *sol = found[f];
+                double m = 0.0, d = 0.0, shifted[6];
+                for (int k = 0; k < 6; k++)
+                    m += (sol[k] - start[k]) * (sol[k] - start[k]);
+                m = sqrt(m);
+                if (m > moved)
+                    moved = m;
+                if (!singular && m > regular)
+                    regular = m;
+                int inside = 1;
+                for (int k = 0; k < 6; k++) {
+                    shifted[k] = near_angle(sol[k], seed[k], lower[k], upper[k]);
+                    if (shifted[k] != shifted[k]) {
+                        inside = 0;
+                        break;
+                    }
+                    d += (shifted[k] - seed[k]) * (shifted[k] - seed[k]);
+                }
+                if (inside && d < best_d) {
+                    memcpy(best, shifted, 6 * sizeof(double));
+                    best_d = d;
+                    found_any = 1;
+                }
             }
         }
+        if (retry || found_any || !n_missed)
+            break;
+        /* nothing found: where the valley is cut (the arm stretched or folded) its walk can
+         * miss a root that damped steps reach */
+        pending = missed;
+        n_pending = n_missed;
+        retry = 1;
     }
     *best_d_out = best_d;
     *moved_out = moved;

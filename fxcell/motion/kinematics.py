@@ -1690,9 +1690,11 @@ class DHChain:
         alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
         Refined: :meth:`newton`; if that leaves an error above ``accepted``, every solution
         along the start's valley (:meth:`valley`) next to the wrist singularity (|sin θ5|
-        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle`; a
-        solution's joints are shifted by 2π toward the seed within [lower, upper] (dropped
-        if none fits).
+        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle`; if no
+        start gave a solution, those whose valley walk found none are settled too (the walk
+        misses roots where the valley is cut, the arm stretched or folded); a solution's
+        joints are shifted by 2π toward the seed within [lower, upper] (dropped if none
+        fits).
         Returns the best joints (None: none), their distance², the largest move a
         refinement made (rad, Euclidean), the smallest distance of a start that neither
         converged nor reached a local minimum of the error (inf: none) and
@@ -1716,56 +1718,73 @@ class DHChain:
         moved = 0.0
         regular = 0.0  # the largest move of a start away from the singularities
         unrefined = math.inf
-        for i in order:
-            start = qs[i]
-            singular = shoulder or abs(math.sin(start[2])) < near or abs(math.sin(start[4])) < near
-            if (
-                best is not None
-                and not singular
-                and distance[i] > math.sqrt(best_d) + factor * regular + 1e-9
-            ):
-                continue  # it cannot come nearer
-            if (
-                best is not None
-                and not shoulder
-                and abs(math.sin(start[4])) < near
-                and _wrist_bound(start, seed) > math.sqrt(best_d) + 1e-9
-            ):
-                continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
-            q, err = self.newton(start, target, newton_iterations, converged, rounding)
-            found = [q] if err <= accepted else []
-            if not found and not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR:
-                # along the wrist's self-motion: every solution on this branch's valley
-                found += [r for r, e in self.valley(start, target, converged) if e <= accepted]
-            elif not found:
-                q, err, gradient = self.settle(
-                    start, target, settle_iterations, converged, stationary
+        missed: list[int] = []  # starts whose valley walk found no root
+        pending, retry = order, False
+        while True:
+            for i in pending:
+                start = qs[i]
+                singular = (
+                    shoulder or abs(math.sin(start[2])) < near or abs(math.sin(start[4])) < near
                 )
-                if err > accepted:
-                    if not gradient <= stationary and distance[i] < unrefined:
-                        unrefined = distance[i]
-                    continue
-                found.append(q)
-            for q in found:
-                m = 0.0
-                for k in range(6):
-                    m += (q[k] - start[k]) * (q[k] - start[k])
-                m = math.sqrt(m)
-                moved = max(moved, m)
-                if not singular:
-                    regular = max(regular, m)
-                shifted = [0.0] * 6
-                d = 0.0
-                inside = True
-                for k in range(6):
-                    w = _near(q[k], seed[k], lower[k], upper[k])
-                    if w != w:
-                        inside = False
-                        break
-                    shifted[k] = w
-                    d += (w - seed[k]) * (w - seed[k])
-                if inside and d < best_d:
-                    best, best_d = shifted, d
+                found: list[list[float]] = []
+                if not retry:
+                    if (
+                        best is not None
+                        and not singular
+                        and distance[i] > math.sqrt(best_d) + factor * regular + 1e-9
+                    ):
+                        continue  # it cannot come nearer
+                    if (
+                        best is not None
+                        and not shoulder
+                        and abs(math.sin(start[4])) < near
+                        and _wrist_bound(start, seed) > math.sqrt(best_d) + 1e-9
+                    ):
+                        continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
+                    q, err = self.newton(start, target, newton_iterations, converged, rounding)
+                    if err <= accepted:
+                        found.append(q)
+                    elif not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR:
+                        # along the wrist's self-motion: every solution on this branch's valley
+                        roots = self.valley(start, target, converged)
+                        found += [r for r, e in roots if e <= accepted]
+                        if not found:
+                            missed.append(i)
+                            continue
+                if not found:
+                    q, err, gradient = self.settle(
+                        start, target, settle_iterations, converged, stationary
+                    )
+                    if err > accepted:
+                        if not gradient <= stationary and distance[i] < unrefined:
+                            unrefined = distance[i]
+                        continue
+                    found.append(q)
+                for q in found:
+                    m = 0.0
+                    for k in range(6):
+                        m += (q[k] - start[k]) * (q[k] - start[k])
+                    m = math.sqrt(m)
+                    moved = max(moved, m)
+                    if not singular:
+                        regular = max(regular, m)
+                    shifted = [0.0] * 6
+                    d = 0.0
+                    inside = True
+                    for k in range(6):
+                        w = _near(q[k], seed[k], lower[k], upper[k])
+                        if w != w:
+                            inside = False
+                            break
+                        shifted[k] = w
+                        d += (w - seed[k]) * (w - seed[k])
+                    if inside and d < best_d:
+                        best, best_d = shifted, d
+            if retry or best is not None or not missed:
+                break
+            # nothing found: where the valley is cut (the arm stretched or folded) its walk
+            # can miss a root that damped steps reach
+            pending, retry = missed, True
         return best, best_d, moved, unrefined, singular_at
 
     def _singular_target(self, g: Sequence[float], near: float) -> int:
