@@ -275,3 +275,49 @@ def test_the_calibrated_hot_path_in_c_computes_what_the_python_one_does(
             assert got == (None if want is None else want.tolist()), f"{pose!r} seed={seed!r}"
     assert decided > 600
     assert undecided > 20  # the wrist-singular configurations
+
+
+def test_the_c_refinement_settles_what_the_valley_walk_misses_as_dhchain_does() -> None:
+    # wrist-singular poses with the elbow next to full stretch: where the valley is cut, the
+    # walk can miss every root; both chains then settle those starts, bit for bit alike
+    _require_native_chain()
+    rng = np.random.default_rng(26)
+    compared = rescued = 0
+    for _ in range(3):
+        cal = Calibration(*(tuple(row.tolist()) for row in rng.uniform(-2e-3, 2e-3, (4, 6))))
+        kin = calibration.CalibratedKinematics.ur3e_calibrated(cal, (0.01, -0.02, 0.146, 0.1, 0.0, 0.2))
+        theta, a, d, alpha = cal.dh()
+        fast = calibration.Chain(theta, a, d, alpha, kin._tcp)
+        slow = kinematics.DHChain(theta, a, d, alpha, kin._tcp)
+        for _ in range(60):
+            q = rng.uniform(-2.0 * math.pi, 2.0 * math.pi, 6)
+            q[4] = rng.choice((0.0, math.pi)) + 10.0 ** rng.uniform(-9, -3)
+            q[2] = 10.0 ** rng.uniform(-6, -1) * rng.choice((-1.0, 1.0))
+            pose = kin.forward(q)
+            seed = rng.uniform(-2.0 * math.pi, 2.0 * math.pi, 6).tolist()
+            starts = kin._starts.nearest_within(pose, seed, math.inf, lenient=True)[1]
+            if not starts:
+                continue
+            goal = calibration._rows(pose)
+            args = (
+                starts, goal, seed, kin.lower, kin.upper, calibration._FAST_ITERATIONS,
+                calibration._SETTLE_ITERATIONS, calibration.CONVERGED, calibration._ROUNDING,
+                calibration._STATIONARY, calibration.ACCEPTED, calibration._RIVAL_FACTOR,
+                calibration._NEAR_SINGULAR,
+            )  # fmt: skip
+            got = fast.nearest(*args)
+            assert got == slow.nearest(*args), f"q={q.tolist()!r} seed={seed!r}"
+            compared += 1
+            walked = [s for _, s in starts if abs(math.sin(s[4])) < kinematics._VALLEY_NEAR]
+            if (
+                got[0] is not None
+                and len(walked) == len(starts)
+                and not any(
+                    fast.newton(s, goal, 8, 1e-12, 1e-11)[1] <= calibration.ACCEPTED
+                    or any(e <= calibration.ACCEPTED for _, e in fast.valley(s, goal))
+                    for s in walked
+                )
+            ):
+                rescued += 1
+    assert compared > 100
+    assert rescued > 0, (compared, rescued)  # the settled starts were exercised
