@@ -285,7 +285,8 @@ def test_the_c_refinement_settles_what_the_valley_walk_misses_as_dhchain_does() 
     compared = rescued = 0
     for _ in range(3):
         cal = Calibration(*(tuple(row.tolist()) for row in rng.uniform(-2e-3, 2e-3, (4, 6))))
-        kin = calibration.CalibratedKinematics.ur3e_calibrated(cal, (0.01, -0.02, 0.146, 0.1, 0.0, 0.2))
+        tcp = (0.01, -0.02, 0.146, 0.1, 0.0, 0.2)
+        kin = calibration.CalibratedKinematics.ur3e_calibrated(cal, tcp)
         theta, a, d, alpha = cal.dh()
         fast = calibration.Chain(theta, a, d, alpha, kin._tcp)
         slow = kinematics.DHChain(theta, a, d, alpha, kin._tcp)
