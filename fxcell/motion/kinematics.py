@@ -93,8 +93,9 @@ _LENIENT_C3 = math.cos(_LENIENT_BEND)
 _LENIENT_H2 = math.sin(_LENIENT_BEND) ** 2
 """(h/d4)² below which a ``lenient`` start is taken at the shoulder singularity's edge."""
 _LENIENT_WRIST = 0.01
-"""|sin θ5| below which a ``lenient`` start is also taken on the wrist-singular continuum
-(the member nearest the seed): a calibration's deltas move a target's θ5 by milliradians."""
+"""|sin θ5| below which ``lenient`` starts are also taken on the wrist-singular continuum
+(:meth:`Kinematics._continuum_starts`): a calibration's deltas move a target's θ5 by
+milliradians."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
 _WRIST_MOVE = 0.1
@@ -599,6 +600,62 @@ class Kinematics:
             t2 = base - math.atan2(a3 * s3, a2 + a3 * c3)
             out.append([t1, t2, t3, t234 - t2 - t3, t5, t6])
 
+    def _continuum_starts(
+        self,
+        f: list[float],
+        p5x: float,
+        p5y: float,
+        p5z: float,
+        t1: float,
+        s1: float,
+        c1: float,
+        c5: float,
+        seed: list[float],
+    ) -> list[list[float]]:
+        """Wrist singular (θ5 = 0 or π): members of the continuum to start the calibrated
+        refinement from (``lenient`` :meth:`nearest_within`), both elbows, one per interval
+        of θ6 where the arm reaches frame 4's origin (see :meth:`_singular_arms`): its middle,
+        where the arm is farthest from stretched and folded, or the seed's θ6 where the arm
+        reaches the whole circle. The refinement walks the valley from there
+        (:meth:`DHChain.valley`); the member nearest the seed (:meth:`_singular_arms`, ~30
+        times the work) is no better a start. Plain square roots where that has hypot, as
+        ``fxcell/motion/_dhchain.c`` computes it (libm's hypot rounds otherwise than
+        Python's)."""
+        r00, r01, r10, r11, r20, r21 = f[0], f[1], f[3], f[4], f[6], f[7]
+        d1, _, d5, _, a2, a3 = self._geom
+        X5, Y5 = c1 * p5x + s1 * p5y, p5z - d1
+        ax, ay = c1 * r00 + s1 * r10, r20
+        bx, by = c1 * r01 + s1 * r11, r21
+        # z4·w = -(A s6 + B c6) = -k·D cos(θ6 - γ), w the wrist centre from the shoulder
+        A = ax * X5 + ay * Y5
+        B = bx * X5 + by * Y5
+        kD, gamma = math.sqrt(A * A + B * B), math.atan2(A, B)
+        # |frame-4 origin - shoulder|² = D² + d5² + 2 d5 k D cos(θ6 - γ) within the 2R reach
+        den = 2.0 * d5 * kD
+        D2 = X5 * X5 + Y5 * Y5
+        mids: list[float] = []
+        if den < 1e-15:
+            mids.append(seed[5])
+        else:
+            lo_c = ((a2 - a3) * (a2 - a3) - D2 - d5 * d5) / den
+            hi_c = ((a2 + a3) * (a2 + a3) - D2 - d5 * d5) / den
+            if lo_c > 1.0 + _CLIP_EPS or hi_c < -1.0 - _CLIP_EPS:
+                return []
+            near = math.acos(min(max(hi_c, -1.0), 1.0))
+            far = math.acos(min(max(lo_c, -1.0), 1.0))
+            if hi_c >= 1.0 and lo_c <= -1.0:
+                mids.append(seed[5])
+            elif hi_c >= 1.0:
+                mids.append(gamma)
+            elif lo_c <= -1.0:
+                mids.append(gamma + math.pi)
+            else:
+                mids += [gamma + 0.5 * (near + far), gamma - 0.5 * (near + far)]
+        out: list[list[float]] = []
+        for t6 in mids:
+            self._arm(f, p5x, p5y, p5z, t1, s1, c1, 0.0, c5, t6, out, 0)
+        return out
+
     def _singular_arms(
         self,
         f: list[float],
@@ -1046,7 +1103,9 @@ class Kinematics:
         singularity, within _EDGE_C3 in cos θ3 beyond full stretch or fold), or next to it,
         gets branches with the arm bent by _LENIENT_BEND (θ3 ≈ ±_LENIENT_BEND; the wrist
         centre that far from the shoulder singularity, both sides), so the branches the
-        deltas make on either side each have a start.
+        deltas make on either side each have a start; a shoulder branch within
+        _LENIENT_WRIST of the wrist singularity also gets members of its continuum
+        (:meth:`_continuum_starts`, not the nearest: the refinement walks the valley).
         """
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = target._R.tolist()
         px, py, pz = target._p.tolist()
@@ -1224,9 +1283,12 @@ class Kinematics:
             if e5 >= cut:
                 continue
             f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
-            sols = self._singular_arms(
-                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=not lenient
-            )
+            if lenient:  # starting points: members the refinement walks the valley from
+                sols = self._continuum_starts(f, p5x, p5y, p5z, t1, sn1, c1, c5, seed)
+            else:
+                sols = self._singular_arms(
+                    f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=True
+                )
             for sol in sols:
                 ranked = self._nearest(sol, seed)
                 if ranked is None or ranked[0] >= cut:
