@@ -759,6 +759,7 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
             double q[6];
             double found[MAX_ROOTS + 1][6], norms[MAX_ROOTS];
             int n_found = 0;
+            memcpy(q, start, sizeof q);
             if (!retry) {
                 if (found_any && !singular &&
                     distance[i] > sqrt(best_d) + factor * regular + 1e-9)
@@ -766,7 +767,6 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
                 if (found_any && !shoulder && fabs(sin(start[4])) < near &&
                     wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
                     continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
-                memcpy(q, start, sizeof q);
                 double err = newton(self, q, target, n_newton, converged, rounding);
                 if (err <= accepted) {
                     memcpy(found[n_found++], q, sizeof q);
@@ -784,9 +784,8 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
                     }
                 }
             }
-            if (!n_found) {
+            if (!n_found) { /* damped steps, on from where Newton's left off */
                 double gradient;
-                memcpy(q, start, sizeof q);
                 double err = settle(self, q, target, n_settle, converged, stationary, &gradient);
                 if (err > accepted) {
                     if (!(gradient <= stationary) && distance[i] < unrefined)

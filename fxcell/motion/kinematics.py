@@ -1752,7 +1752,8 @@ class DHChain:
         alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
         Refined: :meth:`newton`; if that leaves an error above ``accepted``, every solution
         along the start's valley (:meth:`valley`) next to the wrist singularity (|sin θ5|
-        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle`; if no
+        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle` from
+        where Newton's steps left off; if no
         start gave a solution, those whose valley walk found none are settled too (the walk
         misses roots where the valley is cut, the arm stretched or folded); a solution's
         joints are shifted by 2π toward the seed within [lower, upper] (dropped if none
@@ -1789,6 +1790,7 @@ class DHChain:
                     shoulder or abs(math.sin(start[2])) < near or abs(math.sin(start[4])) < near
                 )
                 found: list[list[float]] = []
+                q = start
                 if not retry:
                     if (
                         best is not None
@@ -1813,9 +1815,9 @@ class DHChain:
                         if not found:
                             missed.append(i)
                             continue
-                if not found:
+                if not found:  # damped steps, on from where Newton's left off
                     q, err, gradient = self.settle(
-                        start, target, settle_iterations, converged, stationary
+                        q, target, settle_iterations, converged, stationary
                     )
                     if err > accepted:
                         if not gradient <= stationary and distance[i] < unrefined:
