@@ -34,8 +34,7 @@ Calibrated arm (issues 14, 26): a factory calibration with random deltas up to 2
 0.002 rad; poses of each family made by its forward kinematics, solved by
 ``CalibratedKinematics.inverse`` (the nominal closed form's branches refined by Newton steps
 on the calibrated chain, next to the wrist singularity searched along the self-motion; the
-whole hot path one call in C, ``fxcell/motion/_dhchain.c``, but where a start is within 0.01
-of the wrist singularity) and, in the same loop, by
+whole hot path one call in C, ``fxcell/motion/_dhchain.c``) and, in the same loop, by
 ``ur_analytic_ik`` on the nominal model (for the time; its solutions miss the calibrated
 poses). Targets per family: 100 % solved, 100 %
 nearest the seed against a reference (the thorough search of ``inverse_all`` and the joints

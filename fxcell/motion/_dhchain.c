@@ -46,6 +46,7 @@ static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
 #define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
+static const double STALL_DONE = 1e-10;   /* as kinematics._STALL_DONE */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -346,6 +347,8 @@ settle(const Chain *c, double *q, const double *target, long iterations, double 
                 g = 0.0; /* stalled far from a root: a local minimum's basin */
                 break;
             }
+            if (norm < STALL_DONE && norm > 0.5 * mark)
+                break; /* crawling into a singular root: close enough */
             mark = norm;
         }
         if (!solve6(jac, err, lam, 1, step)) {
@@ -743,66 +746,87 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
     int shoulder = singular_at & 1;
     double best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
     int found_any = 0;
-    for (Py_ssize_t r = 0; r < n; r++) {
-        int i = order[r];
-        const double *start = starts[i];
-        int singular = shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
-        if (found_any && !singular && distance[i] > sqrt(best_d) + factor * regular + 1e-9)
-            continue; /* it cannot come nearer */
-        if (found_any && !shoulder && fabs(sin(start[4])) < near &&
-            wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
-            continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
-        double q[6];
-        memcpy(q, start, sizeof q);
-        double err = newton(self, q, target, n_newton, converged, rounding);
-        double found[MAX_ROOTS + 1][6], norms[MAX_ROOTS];
-        int n_found = 0;
-        if (err <= accepted)
-            memcpy(found[n_found++], q, sizeof q);
-        if (!n_found && !shoulder && fabs(sin(start[4])) < VALLEY_NEAR) {
-            /* along the wrist's self-motion: every solution on this branch's valley */
-            double roots[MAX_ROOTS][6];
-            int n_roots = valley(self, start, target, converged, roots, norms);
-            for (int k = 0; k < n_roots; k++)
-                if (norms[k] <= accepted)
-                    memcpy(found[n_found++], roots[k], sizeof q);
-        }
-        else if (!n_found) {
-            double gradient;
+    int missed[MAX_STARTS]; /* starts whose valley walk found no root */
+    Py_ssize_t n_missed = 0, n_pending = n;
+    const int *pending = order;
+    int retry = 0;
+    for (;;) {
+        for (Py_ssize_t r = 0; r < n_pending; r++) {
+            int i = pending[r];
+            const double *start = starts[i];
+            int singular =
+                shoulder || fabs(sin(start[2])) < near || fabs(sin(start[4])) < near;
+            double q[6];
+            double found[MAX_ROOTS + 1][6], norms[MAX_ROOTS];
+            int n_found = 0;
             memcpy(q, start, sizeof q);
-            err = settle(self, q, target, n_settle, converged, stationary, &gradient);
-            if (err > accepted) {
-                if (!(gradient <= stationary) && distance[i] < unrefined)
-                    unrefined = distance[i];
-                continue;
-            }
-            memcpy(found[n_found++], q, sizeof q);
-        }
-        for (int f = 0; f < n_found; f++) {
-            const double *sol = found[f];
-            double m = 0.0, d = 0.0, shifted[6];
-            for (int k = 0; k < 6; k++)
-                m += (sol[k] - start[k]) * (sol[k] - start[k]);
-            m = sqrt(m);
-            if (m > moved)
-                moved = m;
-            if (!singular && m > regular)
-                regular = m;
-            int inside = 1;
-            for (int k = 0; k < 6; k++) {
-                shifted[k] = near_angle(sol[k], seed[k], lower[k], upper[k]);
-                if (shifted[k] != shifted[k]) {
-                    inside = 0;
-                    break;
+            if (!retry) {
+                if (found_any && !singular &&
+                    distance[i] > sqrt(best_d) + factor * regular + 1e-9)
+                    continue; /* it cannot come nearer */
+                if (found_any && !shoulder && fabs(sin(start[4])) < near &&
+                    wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
+                    continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
+                double err = newton(self, q, target, n_newton, converged, rounding);
+                if (err <= accepted) {
+                    memcpy(found[n_found++], q, sizeof q);
                 }
-                d += (shifted[k] - seed[k]) * (shifted[k] - seed[k]);
+                else if (!shoulder && fabs(sin(start[4])) < VALLEY_NEAR) {
+                    /* along the wrist's self-motion: every solution on this branch's valley */
+                    double roots[MAX_ROOTS][6];
+                    int n_roots = valley(self, start, target, converged, roots, norms);
+                    for (int k = 0; k < n_roots; k++)
+                        if (norms[k] <= accepted)
+                            memcpy(found[n_found++], roots[k], sizeof q);
+                    if (!n_found) {
+                        missed[n_missed++] = i;
+                        continue;
+                    }
+                }
             }
-            if (inside && d < best_d) {
-                memcpy(best, shifted, 6 * sizeof(double));
-                best_d = d;
-                found_any = 1;
+            if (!n_found) { /* damped steps, on from where Newton's left off */
+                double gradient;
+                double err = settle(self, q, target, n_settle, converged, stationary, &gradient);
+                if (err > accepted) {
+                    if (!(gradient <= stationary) && distance[i] < unrefined)
+                        unrefined = distance[i];
+                    continue;
+                }
+                memcpy(found[n_found++], q, sizeof q);
+            }
+            for (int f = 0; f < n_found; f++) {
+                const double *sol = found[f];
+                double m = 0.0, d = 0.0, shifted[6];
+                for (int k = 0; k < 6; k++)
+                    m += (sol[k] - start[k]) * (sol[k] - start[k]);
+                m = sqrt(m);
+                if (m > moved)
+                    moved = m;
+                if (!singular && m > regular)
+                    regular = m;
+                int inside = 1;
+                for (int k = 0; k < 6; k++) {
+                    shifted[k] = near_angle(sol[k], seed[k], lower[k], upper[k]);
+                    if (shifted[k] != shifted[k]) {
+                        inside = 0;
+                        break;
+                    }
+                    d += (shifted[k] - seed[k]) * (shifted[k] - seed[k]);
+                }
+                if (inside && d < best_d) {
+                    memcpy(best, shifted, 6 * sizeof(double));
+                    best_d = d;
+                    found_any = 1;
+                }
             }
         }
+        if (retry || found_any || !n_missed)
+            break;
+        /* nothing found: where the valley is cut (the arm stretched or folded) its walk can
+         * miss a root that damped steps reach */
+        pending = missed;
+        n_pending = n_missed;
+        retry = 1;
     }
     *best_d_out = best_d;
     *moved_out = moved;
@@ -948,14 +972,125 @@ toward(double v, double s, double lo, double hi)
     return w;
 }
 
-#define MAX_CANDIDATES 8
-#define STARTS_SINGULAR (-1)
+#define MAX_CANDIDATES 16
+
+/* Kinematics._arm with elbow 0 (both elbows) and no rough list: the nominal arm's solutions
+ * for θ1 (t1, its sine and cosine), θ5 (sine, cosine) and θ6 into out; their number. */
+static int
+nominal_arm(const Hot *H, const double *f, double p5x, double p5y, double p5z, double t1,
+            double s1, double c1, double s5, double c5, double t6, double out[][6])
+{
+    double r00 = f[0], r01 = f[1], r02 = f[2], r10 = f[3], r11 = f[4], r12 = f[5];
+    double r20 = f[6], r21 = f[7], r22 = f[8];
+    double d1 = H->geom[0], d5 = H->geom[2], a2 = H->geom[4], a3 = H->geom[5];
+    double s6 = sin(t6), c6 = cos(t6);
+    double z4x = -(s6 * r00 + c6 * r01);
+    double z4y = -(s6 * r10 + c6 * r11);
+    double z4z = -(s6 * r20 + c6 * r21);
+    double u = c5 * c6, v = -c5 * s6, w = -s5;
+    double x4x = r00 * u + r01 * v + r02 * w;
+    double x4y = r10 * u + r11 * v + r12 * w;
+    double x4z = r20 * u + r21 * v + r22 * w;
+    double t234 = atan2(x4z, c1 * x4x + s1 * x4y);
+    double o4x = p5x - d5 * z4x, o4y = p5y - d5 * z4y, o4z = p5z - d5 * z4z;
+    double X = c1 * o4x + s1 * o4y;
+    double Y = o4z - d1;
+    double c3 = (X * X + Y * Y - a2 * a2 - a3 * a3) / (2.0 * a2 * a3);
+    if (c3 > 1.0 || c3 < -1.0) {
+        if (fabs(c3) > 1.0 + 1e-12) /* _CLIP_EPS */
+            return 0;
+        c3 = c3 > 0.0 ? 1.0 : -1.0;
+    }
+    double s3a = sqrt(1.0 - c3 * c3);
+    double t5 = atan2(s5, c5);
+    double base = atan2(Y, X);
+    int n = 0;
+    for (int k = 0; k < (s3a > 0.0 ? 2 : 1); k++) {
+        double s3 = (k ? -1.0 : 1.0) * s3a;
+        double t3 = atan2(s3, c3);
+        double t2 = base - atan2(a3 * s3, a2 + a3 * c3);
+        double sol[6] = {t1, t2, t3, t234 - t2 - t3, t5, t6};
+        memcpy(out[n++], sol, sizeof sol);
+    }
+    return n;
+}
+
+/* Kinematics._continuum_starts: wrist singular (θ5 = 0 or π, cosine c5), the members of the
+ * continuum the refinement starts from, both elbows, one per interval of reach (its
+ * middle; the seed's θ6 on the whole circle) into out; their number (at most 4). */
+static int
+continuum_starts(const Hot *H, const double *f, double p5x, double p5y, double p5z, double t1,
+                 double s1, double c1, double c5, const double *seed, double out[][6])
+{
+    double r00 = f[0], r01 = f[1], r10 = f[3], r11 = f[4], r20 = f[6], r21 = f[7];
+    double d1 = H->geom[0], d5 = H->geom[2], a2 = H->geom[4], a3 = H->geom[5];
+    double X5 = c1 * p5x + s1 * p5y, Y5 = p5z - d1;
+    double ax = c1 * r00 + s1 * r10, ay = r20;
+    double bx = c1 * r01 + s1 * r11, by = r21;
+    double A = ax * X5 + ay * Y5;
+    double B = bx * X5 + by * Y5;
+    double kD = sqrt(A * A + B * B), gamma = atan2(A, B);
+    double den = 2.0 * d5 * kD;
+    double D2 = X5 * X5 + Y5 * Y5;
+    double mids[2];
+    int n_mids = 0;
+    if (den < 1e-15) {
+        mids[n_mids++] = seed[5];
+    }
+    else {
+        double lo_c = ((a2 - a3) * (a2 - a3) - D2 - d5 * d5) / den;
+        double hi_c = ((a2 + a3) * (a2 + a3) - D2 - d5 * d5) / den;
+        if (lo_c > 1.0 + 1e-12 || hi_c < -1.0 - 1e-12) /* _CLIP_EPS */
+            return 0;
+        double near = acos(fmin(fmax(hi_c, -1.0), 1.0));
+        double far = acos(fmin(fmax(lo_c, -1.0), 1.0));
+        if (hi_c >= 1.0 && lo_c <= -1.0)
+            mids[n_mids++] = seed[5];
+        else if (hi_c >= 1.0)
+            mids[n_mids++] = gamma;
+        else if (lo_c <= -1.0)
+            mids[n_mids++] = gamma + M_PI;
+        else {
+            mids[n_mids++] = gamma + 0.5 * (near + far);
+            mids[n_mids++] = gamma - 0.5 * (near + far);
+        }
+    }
+    int n = 0;
+    for (int i = 0; i < n_mids; i++)
+        n += nominal_arm(H, f, p5x, p5y, p5z, t1, s1, c1, 0.0, c5, mids[i], out + n);
+    return n;
+}
+
+/* A candidate inserted into q[0..*n), es its distances², sorted as Python sorts
+ * (distance², joints) pairs. */
+static void
+insert_candidate(double q[][6], double *es, int *n, double e, const double *sol)
+{
+    int at = *n;
+    while (at > 0) {
+        const double *prev = q[at - 1];
+        int after = es[at - 1] < e;
+        if (es[at - 1] == e) {
+            int j = 0;
+            while (j < 6 && prev[j] == sol[j])
+                j++;
+            after = j == 6 || prev[j] < sol[j];
+        }
+        if (after)
+            break;
+        es[at] = es[at - 1];
+        memcpy(q[at], q[at - 1], 6 * sizeof(double));
+        at--;
+    }
+    es[at] = e;
+    memcpy(q[at], sol, 6 * sizeof(double));
+    (*n)++;
+}
 
 /* Kinematics.nearest_within(g, seed, inf, lenient=True) on the nominal model with the
  * starts' limits: the candidates' joints into q (sorted as Python sorts (distance², joints)
- * pairs), their number; STARTS_SINGULAR where a shoulder branch is within lenient_wrist of
- * the wrist singularity (the continuum's members: Kinematics._singular_arms, left to
- * Python). */
+ * pairs), their number; where a shoulder branch is within lenient_wrist of the wrist
+ * singularity, the continuum's members of Kinematics._continuum_starts too. */
 static int
 nominal_starts(const Hot *H, const double *g, const double *seed, double q[][6])
 {
@@ -998,8 +1133,8 @@ nominal_starts(const Hot *H, const double *g, const double *seed, double q[][6])
     double norm = h2 > 1e-12 && !clamped ? rho2 : sqrt(rho2 * (h2 + d4 * d4));
     double k3 = 1.0 / (2.0 * a2 * a3);
     double l3 = a2 * a2 + a3 * a3;
-    /* shoulders: e1, v1, c1, sn1 */
-    double sh[2][4];
+    /* shoulders: e1, v1, c1, sn1, t1 */
+    double sh[2][5];
     int n_sh = 0;
     for (int side = 0; side < (h > 0.0 ? 2 : 1); side++) {
         double hs = side ? -h : h;
@@ -1013,24 +1148,36 @@ nominal_starts(const Hot *H, const double *g, const double *seed, double q[][6])
         sh[n_sh][1] = v1;
         sh[n_sh][2] = c1;
         sh[n_sh][3] = sn1;
+        sh[n_sh][4] = t;
         n_sh++;
     }
     if (n_sh == 2 && sh[1][0] < sh[0][0]) {
-        double tmp[4];
+        double tmp[5];
         memcpy(tmp, sh[0], sizeof tmp);
         memcpy(sh[0], sh[1], sizeof tmp);
         memcpy(sh[1], tmp, sizeof tmp);
     }
     double es[MAX_CANDIDATES];
     int n = 0;
+    double singular[2][4]; /* t1, c1, sn1, c5 */
+    int n_singular = 0;
     for (int i = 0; i < n_sh; i++) {
         double e1 = sh[i][0], v1 = sh[i][1], c1 = sh[i][2], sn1 = sh[i][3];
         double zx = r00 * sn1 - r10 * c1;
         double zy = r01 * sn1 - r11 * c1;
         double zz = r02 * sn1 - r12 * c1;
         double s5a = sqrt(zx * zx + zy * zy);
-        if (s5a <= H->wrist_eps || s5a < H->lenient_wrist)
-            return STARTS_SINGULAR;
+        if (s5a <= H->wrist_eps || s5a < H->lenient_wrist) {
+            /* exactly singular; or close enough that the deltas can put the calibrated
+             * solutions anywhere along the continuum */
+            singular[n_singular][0] = sh[i][4];
+            singular[n_singular][1] = c1;
+            singular[n_singular][2] = sn1;
+            singular[n_singular][3] = zz >= 0.0 ? 1.0 : -1.0;
+            n_singular++;
+            if (s5a <= H->wrist_eps)
+                continue;
+        }
         double c6 = zx / s5a, sn6 = -zy / s5a;
         double t6 = atan2(-zy, zx);
         double t5 = atan2(s5a, zz);
@@ -1097,27 +1244,34 @@ nominal_starts(const Hot *H, const double *g, const double *seed, double q[][6])
                     continue;
                 e += (v3 - seed[2]) * (v3 - seed[2]) + (v4 - seed[3]) * (v4 - seed[3]);
                 double sol[6] = {v1, v2, v3, v4, v5, v6};
-                /* insert, sorted as Python sorts (e, joints) pairs */
-                int at = n;
-                while (at > 0) {
-                    const double *prev = q[at - 1];
-                    int after = es[at - 1] < e;
-                    if (es[at - 1] == e) {
-                        int j = 0;
-                        while (j < 6 && prev[j] == sol[j])
-                            j++;
-                        after = j == 6 || prev[j] < sol[j];
-                    }
-                    if (after)
-                        break;
-                    es[at] = es[at - 1];
-                    memcpy(q[at], q[at - 1], sizeof sol);
-                    at--;
-                }
-                es[at] = e;
-                memcpy(q[at], sol, sizeof sol);
-                n++;
+                insert_candidate(q, es, &n, e, sol);
             }
+        }
+    }
+    /* the wrist-singular shoulders' continuum members, last */
+    double f[12] = {r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz};
+    for (int i = 0; i < n_singular; i++) {
+        double c5 = singular[i][3];
+        double v5 = near_angle(c5 > 0.0 ? 0.0 : M_PI, seed[4], lo[4], hi[4]);
+        if (v5 != v5)
+            continue;
+        double members[4][6];
+        int m = continuum_starts(H, f, p5x, p5y, p5z, singular[i][0], singular[i][2],
+                                 singular[i][1], c5, seed, members);
+        for (int k = 0; k < m; k++) {
+            /* Kinematics._nearest: each joint's equivalent nearest the seed */
+            double total = 0.0, sol[6];
+            int inside = 1;
+            for (int j = 0; j < 6; j++) {
+                sol[j] = near_angle(members[k][j], seed[j], lo[j], hi[j]);
+                if (sol[j] != sol[j]) {
+                    inside = 0;
+                    break;
+                }
+                total += (sol[j] - seed[j]) * (sol[j] - seed[j]);
+            }
+            if (inside)
+                insert_candidate(q, es, &n, total, sol);
         }
     }
     return n;
@@ -1157,10 +1311,8 @@ Chain_hot_path(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     Py_RETURN_NONE;
 }
 
-/* fast(target, seed): CalibratedKinematics._nearest_fast's Python path in one call, as
- * (joints or None, decided). decided False: a start is next to the wrist singularity, where
- * the continuum's members are starts too (Kinematics._singular_arms): the caller takes the
- * Python path. Joints None (decided): the general path decides. */
+/* fast(target, seed): CalibratedKinematics._nearest_python in one call: the joints, or None
+ * where the general path decides. */
 static PyObject *
 Chain_fast(Chain *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -1178,10 +1330,8 @@ Chain_fast(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     double starts[MAX_CANDIDATES][6];
     int n = nominal_starts(H, goal, seed, starts);
-    if (n == STARTS_SINGULAR)
-        return Py_BuildValue("(OO)", Py_None, Py_False);
     if (n == 0)
-        return Py_BuildValue("(OO)", Py_None, Py_True);
+        Py_RETURN_NONE;
     double best[6], best_d, moved, unrefined;
     int singular;
     int found = nearest_core(self, starts, n, goal, seed, H->lower, H->upper,
@@ -1189,7 +1339,7 @@ Chain_fast(Chain *self, PyObject *const *args, Py_ssize_t nargs)
                              H->rounding, H->stationary, H->accepted, H->factor, H->near, best,
                              &best_d, &moved, &unrefined, &singular);
     if (!found || unrefined <= sqrt(best_d) + H->factor * moved)
-        return Py_BuildValue("(OO)", Py_None, Py_True);
+        Py_RETURN_NONE;
     if (n < H->branches && (singular || moved > H->singular_move)) {
         /* the branches of the target corrected by the offset at the seed too */
         double nominal[12], calibrated[12], inv[12], corrected[12];
@@ -1199,8 +1349,6 @@ Chain_fast(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         compose(nominal, inv, corrected);
         compose(corrected, goal, corrected);
         n = nominal_starts(H, corrected, seed, starts);
-        if (n == STARTS_SINGULAR)
-            return Py_BuildValue("(OO)", Py_None, Py_False);
         if (n > 0) {
             double own[6], own_d, m, u;
             int s;
@@ -1212,8 +1360,7 @@ Chain_fast(Chain *self, PyObject *const *args, Py_ssize_t nargs)
                 memcpy(best, own, sizeof best);
         }
     }
-    PyObject *q_out = float_list(best, 6);
-    return q_out == NULL ? NULL : Py_BuildValue("(NO)", q_out, Py_True);
+    return float_list(best, 6);
 }
 
 static PyMethodDef Chain_methods[] = {
@@ -1232,7 +1379,7 @@ static PyMethodDef Chain_methods[] = {
     {"hot_path", (PyCFunction)(void (*)(void))Chain_hot_path, METH_FASTCALL,
      "The settings of fast(): the nominal model's closed form and the refinement's."},
     {"fast", (PyCFunction)(void (*)(void))Chain_fast, METH_FASTCALL,
-     "The calibrated inverse's hot path in one call: (joints or None, decided)."},
+     "The calibrated inverse's hot path in one call: the joints, or None."},
     {NULL, NULL, 0, NULL},
 };
 

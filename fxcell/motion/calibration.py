@@ -15,9 +15,9 @@ valley with θ6 as its parameter; elsewhere Levenberg-Marquardt. The chain and t
 in C (``fxcell/motion/_dhchain.c``, :data:`NATIVE`), else in plain Python floats
 (:class:`~fxcell.motion.kinematics.DHChain`). Next to a singularity, where the deltas can
 take a branch out of the nominal solutions, and where the nominal closed form has no branch
-(at the edge of its workspace, or with θ5 within milliradians of 0 or π, where the
-wrist-singular continuum's members nearest the seed are the starts), more starts are
-refined. No Pinocchio: the simulator uses this module too.
+(at the edge of its workspace, or with θ5 within milliradians of 0 or π, where members of
+the wrist-singular continuum are starts too), more starts are refined. No Pinocchio: the
+simulator uses this module too.
 """
 
 from __future__ import annotations
@@ -369,17 +369,17 @@ class CalibratedKinematics(Kinematics):
         take the seed's own branch out of the nominal solutions of the target (a wrist near
         θ5 = 0 turns by tenths of a radian per millimetre).
 
+        Where a nominal branch is within _LENIENT_WRIST of the wrist singularity, members
+        of its continuum are starts too (:meth:`Kinematics._continuum_starts`), from which
+        the refinement walks the valley.
+
         With the C extension (:data:`NATIVE`) all of this is one call, ``Chain.fast`` (the
-        nominal closed form written out in C as well), except where a start is within
-        _LENIENT_WRIST of the wrist singularity: there the continuum's members nearest the
-        seed are starts too (:meth:`Kinematics._singular_arms`), found by
-        :meth:`_nearest_python`, the reference ``Chain.fast`` computes bit for bit
-        (tests/test_native.py)."""
+        nominal closed form written out in C as well), which computes
+        :meth:`_nearest_python` bit for bit (tests/test_native.py)."""
         goal = _rows(target)
         if NATIVE:
-            best, decided = self._chain.fast(goal, seed)
-            if decided:
-                return None if best is None else np.array(best)
+            best = self._chain.fast(goal, seed)
+            return None if best is None else np.array(best)
         return self._nearest_python(target, goal, seed)
 
     def _nearest_python(

@@ -93,8 +93,9 @@ _LENIENT_C3 = math.cos(_LENIENT_BEND)
 _LENIENT_H2 = math.sin(_LENIENT_BEND) ** 2
 """(h/d4)² below which a ``lenient`` start is taken at the shoulder singularity's edge."""
 _LENIENT_WRIST = 0.01
-"""|sin θ5| below which a ``lenient`` start is also taken on the wrist-singular continuum
-(the member nearest the seed): a calibration's deltas move a target's θ5 by milliradians."""
+"""|sin θ5| below which ``lenient`` starts are also taken on the wrist-singular continuum
+(:meth:`Kinematics._continuum_starts`): a calibration's deltas move a target's θ5 by
+milliradians."""
 _LIMIT_EPS = 1e-12
 """Rounding slack (rad) at the joint limits: a solution this close beyond is clamped."""
 _WRIST_MOVE = 0.1
@@ -131,6 +132,11 @@ solution near) when _STALL_STEPS steps lowered an error above _STALL_FLOOR by le
 fraction _STALL_GAIN: next to a singular local minimum (the arm stretched or folded) the
 gradient ratio falls to ``stationary`` only after hundreds of steps that leave the error as
 it was (to three digits), while a run toward a root lowers it steadily."""
+_STALL_DONE = 1e-10
+"""With ``stationary`` > 0, an error below this that _STALL_STEPS steps did not halve ends
+:meth:`DHChain.settle`'s steps: a root where the Jacobian is singular (the arm exactly at
+the shoulder or elbow singularity), which the steps approach ever more slowly (from 1e-10 to
+1e-11 took ~600 more in one case), is reached to that."""
 
 
 @dataclass(frozen=True)
@@ -594,6 +600,62 @@ class Kinematics:
             t2 = base - math.atan2(a3 * s3, a2 + a3 * c3)
             out.append([t1, t2, t3, t234 - t2 - t3, t5, t6])
 
+    def _continuum_starts(
+        self,
+        f: list[float],
+        p5x: float,
+        p5y: float,
+        p5z: float,
+        t1: float,
+        s1: float,
+        c1: float,
+        c5: float,
+        seed: list[float],
+    ) -> list[list[float]]:
+        """Wrist singular (θ5 = 0 or π): members of the continuum to start the calibrated
+        refinement from (``lenient`` :meth:`nearest_within`), both elbows, one per interval
+        of θ6 where the arm reaches frame 4's origin (see :meth:`_singular_arms`): its middle,
+        where the arm is farthest from stretched and folded, or the seed's θ6 where the arm
+        reaches the whole circle. The refinement walks the valley from there
+        (:meth:`DHChain.valley`); the member nearest the seed (:meth:`_singular_arms`, ~30
+        times the work) is no better a start. Plain square roots where that has hypot, as
+        ``fxcell/motion/_dhchain.c`` computes it (libm's hypot rounds otherwise than
+        Python's)."""
+        r00, r01, r10, r11, r20, r21 = f[0], f[1], f[3], f[4], f[6], f[7]
+        d1, _, d5, _, a2, a3 = self._geom
+        X5, Y5 = c1 * p5x + s1 * p5y, p5z - d1
+        ax, ay = c1 * r00 + s1 * r10, r20
+        bx, by = c1 * r01 + s1 * r11, r21
+        # z4·w = -(A s6 + B c6) = -k·D cos(θ6 - γ), w the wrist centre from the shoulder
+        A = ax * X5 + ay * Y5
+        B = bx * X5 + by * Y5
+        kD, gamma = math.sqrt(A * A + B * B), math.atan2(A, B)
+        # |frame-4 origin - shoulder|² = D² + d5² + 2 d5 k D cos(θ6 - γ) within the 2R reach
+        den = 2.0 * d5 * kD
+        D2 = X5 * X5 + Y5 * Y5
+        mids: list[float] = []
+        if den < 1e-15:
+            mids.append(seed[5])
+        else:
+            lo_c = ((a2 - a3) * (a2 - a3) - D2 - d5 * d5) / den
+            hi_c = ((a2 + a3) * (a2 + a3) - D2 - d5 * d5) / den
+            if lo_c > 1.0 + _CLIP_EPS or hi_c < -1.0 - _CLIP_EPS:
+                return []
+            near = math.acos(min(max(hi_c, -1.0), 1.0))
+            far = math.acos(min(max(lo_c, -1.0), 1.0))
+            if hi_c >= 1.0 and lo_c <= -1.0:
+                mids.append(seed[5])
+            elif hi_c >= 1.0:
+                mids.append(gamma)
+            elif lo_c <= -1.0:
+                mids.append(gamma + math.pi)
+            else:
+                mids += [gamma + 0.5 * (near + far), gamma - 0.5 * (near + far)]
+        out: list[list[float]] = []
+        for t6 in mids:
+            self._arm(f, p5x, p5y, p5z, t1, s1, c1, 0.0, c5, t6, out, 0)
+        return out
+
     def _singular_arms(
         self,
         f: list[float],
@@ -1041,7 +1103,9 @@ class Kinematics:
         singularity, within _EDGE_C3 in cos θ3 beyond full stretch or fold), or next to it,
         gets branches with the arm bent by _LENIENT_BEND (θ3 ≈ ±_LENIENT_BEND; the wrist
         centre that far from the shoulder singularity, both sides), so the branches the
-        deltas make on either side each have a start.
+        deltas make on either side each have a start; a shoulder branch within
+        _LENIENT_WRIST of the wrist singularity also gets members of its continuum
+        (:meth:`_continuum_starts`, not the nearest: the refinement walks the valley).
         """
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = target._R.tolist()
         px, py, pz = target._p.tolist()
@@ -1219,9 +1283,12 @@ class Kinematics:
             if e5 >= cut:
                 continue
             f = [r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz]
-            sols = self._singular_arms(
-                f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=not lenient
-            )
+            if lenient:  # starting points: members the refinement walks the valley from
+                sols = self._continuum_starts(f, p5x, p5y, p5z, t1, sn1, c1, c5, seed)
+            else:
+                sols = self._singular_arms(
+                    f, p5x, p5y, p5z, t1, sn1, c1, 0.0, c5, seed, cut - e5, nearest_only=True
+                )
             for sol in sols:
                 ranked = self._nearest(sol, seed)
                 if ranked is None or ranked[0] >= cut:
@@ -1503,7 +1570,7 @@ class DHChain:
         stop) with an error left is a local minimum of the error: no solution near ``q`` (the
         target beyond this branch's reach, as a stretched arm's). With ``stationary`` > 0 an
         error that stalls far from a root (_STALL_STEPS) ends the steps too, reported as
-        stationary (0)."""
+        stationary (0), and so does one that crawls into a root below _STALL_DONE."""
         qq = [float(v) for v in q]
         frame, jac = self.frame_and_jacobian(qq)
         err = _twist_to(frame, target)
@@ -1518,6 +1585,8 @@ class DHChain:
                 if norm > _STALL_FLOOR and norm > (1.0 - _STALL_GAIN) * mark:
                     gradient = 0.0  # stalled far from a root: a local minimum's basin
                     break
+                if norm < _STALL_DONE and norm > 0.5 * mark:
+                    break  # crawling into a singular root: close enough
                 mark = norm
             step = _solve6(jac, err, lam, True)
             if step is None:
@@ -1683,9 +1752,12 @@ class DHChain:
         alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
         Refined: :meth:`newton`; if that leaves an error above ``accepted``, every solution
         along the start's valley (:meth:`valley`) next to the wrist singularity (|sin θ5|
-        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle`; a
-        solution's joints are shifted by 2π toward the seed within [lower, upper] (dropped
-        if none fits).
+        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle` from
+        where Newton's steps left off; if no
+        start gave a solution, those whose valley walk found none are settled too (the walk
+        misses roots where the valley is cut, the arm stretched or folded); a solution's
+        joints are shifted by 2π toward the seed within [lower, upper] (dropped if none
+        fits).
         Returns the best joints (None: none), their distance², the largest move a
         refinement made (rad, Euclidean), the smallest distance of a start that neither
         converged nor reached a local minimum of the error (inf: none) and
@@ -1709,56 +1781,74 @@ class DHChain:
         moved = 0.0
         regular = 0.0  # the largest move of a start away from the singularities
         unrefined = math.inf
-        for i in order:
-            start = qs[i]
-            singular = shoulder or abs(math.sin(start[2])) < near or abs(math.sin(start[4])) < near
-            if (
-                best is not None
-                and not singular
-                and distance[i] > math.sqrt(best_d) + factor * regular + 1e-9
-            ):
-                continue  # it cannot come nearer
-            if (
-                best is not None
-                and not shoulder
-                and abs(math.sin(start[4])) < near
-                and _wrist_bound(start, seed) > math.sqrt(best_d) + 1e-9
-            ):
-                continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
-            q, err = self.newton(start, target, newton_iterations, converged, rounding)
-            found = [q] if err <= accepted else []
-            if not found and not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR:
-                # along the wrist's self-motion: every solution on this branch's valley
-                found += [r for r, e in self.valley(start, target, converged) if e <= accepted]
-            elif not found:
-                q, err, gradient = self.settle(
-                    start, target, settle_iterations, converged, stationary
+        missed: list[int] = []  # starts whose valley walk found no root
+        pending, retry = order, False
+        while True:
+            for i in pending:
+                start = qs[i]
+                singular = (
+                    shoulder or abs(math.sin(start[2])) < near or abs(math.sin(start[4])) < near
                 )
-                if err > accepted:
-                    if not gradient <= stationary and distance[i] < unrefined:
-                        unrefined = distance[i]
-                    continue
-                found.append(q)
-            for q in found:
-                m = 0.0
-                for k in range(6):
-                    m += (q[k] - start[k]) * (q[k] - start[k])
-                m = math.sqrt(m)
-                moved = max(moved, m)
-                if not singular:
-                    regular = max(regular, m)
-                shifted = [0.0] * 6
-                d = 0.0
-                inside = True
-                for k in range(6):
-                    w = _near(q[k], seed[k], lower[k], upper[k])
-                    if w != w:
-                        inside = False
-                        break
-                    shifted[k] = w
-                    d += (w - seed[k]) * (w - seed[k])
-                if inside and d < best_d:
-                    best, best_d = shifted, d
+                found: list[list[float]] = []
+                q = start
+                if not retry:
+                    if (
+                        best is not None
+                        and not singular
+                        and distance[i] > math.sqrt(best_d) + factor * regular + 1e-9
+                    ):
+                        continue  # it cannot come nearer
+                    if (
+                        best is not None
+                        and not shoulder
+                        and abs(math.sin(start[4])) < near
+                        and _wrist_bound(start, seed) > math.sqrt(best_d) + 1e-9
+                    ):
+                        continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
+                    q, err = self.newton(start, target, newton_iterations, converged, rounding)
+                    if err <= accepted:
+                        found.append(q)
+                    elif not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR:
+                        # along the wrist's self-motion: every solution on this branch's valley
+                        roots = self.valley(start, target, converged)
+                        found += [r for r, e in roots if e <= accepted]
+                        if not found:
+                            missed.append(i)
+                            continue
+                if not found:  # damped steps, on from where Newton's left off
+                    q, err, gradient = self.settle(
+                        q, target, settle_iterations, converged, stationary
+                    )
+                    if err > accepted:
+                        if not gradient <= stationary and distance[i] < unrefined:
+                            unrefined = distance[i]
+                        continue
+                    found.append(q)
+                for q in found:
+                    m = 0.0
+                    for k in range(6):
+                        m += (q[k] - start[k]) * (q[k] - start[k])
+                    m = math.sqrt(m)
+                    moved = max(moved, m)
+                    if not singular:
+                        regular = max(regular, m)
+                    shifted = [0.0] * 6
+                    d = 0.0
+                    inside = True
+                    for k in range(6):
+                        w = _near(q[k], seed[k], lower[k], upper[k])
+                        if w != w:
+                            inside = False
+                            break
+                        shifted[k] = w
+                        d += (w - seed[k]) * (w - seed[k])
+                    if inside and d < best_d:
+                        best, best_d = shifted, d
+            if retry or best is not None or not missed:
+                break
+            # nothing found: where the valley is cut (the arm stretched or folded) its walk
+            # can miss a root that damped steps reach
+            pending, retry = missed, True
         return best, best_d, moved, unrefined, singular_at
 
     def _singular_target(self, g: Sequence[float], near: float) -> int:
