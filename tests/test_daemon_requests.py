@@ -37,6 +37,7 @@ class Api:
     cell: Cell
     robot: FakeRobot
     service: CellService
+    app: FastAPI
     http: httpx.AsyncClient
     headers: dict[str, str]
 
@@ -73,7 +74,7 @@ async def api(fake_robot: FakeRobot, served: tuple[CellService, FastAPI]) -> Asy
         transport = httpx.ASGITransport(app=app)
         headers = {"Authorization": f"Bearer {TOKEN}", "X-Fxcell-Client": "tester"}
         async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as http:
-            yield Api(cell, fake_robot, service, http, headers)
+            yield Api(cell, fake_robot, service, app, http, headers)
         await service.operations.cancel_all()
         service.detach()
 
@@ -207,7 +208,7 @@ async def test_the_library_refuses_the_same_before_a_move_exists(api: Api) -> No
 
 
 async def test_commands_with_an_argument_called_name_work_over_the_daemon(api: Api) -> None:
-    transport = httpx.ASGITransport(app=create_app(api.service))
+    transport = httpx.ASGITransport(app=api.app)
     async with RemoteCell("http://127.0.0.1", TOKEN, transport=transport) as remote:
         taught = await remote.teach("p1")
         assert taught["joints"] == pytest.approx(api.robot.state()["q"])
