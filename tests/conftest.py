@@ -36,6 +36,17 @@ os.environ["FXCELL_STATE_DIR"] = tempfile.mkdtemp(prefix="fxcell-test-state-")
 # where permitted, else reniced): a starved simulator pausing its state stream for 100 ms
 # made the cell declare the robot disconnected mid-test under load.
 os.environ.setdefault("FXCELL_SIM_PRIORITY", "realtime")
+# tmp_path on tmpfs where there is one: the job store commits with synchronous=FULL, and
+# thousands of fsyncs to a disk shared with other work made the crash-recovery tests wait
+# on the disk for most of their time (57 s of a 14 s file on a busy machine). The store
+# still fsyncs; tmpfs answers at once. (pytest's own knob, read when tmp_path is first
+# used; `PYTEST_DEBUG_TEMPROOT=/somewhere` chooses another root.)
+if (
+    "PYTEST_DEBUG_TEMPROOT" not in os.environ
+    and os.path.isdir("/dev/shm")
+    and os.access("/dev/shm", os.W_OK | os.X_OK)
+):
+    os.environ["PYTEST_DEBUG_TEMPROOT"] = "/dev/shm"
 
 
 # ----------------------------------------------------------------- system tests

@@ -117,6 +117,27 @@ def test_yaml_is_parsed_as_safe_load_parses_it() -> None:
         parse_yaml("!!python/object/apply:os.system ['true']")
 
 
+def test_a_text_parsed_again_gives_objects_of_its_own() -> None:
+    # parse_yaml keeps the parses of the texts it has seen: what a caller changes in its
+    # result never reaches the next caller of the same text
+    import yaml
+
+    from fxcell.config import parse_yaml
+
+    text = "a: {b: [1, 2]}\nc: &x [3]\nd: *x\n"
+    first = parse_yaml(text)
+    first["a"]["b"].append(99)
+    first["c"].append(4)
+    del first["d"]
+    second = parse_yaml(text)
+    assert second == {"a": {"b": [1, 2]}, "c": [3], "d": [3]}
+    assert second["c"] is second["d"]  # an alias is still one object, as a parse makes it
+    with pytest.raises(yaml.YAMLError):  # a bad text fails every time, nothing is kept
+        parse_yaml("a: [")
+    with pytest.raises(yaml.YAMLError):
+        parse_yaml("a: [")
+
+
 # ----------------------------------------------------------------- robot kinds
 
 

@@ -20,6 +20,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from fastapi import FastAPI
 
 from fxcell import errors
 from fxcell.client import decode_client_name, encode_client_name
@@ -246,12 +247,26 @@ def test_rate_and_topics_are_validated() -> None:
 # ----------------------------------------------------------------- HTTP refusals
 
 
+UNATTACHED = CellConfig.from_dict({"robot": {"command_timeout": 0.3}})
+
+
+@pytest.fixture(scope="module")
+def unattached() -> tuple[CellService, FastAPI]:
+    """The daemon's app, built once for the file (its ~70 routes take ~0.2 s to build),
+    and the service it serves: :func:`http` makes that service new for each test."""
+    service = CellService(UNATTACHED, TOKEN)
+    return service, create_app(service)
+
+
 @pytest.fixture
-async def http(tmp_path: Path) -> AsyncIterator[httpx.AsyncClient]:
+async def http(unattached: tuple[CellService, FastAPI]) -> AsyncIterator[httpx.AsyncClient]:
     """The API with no cell attached: refusals must come before the robot is needed
     (commands wait 0.3 s for a cell before they say it is not connected)."""
-    service = CellService(CellConfig.from_dict({"robot": {"command_timeout": 0.3}}), TOKEN)
-    transport = httpx.ASGITransport(app=create_app(service))
+    service, app = unattached
+    # The app reads everything of its service when a request comes (its closures hold the
+    # object): initialised again, the service is as new as a new CellService would be.
+    CellService.__init__(service, UNATTACHED, TOKEN)
+    transport = httpx.ASGITransport(app=app)
     async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as client:
         yield client
 
