@@ -41,6 +41,7 @@ class Control:
         self.targets: list[tuple[float, ...]] = []
         self.stamps: list[float] = []  # the controller time of each servoJ
         self.walls: list[float] = []  # and its time.monotonic()
+        self.stop_walls: list[float] = []  # time.monotonic() of each servoStop
         self.clock: Callable[[], float] = lambda: 0.0
         self.changed = threading.Condition()
 
@@ -57,6 +58,7 @@ class Control:
         return self._record("servoJ")
 
     def servoStop(self) -> bool:  # noqa: N802
+        self.stop_walls.append(time.monotonic())
         return self._record("servoStop")
 
     def count(self, name: str) -> int:
@@ -205,11 +207,12 @@ def test_a_call_after_a_move_ends_the_hold_with_servo_stop(link: Link) -> None:
 def test_an_unclaimed_hold_leaves_servo_mode_after_its_time(link: Link) -> None:
     traj = _run(link)
     _wait_ended(traj)
-    ended = time.monotonic()
     traj.thread.join(5.0)
-    held = time.monotonic() - ended
     assert not traj.thread.is_alive()
     assert link.control.calls[-1] == "servoStop"
+    # from the trajectory's last setpoint (its 10th servoJ; the hold follows it) to its
+    # servoStop, both stamped by the trajectory's own thread, not by this test's
+    held = link.control.stop_walls[-1] - link.control.walls[9]
     assert held >= _Trajectory.HOLD * 0.9
     assert not traj.release(keep_servo=True)  # too late to take it over
 
