@@ -29,7 +29,16 @@ with warnings.catch_warnings():
     warnings.filterwarnings("ignore", "This project is officially", DeprecationWarning)
     from pyniryo2 import NiryoRobot
 
-pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
+# One work unit: the file's tests run one after the other. pyniryo2's roslibpy keeps one
+# Twisted reactor per process, running on between its tests; with tests of other files run
+# in between (test_sim_lifetime's and test_recorder_recovery's SIGKILLed children, in a
+# run ordered by test_durations.json), the next NiryoRobot failed to connect ("Failed to
+# connect to ROS") every time. The cause is not found yet.
+pytestmark = [
+    pytest.mark.system,
+    pytest.mark.timeout(120),
+    pytest.mark.xdist_group("pyniryo2-rosbridge"),
+]
 
 MM = 1e-3
 FAR = [-1.5, -0.8, 0.8, 1.0, 1.0, 1.0]  # a long move from home
