@@ -800,9 +800,11 @@ class _Trajectory:
         lookahead: float,
         gain: float,
         guard: Guard,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.link = link
         self.id = traj_id
+        self.clock = clock  # the link process's monotonic clock (a test's own, stepped)
         self.samples = samples
         self.lookahead = lookahead
         self.gain = gain
@@ -868,7 +870,7 @@ class _Trajectory:
 
     def _run(self) -> None:
         link = self.link
-        started = time.monotonic()
+        started = self.clock()
         c = link.control
         seen = link._samples
         clock = link.latest.timestamp if link.latest is not None else None
@@ -878,14 +880,14 @@ class _Trajectory:
         status: TrajectoryStatus = "completed"
         reason = StopReason.NONE
         detail = ""
-        cycled = started  # time.monotonic() of this thread's previous cycle
+        cycled = started  # the clock at this thread's previous cycle
         if c is None:
             status, reason = "failed", StopReason.NO_EXTERNAL_CONTROL
         else:
             cell_timeout = self.guard.cell_timeout
             try:
                 while True:
-                    now = time.monotonic()
+                    now = self.clock()
                     self._take_requests(follower)
                     braking = follower.braking
                     out = follower.cycle(
@@ -926,7 +928,7 @@ class _Trajectory:
                     poked, self._poked = self._poked, False
                     new = seen != before and latest is not None
                     follower.advance(
-                        time.monotonic(), latest.timestamp if new and latest else None, poked=poked
+                        self.clock(), latest.timestamp if new and latest else None, poked=poked
                     )
             except Exception as exc:
                 status, reason, detail = "failed", StopReason.LINK_ERROR, str(exc)
@@ -948,7 +950,7 @@ class _Trajectory:
                 "index": follower.index,
                 "total": len(follower.samples),
                 "actual_q": state.actual_q if state is not None else None,
-                "duration": time.monotonic() - started,
+                "duration": self.clock() - started,
             },
         )
         self.ended.set()
@@ -994,7 +996,7 @@ class _Trajectory:
         it again cost 7-9 ms and 3-5 ms of controller round trips, which back-to-back
         moves then do not pay."""
         link = self.link
-        until = time.monotonic() + self.HOLD
+        until = self.clock() + self.HOLD
         seen = link._samples
         with self._lock:
             self._holding = True
@@ -1003,7 +1005,7 @@ class _Trajectory:
         follower.begin_hold()
         self.hold_started.set()
         try:
-            while time.monotonic() < until:
+            while self.clock() < until:
                 if self._released.is_set():
                     with self._lock:
                         return self._keep_servo
@@ -1023,14 +1025,8 @@ class _Trajectory:
         return False
 
     def _next_sample_or_release(self, seen: int) -> int:
-        link = self.link
-
-        def ready() -> bool:
-            return link._samples != seen or self._released.is_set()
-
-        with link._tick:
-            link._tick.wait_for(ready, 1.5 * CONTROL_PERIOD)
-            return link._samples
+        seen, _ = self.link.next_sample(seen, 1.5 * CONTROL_PERIOD, self._released.is_set)
+        return seen
 
     def _progress(
         self, index: int, total: int, commanded: tuple[float, ...], timestamp: float | None
