@@ -435,6 +435,7 @@ class SimServer:
         assert loop is not None
 
         def load() -> None:
+            _background_priority()
             try:
                 from fxcell.sim.dynamics import ArmDynamics
 
@@ -978,6 +979,16 @@ def _raise_priority(realtime: bool = False, nice: int = -5) -> None:
         os.setpriority(os.PRIO_PROCESS, 0, nice)
 
 
+def _background_priority() -> None:
+    """Run the calling thread at normal priority (it inherited the control cycle's real-time
+    one): work that may take a while, such as importing and building a model, must not hold
+    a CPU above every process of the cell PC. Two simulators booting side by side at
+    real-time priority held both CPUs for some 0.3 s each and starved the robot links."""
+    with contextlib.suppress(OSError, AttributeError):
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
 def new_event_loop() -> asyncio.AbstractEventLoop:
     """An event loop whose timers have microsecond resolution (select, not epoll)."""
     return asyncio.SelectorEventLoop(selectors.SelectSelector())
@@ -1000,7 +1011,6 @@ def run(
     ``machine_io``, ``fusion_time``, ``cooling_time``, ``crucibles``), the program
     store (``programs``) and the protective stop's ``unlock_delay``.
     """
-    _raise_priority(realtime)
     try:
         sim = SimServer(
             host,
@@ -1017,6 +1027,9 @@ def run(
     # Everything built so far lives as long as the process: keep it out of the cyclic
     # collector's full passes, which otherwise pause the control cycle for 20+ ms.
     gc.freeze()
+    # Built at normal priority (a controller boots before it keeps time); the thread that
+    # runs the control cycle from here on, and the threads it starts, run above it.
+    _raise_priority(realtime)
     loop = new_event_loop()
     try:
         loop.run_until_complete(sim.serve(boot_delay=DELAYS["boot"] * time_scale))

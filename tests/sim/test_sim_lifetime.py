@@ -1,11 +1,13 @@
-"""A simulator started with ``--exit-with-parent`` ends with the process that launched it,
-and its control cycle runs above the robot link's priority when real time."""
+"""A simulator started with ``--exit-with-parent`` ends with the process that launched it;
+its control cycle runs above the robot link's priority when real time, and its other work
+below it."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -74,3 +76,26 @@ def test_a_real_time_simulator_runs_above_the_robot_link(monkeypatch: pytest.Mon
     policy, priority = asked[0]
     assert policy == os.SCHED_FIFO
     assert priority > LINK_PRIORITY
+
+
+def test_work_off_the_control_cycle_runs_at_normal_priority() -> None:
+    # the thread that imports and builds the dynamic model inherits the real-time
+    # priority of the thread that starts it: it steps down before its work
+    seen: list[int | None] = []
+
+    def thread() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        except PermissionError:
+            seen.append(None)
+            return
+        server._background_priority()
+        seen.append(os.sched_getscheduler(0))
+
+    worker = threading.Thread(target=thread)
+    worker.start()
+    worker.join()
+    if seen == [None]:
+        pytest.skip("no privilege for real-time scheduling here")
+    assert seen == [os.SCHED_OTHER]
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the caller's own thread untouched
