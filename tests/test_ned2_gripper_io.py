@@ -26,6 +26,7 @@ from fxcell.layout import Layout, LayoutConfig, ObjectKind, StationConfig, Taugh
 from fxcell.link.ned2.gripper import GRIPPER_1
 from fxcell.motion import ned2
 from fxcell.sim.ned2.robot import GRIPPER_TCP
+from fxcell.testing import injected_faults
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(180)]
@@ -138,7 +139,8 @@ async def test_an_object_between_the_fingers_is_gripped_and_its_loss_detected(
     assert result.width == pytest.approx(0.02, abs=1e-3)  # where the motor stopped
     assert sim.state()["held"] == "probe"
     assert cell.gripper.state == "holding"
-    await asyncio.to_thread(sim.inject, "gripper_drop")
+    with injected_faults("the held object slips"):
+        await asyncio.to_thread(sim.inject, "gripper_drop")
     with pytest.raises(ObjectLostError):
         await cell.gripper.check_holding()
     assert cell.gripper.state == "empty"
@@ -148,7 +150,8 @@ async def test_an_object_between_the_fingers_is_gripped_and_its_loss_detected(
 async def test_without_a_gripper_on_the_tool_port_its_commands_are_refused(
     cell: Cell, sim: Ned2SimulatorHandle
 ) -> None:
-    await asyncio.to_thread(sim.inject, "tool_disconnect")
+    with injected_faults("the tool taken off"):
+        await asyncio.to_thread(sim.inject, "tool_disconnect")
     try:
         with pytest.raises(GripperNotActivatedError):
             await cell.gripper_close()

@@ -30,6 +30,7 @@ from fxcell.link.ned2 import (
 from fxcell.link.ned2.rosbridge import RosbridgeClient
 from fxcell.link.ned2.tcp import NiryoTcpClient, joints, robot_bool
 from fxcell.motion import ned2
+from fxcell.testing import injected_faults
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(60)]
@@ -166,7 +167,8 @@ async def test_a_service_that_refuses_raises_and_an_unknown_one_too(
 async def test_a_robot_that_goes_dark_fails_both_clients_with_connection_lost(
     tcp: NiryoTcpClient, bridge: RosbridgeClient, sim: Ned2SimulatorHandle
 ) -> None:
-    sim.inject("power_loss")
+    with injected_faults("the robot goes dark"):
+        sim.inject("power_loss")
     with pytest.raises(ConnectionLostError):
         await tcp.command("GET_JOINTS")
     with pytest.raises(ConnectionLostError):

@@ -2,7 +2,7 @@
 
 While a system test runs, :class:`FaultWatch` counts
 
-- robot-link losses of this process (the link client's ``robot link to ... down`` warning)
+- robot-link losses of this process (a link's ``robot link to ... down`` warning, any kind)
   and the moves its link process braked on its own guard (a stalled state stream, a silent
   cell: ``robot link to ... braked a move by itself``),
 - those of the daemons the test talks to (the same line in their output), and
@@ -30,6 +30,8 @@ from fxcell.daemon.process import DaemonProcess
 from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 
 _LINK_DOWN = re.compile(r"robot link to \S+ (down|braked a move by itself): (.*)")
+LINK_LOGGER = "fxcell.link"
+"""Where every robot kind's link says it went down (the UR's client, the Ned2's link)."""
 
 
 @dataclass
@@ -140,12 +142,12 @@ class FaultWatch(logging.Handler):
     # -- installation
 
     def install(self) -> None:
-        logging.getLogger("fxcell.link.client").addHandler(self)
+        logging.getLogger(LINK_LOGGER).addHandler(self)
         DaemonProcess.observers.append(self._on_daemon)
         EmbeddedSimulator.observers.append(self._on_simulator)
 
     def uninstall(self) -> None:
-        logging.getLogger("fxcell.link.client").removeHandler(self)
+        logging.getLogger(LINK_LOGGER).removeHandler(self)
         with contextlib.suppress(ValueError):
             DaemonProcess.observers.remove(self._on_daemon)
         with contextlib.suppress(ValueError):

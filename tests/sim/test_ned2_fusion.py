@@ -13,6 +13,7 @@ import pytest
 from pyniryo import NiryoRobot, NiryoRobotException, PinID, PinState
 
 from fxcell.errors import InvalidArgumentError
+from fxcell.testing import injected_faults
 from fxcell.testing.ned2 import TEST_TIME_SCALE, Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
@@ -89,7 +90,8 @@ def test_a_start_pulse_with_nothing_loaded_is_ignored(
 def test_door_open_reports_error_and_a_cycle_aborts_without_beads(
     sim: Ned2SimulatorHandle, robot: NiryoRobot
 ) -> None:
-    sim.inject("door_open")
+    with injected_faults("the machine's door opened"):
+        sim.inject("door_open")
     assert pins(robot) == (False, False, False, True)
     sim.inject("door_close")
     assert pins(robot) == (True, False, False, False)
@@ -97,7 +99,8 @@ def test_door_open_reports_error_and_a_cycle_aborts_without_beads(
     wait_until(lambda: sim.machine()["state"] == "loaded", "loaded")
     robot.digital_write(START, PinState.HIGH)
     wait_until(lambda: pins(robot)[1], "busy")
-    sim.inject("door_open")  # mid-cycle
+    with injected_faults("the machine's door opened"):
+        sim.inject("door_open")  # mid-cycle
     assert pins(robot) == (False, False, False, True)
     sim.inject("door_close")
     assert pins(robot) == (False, False, False, True)  # the abort stays latched
@@ -109,7 +112,8 @@ def test_door_open_reports_error_and_a_cycle_aborts_without_beads(
 def test_an_injected_machine_error_latches_until_reset(
     sim: Ned2SimulatorHandle, robot: NiryoRobot
 ) -> None:
-    sim.inject("machine_error")
+    with injected_faults("a machine error"):
+        sim.inject("machine_error")
     assert pins(robot) == (False, False, False, True)
     assert sim.machine()["fault"] == "machine error (injected)"
     sim.inject("machine_reset")

@@ -29,6 +29,7 @@ from pyniryo.api.exceptions import HostNotReachableException
 
 from fxcell.motion import ned2
 from fxcell.sim.ned2.robot import GRIPPER_STEPS, GRIPPER_TCP
+from fxcell.testing import injected_faults
 from fxcell.testing.ned2 import Ned2SimulatorHandle, free_ned2_host, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
@@ -204,7 +205,8 @@ def test_a_collision_stops_a_move_and_is_reported(
     mover = threading.Thread(target=move)
     mover.start()
     sim.wait_for("moving", True)
-    sim.inject("collision")
+    with injected_faults("a collision"):
+        sim.inject("collision")
     mover.join(30)
     assert len(errors) == 1
     assert "Error Code : -3" in str(errors[0])
@@ -223,7 +225,8 @@ def test_after_a_power_loss_the_robot_is_gone_then_needs_calibration(
 ) -> None:
     robot = NiryoRobot(sim.host, verbose=False)
     robot.calibrate_auto()
-    sim.inject("power_loss")
+    with injected_faults("the robot goes dark"):
+        sim.inject("power_loss")
     with pytest.raises(HostNotReachableException):
         robot.get_joints()
     robot.close_connection()
@@ -295,7 +298,8 @@ def test_fxcell_sim_robot_ned2_serves_and_takes_injected_faults() -> None:
 def test_without_a_tool_the_gripper_commands_are_refused(
     robot: NiryoRobot, sim: Ned2SimulatorHandle
 ) -> None:
-    sim.inject("tool_disconnect")
+    with injected_faults("the tool taken off"):
+        sim.inject("tool_disconnect")
     assert robot.get_current_tool_id() == ToolID.NONE
     with pytest.raises(NiryoRobotException, match="Error Code : -253"):
         robot.grasp_with_tool()

@@ -22,6 +22,7 @@ from pyniryo import NiryoRobot as TcpClient
 from websockets.sync.client import connect
 
 from fxcell.motion import ned2
+from fxcell.testing import injected_faults
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 with warnings.catch_warnings():
@@ -222,7 +223,8 @@ def test_topic_names_are_resolved_as_ros_resolves_them(sim: Ned2SimulatorHandle)
 def test_a_power_loss_closes_the_rosbridge_and_the_restore_opens_it(
     sim: Ned2SimulatorHandle,
 ) -> None:
-    sim.inject("power_loss")
+    with injected_faults("the robot goes dark"):
+        sim.inject("power_loss")
     with pytest.raises(ConnectionRefusedError):  # nobody listens on 9090
         connect(f"ws://{sim.host}:9090", open_timeout=5).close()
     sim.inject("power_restore")

@@ -39,8 +39,8 @@ SIMULATOR_PORTS = (TCP_PORT, ROSBRIDGE_PORT, SIMULATOR_CONTROL_PORT)
 SIMULATOR_FAULTS = (
     "collision",  # the arm detects a collision: a running move stops and fails
     "stop",  # a running move stops (as the rosbridge's stop_command service does)
-    "drop_connection",  # the TCP server drops its client
-    "stall",  # SECONDS: the TCP server answers nothing for that long
+    "drop_connection",  # the network drops: the TCP server's and the rosbridge's clients
+    "stall",  # SECONDS: the robot answers nothing and publishes nothing for that long
     "power_loss",  # the robot goes dark: connections close, nobody answers, calibration lost
     "power_restore",  # the robot boots again (needs calibration)
     "motor_error",  # [JOINT]: a motor reports a hardware error; moves are refused

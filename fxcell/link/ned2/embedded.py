@@ -89,13 +89,9 @@ class Ned2Simulator(EmbeddedSimulator):
         return free_ned2_host()
 
     def _listening(self) -> None:
-        # No observers: the tests' fault watch reads the UR controller's fault counters,
-        # which the Ned2 simulator's state does not have.
         if self.joints is not None:
             self.set_joints(self.joints)
-
-    def _stopping(self) -> None:
-        pass
+        super()._listening()
 
     def request(self, line: str) -> str:
         """A control-port request; InvalidArgumentError when the simulator refuses it."""

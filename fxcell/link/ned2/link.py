@@ -24,7 +24,9 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -36,6 +38,7 @@ from numpy.typing import ArrayLike
 from fxcell.errors import (
     CalibrationError,
     ConnectionLostError,
+    FxcellError,
     RobotCommandError,
     RobotTimeoutError,
     UnsupportedCommandError,
@@ -69,6 +72,8 @@ if TYPE_CHECKING:
 
 __all__ = ["NED2_SIGNALS", "POINT_SPACING", "Ned2Calibration", "Ned2Link"]
 
+log = logging.getLogger(__name__)
+
 NED2_SIGNALS = frozenset({"DI1", "DI2", "DI3", "DI4", "DI5", "DO1", "DO2", "DO3", "DO4"})
 """The Ned2's digital pins fxcell drives: the IO panel's DI1-DI3, DI5 and DO1-DO3, and the
 tool connector's DI4 and DO4 (ned_ros ``niryo_robot_rpi``)."""
@@ -80,6 +85,15 @@ POINT_SPACING = 0.05
 CALIBRATION_TIMEOUT = 60.0
 """Seconds a calibration may take (a Ned2's runs each joint to its end stop)."""
 ABORTED_STATUS, STOPPED_STATUS = -3, -4  # niryo_robot_msgs/CommandStatus
+STALE_AFTER = 1.0
+"""Seconds without a joint state after which the link to a Ned2 counts as down."""
+RECONNECT_EVERY = 0.5
+"""Seconds between two attempts to reach a Ned2 whose link is down."""
+RECONNECT_SILENT = 2.0
+"""Seconds a connection that is still open may stay silent before it is opened anew (a
+network cut that no end of the connection has noticed yet)."""
+WATCH_PERIOD = 0.05
+"""Seconds between two looks of the link's watch at the connection and the joint states."""
 
 
 class Ned2Calibration:
@@ -163,6 +177,9 @@ class Ned2Link:
         self._up = False
         self._first = asyncio.Event()
         self._run: _Run | None = None
+        self._heard = 0.0  # time.monotonic() of the newest joint state
+        self._connected_at = 0.0  # ... and of the newest connection to the rosbridge
+        self._watcher: asyncio.Task[None] | None = None
 
     # ---------------------------------------------------------------- the contract's state
 
@@ -187,8 +204,20 @@ class Ned2Link:
 
     async def start(self, wait: bool = True) -> None:
         self._on_status(LinkStatus.STARTING, f"connecting to the Ned2 at {self.host}")
-        await self._bridge.connect()
-        bridge = self._bridge
+        await self._connect(self._bridge)
+        self._watcher = asyncio.create_task(self._watch(), name=f"Ned2 link {self.host}")
+        if wait:
+            try:
+                async with asyncio.timeout(5.0):
+                    await self._first.wait()
+            except TimeoutError:
+                await self.close()
+                raise RobotTimeoutError(f"the Ned2 at {self.host} sent no joint state") from None
+
+    async def _connect(self, bridge: RosbridgeClient) -> None:
+        """Connect ``bridge`` and subscribe to the topics the state is made of."""
+        await bridge.connect()
+        self._connected_at = time.monotonic()
         await bridge.subscribe(
             "/niryo_robot_hardware_interface/hardware_status",
             "niryo_robot_msgs/HardwareStatus",
@@ -203,15 +232,58 @@ class Ned2Link:
         await bridge.subscribe(IO_STATE_TOPIC, "niryo_robot_rpi/DigitalIOState", self._on_io)
         await bridge.subscribe("/joint_states", "sensor_msgs/JointState", self._on_joints)
         self._messages += 5
-        if wait:
-            try:
-                async with asyncio.timeout(5.0):
-                    await self._first.wait()
-            except TimeoutError:
-                await self.close()
-                raise RobotTimeoutError(f"the Ned2 at {self.host} sent no joint state") from None
+
+    async def _watch(self) -> None:
+        """Mark the link down when the rosbridge connection ends or the joint states stop
+        (a robot switched off, a cable pulled, a stalled robot computer), and reach the
+        robot again every :data:`RECONNECT_EVERY` s while it is down."""
+        retry_at = 0.0
+        ran = time.monotonic()
+        while True:
+            await asyncio.sleep(WATCH_PERIOD)
+            now = time.monotonic()
+            late, ran = now - ran > 4 * WATCH_PERIOD, now
+            if late:
+                # the loop was held up: the joint states that came meanwhile are read
+                # before this task looks again, so its own lateness is not the robot's
+                continue
+            if self._up:
+                if not self._bridge.connected:
+                    self._lost(self._bridge.closed_because or "the rosbridge connection ended")
+                elif now - self._heard > STALE_AFTER:
+                    self._lost(f"no joint state for {1e3 * (now - self._heard):.0f} ms")
+                retry_at = now + RECONNECT_EVERY
+                continue
+            if now < retry_at:
+                continue
+            retry_at = now + RECONNECT_EVERY
+            silent = now - max(self._heard, self._connected_at)
+            if self._bridge.connected and silent < RECONNECT_SILENT:
+                continue  # connected: a robot that paused may publish again
+            with contextlib.suppress(FxcellError):
+                await self._reconnect()
+
+    def _lost(self, reason: str) -> None:
+        """The link is down: no state until the robot is reached again, and what the state
+        was made of is forgotten (a robot back from a power loss needs calibrating)."""
+        self._up = False
+        self._first.clear()
+        self._hardware, self._learning, self._collision = {}, True, False
+        log.warning("robot link to %s down: %s", self.host, reason)
+        self._update_control(reason)
+        self._on_status(LinkStatus.DOWN, reason)
+
+    async def _reconnect(self) -> None:
+        old, self._bridge = self._bridge, RosbridgeClient(self.host)
+        await old.close()
+        await self._connect(self._bridge)
 
     async def close(self) -> None:
+        watcher, self._watcher = self._watcher, None
+        if watcher is not None:
+            watcher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await watcher
         await self._bridge.close()
         if self._up:
             self._up = False
@@ -292,6 +364,7 @@ class Ned2Link:
             received_at=time.monotonic(),
         )
         self._latest = state
+        self._heard = time.monotonic()
         for sub in list(self._subscriptions):
             sub.offer(state)
         if not self._up:

@@ -118,6 +118,8 @@ class Ned2Robot:
     analog_in: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ANALOG_INPUTS, 0.0))
     moving: bool = False
     log: list[str] = field(default_factory=list)
+    faults: list[str] = field(default_factory=list)
+    """Every fault since the start: detected collisions and injected faults."""
     input_owners: dict[str, str] = field(default_factory=dict)  # "DI1" -> the device driving it
     _abort: tuple[int, str] | None = None
 
@@ -148,6 +150,7 @@ class Ned2Robot:
             "digital_out": dict(self.digital_out),
             "digital_in": dict(self.digital_in),
             "log": self.log[-20:],
+            "faults": list(self.faults),
         }
 
     def hardware_status(self) -> list[Any]:
@@ -211,6 +214,7 @@ class Ned2Robot:
             "given trajectory",
         )
         self.log.append("collision detected")
+        self.faults.append("collision detected")
 
     def power_loss(self) -> None:
         self.abort(ABORTED, "Command has been aborted: the robot lost power")

@@ -430,6 +430,8 @@ class Rosbridge:
         self._server: Server | None = None
         self._clients: set[_Client] = set()
         self._tasks: set[asyncio.Task[Any]] = set()
+        self.stalled_until = 0.0
+        """The event loop's time until which the topics publish nothing (a stalled robot)."""
         self.actions = {
             ARM_ACTION: ActionServer(ARM_ACTION, "niryo_robot_arm_commander/RobotMove", _arm_goal),
             TOOL_ACTION: ActionServer(TOOL_ACTION, "niryo_robot_tools_commander/Tool", _tool_goal),
@@ -486,6 +488,12 @@ class Rosbridge:
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    def cut(self) -> None:
+        """The robot's network drops: every client's connection fails (no closing
+        handshake); the server goes on listening."""
+        for client in list(self._clients):
+            client.ws.transport.abort()
 
     async def drop(self) -> None:
         """The robot went dark: stop listening and cut every connection, with no closing
@@ -634,7 +642,10 @@ class Rosbridge:
         self, client: _Client, name: str, topic: Topic, stream: _Stream, period: float
     ) -> None:
         seq = 0
+        loop = asyncio.get_running_loop()
         while True:
+            if loop.time() < self.stalled_until:
+                await asyncio.sleep(self.stalled_until - loop.time())
             message = topic.message(stream, seq)
             try:
                 await client.ws.send(json.dumps({"op": "publish", "topic": name, "msg": message}))

@@ -65,6 +65,13 @@ if TYPE_CHECKING:
     from fxcell.sim.gripper import SimObject
     from fxcell.sim.signals import Signal
 
+
+_NOT_FAULTS = frozenset(
+    {"power_restore", "clear_motor_error", "tool_connect", "machine_reset", "door_close"}
+)
+"""Injections that undo a fault: not counted in the state's ``faults`` (the tests count
+the faults they did not inject)."""
+
 log = logging.getLogger(__name__)
 
 
@@ -343,12 +350,16 @@ class Ned2Server:
         robot = self.robot
         if fault not in FAULTS:
             return f"error unknown fault {fault!r}"
+        machine = self.machine
         if fault in MACHINE_FAULTS:
-            if self.machine is None:
+            if machine is None:
                 return "error the simulator has no fusion machine (start it with --machine)"
             if args:
                 return f"error {fault} takes no arguments"
-            text = self.machine.inject(fault)
+        if fault not in _NOT_FAULTS and fault != "collision":  # that one counts itself
+            robot.faults.append(f"injected {fault} {' '.join(args)}".strip())
+        if machine is not None and fault in MACHINE_FAULTS:
+            text = machine.inject(fault)
             robot.log.append(f"injected {fault}")
             return f"ok {fault}: {text}"
         if fault == "collision":
@@ -358,9 +369,11 @@ class Ned2Server:
         elif fault == "drop_connection":
             for writer in list(self._clients):
                 writer.close()
+            self.rosbridge.cut()
         elif fault == "stall":
             seconds = float(args[0]) if args else 5.0
             self._stall_until = asyncio.get_running_loop().time() + seconds
+            self.rosbridge.stalled_until = self._stall_until
         elif fault == "power_loss":
             robot.power_loss()
             self.powered = False

@@ -1,0 +1,104 @@
+"""A Cell on a Ned2 sees its link go down and reaches the robot again by itself, as on the
+UR3e: a network drop, a robot that stops publishing (a stalled robot computer) and a power
+loss each take the Cell to ``disconnected`` with the reason logged as a link loss; once the
+robot answers again the Cell is back where the robot is (ready after a drop or a stall, idle
+and needing init after a power loss, which costs a Ned2 its calibration)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator, Iterator
+
+import pytest
+
+from fxcell import Cell, CellState
+from fxcell.config import CellConfig
+from fxcell.errors import InvalidStateError
+from fxcell.link.ned2.link import STALE_AFTER
+from fxcell.testing import injected_faults
+from fxcell.testing.faults import watching
+from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
+
+pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
+
+TARGET = [0.4, -0.2, 0.1, 0.3, -0.4, 0.2]
+BACK = [0.2, -0.1, 0.0, 0.1, -0.2, 0.1]
+REACHED = 10.0  # s: the Cell sees the link down, or the robot again, well within this
+
+
+@pytest.fixture
+def sim() -> Iterator[Ned2SimulatorHandle]:
+    with ned2_simulator(time_scale=0.2, calibrated=True) as handle:
+        yield handle
+
+
+@pytest.fixture
+async def cell(sim: Ned2SimulatorHandle) -> AsyncIterator[Cell]:
+    config = CellConfig.from_dict({"robot": {"kind": "ned2"}, "tool": {"tcp": [0.0] * 6}})
+    async with Cell(config=config, host=sim.host, record=None) as c:
+        await c.init()
+        yield c
+
+
+async def _down_then(cell: Cell, *states: CellState) -> CellState:
+    await cell.wait_for_state(CellState.DISCONNECTED, timeout=REACHED)
+    return await cell.wait_for_state(*states, timeout=REACHED)
+
+
+async def test_after_a_network_drop_the_cell_reaches_the_ned2_again_and_moves(
+    cell: Cell, sim: Ned2SimulatorHandle, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.WARNING, "fxcell.link"), injected_faults("the network drops"):
+        sim.inject("drop_connection")
+        back = await _down_then(cell, CellState.EXTERNAL_CONTROL_READY)
+    assert back is CellState.EXTERNAL_CONTROL_READY
+    assert cell.link_losses == 1
+    assert any(f"robot link to {sim.host} down" in r.getMessage() for r in caplog.records)
+    await cell.move_joint(TARGET)
+    assert sim.state()["joints"] == pytest.approx(TARGET, abs=1e-6)
+
+
+async def test_a_ned2_that_stops_publishing_counts_as_down_until_it_publishes_again(
+    cell: Cell, sim: Ned2SimulatorHandle, caplog: pytest.LogCaptureFixture
+) -> None:
+    with (
+        caplog.at_level(logging.WARNING, "fxcell.link"),
+        injected_faults("the robot's computer stalls"),
+    ):
+        sim.inject("stall", 3 * STALE_AFTER)
+        await _down_then(cell, CellState.EXTERNAL_CONTROL_READY)
+    said = [r.getMessage() for r in caplog.records if "down" in r.getMessage()]
+    assert len(said) == 1, said
+    assert "no joint state for" in said[0]
+    await cell.move_joint(BACK)
+    assert sim.state()["joints"] == pytest.approx(BACK, abs=1e-6)
+
+
+async def test_a_ned2_back_from_a_power_loss_needs_init_before_it_moves(
+    cell: Cell, sim: Ned2SimulatorHandle
+) -> None:
+    with injected_faults("the robot goes dark, then boots again"):
+        sim.inject("power_loss")
+        await cell.wait_for_state(CellState.DISCONNECTED, timeout=REACHED)
+        sim.inject("power_restore")
+        assert await cell.wait_for_state(CellState.IDLE, timeout=REACHED) is CellState.IDLE
+    with pytest.raises(InvalidStateError, match="init"):
+        await cell.move_joint(TARGET)
+    assert sim.state()["calibrated"] is False
+    await cell.init()  # calibrates it again
+    await cell.move_joint(TARGET)
+    assert sim.state()["joints"] == pytest.approx(TARGET, abs=1e-6)
+
+
+@pytest.mark.injects_faults("it reads what a watch of its own reports of the drop")
+async def test_an_unplanned_drop_of_a_ned2_link_is_what_the_fault_watch_reports(
+    cell: Cell, sim: Ned2SimulatorHandle
+) -> None:
+    # what the suite's watch of every system test sees of a Ned2: the simulator's faults
+    # and the link's losses, each failing a test that did not inject it
+    with watching([sim._sim]) as watch:
+        sim.inject("drop_connection")
+        await _down_then(cell, CellState.EXTERNAL_CONTROL_READY)
+        unplanned = watch.unplanned()
+    assert "simulator: injected drop_connection" in unplanned
+    assert [u for u in unplanned if u.startswith("link down: ")] != [], unplanned
