@@ -28,13 +28,10 @@ from pydantic import (
 from fxcell.errors import ConfigError
 from fxcell.layout import LayoutConfig
 from fxcell.resources import resource_dir
-from fxcell.robot_specs import SPECS, UR3E_SPEC, RobotSpec
+from fxcell.robot_specs import SPECS, UR3E_SPEC, RobotSpec, Vector3, Vector6
 from fxcell.signals import parse_signal
 
 CONFIG_DIR = resource_dir("config")
-
-Vector6 = tuple[float, float, float, float, float, float]
-Vector3 = tuple[float, float, float]
 
 HOME_JOINTS: Vector6 = UR3E_SPEC.home
 # The seed's TCP (Robotiq Hand-E fingertip centre) in the flange frame: x, y, z, rx, ry, rz.

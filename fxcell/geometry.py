@@ -18,9 +18,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fxcell.errors import InvalidTargetError
+from fxcell.robot_specs import Vector6
 
 FloatArray = NDArray[np.float64]
-Vector6 = tuple[float, float, float, float, float, float]
 
 _ORTHO_TOL = 1e-6
 """How far from orthonormal (max abs of RᵀR − I) a matrix may be to count as a rotation."""

@@ -13,9 +13,12 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-__all__ = ["NED2_SPEC", "SPECS", "UR3E_SPEC", "RobotSpec", "Vector6"]
+__all__ = ["NED2_SPEC", "SPECS", "UR3E_SPEC", "RobotSpec", "Vector3", "Vector6"]
 
 Vector6 = tuple[float, float, float, float, float, float]
+"""Six numbers: a joint vector (rad) or a pose as UR writes it (x y z m, rotation vector rad).
+The one definition: ``fxcell.config`` and ``fxcell.geometry`` use it, and this module needs
+no numpy, as the light client does not."""
 Vector3 = tuple[float, float, float]
 
 
