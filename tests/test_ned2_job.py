@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import random
 import subprocess
 import sys
 import time
@@ -28,6 +30,7 @@ from fxcell.job import Job, JobStore, final_locations
 from fxcell.job.plan import location
 from fxcell.layout import Layout
 from fxcell.link.ned2.embedded import request
+from fxcell.testing import injected_faults
 from fxcell.testing.ned2 import ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.slow, pytest.mark.timeout(900)]
@@ -174,3 +177,48 @@ async def test_the_same_run_through_the_daemon_and_the_cli(tmp_path: Path) -> No
             assert status["state"] == "done", status
             print(f"4 samples through the daemon: {time.monotonic() - started:.1f} s")
         assert_in_place(await asyncio.to_thread(world.objects), samples)
+
+
+DROPS = 4
+
+
+@pytest.mark.long  # one sample, its network dropped: about a minute (./dev test -m long)
+async def test_a_ned2_run_whose_network_drops_again_and_again_ends_in_place_by_itself(
+    cell: Cell, tmp_path: Path
+) -> None:
+    # The Ned2's network cut at random moments (seedable: FXCELL_KILL_SEED=N) of a
+    # one-sample run: the link comes back, a move the robot still ran is stopped, and the
+    # job heals each loss without the operator.
+    seed = int(os.environ.get("FXCELL_KILL_SEED", random.randrange(1 << 30)))
+    rng = random.Random(seed)
+    host = cell.host
+    assert host is not None
+    await cell.init()
+    await cell.gripper_activate()
+    store = JobStore(tmp_path / "job.sqlite3")
+    job = Job(cell, store)
+    sample = {"id": "S01", "rack": "A1", "tray": "A1"}
+    hit: list[str] = []
+    with injected_faults("the Ned2's network dropped at random moments", link_losses=DROPS):
+        await job.start({"name": "one sample", "samples": [sample]})
+        while len(hit) < DROPS and job.state in ("running", "waiting_for_machine"):
+            await asyncio.sleep(rng.uniform(2.0, 8.0))  # a random moment, not a condition
+            link = cell.link
+            if job.state not in ("running", "waiting_for_machine") or link is None:
+                break
+            if not link.up:  # still coming back from the previous drop: that one counts once
+                continue
+            hit.append(job.status()["step"] or job.state)
+            await asyncio.to_thread(request, host, "inject drop_connection")
+        state = await job.wait_state("done", "fault", "paused", timeout=TIMEOUT)
+    assert state == "done", f"seed {seed}, drops during {hit}: {job.message}"
+    assert len(hit) == DROPS, f"seed {seed}: the run ended after {len(hit)} drops"
+    assert cell.link_losses == DROPS, f"seed {seed}, drops during {hit}"
+    world = await asyncio.to_thread(objects, host)
+    assert place_of(world["crucible-A1"]) == location("rack", "A1")
+    assert world["crucible-A1"]["contents"] is None
+    assert place_of(world["crucible-A1.bead"]) == location("tray", "A1")
+    assert world["crucible-A1.bead"]["contents"] == "sample"
+    assert job.run is not None
+    assert store.locations(1) == final_locations(job.run)
+    store.close()

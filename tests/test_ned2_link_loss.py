@@ -6,6 +6,7 @@ and needing init after a power loss, which costs a Ned2 its calibration)."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator, Iterator
 
@@ -13,7 +14,7 @@ import pytest
 
 from fxcell import Cell, CellState
 from fxcell.config import CellConfig
-from fxcell.errors import InvalidStateError
+from fxcell.errors import FxcellError, InvalidStateError
 from fxcell.link.ned2.link import STALE_AFTER
 from fxcell.testing import injected_faults
 from fxcell.testing.faults import watching
@@ -28,7 +29,7 @@ REACHED = 10.0  # s: the Cell sees the link down, or the robot again, well withi
 
 @pytest.fixture
 def sim() -> Iterator[Ned2SimulatorHandle]:
-    with ned2_simulator(time_scale=0.2, calibrated=True) as handle:
+    with ned2_simulator(time_scale=1.0, calibrated=True) as handle:
         yield handle
 
 
@@ -102,3 +103,24 @@ async def test_an_unplanned_drop_of_a_ned2_link_is_what_the_fault_watch_reports(
         unplanned = watch.unplanned()
     assert "simulator: injected drop_connection" in unplanned
     assert [u for u in unplanned if u.startswith("link down: ")] != [], unplanned
+
+
+async def test_a_move_the_ned2_still_runs_after_a_drop_is_stopped_before_the_link_is_up(
+    cell: Cell, sim: Ned2SimulatorHandle, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A Ned2 holds the whole trajectory and finishes it without its client: the link that
+    # lost track of it stops it, and is up again only once the arm is idle.
+    far = [-1.2, 0.3, -0.5, 1.0, 0.8, 1.0]
+    move = asyncio.create_task(cell.move_joint(far))
+    with caplog.at_level(logging.WARNING, "fxcell.link"), injected_faults("the network drops"):
+        await asyncio.to_thread(sim.wait_for, "moving", True)
+        sim.inject("drop_connection")
+        with pytest.raises(FxcellError):
+            await move
+        await _down_then(cell, CellState.EXTERNAL_CONTROL_READY)
+    state = sim.state()
+    assert state["moving"] is False  # stopped, not left to run its course
+    assert max(abs(a - b) for a, b in zip(state["joints"], far, strict=True)) > 0.05
+    assert any("still runs a command" in r.getMessage() for r in caplog.records)
+    await cell.move_joint(TARGET)  # and the next move is taken
+    assert sim.state()["joints"] == pytest.approx(TARGET, abs=1e-6)

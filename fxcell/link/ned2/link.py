@@ -92,6 +92,8 @@ RECONNECT_EVERY = 0.5
 RECONNECT_SILENT = 2.0
 """Seconds a connection that is still open may stay silent before it is opened anew (a
 network cut that no end of the connection has noticed yet)."""
+ORPHAN_STOP_WITHIN = 5.0
+"""Seconds a reconnected link gives the robot to stop a move left over from before."""
 WATCH_PERIOD = 0.05
 """Seconds between two looks of the link's watch at the connection and the joint states."""
 
@@ -179,6 +181,7 @@ class Ned2Link:
         self._run: _Run | None = None
         self._heard = 0.0  # time.monotonic() of the newest joint state
         self._connected_at = 0.0  # ... and of the newest connection to the rosbridge
+        self._resuming = False  # reconnected, a command left over not stopped yet
         self._watcher: asyncio.Task[None] | None = None
 
     # ---------------------------------------------------------------- the contract's state
@@ -276,7 +279,36 @@ class Ned2Link:
     async def _reconnect(self) -> None:
         old, self._bridge = self._bridge, RosbridgeClient(self.host)
         await old.close()
-        await self._connect(self._bridge)
+        self._resuming = True  # not up before a command left over from before is stopped
+        try:
+            await self._connect(self._bridge)
+            await self._stop_orphan()
+        finally:
+            self._resuming = False  # the next joint state brings the link up
+
+    async def _stop_orphan(self) -> None:
+        """Stop a move the robot still runs from before the link went down. The Ned2 holds
+        a whole trajectory and finishes it without its client; the link that sent it has
+        lost track of it, so it is stopped (no motion without the cell watching it), and
+        the link is up again once the arm commander is idle."""
+        active = "/niryo_robot_arm_commander/is_active"
+        answer = await self._bridge.call(active, within=ORPHAN_STOP_WITHIN)
+        if not answer.get("value"):
+            return
+        log.warning(
+            "the Ned2 at %s still runs a command sent before the link went down: stopping it",
+            self.host,
+        )
+        self._messages += 1
+        stop = "/niryo_robot_arm_commander/stop_command"
+        await self._bridge.call(stop, within=ORPHAN_STOP_WITHIN)
+        for _ in range(round(ORPHAN_STOP_WITHIN / WATCH_PERIOD)):  # a poll with a deadline
+            if not (await self._bridge.call(active, within=ORPHAN_STOP_WITHIN)).get("value"):
+                return
+            await asyncio.sleep(WATCH_PERIOD)
+        raise RobotTimeoutError(
+            f"the Ned2 at {self.host} did not stop within {ORPHAN_STOP_WITHIN:g} s"
+        )
 
     async def close(self) -> None:
         watcher, self._watcher = self._watcher, None
@@ -332,6 +364,9 @@ class Ned2Link:
         qd = tuple(float(velocity[i]) for i in order)
         stamp = (msg.get("header") or {}).get("stamp") or {}
         timestamp = float(stamp.get("secs", 0)) + float(stamp.get("nsecs", 0)) * 1e-9
+        if self._resuming:  # reconnected, a leftover command not stopped yet: not up
+            self._heard = time.monotonic()
+            return
         hw = self._hardware
         if not hw or hw.get("calibration_needed") or hw.get("calibration_in_progress"):
             mode = RobotMode.IDLE
@@ -367,11 +402,14 @@ class Ned2Link:
         self._heard = time.monotonic()
         for sub in list(self._subscriptions):
             sub.offer(state)
-        if not self._up:
-            self._up = True
-            self._first.set()
-            self._on_status(LinkStatus.UP, "joint states arrive")
+        if not self._up and not self._resuming:
+            self._mark_up()
         self._on_state(state)
+
+    def _mark_up(self) -> None:
+        self._up = True
+        self._first.set()
+        self._on_status(LinkStatus.UP, "joint states arrive")
 
     # ---------------------------------------------------------------- operations
 
