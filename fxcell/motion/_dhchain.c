@@ -43,6 +43,9 @@ static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
 static const double VALLEY_NEAR = 0.05;    /* as kinematics._VALLEY_NEAR */
 static const double VALLEY_FINISH = 1e-5; /* as kinematics._VALLEY_FINISH */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
+static const double VALLEY_PREDICT = 0.3; /* as kinematics._VALLEY_PREDICT */
+static const double VALLEY_SAME = 0.25;   /* as kinematics._VALLEY_SAME */
+static const long VALLEY_TRIES = 6;       /* as kinematics._VALLEY_TRIES */
 #define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
@@ -454,7 +457,8 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
     return norm;
 }
 
-#define MAX_ROOTS (VALLEY_POINTS + 3)
+#define MAX_SAMPLES (VALLEY_POINTS + 2)
+#define MAX_ROOTS (VALLEY_POINTS + 3 + MAX_SAMPLES)
 
 /* The solutions along the wrist's self-motion through q (DHChain.valley): up to MAX_ROOTS
  * joints into roots and their error norms into norms; their number. */
@@ -465,7 +469,8 @@ valley(const Chain *c, const double *q, const double *target, double converged,
     double h = TWO_PI / VALLEY_POINTS;
     double origin[6], origin_jac[36], origin_err[6];
     double qq[6], below[6], jac[36], err[6], step[6], held[36], column[6], tangent[6];
-    int n = 0;
+    double samples[MAX_SAMPLES][6], predicted[MAX_SAMPLES]; /* points on the floor, θ6's step */
+    int n = 0, n_samples = 0;
     memcpy(origin, q, sizeof origin);
     double origin_norm = project(c, origin, target, origin_jac, origin_err);
     if (origin_norm < converged) {
@@ -504,6 +509,10 @@ valley(const Chain *c, const double *q, const double *target, double converged,
                 previous = 0.0; /* off the floor (out of reach there): no bracket across */
                 continue;
             }
+            if (point || sign > 0.0) {
+                memcpy(samples[n_samples], qq, sizeof qq);
+                predicted[n_samples++] = step[5];
+            }
             if (sign * previous > 0.0 && sign * step[5] < 0.0) {
                 if (sign > 0.0)
                     norms[n] = close_root(c, below, qq, target, converged, roots[n]);
@@ -514,6 +523,28 @@ valley(const Chain *c, const double *q, const double *target, double converged,
             previous = step[5];
             memcpy(below, qq, sizeof below);
         }
+    }
+    /* roots closer together than the points leave no sign change between them: a point whose
+     * Newton step of θ6 predicts a root within VALLEY_PREDICT of the spacing, where no root
+     * found is, gets VALLEY_TRIES Newton's steps */
+    for (int i = 0; i < n_samples; i++) {
+        double t = predicted[i];
+        if (!(fabs(t) < VALLEY_PREDICT * h))
+            continue;
+        double aim = samples[i][5] + t;
+        int known = 0;
+        for (int k = 0; k < n && !known; k++) {
+            if (!(norms[k] < converged))
+                continue;
+            double w = roots[k][5] - aim;
+            known = fabs(w - TWO_PI * nearbyint(w * INV_TWO_PI)) < VALLEY_SAME * h;
+        }
+        if (known)
+            continue;
+        memcpy(roots[n], samples[i], 6 * sizeof(double));
+        norms[n] = newton(c, roots[n], target, VALLEY_TRIES, converged, converged);
+        if (norms[n] < converged)
+            n++;
     }
     return n;
 }

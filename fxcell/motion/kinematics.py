@@ -124,6 +124,15 @@ _VALLEY_FINISH = 1e-5
 _VALLEY_FLOOR = 1e-2
 """Pose error (m and rad together) above which a point is off the valley (the arm out of
 reach at that θ6): no root is looked for next to it."""
+_VALLEY_PREDICT = 0.3
+"""Fraction of the points' spacing within which a point's Newton step of θ6 predicts a root
+that :meth:`DHChain.valley` looks for even without a sign change (roots closer together than
+the points, where the valley passes next to the calibrated wrist singularity)."""
+_VALLEY_SAME = 0.25
+"""Fraction of the points' spacing within which a predicted root is one already found."""
+_VALLEY_TRIES = 6
+"""Newton's steps :meth:`DHChain.valley` gives a predicted root (next to one, they converge
+in two or three)."""
 _STALL_STEPS = 8
 _STALL_GAIN = 1e-3
 _STALL_FLOOR = 1e-7
@@ -1648,12 +1657,16 @@ class DHChain:
         problem); Newton's step of all six joints there says on which side a root is (its
         θ6 part changes sign from + to - across one). The points go half a turn each way
         (the valley may be cut where the arm is out of reach); each bracket is closed by
-        Newton's steps, bisected where one would leave it."""
+        Newton's steps, bisected where one would leave it. Where the valley passes next to
+        the calibrated arm's own wrist singularity its roots can lie closer together than the
+        points (no sign change between them): a point whose Newton step of θ6 predicts a root
+        within _VALLEY_PREDICT of the spacing where none was found gets Newton's steps too."""
         h = TWO_PI / _VALLEY_POINTS
         roots: list[tuple[list[float], float]] = []
         origin = self._project([float(v) for v in q], target)
         if origin[3] < converged:
             roots.append((origin[0], origin[3]))
+        samples: list[tuple[list[float], float]] = []  # points on the floor, θ6's step
         for sign in (1.0, -1.0):
             qq, jac, err, norm = origin
             previous = 0.0  # the Newton step of θ6 at the last point on the floor (0: none)
@@ -1677,6 +1690,8 @@ class DHChain:
                 if norm > _VALLEY_FLOOR or step is None:
                     previous = 0.0  # off the floor (out of reach there): no bracket across
                     continue
+                if point or sign > 0.0:
+                    samples.append((qq, step[5]))
                 if sign * previous > 0.0 and sign * step[5] < 0.0:
                     if sign > 0.0:
                         roots.append(self._close(below, qq, target, converged))
@@ -1684,6 +1699,22 @@ class DHChain:
                         roots.append(self._close(qq, below, target, converged))
                 previous = step[5]
                 below = qq
+        # roots closer together than the points leave no sign change between them: a point
+        # whose Newton step of θ6 predicts a root within _VALLEY_PREDICT of the spacing, where
+        # no root found is, gets _VALLEY_TRIES Newton's steps
+        for qq, t in samples:
+            if not abs(t) < _VALLEY_PREDICT * h:
+                continue
+            aim = qq[5] + t
+            if any(
+                abs(r[5] - aim - TWO_PI * round((r[5] - aim) * _INV_TWO_PI)) < _VALLEY_SAME * h
+                for r, e in roots
+                if e < converged
+            ):
+                continue
+            root = self.newton(qq, target, _VALLEY_TRIES, converged, converged)
+            if root[1] < converged:
+                roots.append(root)
         return roots
 
     def _close(
