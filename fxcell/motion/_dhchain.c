@@ -46,6 +46,8 @@ static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
 static const double VALLEY_PREDICT = 0.3; /* as kinematics._VALLEY_PREDICT */
 static const double VALLEY_SAME = 0.25;   /* as kinematics._VALLEY_SAME */
 static const long VALLEY_TRIES = 6;       /* as kinematics._VALLEY_TRIES */
+static const double VALLEY_ON = 0.1;      /* as kinematics._VALLEY_ON */
+#define MAX_WALKED 16                    /* as kinematics._MAX_WALKED */
 #define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
@@ -460,12 +462,17 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
 #define MAX_SAMPLES (VALLEY_POINTS + 2)
 #define MAX_ROOTS (VALLEY_POINTS + 3 + MAX_SAMPLES)
 
-/* The solutions along the wrist's self-motion through q (DHChain.valley): up to MAX_ROOTS
- * joints into roots and their error norms into norms; their number. */
+#define HALF (VALLEY_POINTS / 2)
+
+/* The solutions along the wrist's self-motion through q (DHChain._walk): up to MAX_ROOTS
+ * joints into roots and their error norms into norms; their number. With pts not NULL, the
+ * points on the floor by their turn from the origin (-HALF..HALF) into it, and *whole set to
+ * whether every one was on the floor (the valley not cut). */
 static int
 valley(const Chain *c, const double *q, const double *target, double converged,
-       double roots[][6], double *norms)
+       double roots[][6], double *norms, double pts[][6], int *whole)
 {
+    int on_floor = 0;
     double h = TWO_PI / VALLEY_POINTS;
     double origin[6], origin_jac[36], origin_err[6];
     double qq[6], below[6], jac[36], err[6], step[6], held[36], column[6], tangent[6];
@@ -512,6 +519,9 @@ valley(const Chain *c, const double *q, const double *target, double converged,
             if (point || sign > 0.0) {
                 memcpy(samples[n_samples], qq, sizeof qq);
                 predicted[n_samples++] = step[5];
+                if (pts != NULL)
+                    memcpy(pts[HALF + (sign > 0.0 ? point : -point)], qq, sizeof qq);
+                on_floor++;
             }
             if (sign * previous > 0.0 && sign * step[5] < 0.0) {
                 if (sign > 0.0)
@@ -546,7 +556,36 @@ valley(const Chain *c, const double *q, const double *target, double converged,
         if (norms[n] < converged)
             n++;
     }
+    if (whole != NULL)
+        *whole = on_floor == 2 * HALF + 1;
     return n;
+}
+
+/* Whether q lies on the valley whose points pts are (a whole turn of θ6 on the floor):
+ * θ1..θ5 within VALLEY_ON of the line between the two points whose θ6 enclose its own
+ * (kinematics._on_walked). */
+static int
+on_walked(const double *q, double pts[][6])
+{
+    double h = TWO_PI / VALLEY_POINTS;
+    double w = q[5] - pts[HALF][5];
+    w -= TWO_PI * nearbyint(w * INV_TWO_PI);
+    double u = w / h;
+    double kf = floor(u);
+    if (kf < -HALF || kf >= HALF)
+        return 0;
+    int k = (int)kf;
+    const double *a = pts[HALF + k], *b = pts[HALF + k + 1];
+    double f = u - kf;
+    for (int j = 0; j < 5; j++) {
+        double step = b[j] - a[j];
+        step -= TWO_PI * nearbyint(step * INV_TWO_PI);
+        double off = q[j] - (a[j] + f * step);
+        off -= TWO_PI * nearbyint(off * INV_TWO_PI);
+        if (!(fabs(off) < VALLEY_ON))
+            return 0;
+    }
+    return 1;
 }
 
 /* The 2π-equivalent of v nearest s within [lo, hi], or NaN (kinematics._near). */
@@ -650,7 +689,7 @@ Chain_valley(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     if (nargs > 2 && (converged = PyFloat_AsDouble(args[2])) == -1.0 && PyErr_Occurred())
         return NULL;
-    int n = valley(self, q, target, converged, roots, norms);
+    int n = valley(self, q, target, converged, roots, norms, NULL, NULL);
     PyObject *out = PyList_New(n);
     if (out == NULL)
         return NULL;
@@ -778,6 +817,8 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
     double best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
     int found_any = 0;
     int missed[MAX_STARTS]; /* starts whose valley walk found no root */
+    double walked[MAX_WALKED][2 * HALF + 1][6]; /* the points of the valleys walked whole */
+    int n_walked = 0;
     Py_ssize_t n_missed = 0, n_pending = n;
     const int *pending = order;
     int retry = 0;
@@ -798,14 +839,27 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
                 if (found_any && !shoulder && fabs(sin(start[4])) < near &&
                     wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
                     continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
+                int on_valley = !shoulder && fabs(sin(start[4])) < VALLEY_NEAR;
+                if (on_valley) {
+                    int known = 0;
+                    for (int w = 0; w < n_walked && !known; w++)
+                        known = on_walked(start, walked[w]);
+                    if (known)
+                        continue; /* on a valley walked already */
+                }
                 double err = newton(self, q, target, n_newton, converged, rounding);
                 if (err <= accepted) {
                     memcpy(found[n_found++], q, sizeof q);
                 }
-                else if (!shoulder && fabs(sin(start[4])) < VALLEY_NEAR) {
+                else if (on_valley) {
                     /* along the wrist's self-motion: every solution on this branch's valley */
                     double roots[MAX_ROOTS][6];
-                    int n_roots = valley(self, start, target, converged, roots, norms);
+                    int whole = 0;
+                    int n_roots = valley(self, start, target, converged, roots, norms,
+                                         n_walked < MAX_WALKED ? walked[n_walked] : NULL,
+                                         &whole);
+                    if (whole && n_walked < MAX_WALKED)
+                        n_walked++;
                     for (int k = 0; k < n_roots; k++)
                         if (norms[k] <= accepted)
                             memcpy(found[n_found++], roots[k], sizeof q);

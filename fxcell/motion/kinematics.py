@@ -131,6 +131,12 @@ the points, where the valley passes next to the calibrated wrist singularity).""
 _VALLEY_SAME = 0.25
 """Fraction of the points' spacing within which a predicted root is one already found."""
 _VALLEY_TRIES = 6
+_VALLEY_ON = 0.1
+"""Radians (each of θ1..θ5) within which :meth:`DHChain.nearest` takes a start next to the
+wrist singularity for a point of a valley it walked already (a whole turn, uncut): the walk
+from it would find the same roots."""
+_MAX_WALKED = 16
+"""Valleys :meth:`DHChain.nearest` remembers per call (the C code's fixed arrays)."""
 """Newton's steps :meth:`DHChain.valley` gives a predicted root (next to one, they converge
 in two or three)."""
 _STALL_STEPS = 8
@@ -1645,6 +1651,12 @@ class DHChain:
     def valley(
         self, q: Sequence[float], target: Sequence[float], converged: float = 1e-12
     ) -> list[tuple[list[float], float]]:
+        """The solutions along the wrist's self-motion through ``q`` (see :meth:`_walk`)."""
+        return self._walk(q, target, converged)[0]
+
+    def _walk(
+        self, q: Sequence[float], target: Sequence[float], converged: float
+    ) -> tuple[list[tuple[list[float], float]], list[list[float]] | None]:
         """The solutions along the wrist's self-motion through ``q``: (joints, error norm)
         pairs, the norm below ``converged`` unless a root's search ran out of steps.
 
@@ -1667,6 +1679,9 @@ class DHChain:
         if origin[3] < converged:
             roots.append((origin[0], origin[3]))
         samples: list[tuple[list[float], float]] = []  # points on the floor, θ6's step
+        # the points on the floor by their turn from the origin, -half..half (None: off it)
+        half = _VALLEY_POINTS // 2
+        floor: list[list[float] | None] = [None] * (2 * half + 1)
         for sign in (1.0, -1.0):
             qq, jac, err, norm = origin
             previous = 0.0  # the Newton step of θ6 at the last point on the floor (0: none)
@@ -1692,6 +1707,7 @@ class DHChain:
                     continue
                 if point or sign > 0.0:
                     samples.append((qq, step[5]))
+                    floor[half + (point if sign > 0.0 else -point)] = qq
                 if sign * previous > 0.0 and sign * step[5] < 0.0:
                     if sign > 0.0:
                         roots.append(self._close(below, qq, target, converged))
@@ -1715,7 +1731,9 @@ class DHChain:
             root = self.newton(qq, target, _VALLEY_TRIES, converged, converged)
             if root[1] < converged:
                 roots.append(root)
-        return roots
+        if any(p is None for p in floor):
+            return roots, None  # cut (the arm out of reach): a walk from elsewhere sees its ends
+        return roots, [p for p in floor if p is not None]
 
     def _close(
         self, lower: list[float], upper: list[float], target: Sequence[float], converged: float
@@ -1783,7 +1801,8 @@ class DHChain:
         alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
         Refined: :meth:`newton`; if that leaves an error above ``accepted``, every solution
         along the start's valley (:meth:`valley`) next to the wrist singularity (|sin θ5|
-        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle` from
+        below _VALLEY_NEAR, the target away from the shoulder's; a start on a valley walked
+        whole already, :func:`_on_walked`, is skipped), else :meth:`settle` from
         where Newton's steps left off; if no
         start gave a solution, those whose valley walk found none are settled too (the walk
         misses roots where the valley is cut, the arm stretched or folded); a solution's
@@ -1813,6 +1832,7 @@ class DHChain:
         regular = 0.0  # the largest move of a start away from the singularities
         unrefined = math.inf
         missed: list[int] = []  # starts whose valley walk found no root
+        walked: list[list[list[float]]] = []  # the points of the valleys walked whole
         pending, retry = order, False
         while True:
             for i in pending:
@@ -1836,12 +1856,17 @@ class DHChain:
                         and _wrist_bound(start, seed) > math.sqrt(best_d) + 1e-9
                     ):
                         continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
+                    on_valley = not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR
+                    if on_valley and any(_on_walked(start, w) for w in walked):
+                        continue  # on a valley walked already
                     q, err = self.newton(start, target, newton_iterations, converged, rounding)
                     if err <= accepted:
                         found.append(q)
-                    elif not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR:
+                    elif on_valley:
                         # along the wrist's self-motion: every solution on this branch's valley
-                        roots = self.valley(start, target, converged)
+                        roots, floor = self._walk(start, target, converged)
+                        if floor is not None and len(walked) < _MAX_WALKED:
+                            walked.append(floor)
                         found += [r for r, e in roots if e <= accepted]
                         if not found:
                             missed.append(i)
@@ -1912,6 +1937,32 @@ class DHChain:
                 if zx * zx + zy * zy < near * near:
                     out |= 2
         return out
+
+
+def _on_walked(q: Sequence[float], floor: list[list[float]]) -> bool:
+    """Whether ``q`` lies on the valley whose points ``floor`` are (a whole turn of θ6 on the
+    floor, see :meth:`DHChain._walk`): θ1..θ5 within _VALLEY_ON of the line between the two
+    points whose θ6 enclose its own (each joint's difference wrapped into ±π)."""
+    half = _VALLEY_POINTS // 2
+    h = TWO_PI / _VALLEY_POINTS
+    origin = floor[half]
+    w = q[5] - origin[5]
+    w -= TWO_PI * round(w * _INV_TWO_PI)
+    u = w / h
+    k = math.floor(u)
+    if k < -half or k >= half:
+        return False
+    a = floor[half + k]
+    b = floor[half + k + 1]
+    f = u - k
+    for j in range(5):
+        step = b[j] - a[j]
+        step -= TWO_PI * round(step * _INV_TWO_PI)
+        off = q[j] - (a[j] + f * step)
+        off -= TWO_PI * round(off * _INV_TWO_PI)
+        if not abs(off) < _VALLEY_ON:
+            return False
+    return True
 
 
 def _wrist_bound(start: Sequence[float], seed: Sequence[float]) -> float:
