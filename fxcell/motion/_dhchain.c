@@ -49,6 +49,7 @@ static const long VALLEY_TRIES = 6;       /* as kinematics._VALLEY_TRIES */
 static const double VALLEY_ON = 0.1;      /* as kinematics._VALLEY_ON */
 #define MAX_WALKED 16                    /* as kinematics._MAX_WALKED */
 #define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
+#define QUICK_STALL 4                    /* as kinematics._QUICK_STALL */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
 static const double STALL_DONE = 1e-10;   /* as kinematics._STALL_DONE */
@@ -332,11 +333,11 @@ newton(const Chain *c, double *q, const double *target, long iterations, double 
     return norm;
 }
 
-/* Marquardt's Levenberg-Marquardt from q (in place); the error norm left, and the
- * stationarity ratio in *gradient. */
+/* Marquardt's Levenberg-Marquardt from q (in place), a stall judged over window steps; the
+ * error norm left, and the stationarity ratio in *gradient. */
 static double
 settle(const Chain *c, double *q, const double *target, long iterations, double converged,
-       double stationary, double *gradient)
+       double stationary, int window, double *gradient)
 {
     double frame[12], jac[36], err[6], step[6], trial[6], tjac[36], terr[6];
     evaluate(c, q, frame, jac);
@@ -347,7 +348,7 @@ settle(const Chain *c, double *q, const double *target, long iterations, double 
     for (long it = 0; it < iterations; it++) {
         if (norm < converged || g < stationary)
             break;
-        if (stationary > 0.0 && it > 0 && it % STALL_STEPS == 0) {
+        if (stationary > 0.0 && it > 0 && it % window == 0) {
             if (norm > STALL_FLOOR && norm > (1.0 - STALL_GAIN) * mark) {
                 g = 0.0; /* stalled far from a root: a local minimum's basin */
                 break;
@@ -723,7 +724,8 @@ Chain_settle(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     if (nargs > 4 && (stationary = PyFloat_AsDouble(args[4])) == -1.0 && PyErr_Occurred())
         return NULL;
-    double norm = settle(self, q, target, iterations, converged, stationary, &gradient);
+    double norm =
+        settle(self, q, target, iterations, converged, stationary, STALL_STEPS, &gradient);
     PyObject *out = float_list(q, 6);
     return out == NULL ? NULL : Py_BuildValue("(Ndd)", out, norm, gradient);
 }
@@ -871,7 +873,9 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
             }
             if (!n_found) { /* damped steps, on from where Newton's left off */
                 double gradient;
-                double err = settle(self, q, target, n_settle, converged, stationary, &gradient);
+                int window = fabs(sin(start[4])) >= near ? QUICK_STALL : STALL_STEPS;
+                double err =
+                    settle(self, q, target, n_settle, converged, stationary, window, &gradient);
                 if (err > accepted) {
                     if (!(gradient <= stationary) && distance[i] < unrefined)
                         unrefined = distance[i];

@@ -140,6 +140,13 @@ _MAX_WALKED = 16
 """Newton's steps :meth:`DHChain.valley` gives a predicted root (next to one, they converge
 in two or three)."""
 _STALL_STEPS = 8
+_QUICK_STALL = 4
+"""_STALL_STEPS for a start away from the wrist singularity (|sin θ5| at least ``near``, see
+:meth:`DHChain.nearest`): next to the shoulder singularity most starts the nominal closed
+form gives (the arm bent by _LENIENT_BEND) have no calibrated solution and settle into a
+local minimum, which 4 steps tell as well as 8 on the bench's families; next to the wrist
+singularity, a run crawling along the self-motion toward a root can look stalled over 4 (2: a
+shoulder-family root missed)."""
 _STALL_GAIN = 1e-3
 _STALL_FLOOR = 1e-7
 """With ``stationary`` > 0, :meth:`DHChain.settle` reports a local minimum of the error (no
@@ -1577,6 +1584,7 @@ class DHChain:
         iterations: int = 60,
         converged: float = 1e-12,
         stationary: float = 1e-6,
+        window: int = _STALL_STEPS,
     ) -> tuple[list[float], float, float]:
         """Levenberg-Marquardt (damping scaled by the diagonal of ``JᵀJ``) from ``q`` toward
         ``target``, for starts Newton's steps do not bring to a solution (next to a
@@ -1584,7 +1592,7 @@ class DHChain:
         stationary, ``‖Jᵀe‖ / (‖J‖·‖e‖)``. A last value below ``stationary`` (where the steps
         stop) with an error left is a local minimum of the error: no solution near ``q`` (the
         target beyond this branch's reach, as a stretched arm's). With ``stationary`` > 0 an
-        error that stalls far from a root (_STALL_STEPS) ends the steps too, reported as
+        error that stalls far from a root (over ``window`` steps) ends the steps too, reported as
         stationary (0), and so does one that crawls into a root below _STALL_DONE."""
         qq = [float(v) for v in q]
         frame, jac = self.frame_and_jacobian(qq)
@@ -1596,7 +1604,7 @@ class DHChain:
         for it in range(iterations):
             if norm < converged or gradient < stationary:
                 break
-            if stationary > 0.0 and it > 0 and it % _STALL_STEPS == 0:
+            if stationary > 0.0 and it > 0 and it % window == 0:
                 if norm > _STALL_FLOOR and norm > (1.0 - _STALL_GAIN) * mark:
                     gradient = 0.0  # stalled far from a root: a local minimum's basin
                     break
@@ -1873,7 +1881,12 @@ class DHChain:
                             continue
                 if not found:  # damped steps, on from where Newton's left off
                     q, err, gradient = self.settle(
-                        q, target, settle_iterations, converged, stationary
+                        q,
+                        target,
+                        settle_iterations,
+                        converged,
+                        stationary,
+                        _QUICK_STALL if abs(math.sin(start[4])) >= near else _STALL_STEPS,
                     )
                     if err > accepted:
                         if not gradient <= stationary and distance[i] < unrefined:
