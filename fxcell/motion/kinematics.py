@@ -1680,7 +1680,17 @@ class DHChain:
         Newton's steps, bisected where one would leave it. Where the valley passes next to
         the calibrated arm's own wrist singularity its roots can lie closer together than the
         points (no sign change between them): a point whose Newton step of θ6 predicts a root
-        within _VALLEY_PREDICT of the spacing where none was found gets Newton's steps too."""
+        within _VALLEY_PREDICT of the spacing where none was found gets Newton's steps too.
+
+        Known misses (bench/ik.py's wrist family, seed TCP: the hot path's answer farther
+        than the reference's for 11 of the first 200 poses, 19 of the next 200): two or three
+        roots within ~0.3 rad of θ6 where the pose is (nearly) exactly wrist-singular, the
+        valley's error there ~1e-5 against ~1e-3 elsewhere; the points, one projection each,
+        are ~5e-4 off the floor there, so the signs of θ6's steps are unreliable (two or three
+        projections, tried, missed more); roots next to a cut; and starts with |sin θ5| just
+        above _VALLEY_NEAR (0.1 or 0.2 instead, tried: no better). Fewer points (8, 10) missed
+        more; probing ±0.1 rad along the valley from each root found none of them, ±0.25 rad
+        one of 11 for ~30 % more chain evaluations."""
         h = TWO_PI / _VALLEY_POINTS
         roots: list[tuple[list[float], float]] = []
         origin = self._project([float(v) for v in q], target)
