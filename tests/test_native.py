@@ -322,3 +322,43 @@ def test_the_c_refinement_settles_what_the_valley_walk_misses_as_dhchain_does() 
                 rescued += 1
     assert compared > 100
     assert rescued > 0, (compared, rescued)  # the settled starts were exercised
+
+
+def test_the_c_refinement_skips_the_valleys_it_walked_as_dhchain_does() -> None:
+    # wrist-singular poses: a start on a valley walked whole already is not walked again
+    # (kinematics._on_walked), in both chains alike; such starts occur
+    _require_native_chain()
+    rng = np.random.default_rng(2614)
+    compared = shared = 0
+    cal = Calibration(*(tuple(row.tolist()) for row in rng.uniform(-2e-3, 2e-3, (4, 6))))
+    kin = calibration.CalibratedKinematics.ur3e_calibrated(cal)
+    theta, a, d, alpha = cal.dh()
+    fast = calibration.Chain(theta, a, d, alpha, kin._tcp)
+    slow = kinematics.DHChain(theta, a, d, alpha, kin._tcp)
+    for _ in range(60):
+        q = rng.uniform(-2.0 * math.pi, 2.0 * math.pi, 6)
+        q[4] = rng.choice((0.0, math.pi)) + 10.0 ** rng.uniform(-9, -3)
+        pose = kin.forward(q)
+        seed = rng.uniform(-2.0 * math.pi, 2.0 * math.pi, 6).tolist()
+        starts = kin._starts.nearest_within(pose, seed, math.inf, lenient=True)[1]
+        goal = calibration._rows(pose)
+        args = (
+            starts, goal, seed, kin.lower, kin.upper, calibration._FAST_ITERATIONS,
+            calibration._SETTLE_ITERATIONS, calibration.CONVERGED, calibration._ROUNDING,
+            calibration._STATIONARY, calibration.ACCEPTED, calibration._RIVAL_FACTOR,
+            calibration._NEAR_SINGULAR,
+        )  # fmt: skip
+        assert fast.nearest(*args) == slow.nearest(*args), f"q={q.tolist()!r} seed={seed!r}"
+        compared += 1
+        floors: list[list[list[float]]] = []
+        for _, s in starts:
+            if abs(math.sin(s[4])) >= kinematics._VALLEY_NEAR:
+                continue
+            if any(kinematics._on_walked(s, f) for f in floors):
+                shared += 1
+                continue
+            floor = slow._walk(s, goal, calibration.CONVERGED)[1]
+            if floor is not None:
+                floors.append(floor)
+    assert compared == 60
+    assert shared > 10, shared  # starts on a walked valley were exercised

@@ -43,7 +43,13 @@ static const int VALLEY_HALVINGS = 5;    /* as kinematics._VALLEY_HALVINGS */
 static const double VALLEY_NEAR = 0.05;    /* as kinematics._VALLEY_NEAR */
 static const double VALLEY_FINISH = 1e-5; /* as kinematics._VALLEY_FINISH */
 static const double VALLEY_FLOOR = 1e-2;  /* as kinematics._VALLEY_FLOOR */
+static const double VALLEY_PREDICT = 0.3; /* as kinematics._VALLEY_PREDICT */
+static const double VALLEY_SAME = 0.25;   /* as kinematics._VALLEY_SAME */
+static const long VALLEY_TRIES = 6;       /* as kinematics._VALLEY_TRIES */
+static const double VALLEY_ON = 0.1;      /* as kinematics._VALLEY_ON */
+#define MAX_WALKED 16                    /* as kinematics._MAX_WALKED */
 #define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
+#define QUICK_STALL 4                    /* as kinematics._QUICK_STALL */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
 static const double STALL_DONE = 1e-10;   /* as kinematics._STALL_DONE */
@@ -327,11 +333,11 @@ newton(const Chain *c, double *q, const double *target, long iterations, double 
     return norm;
 }
 
-/* Marquardt's Levenberg-Marquardt from q (in place); the error norm left, and the
- * stationarity ratio in *gradient. */
+/* Marquardt's Levenberg-Marquardt from q (in place), a stall judged over window steps; the
+ * error norm left, and the stationarity ratio in *gradient. */
 static double
 settle(const Chain *c, double *q, const double *target, long iterations, double converged,
-       double stationary, double *gradient)
+       double stationary, int window, double *gradient)
 {
     double frame[12], jac[36], err[6], step[6], trial[6], tjac[36], terr[6];
     evaluate(c, q, frame, jac);
@@ -342,7 +348,7 @@ settle(const Chain *c, double *q, const double *target, long iterations, double 
     for (long it = 0; it < iterations; it++) {
         if (norm < converged || g < stationary)
             break;
-        if (stationary > 0.0 && it > 0 && it % STALL_STEPS == 0) {
+        if (stationary > 0.0 && it > 0 && it % window == 0) {
             if (norm > STALL_FLOOR && norm > (1.0 - STALL_GAIN) * mark) {
                 g = 0.0; /* stalled far from a root: a local minimum's basin */
                 break;
@@ -454,18 +460,25 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
     return norm;
 }
 
-#define MAX_ROOTS (VALLEY_POINTS + 3)
+#define MAX_SAMPLES (VALLEY_POINTS + 2)
+#define MAX_ROOTS (VALLEY_POINTS + 3 + MAX_SAMPLES)
 
-/* The solutions along the wrist's self-motion through q (DHChain.valley): up to MAX_ROOTS
- * joints into roots and their error norms into norms; their number. */
+#define HALF (VALLEY_POINTS / 2)
+
+/* The solutions along the wrist's self-motion through q (DHChain._walk): up to MAX_ROOTS
+ * joints into roots and their error norms into norms; their number. With pts not NULL, the
+ * points on the floor by their turn from the origin (-HALF..HALF) into it, and *whole set to
+ * whether every one was on the floor (the valley not cut). */
 static int
 valley(const Chain *c, const double *q, const double *target, double converged,
-       double roots[][6], double *norms)
+       double roots[][6], double *norms, double pts[][6], int *whole)
 {
+    int on_floor = 0;
     double h = TWO_PI / VALLEY_POINTS;
     double origin[6], origin_jac[36], origin_err[6];
     double qq[6], below[6], jac[36], err[6], step[6], held[36], column[6], tangent[6];
-    int n = 0;
+    double samples[MAX_SAMPLES][6], predicted[MAX_SAMPLES]; /* points on the floor, θ6's step */
+    int n = 0, n_samples = 0;
     memcpy(origin, q, sizeof origin);
     double origin_norm = project(c, origin, target, origin_jac, origin_err);
     if (origin_norm < converged) {
@@ -504,6 +517,13 @@ valley(const Chain *c, const double *q, const double *target, double converged,
                 previous = 0.0; /* off the floor (out of reach there): no bracket across */
                 continue;
             }
+            if (point || sign > 0.0) {
+                memcpy(samples[n_samples], qq, sizeof qq);
+                predicted[n_samples++] = step[5];
+                if (pts != NULL)
+                    memcpy(pts[HALF + (sign > 0.0 ? point : -point)], qq, sizeof qq);
+                on_floor++;
+            }
             if (sign * previous > 0.0 && sign * step[5] < 0.0) {
                 if (sign > 0.0)
                     norms[n] = close_root(c, below, qq, target, converged, roots[n]);
@@ -515,7 +535,58 @@ valley(const Chain *c, const double *q, const double *target, double converged,
             memcpy(below, qq, sizeof below);
         }
     }
+    /* roots closer together than the points leave no sign change between them: a point whose
+     * Newton step of θ6 predicts a root within VALLEY_PREDICT of the spacing, where no root
+     * found is, gets VALLEY_TRIES Newton's steps */
+    for (int i = 0; i < n_samples; i++) {
+        double t = predicted[i];
+        if (!(fabs(t) < VALLEY_PREDICT * h))
+            continue;
+        double aim = samples[i][5] + t;
+        int known = 0;
+        for (int k = 0; k < n && !known; k++) {
+            if (!(norms[k] < converged))
+                continue;
+            double w = roots[k][5] - aim;
+            known = fabs(w - TWO_PI * nearbyint(w * INV_TWO_PI)) < VALLEY_SAME * h;
+        }
+        if (known)
+            continue;
+        memcpy(roots[n], samples[i], 6 * sizeof(double));
+        norms[n] = newton(c, roots[n], target, VALLEY_TRIES, converged, converged);
+        if (norms[n] < converged)
+            n++;
+    }
+    if (whole != NULL)
+        *whole = on_floor == 2 * HALF + 1;
     return n;
+}
+
+/* Whether q lies on the valley whose points pts are (a whole turn of θ6 on the floor):
+ * θ1..θ5 within VALLEY_ON of the line between the two points whose θ6 enclose its own
+ * (kinematics._on_walked). */
+static int
+on_walked(const double *q, double pts[][6])
+{
+    double h = TWO_PI / VALLEY_POINTS;
+    double w = q[5] - pts[HALF][5];
+    w -= TWO_PI * nearbyint(w * INV_TWO_PI);
+    double u = w / h;
+    double kf = floor(u);
+    if (kf < -HALF || kf >= HALF)
+        return 0;
+    int k = (int)kf;
+    const double *a = pts[HALF + k], *b = pts[HALF + k + 1];
+    double f = u - kf;
+    for (int j = 0; j < 5; j++) {
+        double step = b[j] - a[j];
+        step -= TWO_PI * nearbyint(step * INV_TWO_PI);
+        double off = q[j] - (a[j] + f * step);
+        off -= TWO_PI * nearbyint(off * INV_TWO_PI);
+        if (!(fabs(off) < VALLEY_ON))
+            return 0;
+    }
+    return 1;
 }
 
 /* The 2π-equivalent of v nearest s within [lo, hi], or NaN (kinematics._near). */
@@ -619,7 +690,7 @@ Chain_valley(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     if (nargs > 2 && (converged = PyFloat_AsDouble(args[2])) == -1.0 && PyErr_Occurred())
         return NULL;
-    int n = valley(self, q, target, converged, roots, norms);
+    int n = valley(self, q, target, converged, roots, norms, NULL, NULL);
     PyObject *out = PyList_New(n);
     if (out == NULL)
         return NULL;
@@ -653,7 +724,8 @@ Chain_settle(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     if (nargs > 4 && (stationary = PyFloat_AsDouble(args[4])) == -1.0 && PyErr_Occurred())
         return NULL;
-    double norm = settle(self, q, target, iterations, converged, stationary, &gradient);
+    double norm =
+        settle(self, q, target, iterations, converged, stationary, STALL_STEPS, &gradient);
     PyObject *out = float_list(q, 6);
     return out == NULL ? NULL : Py_BuildValue("(Ndd)", out, norm, gradient);
 }
@@ -747,6 +819,8 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
     double best_d = INFINITY, moved = 0.0, regular = 0.0, unrefined = INFINITY;
     int found_any = 0;
     int missed[MAX_STARTS]; /* starts whose valley walk found no root */
+    double walked[MAX_WALKED][2 * HALF + 1][6]; /* the points of the valleys walked whole */
+    int n_walked = 0;
     Py_ssize_t n_missed = 0, n_pending = n;
     const int *pending = order;
     int retry = 0;
@@ -767,14 +841,27 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
                 if (found_any && !shoulder && fabs(sin(start[4])) < near &&
                     wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
                     continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
+                int on_valley = !shoulder && fabs(sin(start[4])) < VALLEY_NEAR;
+                if (on_valley) {
+                    int known = 0;
+                    for (int w = 0; w < n_walked && !known; w++)
+                        known = on_walked(start, walked[w]);
+                    if (known)
+                        continue; /* on a valley walked already */
+                }
                 double err = newton(self, q, target, n_newton, converged, rounding);
                 if (err <= accepted) {
                     memcpy(found[n_found++], q, sizeof q);
                 }
-                else if (!shoulder && fabs(sin(start[4])) < VALLEY_NEAR) {
+                else if (on_valley) {
                     /* along the wrist's self-motion: every solution on this branch's valley */
                     double roots[MAX_ROOTS][6];
-                    int n_roots = valley(self, start, target, converged, roots, norms);
+                    int whole = 0;
+                    int n_roots = valley(self, start, target, converged, roots, norms,
+                                         n_walked < MAX_WALKED ? walked[n_walked] : NULL,
+                                         &whole);
+                    if (whole && n_walked < MAX_WALKED)
+                        n_walked++;
                     for (int k = 0; k < n_roots; k++)
                         if (norms[k] <= accepted)
                             memcpy(found[n_found++], roots[k], sizeof q);
@@ -786,7 +873,9 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
             }
             if (!n_found) { /* damped steps, on from where Newton's left off */
                 double gradient;
-                double err = settle(self, q, target, n_settle, converged, stationary, &gradient);
+                int window = fabs(sin(start[4])) >= near ? QUICK_STALL : STALL_STEPS;
+                double err =
+                    settle(self, q, target, n_settle, converged, stationary, window, &gradient);
                 if (err > accepted) {
                     if (!(gradient <= stationary) && distance[i] < unrefined)
                         unrefined = distance[i];

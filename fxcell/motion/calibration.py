@@ -84,9 +84,13 @@ _SAME_START = 0.05
 """Radians (per joint) within which two starting points count as one."""
 _EDGE_TURN = 0.02
 """Radians by which a target near a wrist singularity is turned to find starts."""
-_SETTLE_ITERATIONS = 1000
+_SETTLE_ITERATIONS = 3000
 """Levenberg-Marquardt steps the hot path gives a start that Newton's steps did not bring to a
-solution (see :meth:`DHChain.settle`)."""
+solution (see :meth:`DHChain.settle`). A start still making progress when they run out is
+unrefined and, if it could be nearer, sends the call to the general path (~3 ms): next to the
+wrist singularity, steps crawling along the self-motion toward a root took 1000-3000 (the
+bench's wrist and limits families: 10 of 2000 calls on the general path with 1000 steps, 7
+with 3000; the steps stop early where the error converges or stalls)."""
 _STATIONARY = 1e-6
 """``‖Jᵀe‖ / (‖J‖·‖e‖)`` below which a start that did not converge has reached a local minimum
 of the error: the branch has no calibrated solution, and is no rival."""

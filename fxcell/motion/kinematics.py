@@ -124,7 +124,29 @@ _VALLEY_FINISH = 1e-5
 _VALLEY_FLOOR = 1e-2
 """Pose error (m and rad together) above which a point is off the valley (the arm out of
 reach at that θ6): no root is looked for next to it."""
+_VALLEY_PREDICT = 0.3
+"""Fraction of the points' spacing within which a point's Newton step of θ6 predicts a root
+that :meth:`DHChain.valley` looks for even without a sign change (roots closer together than
+the points, where the valley passes next to the calibrated wrist singularity)."""
+_VALLEY_SAME = 0.25
+"""Fraction of the points' spacing within which a predicted root is one already found."""
+_VALLEY_TRIES = 6
+_VALLEY_ON = 0.1
+"""Radians (each of θ1..θ5) within which :meth:`DHChain.nearest` takes a start next to the
+wrist singularity for a point of a valley it walked already (a whole turn, uncut): the walk
+from it would find the same roots."""
+_MAX_WALKED = 16
+"""Valleys :meth:`DHChain.nearest` remembers per call (the C code's fixed arrays)."""
+"""Newton's steps :meth:`DHChain.valley` gives a predicted root (next to one, they converge
+in two or three)."""
 _STALL_STEPS = 8
+_QUICK_STALL = 4
+"""_STALL_STEPS for a start away from the wrist singularity (|sin θ5| at least ``near``, see
+:meth:`DHChain.nearest`): next to the shoulder singularity most starts the nominal closed
+form gives (the arm bent by _LENIENT_BEND) have no calibrated solution and settle into a
+local minimum, which 4 steps tell as well as 8 on the bench's families; next to the wrist
+singularity, a run crawling along the self-motion toward a root can look stalled over 4 (2: a
+shoulder-family root missed)."""
 _STALL_GAIN = 1e-3
 _STALL_FLOOR = 1e-7
 """With ``stationary`` > 0, :meth:`DHChain.settle` reports a local minimum of the error (no
@@ -1562,6 +1584,7 @@ class DHChain:
         iterations: int = 60,
         converged: float = 1e-12,
         stationary: float = 1e-6,
+        window: int = _STALL_STEPS,
     ) -> tuple[list[float], float, float]:
         """Levenberg-Marquardt (damping scaled by the diagonal of ``JᵀJ``) from ``q`` toward
         ``target``, for starts Newton's steps do not bring to a solution (next to a
@@ -1569,7 +1592,7 @@ class DHChain:
         stationary, ``‖Jᵀe‖ / (‖J‖·‖e‖)``. A last value below ``stationary`` (where the steps
         stop) with an error left is a local minimum of the error: no solution near ``q`` (the
         target beyond this branch's reach, as a stretched arm's). With ``stationary`` > 0 an
-        error that stalls far from a root (_STALL_STEPS) ends the steps too, reported as
+        error that stalls far from a root (over ``window`` steps) ends the steps too, reported as
         stationary (0), and so does one that crawls into a root below _STALL_DONE."""
         qq = [float(v) for v in q]
         frame, jac = self.frame_and_jacobian(qq)
@@ -1581,7 +1604,7 @@ class DHChain:
         for it in range(iterations):
             if norm < converged or gradient < stationary:
                 break
-            if stationary > 0.0 and it > 0 and it % _STALL_STEPS == 0:
+            if stationary > 0.0 and it > 0 and it % window == 0:
                 if norm > _STALL_FLOOR and norm > (1.0 - _STALL_GAIN) * mark:
                     gradient = 0.0  # stalled far from a root: a local minimum's basin
                     break
@@ -1636,6 +1659,12 @@ class DHChain:
     def valley(
         self, q: Sequence[float], target: Sequence[float], converged: float = 1e-12
     ) -> list[tuple[list[float], float]]:
+        """The solutions along the wrist's self-motion through ``q`` (see :meth:`_walk`)."""
+        return self._walk(q, target, converged)[0]
+
+    def _walk(
+        self, q: Sequence[float], target: Sequence[float], converged: float
+    ) -> tuple[list[tuple[list[float], float]], list[list[float]] | None]:
         """The solutions along the wrist's self-motion through ``q``: (joints, error norm)
         pairs, the norm below ``converged`` unless a root's search ran out of steps.
 
@@ -1648,12 +1677,29 @@ class DHChain:
         problem); Newton's step of all six joints there says on which side a root is (its
         θ6 part changes sign from + to - across one). The points go half a turn each way
         (the valley may be cut where the arm is out of reach); each bracket is closed by
-        Newton's steps, bisected where one would leave it."""
+        Newton's steps, bisected where one would leave it. Where the valley passes next to
+        the calibrated arm's own wrist singularity its roots can lie closer together than the
+        points (no sign change between them): a point whose Newton step of θ6 predicts a root
+        within _VALLEY_PREDICT of the spacing where none was found gets Newton's steps too.
+
+        Known misses (bench/ik.py's wrist family, seed TCP: the hot path's answer farther
+        than the reference's for 11 of the first 200 poses, 19 of the next 200): two or three
+        roots within ~0.3 rad of θ6 where the pose is (nearly) exactly wrist-singular, the
+        valley's error there ~1e-5 against ~1e-3 elsewhere; the points, one projection each,
+        are ~5e-4 off the floor there, so the signs of θ6's steps are unreliable (two or three
+        projections, tried, missed more); roots next to a cut; and starts with |sin θ5| just
+        above _VALLEY_NEAR (0.1 or 0.2 instead, tried: no better). Fewer points (8, 10) missed
+        more; probing ±0.1 rad along the valley from each root found none of them, ±0.25 rad
+        one of 11 for ~30 % more chain evaluations."""
         h = TWO_PI / _VALLEY_POINTS
         roots: list[tuple[list[float], float]] = []
         origin = self._project([float(v) for v in q], target)
         if origin[3] < converged:
             roots.append((origin[0], origin[3]))
+        samples: list[tuple[list[float], float]] = []  # points on the floor, θ6's step
+        # the points on the floor by their turn from the origin, -half..half (None: off it)
+        half = _VALLEY_POINTS // 2
+        floor: list[list[float] | None] = [None] * (2 * half + 1)
         for sign in (1.0, -1.0):
             qq, jac, err, norm = origin
             previous = 0.0  # the Newton step of θ6 at the last point on the floor (0: none)
@@ -1677,6 +1723,9 @@ class DHChain:
                 if norm > _VALLEY_FLOOR or step is None:
                     previous = 0.0  # off the floor (out of reach there): no bracket across
                     continue
+                if point or sign > 0.0:
+                    samples.append((qq, step[5]))
+                    floor[half + (point if sign > 0.0 else -point)] = qq
                 if sign * previous > 0.0 and sign * step[5] < 0.0:
                     if sign > 0.0:
                         roots.append(self._close(below, qq, target, converged))
@@ -1684,7 +1733,25 @@ class DHChain:
                         roots.append(self._close(qq, below, target, converged))
                 previous = step[5]
                 below = qq
-        return roots
+        # roots closer together than the points leave no sign change between them: a point
+        # whose Newton step of θ6 predicts a root within _VALLEY_PREDICT of the spacing, where
+        # no root found is, gets _VALLEY_TRIES Newton's steps
+        for qq, t in samples:
+            if not abs(t) < _VALLEY_PREDICT * h:
+                continue
+            aim = qq[5] + t
+            if any(
+                abs(r[5] - aim - TWO_PI * round((r[5] - aim) * _INV_TWO_PI)) < _VALLEY_SAME * h
+                for r, e in roots
+                if e < converged
+            ):
+                continue
+            root = self.newton(qq, target, _VALLEY_TRIES, converged, converged)
+            if root[1] < converged:
+                roots.append(root)
+        if any(p is None for p in floor):
+            return roots, None  # cut (the arm out of reach): a walk from elsewhere sees its ends
+        return roots, [p for p in floor if p is not None]
 
     def _close(
         self, lower: list[float], upper: list[float], target: Sequence[float], converged: float
@@ -1752,7 +1819,8 @@ class DHChain:
         alone, a start is skipped when its θ1 and θ5 alone are too far (:func:`_wrist_bound`).
         Refined: :meth:`newton`; if that leaves an error above ``accepted``, every solution
         along the start's valley (:meth:`valley`) next to the wrist singularity (|sin θ5|
-        below _VALLEY_NEAR, the target away from the shoulder's), else :meth:`settle` from
+        below _VALLEY_NEAR, the target away from the shoulder's; a start on a valley walked
+        whole already, :func:`_on_walked`, is skipped), else :meth:`settle` from
         where Newton's steps left off; if no
         start gave a solution, those whose valley walk found none are settled too (the walk
         misses roots where the valley is cut, the arm stretched or folded); a solution's
@@ -1782,6 +1850,7 @@ class DHChain:
         regular = 0.0  # the largest move of a start away from the singularities
         unrefined = math.inf
         missed: list[int] = []  # starts whose valley walk found no root
+        walked: list[list[list[float]]] = []  # the points of the valleys walked whole
         pending, retry = order, False
         while True:
             for i in pending:
@@ -1805,19 +1874,29 @@ class DHChain:
                         and _wrist_bound(start, seed) > math.sqrt(best_d) + 1e-9
                     ):
                         continue  # next to the wrist singularity, but θ1 and θ5 alone are too far
+                    on_valley = not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR
+                    if on_valley and any(_on_walked(start, w) for w in walked):
+                        continue  # on a valley walked already
                     q, err = self.newton(start, target, newton_iterations, converged, rounding)
                     if err <= accepted:
                         found.append(q)
-                    elif not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR:
+                    elif on_valley:
                         # along the wrist's self-motion: every solution on this branch's valley
-                        roots = self.valley(start, target, converged)
+                        roots, floor = self._walk(start, target, converged)
+                        if floor is not None and len(walked) < _MAX_WALKED:
+                            walked.append(floor)
                         found += [r for r, e in roots if e <= accepted]
                         if not found:
                             missed.append(i)
                             continue
                 if not found:  # damped steps, on from where Newton's left off
                     q, err, gradient = self.settle(
-                        q, target, settle_iterations, converged, stationary
+                        q,
+                        target,
+                        settle_iterations,
+                        converged,
+                        stationary,
+                        _QUICK_STALL if abs(math.sin(start[4])) >= near else _STALL_STEPS,
                     )
                     if err > accepted:
                         if not gradient <= stationary and distance[i] < unrefined:
@@ -1881,6 +1960,32 @@ class DHChain:
                 if zx * zx + zy * zy < near * near:
                     out |= 2
         return out
+
+
+def _on_walked(q: Sequence[float], floor: list[list[float]]) -> bool:
+    """Whether ``q`` lies on the valley whose points ``floor`` are (a whole turn of θ6 on the
+    floor, see :meth:`DHChain._walk`): θ1..θ5 within _VALLEY_ON of the line between the two
+    points whose θ6 enclose its own (each joint's difference wrapped into ±π)."""
+    half = _VALLEY_POINTS // 2
+    h = TWO_PI / _VALLEY_POINTS
+    origin = floor[half]
+    w = q[5] - origin[5]
+    w -= TWO_PI * round(w * _INV_TWO_PI)
+    u = w / h
+    k = math.floor(u)
+    if k < -half or k >= half:
+        return False
+    a = floor[half + k]
+    b = floor[half + k + 1]
+    f = u - k
+    for j in range(5):
+        step = b[j] - a[j]
+        step -= TWO_PI * round(step * _INV_TWO_PI)
+        off = q[j] - (a[j] + f * step)
+        off -= TWO_PI * round(off * _INV_TWO_PI)
+        if not abs(off) < _VALLEY_ON:
+            return False
+    return True
 
 
 def _wrist_bound(start: Sequence[float], seed: Sequence[float]) -> float:
