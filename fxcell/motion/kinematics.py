@@ -131,14 +131,14 @@ the points, where the valley passes next to the calibrated wrist singularity).""
 _VALLEY_SAME = 0.25
 """Fraction of the points' spacing within which a predicted root is one already found."""
 _VALLEY_TRIES = 6
+"""Newton's steps :meth:`DHChain.valley` gives a predicted root (next to one, they converge
+in two or three)."""
 _VALLEY_ON = 0.1
 """Radians (each of θ1..θ5) within which :meth:`DHChain.nearest` takes a start next to the
 wrist singularity for a point of a valley it walked already (a whole turn, uncut): the walk
 from it would find the same roots."""
 _MAX_WALKED = 16
 """Valleys :meth:`DHChain.nearest` remembers per call (the C code's fixed arrays)."""
-"""Newton's steps :meth:`DHChain.valley` gives a predicted root (next to one, they converge
-in two or three)."""
 _STALL_STEPS = 8
 _QUICK_STALL = 4
 """_STALL_STEPS for a start away from the wrist singularity (|sin θ5| at least ``near``, see
