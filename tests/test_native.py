@@ -19,6 +19,7 @@ import os
 import sys
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import pytest
@@ -277,6 +278,22 @@ def test_the_calibrated_hot_path_in_c_computes_what_the_python_one_does(
     assert wrist_singular > 20  # the continuum's members compared too
 
 
+def _nearest_args(
+    kin: calibration.CalibratedKinematics,
+    starts: list[tuple[float, list[float]]],
+    goal: list[float],
+    seed: list[float],
+) -> tuple[Any, ...]:
+    """The arguments of ``Chain.nearest`` / ``DHChain.nearest`` as the calibrated inverse
+    passes them."""
+    return (
+        starts, goal, seed, kin.lower, kin.upper, calibration._FAST_ITERATIONS,
+        calibration._SETTLE_ITERATIONS, calibration.CONVERGED, calibration._ROUNDING,
+        calibration._STATIONARY, calibration.ACCEPTED, calibration._RIVAL_FACTOR,
+        calibration._NEAR_SINGULAR,
+    )  # fmt: skip
+
+
 def test_the_c_refinement_settles_what_the_valley_walk_misses_as_dhchain_does() -> None:
     # wrist-singular poses with the elbow next to full stretch: where the valley is cut, the
     # walk can miss every root; both chains then settle those starts, bit for bit alike
@@ -300,12 +317,7 @@ def test_the_c_refinement_settles_what_the_valley_walk_misses_as_dhchain_does() 
             if not starts:
                 continue
             goal = calibration._rows(pose)
-            args = (
-                starts, goal, seed, kin.lower, kin.upper, calibration._FAST_ITERATIONS,
-                calibration._SETTLE_ITERATIONS, calibration.CONVERGED, calibration._ROUNDING,
-                calibration._STATIONARY, calibration.ACCEPTED, calibration._RIVAL_FACTOR,
-                calibration._NEAR_SINGULAR,
-            )  # fmt: skip
+            args = _nearest_args(kin, starts, goal, seed)
             got = fast.nearest(*args)
             assert got == slow.nearest(*args), f"q={q.tolist()!r} seed={seed!r}"
             compared += 1
@@ -342,12 +354,7 @@ def test_the_c_refinement_skips_the_valleys_it_walked_as_dhchain_does() -> None:
         seed = rng.uniform(-2.0 * math.pi, 2.0 * math.pi, 6).tolist()
         starts = kin._starts.nearest_within(pose, seed, math.inf, lenient=True)[1]
         goal = calibration._rows(pose)
-        args = (
-            starts, goal, seed, kin.lower, kin.upper, calibration._FAST_ITERATIONS,
-            calibration._SETTLE_ITERATIONS, calibration.CONVERGED, calibration._ROUNDING,
-            calibration._STATIONARY, calibration.ACCEPTED, calibration._RIVAL_FACTOR,
-            calibration._NEAR_SINGULAR,
-        )  # fmt: skip
+        args = _nearest_args(kin, starts, goal, seed)
         assert fast.nearest(*args) == slow.nearest(*args), f"q={q.tolist()!r} seed={seed!r}"
         compared += 1
         floors: list[list[list[float]]] = []
