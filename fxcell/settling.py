@@ -16,4 +16,8 @@ SETTLE_VELOCITY = 1e-3
 ARRIVE_TOLERANCE = 1e-4
 """The largest joint error still accepted when the hold ends (rad, about 50 µm at the TCP)."""
 REST_VELOCITY = 1e-3
-"""After a stop, the robot is at rest below this joint speed (rad/s)."""
+"""After a stop, the robot is at rest below this joint speed (rad/s)..."""
+REST_TIME = 0.05
+"""...in every state sample over this many seconds of controller time, before a recovery
+takes control back or a move is sent again (26 samples of a UR's 500 Hz, whatever rate a
+robot kind streams at)."""

@@ -16,6 +16,7 @@ from fxcell import Cell, CellState
 from fxcell.config import CellConfig
 from fxcell.errors import FxcellError, InvalidStateError
 from fxcell.link.ned2.link import STALE_AFTER
+from fxcell.settling import REST_VELOCITY
 from fxcell.testing import injected_faults
 from fxcell.testing.faults import watching
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
@@ -118,6 +119,12 @@ async def test_a_move_the_ned2_still_runs_after_a_drop_is_stopped_before_the_lin
         with pytest.raises(FxcellError):
             await move
         await _down_then(cell, CellState.EXTERNAL_CONTROL_READY)
+    # up again only with the arm at rest, by the robot's own joint states
+    with cell.robot_states(maxsize=16) as states:
+        first = await states.next_within(1.0)
+        samples = [first, *[await states.next_within(1.0) for _ in range(4)]]
+    assert all(max(map(abs, s.actual_qd)) < REST_VELOCITY for s in samples)
+    assert all(s.actual_q == first.actual_q for s in samples)
     state = sim.state()
     assert state["moving"] is False  # stopped, not left to run its course
     assert max(abs(a - b) for a, b in zip(state["joints"], far, strict=True)) > 0.05

@@ -79,7 +79,7 @@ from fxcell.motion.runner import (
 from fxcell.protocol import RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.results import GripResult, MoveResult, ProgramStatus
 from fxcell.robots import RobotKind, Simulator, robot_kind
-from fxcell.settling import REST_VELOCITY
+from fxcell.settling import REST_TIME, REST_VELOCITY
 
 if TYPE_CHECKING:
     from fxcell.link.backend import ArmCalibration
@@ -109,10 +109,6 @@ EXPLAIN_SAMPLES = 25
 """State samples a failed move waits for the one that shows why (a safety or program stop)..."""
 EXPLAIN_WITHIN = 0.25
 """...and seconds at most (the state stream may have stopped)."""
-REST_TIME = 0.05
-"""Seconds of controller time over which every state sample must show the arm at rest
-before a recovery takes control back or a move is sent again (26 samples of a UR's 500 Hz,
-whatever rate a robot kind streams at)."""
 REMOTE_POLL = 0.25
 """Seconds between two queries of the pendant's Local/Remote switch while no move runs."""
 REMOTE_POLL_MOVING = 0.02

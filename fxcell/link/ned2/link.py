@@ -66,6 +66,7 @@ from fxcell.link.ned2.tcp import NiryoTcpClient
 from fxcell.link.subscription import StateSubscription
 from fxcell.protocol import ProgramState, RobotMode, RobotState, RuntimeState, SafetyMode
 from fxcell.results import ProgramStatus
+from fxcell.settling import REST_TIME, REST_VELOCITY
 
 if TYPE_CHECKING:
     from fxcell.config import RobotConfig
@@ -182,6 +183,7 @@ class Ned2Link:
         self._heard = 0.0  # time.monotonic() of the newest joint state
         self._connected_at = 0.0  # ... and of the newest connection to the rosbridge
         self._resuming = False  # reconnected, a command left over not stopped yet
+        self._quiet: tuple[float, float] | None = None  # robot time at rest: (since, newest)
         self._watcher: asyncio.Task[None] | None = None
 
     # ---------------------------------------------------------------- the contract's state
@@ -280,6 +282,7 @@ class Ned2Link:
         old, self._bridge = self._bridge, RosbridgeClient(self.host)
         await old.close()
         self._resuming = True  # not up before a command left over from before is stopped
+        self._quiet = None
         try:
             await self._connect(self._bridge)
             await self._stop_orphan()
@@ -290,7 +293,8 @@ class Ned2Link:
         """Stop a move the robot still runs from before the link went down. The Ned2 holds
         a whole trajectory and finishes it without its client; the link that sent it has
         lost track of it, so it is stopped (no motion without the cell watching it), and
-        the link is up again once the arm commander is idle."""
+        the link is up again once the arm commander is idle and the joint states have shown
+        the arm at rest for REST_TIME of the robot's time."""
         active = "/niryo_robot_arm_commander/is_active"
         answer = await self._bridge.call(active, within=ORPHAN_STOP_WITHIN)
         if not answer.get("value"):
@@ -303,7 +307,12 @@ class Ned2Link:
         stop = "/niryo_robot_arm_commander/stop_command"
         await self._bridge.call(stop, within=ORPHAN_STOP_WITHIN)
         for _ in range(round(ORPHAN_STOP_WITHIN / WATCH_PERIOD)):  # a poll with a deadline
-            if not (await self._bridge.call(active, within=ORPHAN_STOP_WITHIN)).get("value"):
+            quiet = self._quiet
+            if (
+                quiet is not None
+                and quiet[1] - quiet[0] >= REST_TIME - 1e-9
+                and not (await self._bridge.call(active, within=ORPHAN_STOP_WITHIN)).get("value")
+            ):
                 return
             await asyncio.sleep(WATCH_PERIOD)
         raise RobotTimeoutError(
@@ -366,6 +375,9 @@ class Ned2Link:
         timestamp = float(stamp.get("secs", 0)) + float(stamp.get("nsecs", 0)) * 1e-9
         if self._resuming:  # reconnected, a leftover command not stopped yet: not up
             self._heard = time.monotonic()
+            still = max(map(abs, qd)) < REST_VELOCITY
+            since = self._quiet[0] if self._quiet is not None else timestamp
+            self._quiet = (since, timestamp) if still else None
             return
         hw = self._hardware
         if not hw or hw.get("calibration_needed") or hw.get("calibration_in_progress"):
