@@ -414,14 +414,11 @@ class Ned2Link:
         self._heard = time.monotonic()
         for sub in list(self._subscriptions):
             sub.offer(state)
-        if not self._up and not self._resuming:
-            self._mark_up()
+        if not self._up:
+            self._up = True
+            self._first.set()
+            self._on_status(LinkStatus.UP, "joint states arrive")
         self._on_state(state)
-
-    def _mark_up(self) -> None:
-        self._up = True
-        self._first.set()
-        self._on_status(LinkStatus.UP, "joint states arrive")
 
     # ---------------------------------------------------------------- operations
 
