@@ -1,4 +1,5 @@
 import contextlib
+import fcntl
 import inspect
 import json
 import os
@@ -158,6 +159,37 @@ def pytest_runtest_setup(item: pytest.Item) -> Iterator[None]:
 def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
     with _no_subprocess(item):
         return (yield)
+
+
+# ----------------------------------------------------------------- a machine to itself
+# A test that loads the machine on purpose (CPU burners beside the cell, `@pytest.mark.alone`)
+# measures the cell against exactly that load. On parallel workers every other test holds a
+# shared lock on one file of the machine while it sets up, runs and tears down, and an
+# `alone` test holds it exclusively: it waits for the other workers' running tests to end and
+# they wait for it (its burners never meet another worker's simulator or planner). In one
+# process the lock is not taken.
+_MACHINE_LOCK = Path(tempfile.gettempdir()) / "fxcell-tests-machine.lock"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "alone: loads the machine itself (CPU burners): on parallel workers no other test "
+        "runs beside it",
+    )
+
+
+@pytest.hookimpl(tryfirst=True, wrapper=True)  # outermost: the wait is not the test's time
+def pytest_runtest_protocol(item: pytest.Item) -> Iterator[object]:
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        return (yield)
+    alone = item.get_closest_marker("alone") is not None
+    with open(_MACHINE_LOCK, "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        try:
+            return (yield)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 @pytest.fixture(autouse=True)

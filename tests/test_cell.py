@@ -24,7 +24,7 @@ from fxcell.errors import (
 )
 from fxcell.events import CommandEvent, StateEvent, TransitionEvent
 from fxcell.protocol import CONTROL_PERIOD, ProgramState
-from fxcell.testing import SimulatorHandle, simulator, urcap_port
+from fxcell.testing import SimulatorHandle, simulator, urcap_port, uses_urcap_port
 
 TIME_SCALE = 0.05
 OBSERVE_WITHIN = 0.05  # s from the simulator's change to cell.state
@@ -360,6 +360,7 @@ async def test_killed_link_process_goes_disconnected_then_reconnects(cell: Cell)
 # ----------------------------------------------------------------- external control modes
 
 
+@uses_urcap_port
 async def test_external_control_through_the_urcap_program(shared_sim: SimulatorHandle) -> None:
     await asyncio.to_thread(_reset, shared_sim)
     with urcap_port():  # the PC side binds the machine-wide port 50002

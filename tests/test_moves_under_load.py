@@ -24,7 +24,7 @@ from fxcell.cell import Cell
 from fxcell.config import CellConfig
 from fxcell.testing import SimulatorHandle
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.alone]  # the burners are the load
 
 CONFIG = CellConfig.load()
 MOVES = 16

@@ -108,6 +108,7 @@ async def test_ordinary_moves_stay_within_the_limits_on_every_cycle(
     _judge(await _record(shared, tmp_path), busy=False)
 
 
+@pytest.mark.alone  # its CPU burner is the whole load it is judged against
 async def test_ordinary_moves_stay_within_the_limits_on_a_busy_machine(
     shared: SimulatorHandle, tmp_path: Path
 ) -> None:

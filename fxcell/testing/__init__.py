@@ -49,6 +49,7 @@ __all__ = [
     "injected_faults",
     "simulator",
     "urcap_port",
+    "uses_urcap_port",
 ]
 
 TEST_TIME_SCALE = 0.05  # controller delays in tests: power on 0.1 s, brake release 75 ms
@@ -272,6 +273,9 @@ async def fake_cell(fake_robot: FakeRobot) -> AsyncIterator[Any]:
 
 
 URCAP_PORT = 50002
+uses_urcap_port = pytest.mark.xdist_group("urcap-port")
+"""Marks a test that binds :data:`URCAP_PORT`: on parallel workers such tests go to one worker,
+in turn (the lock of :func:`urcap_port` then never waits on another worker's test)."""
 
 
 @contextlib.contextmanager

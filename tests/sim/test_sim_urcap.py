@@ -8,11 +8,12 @@ from dashboard_client import DashboardClient
 from rtde_control import RTDEControlInterface
 from rtde_receive import RTDEReceiveInterface
 
-from fxcell.testing import simulator, urcap_port
+from fxcell.testing import simulator, urcap_port, uses_urcap_port
 
 from .test_sim_control import START, fresh, wait_until
 
 
+@uses_urcap_port
 def test_urcap_program_requests_the_script_and_runs_it() -> None:
     flags = RTDEControlInterface.FLAG_USE_EXT_UR_CAP | RTDEControlInterface.FLAG_NO_WAIT
     with simulator(joints=START) as sim, urcap_port() as port:
