@@ -117,6 +117,20 @@ async def test_external_control_stops_and_starts_again(fake_cell: Cell) -> None:
     assert fake_cell.state is CellState.EXTERNAL_CONTROL_READY
 
 
+async def test_the_background_local_remote_poll_is_not_counted_as_a_request_sent(
+    fake_cell: Cell,
+) -> None:
+    """Tests of "a refused command sends nothing" count the link's requests; the cell's
+    Local/Remote poll goes out at moments of its own (every REMOTE_POLL), so it must not
+    count: on two busy workers it once fell inside such a window."""
+    link = fake_cell._link()
+    sent = link.messages_sent
+    assert await link.remote_control() is True
+    assert link.messages_sent == sent
+    await link.program_status()
+    assert link.messages_sent == sent + 1  # every other request counts
+
+
 @pytest.mark.parametrize(
     ("command", "args"),
     [

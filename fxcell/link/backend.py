@@ -110,7 +110,8 @@ class LinkBackend(Protocol):
 
     @property
     def messages_sent(self) -> int:
-        """Requests sent to the robot so far (calls and trajectory messages)."""
+        """Requests sent to the robot so far (calls and trajectory messages; not the
+        Local/Remote query of the cell's background poll, see ``contract.counts_as_sent``)."""
 
     async def start(self, wait: bool = True) -> None:
         """Connect; with ``wait`` return once the link is up (or raise)."""

@@ -69,6 +69,7 @@ from fxcell.link.contract import (
     TeachMode,
     TrajectoryProgress,
     TrajectoryResult,
+    counts_as_sent,
     reply_error,
     stop_reason,
 )
@@ -307,7 +308,8 @@ class LinkClient(DashboardOperations):
         self.pid: int | None = None
         self.restarts = 0
         self.messages_sent = 0
-        """Requests sent to the link process (calls and trajectory messages)."""
+        """Requests sent to the link process (calls and trajectory messages; see
+        :func:`~fxcell.link.contract.counts_as_sent`)."""
         self.last_failure = ""
         self._subscriptions: set[StateSubscription] = set()
         self._writer: asyncio.Transport | None = None
@@ -798,11 +800,11 @@ class LinkClient(DashboardOperations):
 
     # -- outgoing
 
-    def _send(self, *message: Any) -> None:
+    def _send(self, *message: Any, counted: bool = True) -> None:
         if self._writer is None or self.status is not LinkStatus.UP:
             raise ConnectionLostError(f"no robot link to {self.host} ({self.status.value})")
         self._writer.write(wire.encode(message))
-        self.messages_sent += 1
+        self.messages_sent += counted
 
     def _send_safety(self, *message: Any) -> bool:
         """Send a stop or a beat whenever the process is there, up or down (never raises)."""
@@ -817,7 +819,7 @@ class LinkClient(DashboardOperations):
         future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._pending[request_id] = future
         try:
-            self._send(wire.CALL, request_id, request)
+            self._send(wire.CALL, request_id, request, counted=counts_as_sent(request))
             async with asyncio.timeout(within):
                 return await future
         except TimeoutError:

@@ -215,6 +215,17 @@ Request = (
 REQUESTS: tuple[type[Request], ...] = typing.get_args(Request)
 """Every request type: each side's handler table must cover all of them."""
 
+REMOTE_QUERY = "is in remote control"
+"""The Dashboard's Local/Remote query: a cell asks it every few hundred milliseconds in the
+background (the pendant's switch is in no state stream)."""
+
+
+def counts_as_sent(request: Request) -> bool:
+    """Whether ``request`` counts in a link's ``messages_sent``: every request but
+    :data:`REMOTE_QUERY`, which changes nothing and which the cell's background poll sends
+    at moments of its own (a count of what a command sent must not depend on them)."""
+    return not (isinstance(request, Dashboard) and request.command == REMOTE_QUERY)
+
 
 # ----------------------------------------------------------------- trajectory messages
 # (sent as (wire.TRAJ_START | TRAJ_REPLACE | TRAJ_STOP, message): not answered by a reply,

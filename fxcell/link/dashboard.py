@@ -21,7 +21,7 @@ from fxcell.errors import (
     NotInRemoteControlError,
     RobotCommandError,
 )
-from fxcell.link.contract import ControllerInfo, ControlMode
+from fxcell.link.contract import REMOTE_QUERY, ControllerInfo, ControlMode
 from fxcell.protocol import ProgramState
 from fxcell.results import ProgramStatus
 
@@ -86,7 +86,7 @@ class DashboardOperations:
 
     async def remote_control(self, within: float = 5.0) -> bool:
         """Whether the teach pendant lets the network command the robot (Remote)."""
-        reply = await self.dashboard("is in remote control", within)
+        reply = await self.dashboard(REMOTE_QUERY, within)
         return reply.strip().lower() == "true"
 
     async def unlock_protective_stop(self, within: float = 5.0) -> bool:

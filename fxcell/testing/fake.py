@@ -71,6 +71,7 @@ from fxcell.link.contract import (
     TrajectoryProgress,
     TrajectoryResult,
     TrajectoryStatus,
+    counts_as_sent,
 )
 from fxcell.link.dashboard import DashboardOperations
 from fxcell.link.embedded import SimulatorState
@@ -414,7 +415,7 @@ class FakeLink(DashboardOperations):
         if handler is None:
             raise LinkContractError(f"the fake link has no request {type(request).__name__}")
         self._check_up()
-        self._sent += 1
+        self._sent += counts_as_sent(request)
         return await handler(self, request)
 
     async def _do_dashboard(self, request: Dashboard) -> str:
