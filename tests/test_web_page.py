@@ -55,6 +55,7 @@ class Browser:
         self._ws = ws
         self._ids = itertools.count(1)
         self.console: list[str] = []
+        self.held: list[str] = []  # requests whose responses the browser holds (hold_responses)
 
     async def call(self, method: str, **params: Any) -> dict[str, Any]:
         msg_id = next(self._ids)
@@ -67,6 +68,8 @@ class Browser:
                 return msg.get("result", {})  # type: ignore[no-any-return]
             if msg.get("method") == "Runtime.exceptionThrown":
                 self.console.append(json.dumps(msg["params"]["exceptionDetails"])[:500])
+            elif msg.get("method") == "Fetch.requestPaused":
+                self.held.append(msg["params"]["requestId"])
             elif msg.get("method") == "Runtime.consoleAPICalled":
                 args = msg["params"].get("args", [])
                 self.console.append(" ".join(str(a.get("value", "")) for a in args))
@@ -100,6 +103,23 @@ class Browser:
                     f"console: {self.console}"
                 )
             await asyncio.sleep(0.05)
+
+    async def hold_responses(self, url_pattern: str) -> None:
+        """Hold the responses to requests matching ``url_pattern`` until release_held()."""
+        await self.call(
+            "Fetch.enable", patterns=[{"urlPattern": url_pattern, "requestStage": "Response"}]
+        )
+
+    async def release_held(self, within: float = 20.0) -> None:
+        """Let the held response through (waiting for it to be held first); hold no more."""
+        deadline = time.monotonic() + within
+        while not self.held:  # each call reads the browser's events
+            assert time.monotonic() < deadline, "no response was held"
+            await self.js("0")
+        for request_id in self.held:
+            await self.call("Fetch.continueRequest", requestId=request_id)
+        self.held.clear()
+        await self.call("Fetch.disable")
 
     async def click(self, selector: str) -> None:
         """A real mouse click in the middle of the element (fails if it is disabled)."""
@@ -220,10 +240,16 @@ async def test_operator_powers_on_moves_and_stops_from_the_page(
     assert disabled["go_home"] is True  # moves need external control
     assert await browser.js("document.querySelector('#form-joint button[type=submit]').disabled")
 
+    # power_on's answer, which brings the page its control lease, arrives only after the
+    # stream showed power_on done and the operator clicked brake_release (a busy machine once
+    # did that): the click waits for the answer, not refused for the page's own control
+    await browser.hold_responses("*/api/cell/power_on*")
     await browser.click("button[data-command=power_on]")
     await browser.wait_for(state_is("idle"))
     await browser.click("button[data-command=brake_release]")
+    await browser.release_held()
     await browser.wait_for(state_is("running.program_stopped"))
+    assert "refused" not in await browser.js("document.querySelector('#log').innerText")
     await browser.click("button[data-command=start_external_control]")
     await browser.wait_for(state_is("running.external_control_ready"))
     assert await browser.js("document.querySelector('#form-joint button[type=submit]').disabled") \

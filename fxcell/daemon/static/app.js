@@ -6,7 +6,7 @@ const $$ = (sel) => Array.from(document.querySelectorAll(sel));
 
 const page = {
   info: null, chart: null, commands: null, state: "disconnected", robot: null, targetQ: null,
-  control: null, lease: null, ops: new Map(), ws: null, wsRetry: 500,
+  control: null, lease: null, leaseComing: null, ops: new Map(), ws: null, wsRetry: 500,
   client: sessionStorage.getItem("fxcell-client") ||
     `web page ${Math.random().toString(16).slice(2, 8)} (${navigator.platform || "browser"})`,
   azimuth: -0.9, elevation: 0.45,
@@ -45,12 +45,25 @@ function clientHeader(name) {
 }
 
 async function api(method, path, body) {
+  // A request sent without a lease may take control, and its answer brings the lease. A
+  // request made before that answer is in waits for it: sent without the lease, it would be
+  // refused because of this page's own control (the stream can show the first command's
+  // effect, and the operator click again, before its answer arrives).
+  while (!page.lease && page.leaseComing) {
+    try { await page.leaseComing; } catch (e) { /* its caller reports it */ }
+  }
   const headers = { "X-Fxcell-Client": clientHeader(page.client) };
   const token = localStorage.getItem("fxcell-token");
   if (token) headers["Authorization"] = `Bearer ${token}`;
   if (page.lease) headers["X-Fxcell-Lease"] = page.lease;
   if (body !== undefined) headers["Content-Type"] = "application/json";
-  const res = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  const sent = fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  if (!page.lease && method !== "GET") {
+    page.leaseComing = sent;
+    const done = () => { if (page.leaseComing === sent) page.leaseComing = null; };
+    sent.then(done, done);
+  }
+  const res = await sent;
   const lease = res.headers.get("X-Fxcell-Lease");
   if (lease && lease !== page.lease) setLease(lease);
   let data = null;
