@@ -30,6 +30,10 @@ from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 
+# rad: where a Ned2 move ends by the simulator's own joints. The cell ends a Ned2 move with a
+# stop once its joint states show the arm settled (SETTLE_POSITION, SETTLE_VELOCITY); the
+# arm goes on until the stop arrives (1.2e-6 rad past the target seen on 3 busy workers).
+ARRIVED = 1e-5
 TABLE = SceneObject(name="table", size=(1.0, 1.0, 0.05), position=(0.0, 0.0, -0.025))
 TARGET = [0.6, -0.3, 0.2, 0.4, -0.5, 0.3]
 FAR = [-1.5, -0.4, 0.3, 1.0, 1.0, 1.0]
@@ -59,7 +63,7 @@ async def test_the_cell_inits_moves_and_stops_a_ned2(sim: Ned2SimulatorHandle) -
         assert cell.state is CellState.EXTERNAL_CONTROL_READY
         assert sim.state()["learning_mode"] is False
         await cell.move_joint(TARGET)
-        assert sim.state()["joints"] == pytest.approx(TARGET, abs=1e-6)
+        assert sim.state()["joints"] == pytest.approx(TARGET, abs=ARRIVED)
         move = asyncio.create_task(cell.move_joint(FAR))
         async with asyncio.timeout(10.0):
             with cell.robot_states(maxsize=8) as states:
@@ -91,7 +95,7 @@ async def test_a_ned2_cell_without_a_host_starts_its_simulator_which_init_calibr
         state = json.loads(request(host, "state"))
         assert (state["calibrated"], state["learning_mode"]) == (True, False)
         await cell.move_joint(TARGET)
-        assert json.loads(request(host, "state"))["joints"] == pytest.approx(TARGET, abs=1e-6)
+        assert json.loads(request(host, "state"))["joints"] == pytest.approx(TARGET, abs=ARRIVED)
     with pytest.raises(SimulatorError):  # closing the cell ended its simulator
         request(host, "state", timeout=1.0)
 
@@ -126,4 +130,4 @@ async def test_the_example_cells_slots_are_reached_to_within_a_millimetre() -> N
             assert np.allclose(fingers[:3, :3], target.rotation, atol=1e-3)
         await cell.go_home()
         joints = json.loads(request(cell.host, "state"))["joints"]
-        assert joints == pytest.approx(config.home, abs=1e-6)
+        assert joints == pytest.approx(config.home, abs=ARRIVED)

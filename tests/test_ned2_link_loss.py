@@ -23,6 +23,10 @@ from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 
+# rad: where a Ned2 move ends by the simulator's own joints. The cell ends a Ned2 move with a
+# stop once its joint states show the arm settled (SETTLE_POSITION, SETTLE_VELOCITY); the
+# arm goes on until the stop arrives (1.2e-6 rad past the target seen on 3 busy workers).
+ARRIVED = 1e-5
 TARGET = [0.4, -0.2, 0.1, 0.3, -0.4, 0.2]
 BACK = [0.2, -0.1, 0.0, 0.1, -0.2, 0.1]
 REACHED = 10.0  # s: the Cell sees the link down, or the robot again, well within this
@@ -57,7 +61,7 @@ async def test_after_a_network_drop_the_cell_reaches_the_ned2_again_and_moves(
     assert cell.link_losses == 1
     assert any(f"robot link to {sim.host} down" in r.getMessage() for r in caplog.records)
     await cell.move_joint(TARGET)
-    assert sim.state()["joints"] == pytest.approx(TARGET, abs=1e-6)
+    assert sim.state()["joints"] == pytest.approx(TARGET, abs=ARRIVED)
 
 
 async def test_a_ned2_that_stops_publishing_counts_as_down_until_it_publishes_again(
@@ -73,7 +77,7 @@ async def test_a_ned2_that_stops_publishing_counts_as_down_until_it_publishes_ag
     assert len(said) == 1, said
     assert "no joint state for" in said[0]
     await cell.move_joint(BACK)
-    assert sim.state()["joints"] == pytest.approx(BACK, abs=1e-6)
+    assert sim.state()["joints"] == pytest.approx(BACK, abs=ARRIVED)
 
 
 async def test_a_ned2_back_from_a_power_loss_needs_init_before_it_moves(
@@ -89,7 +93,7 @@ async def test_a_ned2_back_from_a_power_loss_needs_init_before_it_moves(
     assert sim.state()["calibrated"] is False
     await cell.init()  # calibrates it again
     await cell.move_joint(TARGET)
-    assert sim.state()["joints"] == pytest.approx(TARGET, abs=1e-6)
+    assert sim.state()["joints"] == pytest.approx(TARGET, abs=ARRIVED)
 
 
 @pytest.mark.injects_faults("it reads what a watch of its own reports of the drop")
@@ -130,4 +134,4 @@ async def test_a_move_the_ned2_still_runs_after_a_drop_is_stopped_before_the_lin
     assert max(abs(a - b) for a, b in zip(state["joints"], far, strict=True)) > 0.05
     assert any("still runs a command" in r.getMessage() for r in caplog.records)
     await cell.move_joint(TARGET)  # and the next move is taken
-    assert sim.state()["joints"] == pytest.approx(TARGET, abs=1e-6)
+    assert sim.state()["joints"] == pytest.approx(TARGET, abs=ARRIVED)
