@@ -69,7 +69,7 @@ from fxcell.link.contract import (
     stop_reason,
 )
 from fxcell.link.follower import Follower
-from fxcell.link.realtime import LINK_PRIORITY, request_realtime
+from fxcell.link.realtime import LINK_PRIORITY, normal_priority, request_realtime
 from fxcell.link.rtde_stream import UR_RTDE_GETTERS, RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
@@ -477,6 +477,12 @@ class Link:
     # -- calls
 
     def _worker(self) -> None:
+        # The calls run at normal priority: ur_rtde's commands (stopScript, setTcp, ...)
+        # busy-wait until the control script is ready for them. At real-time priority that
+        # spin held a CPU above every process of the machine; two links doing so at once
+        # starved everything else (two cells' links silent ~0.95 s together, until the
+        # kernel's real-time throttling). State, trajectory and beat threads stay real time.
+        normal_priority()
         while not self._stop.is_set():
             item = self._calls.get()
             if item is None:

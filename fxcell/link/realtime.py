@@ -15,6 +15,7 @@ Grant it with the systemd unit's ``LimitRTPRIO=`` (``contrib/fxcell.service``) o
 
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
 import threading
@@ -63,6 +64,16 @@ def request_realtime(priority: int = LINK_PRIORITY) -> Scheduling:
             f"{why}; RLIMIT_RTPRIO {rtprio_limit()}, needs {priority} or CAP_SYS_NICE",
         )
     return Scheduling(True, "SCHED_FIFO", priority)
+
+
+def normal_priority() -> None:
+    """Run the calling thread at normal priority (``SCHED_OTHER``; it may have inherited a
+    real-time one): for work that can wait or spin on something else. A real-time thread
+    that busy-waits holds its CPU above every normal process of the machine (ur_rtde's
+    commands spin without sleeping until the control script is ready for them)."""
+    with contextlib.suppress(OSError, AttributeError):
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 def probe(priority: int = LINK_PRIORITY) -> Scheduling:

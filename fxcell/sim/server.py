@@ -37,7 +37,7 @@ from fxcell.errors import FxcellError, InvalidArgumentError
 from fxcell.geometry import Pose, rows_to_rotvec
 from fxcell.layout import Layout
 from fxcell.link.embedded import CONTROL_PORT
-from fxcell.link.realtime import LINK_PRIORITY
+from fxcell.link.realtime import LINK_PRIORITY, normal_priority
 from fxcell.protocol import (
     CONTROL_PERIOD,
     DASHBOARD_PORT,
@@ -435,7 +435,10 @@ class SimServer:
         assert loop is not None
 
         def load() -> None:
-            _background_priority()
+            # at normal priority (it inherited the control cycle's real-time one): two
+            # simulators building their models side by side at real-time priority held
+            # both CPUs for some 0.3 s each and starved the robot links
+            normal_priority()
             try:
                 from fxcell.sim.dynamics import ArmDynamics
 
@@ -977,16 +980,6 @@ def _raise_priority(realtime: bool = False, nice: int = -5) -> None:
             return
     with contextlib.suppress(OSError, AttributeError):
         os.setpriority(os.PRIO_PROCESS, 0, nice)
-
-
-def _background_priority() -> None:
-    """Run the calling thread at normal priority (it inherited the control cycle's real-time
-    one): work that may take a while, such as importing and building a model, must not hold
-    a CPU above every process of the cell PC. Two simulators booting side by side at
-    real-time priority held both CPUs for some 0.3 s each and starved the robot links."""
-    with contextlib.suppress(OSError, AttributeError):
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 def new_event_loop() -> asyncio.AbstractEventLoop:

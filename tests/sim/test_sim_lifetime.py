@@ -13,7 +13,7 @@ import time
 import pytest
 
 from fxcell.link.embedded import free_loopback_host
-from fxcell.link.realtime import LINK_PRIORITY
+from fxcell.link.realtime import LINK_PRIORITY, normal_priority
 from fxcell.sim import server
 
 LAUNCHER = """
@@ -79,8 +79,8 @@ def test_a_real_time_simulator_runs_above_the_robot_link(monkeypatch: pytest.Mon
 
 
 def test_work_off_the_control_cycle_runs_at_normal_priority() -> None:
-    # the thread that imports and builds the dynamic model inherits the real-time
-    # priority of the thread that starts it: it steps down before its work
+    # the thread that imports and builds the dynamic model (and the robot link's call
+    # worker) inherits the real-time priority of the thread that starts it: it steps down
     seen: list[int | None] = []
 
     def thread() -> None:
@@ -89,7 +89,7 @@ def test_work_off_the_control_cycle_runs_at_normal_priority() -> None:
         except PermissionError:
             seen.append(None)
             return
-        server._background_priority()
+        normal_priority()
         seen.append(os.sched_getscheduler(0))
 
     worker = threading.Thread(target=thread)
