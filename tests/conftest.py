@@ -168,7 +168,7 @@ def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
 # `alone` test holds it exclusively: it waits for the other workers' running tests to end and
 # they wait for it (its burners never meet another worker's simulator or planner). In one
 # process the lock is not taken.
-_MACHINE_LOCK = Path(tempfile.gettempdir()) / "fxcell-tests-machine.lock"
+MACHINE_LOCK = Path(tempfile.gettempdir()) / "fxcell-tests-machine.lock"
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -184,7 +184,7 @@ def pytest_runtest_protocol(item: pytest.Item) -> Iterator[object]:
     if "PYTEST_XDIST_WORKER" not in os.environ:
         return (yield)
     alone = item.get_closest_marker("alone") is not None
-    with open(_MACHINE_LOCK, "a+") as lock:
+    with open(MACHINE_LOCK, "a+") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
         try:
             return (yield)

@@ -1,0 +1,39 @@
+"""On parallel workers a test that loads the machine itself (``@pytest.mark.alone``) holds
+the machine's test lock exclusively and every other test holds it shared (tests/conftest.py):
+checked from inside each kind of test. In one process the lock is not taken at all."""
+
+from __future__ import annotations
+
+import fcntl
+import os
+
+import pytest
+from conftest import MACHINE_LOCK
+
+on_workers = pytest.mark.skipif(
+    "PYTEST_XDIST_WORKER" not in os.environ, reason="the lock is taken on parallel workers only"
+)
+
+
+def _can_lock(kind: int) -> bool:
+    """Whether a lock of ``kind`` on the machine's test lock is free right now (a second
+    open file: flock conflicts with this process's own lock on the first)."""
+    with open(MACHINE_LOCK, "a+") as other:
+        try:
+            fcntl.flock(other, kind | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        fcntl.flock(other, fcntl.LOCK_UN)
+        return True
+
+
+@on_workers
+def test_an_ordinary_test_shares_the_machine() -> None:
+    assert not _can_lock(fcntl.LOCK_EX)  # its own shared lock keeps an alone test out
+    assert _can_lock(fcntl.LOCK_SH)  # another ordinary test may run beside it
+
+
+@on_workers
+@pytest.mark.alone
+def test_an_alone_test_has_the_machine_to_itself() -> None:
+    assert not _can_lock(fcntl.LOCK_SH)  # no other test can start beside it
