@@ -7,6 +7,7 @@ import gc
 import os
 import time
 from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -81,6 +82,25 @@ async def test_the_link_process_says_how_it_is_scheduled(link: LinkClient) -> No
     assert link.pid is not None
     policy = os.sched_getscheduler(link.pid)
     assert policy == (os.SCHED_FIFO if link.scheduling.realtime else os.SCHED_OTHER)
+
+
+def _thread_names(pid: int) -> dict[int, str]:
+    tasks = Path(f"/proc/{pid}/task")
+    return {int(t.name): (t / "comm").read_text().strip() for t in tasks.iterdir()}
+
+
+async def test_the_link_process_answers_calls_at_normal_priority(link: LinkClient) -> None:
+    # ur_rtde's commands busy-wait for the control script: never above the machine's
+    # other processes (state, trajectory and beat threads keep the process's scheduling)
+    assert link.pid is not None
+    await link.dashboard("robotmode")  # the calls' thread has started
+    names = await asyncio.to_thread(_thread_names, link.pid)
+    (calls,) = (tid for tid, name in names.items() if name == "link-calls")
+    assert os.sched_getscheduler(calls) == os.SCHED_OTHER
+    assert os.sched_getscheduler(link.pid) == (
+        os.SCHED_FIFO if link.scheduling is not None and link.scheduling.realtime
+        else os.SCHED_OTHER
+    )  # fmt: skip
 
 
 async def test_dashboard_call_returns_the_reply_line(link: LinkClient) -> None:

@@ -69,7 +69,7 @@ from fxcell.link.contract import (
     stop_reason,
 )
 from fxcell.link.follower import Follower
-from fxcell.link.realtime import LINK_PRIORITY, normal_priority, request_realtime
+from fxcell.link.realtime import LINK_PRIORITY, name_thread, normal_priority, request_realtime
 from fxcell.link.rtde_stream import UR_RTDE_GETTERS, RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
 
@@ -483,6 +483,7 @@ class Link:
         # starved everything else (two cells' links silent ~0.95 s together, until the
         # kernel's real-time throttling). State, trajectory and beat threads stay real time.
         normal_priority()
+        name_thread("link-calls")
         while not self._stop.is_set():
             item = self._calls.get()
             if item is None:

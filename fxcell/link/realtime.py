@@ -76,6 +76,15 @@ def normal_priority() -> None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
+def name_thread(name: str) -> None:
+    """Give the calling thread ``name`` where the system shows it (Linux: ``top -H``,
+    ``/proc/PID/task/TID/comm``; at most 15 characters); elsewhere nothing."""
+    with contextlib.suppress(OSError):
+        path = f"/proc/self/task/{threading.get_native_id()}/comm"
+        with open(path, "w") as comm:
+            comm.write(name[:15])
+
+
 def probe(priority: int = LINK_PRIORITY) -> Scheduling:
     """Whether a link process started now by this user would get real-time scheduling:
     the request, made in a short-lived thread (Linux schedules threads one by one), so
