@@ -171,14 +171,6 @@ def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
 MACHINE_LOCK = Path(tempfile.gettempdir()) / "fxcell-tests-machine.lock"
 
 
-def pytest_configure(config: pytest.Config) -> None:
-    config.addinivalue_line(
-        "markers",
-        "alone: loads the machine itself (CPU burners): on parallel workers no other test "
-        "runs beside it",
-    )
-
-
 @pytest.hookimpl(tryfirst=True, wrapper=True)  # outermost: the wait is not the test's time
 def pytest_runtest_protocol(item: pytest.Item) -> Iterator[object]:
     if "PYTEST_XDIST_WORKER" not in os.environ:
