@@ -944,6 +944,12 @@ class SimServer:
                 self.camera.close()
             for sig in signals:
                 loop.remove_signal_handler(sig)
+            loader = self._dynamics_loader
+            if loader is not None and loader.is_alive():
+                # a daemon thread still inside Pinocchio's C++ (its import takes a few
+                # hundred ms) when the interpreter exits is unwound by force, which C++'s
+                # catch-all handlers turn into an abort ("FATAL: exception not rethrown")
+                await loop.run_in_executor(None, loader.join)
 
 
 STALL_REPORTED = 0.05

@@ -7,6 +7,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 
 import pytest
 from dashboard_client import DashboardClient
@@ -241,3 +242,34 @@ async def test_simulator_context_manager_also_works_with_async_with() -> None:
         assert sim.running
         assert await asyncio.to_thread(sim.dashboard, "robotmode") == "Robotmode: POWER_OFF"
     assert not sim.running
+
+
+async def test_the_simulator_stops_only_once_its_dynamic_model_is_built(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a daemon thread still building the model (inside Pinocchio's C++) when the interpreter
+    # exits aborts the process: `fxcell sim` stopped at once after listening exited -6
+    import fxcell.sim.dynamics
+    from fxcell.sim.server import SimServer
+
+    building = threading.Event()
+    release = threading.Event()
+
+    class SlowModel:
+        def __init__(self) -> None:
+            building.set()
+            release.wait(30)
+
+    monkeypatch.setattr(fxcell.sim.dynamics, "ArmDynamics", SlowModel)
+    server = SimServer(free_loopback_host(), time_scale=0.05)
+    serving = asyncio.create_task(
+        server.serve(announce=False, handle_signals=False, on_listening=server.request_stop)
+    )
+    assert await asyncio.to_thread(building.wait, 30)
+    await asyncio.sleep(0)
+    assert not serving.done()  # stopped, but waiting for the model
+    release.set()
+    await asyncio.wait_for(serving, 30)
+    loader = server._dynamics_loader
+    assert loader is not None
+    assert not loader.is_alive()
