@@ -250,3 +250,20 @@ def _into_work_units_longest_first(items: list[pytest.Item]) -> None:
     for item in items:
         if item.get_closest_marker("xdist_group") is None:
             item.add_marker(pytest.mark.xdist_group(units[id(item)]))
+
+
+def pytest_xdist_node_collection_finished(node: Any, ids: list[str]) -> None:
+    """Stop a `--dist loadgroup` run whose work units pytest-xdist could not mark: it names a
+    test's group in the node id a worker reports (``nodeid@group``), which some pytest
+    releases do not let it change (pyproject.toml pins them out). Without the groups every
+    test would be a unit of its own: a file's shared simulator started on each worker, tests
+    of one machine-wide port side by side."""
+    if node.config.getoption("dist") != "loadgroup":
+        return
+    unmarked = [nodeid for nodeid in ids if "@" not in nodeid]
+    if unmarked:
+        pytest.exit(
+            f"pytest {pytest.__version__} and pytest-xdist's loadgroup: the work units are not "
+            f"marked (e.g. {unmarked[0]}); install the versions pyproject.toml pins",
+            returncode=pytest.ExitCode.USAGE_ERROR,
+        )

@@ -37,3 +37,16 @@ def test_an_ordinary_test_shares_the_machine() -> None:
 @pytest.mark.alone
 def test_an_alone_test_has_the_machine_to_itself() -> None:
     assert not _can_lock(fcntl.LOCK_SH)  # no other test can start beside it
+
+
+@pytest.fixture(scope="module")
+def shared() -> object:
+    return object()
+
+
+@on_workers
+def test_a_test_sharing_a_module_fixture_runs_in_its_files_work_unit(
+    shared: object, request: pytest.FixtureRequest
+) -> None:
+    # pytest-xdist's loadgroup names the unit in the node id its worker runs
+    assert request.node.nodeid.endswith("@tests/test_parallel_workers.py")
