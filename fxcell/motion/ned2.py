@@ -278,7 +278,7 @@ def _solve(
         frames = np.where(better[:, None, None, None], f_new, frames)
         err = np.where(better[:, None], e_new, err)
         cost = np.where(better, c_new, cost)
-        lam = np.where(better, np.maximum(lam * 0.3, 1e-9), lam * 10.0)
+        lam = np.where(better, np.maximum(lam * 0.3, 1e-15), lam * 10.0)
     else:
         done = (np.linalg.norm(err[:, :3], axis=1) < tol_pos) & (
             np.linalg.norm(err[:, 3:], axis=1) < tol_rot
@@ -295,8 +295,8 @@ def inverse(
     extra_seeds: Array | None = None,
     branches: bool = True,
     iterations: int = 60,
-    tol_pos: float = 1e-7,
-    tol_rot: float = 1e-7,
+    tol_pos: float = 1e-10,
+    tol_rot: float = 1e-10,
 ) -> IkResult:
     """Joint positions within the limits that put ``tool_link`` at ``target`` (a 4x4
     transform or Niryo's 6-value pose), the one nearest ``seed`` (Euclidean in joint
