@@ -12,6 +12,7 @@ import pytest
 
 from fxcell import Cell, CellState, RobotMode, SafetyMode
 from fxcell.cell.statemachine import load_statechart
+from fxcell.config import CellConfig
 from fxcell.errors import (
     ConnectionLostError,
     InvalidStateError,
@@ -24,7 +25,7 @@ from fxcell.errors import (
 )
 from fxcell.events import CommandEvent, StateEvent, TransitionEvent
 from fxcell.protocol import CONTROL_PERIOD, ProgramState
-from fxcell.testing import SimulatorHandle, simulator, urcap_port, uses_urcap_port
+from fxcell.testing import SimulatorHandle, brisk, simulator, urcap_port, uses_urcap_port
 
 TIME_SCALE = 0.05
 OBSERVE_WITHIN = 0.05  # s from the simulator's change to cell.state
@@ -64,7 +65,7 @@ def _reset(sim: SimulatorHandle) -> None:
 @pytest.fixture
 async def cell(shared_sim: SimulatorHandle) -> AsyncIterator[Cell]:
     await asyncio.to_thread(_reset, shared_sim)
-    async with Cell(host=shared_sim.host) as c:
+    async with Cell(host=shared_sim.host, config=brisk(CellConfig.load())) as c:
         await c.wait_for_state(CellState.POWER_OFF)
         yield c
 

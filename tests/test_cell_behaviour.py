@@ -31,7 +31,7 @@ from fxcell.errors import (
 from fxcell.geometry import Pose
 from fxcell.layout import Layout, Station
 from fxcell.robots import kind_names
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, brisk, simulator
 from fxcell.testing.ned2 import Ned2SimulatorHandle, ned2_simulator
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
@@ -73,12 +73,9 @@ def _ned2_put(sim: Ned2SimulatorHandle, name: str, station: Station, slot: str) 
 def _ur3e() -> Arm:
     config = CellConfig.load()
     io = config.io.model_copy(update={"signals": {**config.io.signals, "lamp": "DO5"}})
-    limits = config.limits.model_copy(
-        update={"acceleration": (3.0,) * 3 + (6.0,) * 3, "jerk": (30.0,) * 6}
-    )
     return Arm(
         "ur3e",
-        config.model_copy(update={"io": io, "limits": limits}),
+        brisk(config).model_copy(update={"io": io}),
         (0.0, -1.8, 1.4, -1.2, -1.57, 0.0),
         (0.9, -1.4, 1.0, -1.2, -1.57, 0.5),
         ("rack", "B2"),

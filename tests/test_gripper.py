@@ -12,6 +12,7 @@ from waiting import controller_time_passes, until
 from fxcell import Cell
 from fxcell.cell.gripper import GripResult
 from fxcell.cell.statemachine import CellState
+from fxcell.config import CellConfig
 from fxcell.errors import (
     GripperFaultError,
     GripperNotActivatedError,
@@ -21,7 +22,7 @@ from fxcell.errors import (
     ObjectLostError,
 )
 from fxcell.events import DeviceEvent
-from fxcell.testing import SimulatorHandle, injected_faults, simulator
+from fxcell.testing import SimulatorHandle, brisk, injected_faults, simulator
 
 PICK = [0.0, -1.2, 1.2, -1.57, -1.57, 0.0]
 PLACE = [0.4, -1.1, 1.1, -1.57, -1.57, 0.0]
@@ -40,7 +41,7 @@ def sim() -> Iterator[SimulatorHandle]:
 
 @pytest.fixture
 async def cell(sim: SimulatorHandle) -> AsyncIterator[Cell]:
-    async with Cell(host=sim.host) as c:
+    async with Cell(host=sim.host, config=brisk(CellConfig.load())) as c:
         await c.init()
         yield c
 

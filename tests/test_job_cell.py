@@ -14,7 +14,7 @@ from fxcell import Cell
 from fxcell.config import CellConfig, JobConfig
 from fxcell.job import Job, JobStore, final_locations
 from fxcell.layout import Layout
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, brisk, simulator
 
 CONFIG = CellConfig.load()
 LAYOUT = Layout(CONFIG.layout)
@@ -29,11 +29,7 @@ def sim() -> Iterator[SimulatorHandle]:
 
 @pytest.fixture
 async def cell(sim: SimulatorHandle, tmp_path: Path) -> AsyncIterator[Cell]:
-    # Faster joints than the shipped (the seed's conservative) limits keep the test short.
-    limits = CONFIG.limits.model_copy(
-        update={"acceleration": (3.0,) * 3 + (6.0,) * 3, "jerk": (30.0,) * 6}
-    )
-    config = CONFIG.model_copy(update={"positions_file": tmp_path / "p.yaml", "limits": limits})
+    config = brisk(CONFIG).model_copy(update={"positions_file": tmp_path / "p.yaml"})
     async with Cell(host=sim.host, config=config) as c:
         await c.init()
         await c.gripper_activate()

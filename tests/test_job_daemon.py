@@ -25,7 +25,7 @@ from fxcell.config import CellConfig
 from fxcell.daemon.process import DaemonProcess
 from fxcell.job.plan import location
 from fxcell.layout import Layout
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, brisk_limits, simulator
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -38,8 +38,6 @@ RUN = {
         {"id": "S02", "rack": "A2", "machine": "A2", "tray": "A2"},
     ],
 }
-# Faster joints than the shipped (the seed's conservative) limits keep the run short.
-FAST = {"acceleration": [3.0, 3.0, 3.0, 6.0, 6.0, 6.0], "jerk": [30.0] * 6}
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +51,7 @@ def write_config(tmp: Path, host: str) -> Path:
     config = {
         "robot": {"host": host},
         "daemon": {"token_file": str(tmp / "token")},
-        "limits": FAST,
+        "limits": brisk_limits(),
         "job": {"database": str(tmp / "job.sqlite3"), "ready_timeout": 30.0},
         "positions_file": str(tmp / "positions.yaml"),
     }

@@ -26,7 +26,7 @@ from fxcell.config import CellConfig
 from fxcell.job import Job, JobStore
 from fxcell.job.plan import location
 from fxcell.layout import Layout
-from fxcell.testing import SimulatorHandle, injected_faults, simulator
+from fxcell.testing import SimulatorHandle, brisk, injected_faults, simulator
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
@@ -37,8 +37,6 @@ RUN = {
         {"id": f"S0{i}", "rack": f"A{i}", "machine": f"A{i}", "tray": f"A{i}"} for i in range(1, 5)
     ],
 }
-# Faster joints than the shipped (the seed's conservative) limits keep the run short.
-FAST = {"acceleration": [3.0, 3.0, 3.0, 6.0, 6.0, 6.0], "jerk": [30.0] * 6}
 
 
 def config_for(tmp: Path) -> CellConfig:
@@ -46,7 +44,7 @@ def config_for(tmp: Path) -> CellConfig:
     job = {"database": tmp / "job.sqlite3", "ready_timeout": 30.0}
     return base.model_copy(
         update={
-            "limits": base.limits.model_copy(update=FAST),
+            "limits": brisk(base).limits,
             "job": base.job.model_copy(update=job),
             "positions_file": tmp / "positions.yaml",
         }

@@ -22,7 +22,7 @@ from fxcell.errors import (
 )
 from fxcell.geometry import Pose
 from fxcell.layout import Layout
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, brisk, simulator
 
 CONFIG = CellConfig.load()
 LAYOUT = Layout(CONFIG.layout)
@@ -38,13 +38,7 @@ def sim() -> Iterator[SimulatorHandle]:
 @pytest.fixture
 def config(tmp_path: Path) -> CellConfig:
     io = CONFIG.io.model_copy(update={"interlocks": {"machine": "machine_start"}})
-    # Faster joints than the shipped (the seed's conservative) limits keep the tests short.
-    limits = CONFIG.limits.model_copy(
-        update={"acceleration": (3.0,) * 3 + (6.0,) * 3, "jerk": (30.0,) * 6}
-    )
-    return CONFIG.model_copy(
-        update={"positions_file": tmp_path / "p.yaml", "io": io, "limits": limits}
-    )
+    return brisk(CONFIG).model_copy(update={"positions_file": tmp_path / "p.yaml", "io": io})
 
 
 @pytest.fixture

@@ -21,7 +21,7 @@ from test_web_page import SCREENSHOT_DIR, Browser, headless_chromium
 from fxcell.client import RemoteCell
 from fxcell.daemon.process import DaemonProcess
 from fxcell.link import embedded
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, brisk_limits, simulator
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
@@ -33,7 +33,6 @@ RUN = {
         {"id": "S02", "rack": "A2", "machine": "A2", "tray": "A2"},
     ],
 }
-FAST = {"acceleration": [3.0, 3.0, 3.0, 6.0, 6.0, 6.0], "jerk": [30.0] * 6}
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +51,7 @@ def daemon(
     config = {
         "robot": {"host": sim.host},
         "daemon": {"token_file": str(tmp / "token")},
-        "limits": FAST,
+        "limits": brisk_limits(),
         "job": {"database": str(tmp / "job.sqlite3"), "ready_timeout": 30.0},
         "positions_file": str(tmp / "positions.yaml"),
     }

@@ -39,7 +39,7 @@ from fxcell.config import CellConfig
 from fxcell.daemon.process import DaemonProcess, free_port
 from fxcell.job.plan import location
 from fxcell.layout import Layout
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, brisk_limits, simulator
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 RUN_LOCK = 600
@@ -48,7 +48,6 @@ the lock, and Run Job is one call; 120 s ran out on a busy machine)."""
 
 TOKEN = "sila-test-token-0123456789abcdef"
 LAYOUT = Layout(CellConfig.load().layout)
-FAST = {"acceleration": [3.0, 3.0, 3.0, 6.0, 6.0, 6.0], "jerk": [30.0] * 6}
 CRUCIBLES = "A1,A2,A3,A4,B1,B2,B3"
 
 
@@ -115,7 +114,7 @@ def start_cell(tmp: Path, name: str) -> Iterator[Cell]:
                 "token_file": str(tmp / "token"),
                 "sila": {"port": free_port(), "server_name": name},
             },
-            "limits": FAST,
+            "limits": brisk_limits(),
             "job": {"database": str(tmp / "job.sqlite3"), "ready_timeout": 30.0},
             "positions_file": str(tmp / "positions.yaml"),
         }

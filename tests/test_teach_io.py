@@ -22,7 +22,7 @@ from fxcell.errors import (
     UnknownPositionError,
     UnknownSignalError,
 )
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, brisk, simulator
 
 WORK = [0.0, -1.2, 1.2, -1.57, -1.57, 0.0]
 
@@ -37,7 +37,7 @@ def sim() -> Iterator[SimulatorHandle]:
 def config(tmp_path: Path) -> CellConfig:
     base = CellConfig.load()
     io = base.io.model_copy(update={"signals": {**base.io.signals, "door_sensor": "DI5"}})
-    return base.model_copy(update={"positions_file": tmp_path / "positions.yaml", "io": io})
+    return brisk(base).model_copy(update={"positions_file": tmp_path / "positions.yaml", "io": io})
 
 
 @pytest.fixture

@@ -30,7 +30,7 @@ import tempfile
 import time
 from collections.abc import AsyncIterator, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 import pytest_asyncio
@@ -41,11 +41,16 @@ from fxcell.testing.fake import FakeLink, FakeRobot, FakeTrajectory
 from fxcell.testing.faults import injected_faults, watching_test
 from fxcell.testing.handles import ProcessHandle
 
+if TYPE_CHECKING:
+    from fxcell.config import CellConfig
+
 __all__ = [
     "FakeLink",
     "FakeRobot",
     "FakeTrajectory",
     "SimulatorHandle",
+    "brisk",
+    "brisk_limits",
     "injected_faults",
     "simulator",
     "urcap_port",
@@ -53,6 +58,25 @@ __all__ = [
 ]
 
 TEST_TIME_SCALE = 0.05  # controller delays in tests: power on 0.1 s, brake release 75 ms
+
+BRISK_LIMITS: dict[str, tuple[float, ...]] = {
+    "acceleration": (3.0, 3.0, 3.0, 6.0, 6.0, 6.0),
+    "jerk": (30.0,) * 6,
+}
+"""UR3e joint accelerations (rad/s²) and jerks (rad/s³) for tests whose subject is not the
+arm's pace: about 4x the shipped limits (the seed's conservative ones), still under the
+braking limits that every stop uses; a pick, a place or a transfer takes about half as long.
+In a cell file: ``limits: {acceleration: [...], jerk: [...]}`` with these values."""
+
+
+def brisk(config: CellConfig) -> CellConfig:
+    """``config`` with the joint limits of :data:`BRISK_LIMITS`."""
+    return config.model_copy(update={"limits": config.limits.model_copy(update=BRISK_LIMITS)})
+
+
+def brisk_limits() -> dict[str, list[float]]:
+    """:data:`BRISK_LIMITS` as a cell file's ``limits`` section."""
+    return {name: list(values) for name, values in BRISK_LIMITS.items()}
 
 
 def _describe(task: asyncio.Task[object]) -> str:
