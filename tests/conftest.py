@@ -168,7 +168,12 @@ def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
 # `alone` test holds it exclusively: it waits for the other workers' running tests to end and
 # they wait for it (its burners never meet another worker's simulator or planner). In one
 # process the lock is not taken.
+# flock grants a shared lock while an exclusive one waits, so behind the workers' overlapping
+# tests an `alone` test could wait for ever: a gate lets it in first. Every test passes the
+# gate (shared, for the moment of taking its lock); an `alone` test closes it (exclusive)
+# until it has run, so the tests that come after it wait there while the running ones end.
 MACHINE_LOCK = Path(tempfile.gettempdir()) / "fxcell-tests-machine.lock"
+MACHINE_GATE = Path(tempfile.gettempdir()) / "fxcell-tests-machine.gate"
 
 
 @pytest.hookimpl(tryfirst=True, wrapper=True)  # outermost: the wait is not the test's time
@@ -176,12 +181,18 @@ def pytest_runtest_protocol(item: pytest.Item) -> Iterator[object]:
     if "PYTEST_XDIST_WORKER" not in os.environ:
         return (yield)
     alone = item.get_closest_marker("alone") is not None
-    with open(MACHINE_LOCK, "a+") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+    with open(MACHINE_GATE, "a+") as gate, open(MACHINE_LOCK, "a+") as lock:
+        fcntl.flock(gate, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        finally:
+            if not alone:
+                fcntl.flock(gate, fcntl.LOCK_UN)
         try:
             return (yield)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+            fcntl.flock(gate, fcntl.LOCK_UN)
 
 
 @pytest.fixture(autouse=True)

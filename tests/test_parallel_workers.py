@@ -1,24 +1,26 @@
 """On parallel workers a test that loads the machine itself (``@pytest.mark.alone``) holds
-the machine's test lock exclusively and every other test holds it shared (tests/conftest.py):
-checked from inside each kind of test. In one process the lock is not taken at all."""
+the machine's test lock exclusively, and the gate in front of it, and every other test holds it
+shared (tests/conftest.py): checked from inside each kind of test. In one process the lock is
+not taken at all."""
 
 from __future__ import annotations
 
 import fcntl
 import os
+from pathlib import Path
 
 import pytest
-from conftest import MACHINE_LOCK
+from conftest import MACHINE_GATE, MACHINE_LOCK
 
 on_workers = pytest.mark.skipif(
     "PYTEST_XDIST_WORKER" not in os.environ, reason="the lock is taken on parallel workers only"
 )
 
 
-def _can_lock(kind: int) -> bool:
-    """Whether a lock of ``kind`` on the machine's test lock is free right now (a second
-    open file: flock conflicts with this process's own lock on the first)."""
-    with open(MACHINE_LOCK, "a+") as other:
+def _can_lock(kind: int, path: Path = MACHINE_LOCK) -> bool:
+    """Whether a lock of ``kind`` on the machine's test lock (or its gate) is free right now
+    (a second open file: flock conflicts with this process's own lock on the first)."""
+    with open(path, "a+") as other:
         try:
             fcntl.flock(other, kind | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -37,6 +39,7 @@ def test_an_ordinary_test_shares_the_machine() -> None:
 @pytest.mark.alone
 def test_an_alone_test_has_the_machine_to_itself() -> None:
     assert not _can_lock(fcntl.LOCK_SH)  # no other test can start beside it
+    assert not _can_lock(fcntl.LOCK_SH, MACHINE_GATE)  # nor wait in front of it
 
 
 @pytest.fixture(scope="module")
