@@ -74,7 +74,7 @@ GATES = (
     ("ruff", "check fxcell tests bench"),
     ("ruff", "format --check fxcell tests bench"),
     ("mypy", ""),
-    ("pytest", "-n 2 --dist loadgroup --no-loadscope-reorder -q tests/test_x.py"),
+    ("pytest", "-n 4 --dist loadgroup --no-loadscope-reorder -q tests/test_x.py"),
 )
 
 
