@@ -11,7 +11,7 @@ import threading
 
 import pytest
 from dashboard_client import DashboardClient
-from waiting import wait_until
+from waiting import until, wait_until
 
 from fxcell.cli import main
 from fxcell.errors import InvalidArgumentError, SimulatorError
@@ -266,7 +266,12 @@ async def test_the_simulator_stops_only_once_its_dynamic_model_is_built(
         server.serve(announce=False, handle_signals=False, on_listening=server.request_stop)
     )
     assert await asyncio.to_thread(building.wait, 30)
-    await asyncio.sleep(0)
+
+    def ports_closed() -> bool:
+        return bool(server._servers) and not any(s.is_serving() for s in server._servers)
+
+    # its ports are closed: without the wait serve would have returned in the same step
+    await until(ports_closed, "the simulator to close its ports")
     assert not serving.done()  # stopped, but waiting for the model
     release.set()
     await asyncio.wait_for(serving, 30)
