@@ -192,7 +192,8 @@ def pytest_runtest_protocol(item: pytest.Item) -> Iterator[object]:
             return (yield)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
-            fcntl.flock(gate, fcntl.LOCK_UN)
+            if alone:
+                fcntl.flock(gate, fcntl.LOCK_UN)
 
 
 @pytest.fixture(autouse=True)
