@@ -9,6 +9,9 @@
   calibrated inverse kinematics runs a few times per call. Without it
   :class:`fxcell.motion.kinematics.DHChain` (the same computations in Python, ~30x slower)
   takes its place; tests/test_native.py checks the two agree.
+- ``fxcell/link/_beat.c``, the thread that beats to the robot link process without taking
+  the GIL (:mod:`fxcell.link.beats`; a Python thread, which a GIL holder can silence,
+  takes its place where it is not built).
 
 - ``./dev`` runs ``python hatch_build.py`` whenever a module's source no longer matches the
   stamp its last compilation left (``<module>.sha256``), so the extension imported from the
@@ -36,7 +39,7 @@ try:
 except ImportError:  # run as a script, outside a build
     BuildHookInterface = object  # type: ignore[assignment,misc]
 
-NATIVE = ("fxcell/motion/kinematics.py", "fxcell/motion/_dhchain.c")
+NATIVE = ("fxcell/motion/kinematics.py", "fxcell/motion/_dhchain.c", "fxcell/link/_beat.c")
 """Native modules, relative to the project root: ``.py`` compiled with mypyc, ``.c`` a C
 extension of its own."""
 

@@ -29,7 +29,7 @@ from fxcell.errors import (
     MoveStoppedError,
     NotInRemoteControlError,
 )
-from fxcell.link.client import LOOP_STALL_AFTER
+from fxcell.link.beats import LOOP_STALL_AFTER
 from fxcell.link.contract import Guard
 from fxcell.link.follower import brake_duration
 from fxcell.link.process import BUSY_CLIENT_LIMIT, process_runs

@@ -6,7 +6,8 @@ recompiles when the source's hash changes, and the first test here fails a run t
 it. The second runs the same source interpreted (loaded under another name) and compares its
 solutions with the compiled module's. fxcell.motion._dhchain (C) is checked the same way
 against :class:`~fxcell.motion.kinematics.DHChain`, which takes its place when it is not
-built.
+built. fxcell.link._beat has no Python twin to compare with (tests/test_beats.py tests its
+behaviour); the only check here is that it was built from its present source.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from hypothesis import strategies as st
 from fxcell.calibration import Calibration
 from fxcell.errors import UnreachableError
 from fxcell.geometry import Pose
+from fxcell.link import beats
 from fxcell.motion import calibration, kinematics
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -76,12 +78,18 @@ def test_the_compiled_kinematics_is_built_from_the_present_source() -> None:
     )
 
 
-def test_the_c_chain_is_built_from_the_present_source() -> None:
-    _require_native_chain()
+@pytest.mark.parametrize("module", ["fxcell/motion/_dhchain.c", "fxcell/link/_beat.c"])
+def test_each_c_extension_is_built_from_its_present_source(module: str) -> None:
+    if module.endswith("_dhchain.c"):
+        _require_native_chain()
+    elif not beats.NATIVE:
+        if os.environ.get("FXCELL_REQUIRE_NATIVE") == "1":
+            pytest.fail("fxcell.link._beat is not built (run ./dev, see hatch_build.py)")
+        pytest.skip("fxcell.link._beat is not built here (./dev builds it)")
     build = _load("fxcell_hatch_build", ROOT / "hatch_build.py")
-    assert build.is_current(ROOT, "fxcell/motion/_dhchain.c"), (
-        "fxcell/motion/_dhchain.c changed since it was built: run ./dev (or "
-        "python hatch_build.py) to rebuild it"
+    assert build.is_current(ROOT, module), (
+        f"{module} changed since it was built: run ./dev (or python hatch_build.py) to "
+        "rebuild it"
     )
 
 

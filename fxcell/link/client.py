@@ -9,13 +9,13 @@ is gone), or when the process has sent nothing at all for 300 ms (it hangs). Jud
 state stream by the link process's clock keeps a busy event loop, which reads the
 samples late, from ever taking a healthy link for a dead one.
 
-While a trajectory runs, a thread of this process beats every 10 ms on a channel of its
-own; the link process brakes the trajectory to rest by itself when the beats stop (see
-:mod:`fxcell.link.process`). The thread beats only while the event loop has run within
-LOOP_STALL_AFTER, so a frozen or hung process is caught within the beat timeout (100 ms)
-and a stalled loop within LOOP_STALL_AFTER, while a loop that is merely late on a busy
-machine never brakes a healthy move. A link that goes down with a trajectory running is
-told to brake at once.
+While a trajectory runs, a thread of this process that never waits for the GIL beats every
+10 ms on a channel of its own (:mod:`fxcell.link.beats`); the link process brakes the
+trajectory to rest by itself when the beats stop (see :mod:`fxcell.link.process`). The
+thread beats only while the event loop has run within LOOP_STALL_AFTER, so a frozen or
+hung process is caught within the beat timeout (100 ms) and a stalled loop within
+LOOP_STALL_AFTER, while a loop that is merely late on a busy machine never brakes a healthy
+move. A link that goes down with a trajectory running is told to brake at once.
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ import logging
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
@@ -47,6 +46,7 @@ from fxcell.errors import (
     RobotTimeoutError,
 )
 from fxcell.link import collector, wire
+from fxcell.link.beats import BEAT_PERIOD, Beats
 from fxcell.link.contract import (
     STATE_STOPS,
     WIRE_VERSION,
@@ -74,7 +74,7 @@ from fxcell.link.contract import (
     stop_reason,
 )
 from fxcell.link.dashboard import DashboardOperations
-from fxcell.link.realtime import LINK_PRIORITY, Scheduling, request_realtime
+from fxcell.link.realtime import LINK_PRIORITY, Scheduling
 from fxcell.link.subscription import StateSubscription
 from fxcell.protocol import URCAP_SCRIPT_PORT, RobotState
 
@@ -89,11 +89,6 @@ STALE_AFTER = 0.1
 counts as down."""
 MUTE_AFTER = 0.3
 """Seconds without any message from the link process after which the link counts as down."""
-BEAT_PERIOD = 0.01
-"""Seconds between two beats to the link process while a trajectory runs."""
-LOOP_STALL_AFTER = 0.5
-"""Seconds the event loop may go without running before the beats stop (and the link
-process brakes): nothing supervises a move while the loop stands still."""
 BEAT_PRIORITY_BELOW = 5
 """The beat thread's SCHED_FIFO priority is the link process's less this (where permitted)."""
 WATCHDOG_LATE = 0.1
@@ -317,6 +312,8 @@ class LinkClient(DashboardOperations):
         self._supervisor: asyncio.Task[None] | None = None
         self._pending: dict[int, asyncio.Future[Any]] = {}
         self._trajectories: dict[int, TrajectoryHandle] = {}
+        """Running trajectories; :meth:`_trajectories_changed` after every change."""
+        self._beats: Beats | None = None
         # failed ends waiting for the state sample that explains them (see _handle_trajectory)
         self._unexplained: list[tuple[TrajectoryHandle, TrajectoryResult, int]] = []
         self._ids = itertools.count(1)
@@ -500,13 +497,13 @@ class LinkClient(DashboardOperations):
         self._last_sample = self._last_message = self._link_fresh = time.monotonic()
         self._last_timestamp = None
         watchdog = asyncio.create_task(self._watchdog(), name="link watchdog")
-        self._loop_ran = time.monotonic()
-        beat = asyncio.create_task(self._beat(), name="link beat")
-        beating = threading.Event()
-        beater = threading.Thread(
-            target=self._beat_thread, args=(beats, beating), name="fxcell link beats", daemon=True
-        )
-        beater.start()
+        # just below the link process where permitted: a link process that keeps its 2 ms
+        # while the beats wait for a CPU would take a busy machine for a frozen cell
+        priority = self.realtime_priority
+        beater = Beats(beats, priority=max(1, priority - BEAT_PRIORITY_BELOW) * (priority > 0))
+        self._beats = beater
+        self._trajectories_changed()
+        beat = asyncio.create_task(self._beat(beater), name="link beat")
         try:
             try:
                 async with asyncio.timeout(self.connect_timeout):
@@ -527,8 +524,8 @@ class LinkClient(DashboardOperations):
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
-            beating.set()  # the beat thread ends within BEAT_PERIOD and closes its channel
-            await asyncio.to_thread(beater.join, 1.0)
+            self._beats = None
+            beater.close()
             transport.close()
             self._writer = None
 
@@ -592,35 +589,17 @@ class LinkClient(DashboardOperations):
                 )
         self._set_status(LinkStatus.DOWN, reason)
 
-    async def _beat(self) -> None:
+    @staticmethod
+    async def _beat(beats: Beats) -> None:
         """Say every BEAT_PERIOD that the event loop runs (the beat thread reads it)."""
         while True:
+            beats.loop_ran()
             await asyncio.sleep(BEAT_PERIOD)
-            self._loop_ran = time.monotonic()
 
-    def _beat_thread(self, channel: socket.socket, done: threading.Event) -> None:
-        """Beat every BEAT_PERIOD while a trajectory runs and the loop has run lately.
-
-        A thread, not a task: a late event loop (a busy machine, a long callback) must not
-        brake a healthy move; a frozen process, or a loop stalled for LOOP_STALL_AFTER,
-        must. Only the trajectory count and a timestamp are read here, without locks.
-
-        It runs real time just below the link process where permitted: a link process that
-        keeps its 2 ms while this thread waits for a CPU would take a busy machine for a
-        frozen cell and brake healthy moves.
-        """
-        if self.realtime_priority > 0:
-            request_realtime(max(1, self.realtime_priority - BEAT_PRIORITY_BELOW))
-        channel.setblocking(False)
-        with channel:
-            while not done.wait(BEAT_PERIOD):
-                if self._trajectories and time.monotonic() - self._loop_ran < LOOP_STALL_AFTER:
-                    try:
-                        channel.send(b"b")
-                    except BlockingIOError:
-                        pass  # the link process is behind: its buffer holds beats enough
-                    except OSError:
-                        return
+    def _trajectories_changed(self) -> None:
+        """Beat while a trajectory runs, and only then."""
+        if self._beats is not None:
+            self._beats.set_running(bool(self._trajectories))
 
     async def _kill(self) -> None:
         process, self._process = self._process, None
@@ -651,6 +630,7 @@ class LinkClient(DashboardOperations):
                 )
             )
         self._trajectories.clear()
+        self._trajectories_changed()
 
     # -- incoming
 
@@ -761,6 +741,7 @@ class LinkClient(DashboardOperations):
             handle._replaced.put_nowait(bool(data.get("ok")))
         elif kind == "end":
             self._trajectories.pop(traj_id, None)
+            self._trajectories_changed()
             result = TrajectoryResult(
                 data["status"],
                 StopReason(data["reason"]),
@@ -891,6 +872,7 @@ class LinkClient(DashboardOperations):
             traj_id, len(array), self, asyncio.get_running_loop().create_future()
         )
         self._trajectories[traj_id] = handle
+        self._trajectories_changed()
         collector.hold()  # released when the trajectory ends, whatever way it ends
         handle._holds_collector = True
         try:
@@ -900,6 +882,7 @@ class LinkClient(DashboardOperations):
             self._send(wire.TRAJ_START, start)
         except BaseException:
             self._trajectories.pop(traj_id, None)
+            self._trajectories_changed()
             handle._end(None)
             raise
         return handle
