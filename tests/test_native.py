@@ -88,8 +88,7 @@ def test_each_c_extension_is_built_from_its_present_source(module: str) -> None:
         pytest.skip("fxcell.link._beat is not built here (./dev builds it)")
     build = _load("fxcell_hatch_build", ROOT / "hatch_build.py")
     assert build.is_current(ROOT, module), (
-        f"{module} changed since it was built: run ./dev (or python hatch_build.py) to "
-        "rebuild it"
+        f"{module} changed since it was built: run ./dev (or python hatch_build.py) to rebuild it"
     )
 
 
