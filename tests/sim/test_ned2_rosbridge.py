@@ -67,6 +67,15 @@ def ready(robot: Any) -> Any:
     return robot
 
 
+@pytest.fixture
+def slowed(ready: Any) -> Any:
+    """The robot at 10 % of its velocity: the move to FAR takes ~20 s instead of ~2, which
+    a stop sent once the move is seen running cannot miss on a busy machine (at full speed
+    it once arrived after the move had ended, beside a CPU burner on 4 workers)."""
+    ready.arm.set_arm_max_velocity(10)
+    return ready
+
+
 def _exchange(host: str, *messages: dict[str, Any], replies: int) -> list[dict[str, Any]]:
     """Send rosbridge messages on a fresh WebSocket; the first ``replies`` answers that
     are not topic messages."""
@@ -131,7 +140,7 @@ def test_the_gripper_closes_and_opens_through_the_tools_commanders_action(
 
 
 def test_stop_command_stops_a_move_that_the_tcp_server_is_running(
-    ready: Any, sim: Ned2SimulatorHandle
+    slowed: Any, sim: Ned2SimulatorHandle
 ) -> None:
     tcp = TcpClient(sim.host, verbose=False)
     errors: list[Exception] = []
@@ -146,7 +155,7 @@ def test_stop_command_stops_a_move_that_the_tcp_server_is_running(
     mover.start()
     try:
         sim.wait_for("moving", True)
-        ready.arm.stop_move()
+        slowed.arm.stop_move()
         mover.join(30)
     finally:
         tcp.close_connection()
@@ -158,7 +167,7 @@ def test_stop_command_stops_a_move_that_the_tcp_server_is_running(
 
 
 def test_stop_command_preempts_a_move_of_the_arm_action(
-    ready: Any, sim: Ned2SimulatorHandle
+    slowed: Any, sim: Ned2SimulatorHandle
 ) -> None:
     results: list[dict[str, Any]] = []
     done = threading.Event()
@@ -167,9 +176,9 @@ def test_stop_command_preempts_a_move_of_the_arm_action(
         results.append(result)
         done.set()
 
-    ready.arm.move_joints(FAR, callback=finished)
+    slowed.arm.move_joints(FAR, callback=finished)
     sim.wait_for("moving", True)
-    ready.arm.stop_move()
+    slowed.arm.stop_move()
     assert done.wait(30)
     assert results[0]["status"] == -4
     assert sim.state()["joints"] != pytest.approx(FAR)
