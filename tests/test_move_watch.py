@@ -16,10 +16,10 @@ import pytest
 
 from fxcell.config import CellConfig
 from fxcell.errors import ConnectionLostError
-from fxcell.link.capabilities import UR3E
+from fxcell.link.capabilities import UR3E, RobotCapabilities
 from fxcell.link.client import StateSubscription, TrajectoryProgress, TrajectoryResult
 from fxcell.link.contract import StopReason
-from fxcell.motion.moves import STATE_PATIENCE, MotionPlanner, MoveExecution, MovePlan
+from fxcell.motion.moves import MotionPlanner, MoveExecution, MovePlan
 from fxcell.protocol import RobotState
 
 CONFIG = CellConfig.load()
@@ -196,25 +196,35 @@ async def test_a_full_buffer_drops_the_oldest_sample() -> None:
 # ----------------------------------------------------------------- the move's watch
 
 
-async def test_a_move_whose_state_stream_stops_fails_at_the_patience_deadline(
-    planner: MotionPlanner, plan: MovePlan
+@pytest.mark.parametrize(
+    "capabilities",
+    [UR3E, RobotCapabilities("slow-stream", 6, DT, state_patience=0.6)],
+    ids=lambda c: c.kind,
+)
+async def test_a_move_whose_state_stream_stops_is_braked_and_fails_at_its_kinds_patience(
+    capabilities: RobotCapabilities, plan: MovePlan
 ) -> None:
+    planner = MotionPlanner(CONFIG, capabilities=capabilities)
+    patience = capabilities.state_patience
     link = StubLink(_state(0, HOME))
     execution = MoveExecution(plan, link, planner)  # type: ignore[arg-type]
     move = asyncio.create_task(execution.run())
     await link.started.wait()
     # a stream for twice the patience (the bounded wait's timer is re-armed on the way),
     # then nothing: the link is not reported down, only the samples stop
-    for k in range(1, round(2 * STATE_PATIENCE / DT)):
+    for k in range(1, round(2 * patience / DT)):
         link.feed(_state(k, HOME))
         await asyncio.sleep(DT)  # the stream's pace
     await link.handled(move)
-    with pytest.raises(ConnectionLostError, match="no robot state"):
+    with pytest.raises(ConnectionLostError, match=f"no robot state for {patience:g} s"):
         await move
     waited = time.monotonic() - link.watched[0].since  # from the wait after the last sample
-    assert STATE_PATIENCE - 0.002 <= waited < STATE_PATIENCE + 0.25
+    assert patience - 0.002 <= waited < patience + 0.25
+    # the trajectory was ended before the error went through: a robot whose controller
+    # holds the whole trajectory (the Ned2) would run on, and refuse the next one
     assert link.run is not None
-    assert not link.run.done  # nothing ended it meanwhile
+    assert link.run.done
+    assert link.run.stops == [StopReason.MOVE_ABORTED]
 
 
 async def test_a_move_ends_at_the_sample_where_the_link_sends_the_last_planned_one(

@@ -32,13 +32,18 @@ class RobotCapabilities:
     """Seconds between two samples of a streamed trajectory (the link's servo cycle)."""
     features: frozenset[Feature] = frozenset(Feature)
     """The robot features this kind has (default: every one)."""
+    state_patience: float = 0.25
+    """Seconds a running move waits for the robot's next state sample before it counts the
+    robot lost (a UR streams 500 samples a second; a slower stream needs more)."""
 
     def __post_init__(self) -> None:
         unknown = sorted(str(f) for f in self.features if f not in set(Feature))
         if unknown:
             raise InvalidArgumentError(f"{self.kind}: no such features {unknown}")
-        if self.joints < 1 or not self.sample_period > 0:
-            raise InvalidArgumentError(f"{self.kind}: joints and sample_period must be > 0")
+        if self.joints < 1 or not self.sample_period > 0 or not self.state_patience > 0:
+            raise InvalidArgumentError(
+                f"{self.kind}: joints, sample_period and state_patience must be > 0"
+            )
 
     @property
     def unsupported(self) -> frozenset[str]:

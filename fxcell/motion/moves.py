@@ -516,8 +516,6 @@ straight line then costs ~0.5-1.2 ms: collision checks along it and Ruckig)."""
 TRACKING_EVERY = 0.05
 """Seconds of controller time between two tracking reports of a running move (25 state
 samples of a UR)."""
-STATE_PATIENCE = 0.25
-"""Seconds without a state sample after which a running move counts the link as lost."""
 
 
 def lead_setpoints(traj: Trajectory, lag: float) -> Array:
@@ -643,12 +641,14 @@ class MoveExecution:
                     f"the move did not end within {self.plan.duration:.2f} s planned + margins"
                     f" after its last progress{where}"
                 ) from None
-            except asyncio.CancelledError:
+            except (asyncio.CancelledError, ConnectionLostError):
                 # Our task was cancelled (stop(), a safety event, a lost link, the
-                # caller): brake to rest before letting the cancellation through. When
-                # the braking profile cannot be spliced in (the link is down), the link
-                # process brakes along the path by itself; either way the cancellation
-                # goes through only once the trajectory has ended.
+                # caller), or the robot's state stopped coming: brake to rest before
+                # letting the cancellation or the error through. When the braking profile
+                # cannot be spliced in (the link is down), the link process brakes along
+                # the path by itself; either way it goes through only once the trajectory
+                # has ended (a robot whose controller holds the whole trajectory, as the
+                # Ned2's, would otherwise run on, and refuse the retry's trajectory).
                 self.request_stop()
                 with contextlib.suppress(Exception):
                     if not handle.done:
@@ -677,6 +677,7 @@ class MoveExecution:
         loop = asyncio.get_running_loop()
         reported = -1
         state = self.link.latest
+        patience_for_state = self.planner.capabilities.state_patience
         tracked: float | None = None  # controller time of the last tracking report
         async with asyncio.timeout(self.plan.duration + margin) as patience:
             while True:
@@ -720,14 +721,14 @@ class MoveExecution:
                         return state
                 waiting_since = time.monotonic()
                 try:
-                    state = await states.next_within(STATE_PATIENCE)
+                    state = await states.next_within(patience_for_state)
                 except TimeoutError:
                     if handle.done:
                         return state if state is not None else RobotState()
-                    if time.monotonic() - waiting_since > 0.3:
+                    if time.monotonic() - waiting_since > patience_for_state + 0.05:
                         continue  # this loop was held up, not the robot: read what came
                     raise ConnectionLostError(
-                        f"no robot state for {STATE_PATIENCE:g} s during a move"
+                        f"no robot state for {patience_for_state:g} s during a move"
                     ) from None
 
     def _track(self, handle: TrajectoryRun, state: RobotState) -> None:

@@ -37,9 +37,13 @@ NED2 = RobotCapabilities(
     joints=6,
     sample_period=0.01,
     features=frozenset(Feature) - {Feature.REMOTE_POWER, Feature.REMOTE_SHUTDOWN},
+    state_patience=1.0,
 )
 """Six joints, trajectories planned every 10 ms (handed to the robot a point every
-50 ms); no remote power or shutdown."""
+50 ms); no remote power or shutdown. Its state comes at 50 Hz over a WebSocket, and its
+link counts it lost after 1 s (``fxcell.link.ned2.link.STALE_AFTER``), so a move waits as
+long for it (the controller runs the whole trajectory by itself meanwhile); at the UR's
+0.25 s a busy machine once interrupted a healthy Ned2 move."""
 
 
 def ned2_kinematics(config: CellConfig, calibration: ArmCalibration | None) -> Ned2Kinematics:
