@@ -888,6 +888,26 @@ class SimServer:
         # ur_rtde's default receive recipe asks for actual_current_as_torque: load the
         # dynamic model now, while booting, rather than when the first client asks
         self._load_dynamics(lambda: None)
+        try:
+            await self._serve(self._stopping, boot_delay, announce, handle_signals, on_listening)
+        finally:
+            loader = self._dynamics_loader
+            if loader is not None and loader.is_alive():
+                # however serving ends (stopped, or a port taken): a daemon thread still
+                # inside Pinocchio's C++ (its import takes a few hundred ms) when the
+                # interpreter exits is unwound by force, which C++'s catch-all handlers
+                # turn into an abort ("FATAL: exception not rethrown", exit code -6)
+                await loop.run_in_executor(None, loader.join)
+
+    async def _serve(
+        self,
+        stopping: asyncio.Event,
+        boot_delay: float,
+        announce: bool,
+        handle_signals: bool,
+        on_listening: Callable[[], None] | None,
+    ) -> None:
+        loop = asyncio.get_running_loop()
         if boot_delay > 0:
             await asyncio.sleep(boot_delay)
         factories: list[tuple[int, Any]] = [
@@ -930,7 +950,7 @@ class SimServer:
         if on_listening is not None:
             on_listening()
         try:
-            await self._stopping.wait()
+            await stopping.wait()
         finally:
             if self._handle is not None:
                 self._handle.cancel()
@@ -944,12 +964,6 @@ class SimServer:
                 self.camera.close()
             for sig in signals:
                 loop.remove_signal_handler(sig)
-            loader = self._dynamics_loader
-            if loader is not None and loader.is_alive():
-                # a daemon thread still inside Pinocchio's C++ (its import takes a few
-                # hundred ms) when the interpreter exits is unwound by force, which C++'s
-                # catch-all handlers turn into an abort ("FATAL: exception not rethrown")
-                await loop.run_in_executor(None, loader.join)
 
 
 STALL_REPORTED = 0.05

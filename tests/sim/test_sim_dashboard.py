@@ -244,12 +244,15 @@ async def test_simulator_context_manager_also_works_with_async_with() -> None:
     assert not sim.running
 
 
+@pytest.mark.parametrize("ending", ["stopped", "port taken"])
 async def test_the_simulator_stops_only_once_its_dynamic_model_is_built(
-    monkeypatch: pytest.MonkeyPatch,
+    ending: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # a daemon thread still building the model (inside Pinocchio's C++) when the interpreter
-    # exits aborts the process: `fxcell sim` stopped at once after listening exited -6
+    # exits aborts the process: `fxcell sim` stopped at once after listening exited -6, and
+    # so did one that found its address taken (4 workers beside a CPU burner)
     import fxcell.sim.dynamics
+    from fxcell.protocol import DASHBOARD_PORT
     from fxcell.sim.server import SimServer
 
     building = threading.Event()
@@ -261,20 +264,37 @@ async def test_the_simulator_stops_only_once_its_dynamic_model_is_built(
             release.wait(30)
 
     monkeypatch.setattr(fxcell.sim.dynamics, "ArmDynamics", SlowModel)
-    server = SimServer(free_loopback_host(), time_scale=0.05)
-    serving = asyncio.create_task(
-        server.serve(announce=False, handle_signals=False, on_listening=server.request_stop)
-    )
-    assert await asyncio.to_thread(building.wait, 30)
+    host = free_loopback_host()
+    server = SimServer(host, time_scale=0.05)
+    failed = threading.Event()  # the port was found taken (the hub closed on the way out)
+    close_hub = server.hub.close
 
-    def ports_closed() -> bool:
-        return bool(server._servers) and not any(s.is_serving() for s in server._servers)
+    def closing_hub() -> None:
+        failed.set()
+        close_hub()
 
-    # its ports are closed: without the wait serve would have returned in the same step
-    await until(ports_closed, "the simulator to close its ports")
-    assert not serving.done()  # stopped, but waiting for the model
-    release.set()
-    await asyncio.wait_for(serving, 30)
+    monkeypatch.setattr(server.hub, "close", closing_hub)
+    with socket.socket() as taken:
+        if ending == "port taken":
+            taken.bind((host, DASHBOARD_PORT))
+            taken.listen()
+        serving = asyncio.create_task(
+            server.serve(announce=False, handle_signals=False, on_listening=server.request_stop)
+        )
+        assert await asyncio.to_thread(building.wait, 30)
+
+        def ports_closed() -> bool:
+            return bool(server._servers) and not any(s.is_serving() for s in server._servers)
+
+        # stopped, or failed: without the wait serve would have ended in that same step
+        await until(failed.is_set if ending == "port taken" else ports_closed, "serving to end")
+        assert not serving.done()  # waiting for the model
+        release.set()
+        if ending == "port taken":
+            with pytest.raises(OSError, match=r"(?i)in use"):
+                await asyncio.wait_for(serving, 30)
+        else:
+            await asyncio.wait_for(serving, 30)
     loader = server._dynamics_loader
     assert loader is not None
     assert not loader.is_alive()
