@@ -134,7 +134,8 @@ def test_safeguard_stop_pauses_and_release_plus_play_resumes(clients: Clients) -
     sim.inject("safeguard_stop")
     wait_until(lambda: r.getSafetyMode() == SAFEGUARD_STOP)
     assert r.getRuntimeState() == PAUSED
-    assert not c.isProgramRunning()
+    # the control interface reads the state in a thread of its own: its view may lag r's
+    wait_until(lambda: not c.isProgramRunning(), what="the control interface sees it paused")
     assert not c.moveJ([0.2, *START[1:]], 1.0, 1.0)
     assert sim.dashboard("play") == "Failed to execute: play"
     sim.inject("safeguard_stop_release")
