@@ -45,6 +45,21 @@ def test_other_warnings_are_not_faults() -> None:
         assert watch.unplanned() == []
 
 
+def test_a_step_the_cell_healed_is_a_fault() -> None:
+    # a move that lost its robot state while the link stayed up (a Ned2's WebSocket stream
+    # stalled) is healed without any "link down": the heal itself is counted
+    heal = logging.getLogger("fxcell.cell.healing")
+    with watching([]) as watch:
+        heal.warning(
+            "%s interrupted (%s): recovering, attempt %d",
+            "rise from tray A1",
+            "no robot state for 1 s during a move",
+            1,
+        )
+        heal.warning("%s done after recovering (attempt %d)", "rise from tray A1", 1)
+        assert watch.unplanned() == ["link healed: no robot state for 1 s during a move"]
+
+
 def test_a_move_the_link_braked_by_itself_is_a_fault() -> None:
     with watching([]) as watch:
         LINK_LOG.warning("robot link to %s braked a move by itself: %s", "127.0.0.9", "cell_silent")

@@ -5,6 +5,9 @@ While a system test runs, :class:`FaultWatch` counts
 - robot-link losses of this process (a link's ``robot link to ... down`` warning, any kind)
   and the moves its link process braked on its own guard (a stalled state stream, a silent
   cell: ``robot link to ... braked a move by itself``),
+- the steps it healed (:mod:`fxcell.cell.healing`'s ``... interrupted (why): recovering``):
+  a move that lost its robot state while the link stayed up is healed, and counted, only
+  there,
 - those of the daemons the test talks to (the same line in their output), and
 - the faults of the simulators it uses (the simulator's own fault log: safety stops, its
   own or injected, watchdog stops, injected faults),
@@ -30,8 +33,11 @@ from fxcell.daemon.process import DaemonProcess
 from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 
 _LINK_DOWN = re.compile(r"robot link to \S+ (down|braked a move by itself): (.*)")
+_HEALED = re.compile(r"\S.*? interrupted \((.*)\): recovering, attempt \d+")
 LINK_LOGGER = "fxcell.link"
 """Where every robot kind's link says it went down (the UR's client, the Ned2's link)."""
+HEAL_LOGGER = "fxcell.cell.healing"
+"""Where a cell says it heals a step that a lost link interrupted."""
 
 
 @dataclass
@@ -66,9 +72,9 @@ class FaultWatch(logging.Handler):
     # -- what is watched
 
     def emit(self, record: logging.LogRecord) -> None:
-        match = _LINK_DOWN.match(record.getMessage())
-        if match:
-            self._link.append(_fault(match))
+        fault = _fault(record.getMessage())
+        if fault is not None:
+            self._link.append(fault)
 
     def _on_daemon(self, daemon: DaemonProcess) -> None:
         self._daemons[id(daemon)] = daemon
@@ -90,7 +96,7 @@ class FaultWatch(logging.Handler):
     def _counts(self) -> _Counts:
         counts = _Counts(list(self._link))
         for key, daemon in self._daemons.items():
-            lines = [_fault(m) for m in map(_LINK_DOWN.search, list(daemon.output)) if m]
+            lines = [f for f in map(_fault, list(daemon.output)) if f is not None]
             counts.daemons[key] = lines
         for key, sim in self._sims.items():
             if key in self._sim_final:
@@ -143,11 +149,13 @@ class FaultWatch(logging.Handler):
 
     def install(self) -> None:
         logging.getLogger(LINK_LOGGER).addHandler(self)
+        logging.getLogger(HEAL_LOGGER).addHandler(self)
         DaemonProcess.observers.append(self._on_daemon)
         EmbeddedSimulator.observers.append(self._on_simulator)
 
     def uninstall(self) -> None:
         logging.getLogger(LINK_LOGGER).removeHandler(self)
+        logging.getLogger(HEAL_LOGGER).removeHandler(self)
         with contextlib.suppress(ValueError):
             DaemonProcess.observers.remove(self._on_daemon)
         with contextlib.suppress(ValueError):
@@ -168,9 +176,14 @@ def _watchable(values: list[Any]) -> list[Any]:
 _HOLDERS = ("handle", "sim", "daemon", "_simulator")
 
 
-def _fault(match: re.Match[str]) -> str:
-    """``down: why`` or ``braked a move by itself: why`` from a link client's warning."""
-    return f"{match.group(1)}: {match.group(2)}"
+def _fault(line: str) -> str | None:
+    """``down: why`` or ``braked a move by itself: why`` from a link's warning, ``healed:
+    why`` from a cell's healing; None for any other line."""
+    match = _LINK_DOWN.search(line)
+    if match:
+        return f"{match.group(1)}: {match.group(2)}"
+    healed = _HEALED.search(line)
+    return None if healed is None else f"healed: {healed.group(1)}"
 
 
 def _faults(state: SimulatorState) -> list[str]:
