@@ -500,7 +500,8 @@ class LinkClient(DashboardOperations):
         # just below the link process where permitted: a link process that keeps its 2 ms
         # while the beats wait for a CPU would take a busy machine for a frozen cell
         priority = self.realtime_priority
-        beater = Beats(beats, priority=max(1, priority - BEAT_PRIORITY_BELOW) * (priority > 0))
+        below = max(1, priority - BEAT_PRIORITY_BELOW) if priority > 0 else 0
+        beater = Beats(beats, priority=below)
         self._beats = beater
         self._trajectories_changed()
         beat = asyncio.create_task(self._beat(beater), name="link beat")
