@@ -75,7 +75,7 @@ def test_a_move_blocked_by_the_machine_is_planned_around_it(
     # Timed as a move plans it: blends the sample check rejects become stops, and a path
     # whose straight segment grazes the margin between the line check's points is
     # replaced by another (MotionPlanner.plan_joint; timing one such random path directly
-    # raised "left the collision-free corridor" in about one run in ten).
+    # raised "left the collision-free corridor" once in ten loaded full runs).
     plan = MotionPlanner(CONFIG).plan_joint(LEFT_OF_MACHINE, RIGHT_OF_MACHINE)
     assert len(plan.waypoints) >= 3
     assert checker.first_collision(plan.trajectory.positions) is None

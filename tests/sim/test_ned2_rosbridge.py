@@ -69,7 +69,7 @@ def ready(robot: Any) -> Any:
 
 @pytest.fixture
 def slowed(ready: Any) -> Any:
-    """The robot at 10 % of its velocity: the move to FAR takes ~20 s instead of ~2, which
+    """The robot at 10 % of its velocity: the move to FAR takes ~13.5 s instead of ~2.4, which
     a stop sent once the move is seen running cannot miss on a busy machine (at full speed
     it once arrived after the move had ended, beside a CPU burner on 4 workers)."""
     ready.arm.set_arm_max_velocity(10)
