@@ -27,6 +27,7 @@ from pydantic import (
 
 from fxcell.errors import ConfigError
 from fxcell.layout import LayoutConfig
+from fxcell.protocol import URCAP_SCRIPT_PORT
 from fxcell.resources import resource_dir
 from fxcell.robot_specs import SPECS, UR3E_SPEC, RobotSpec, Vector3, Vector6
 from fxcell.signals import parse_signal
@@ -58,6 +59,9 @@ class RobotConfig(_Model):
     """``script``: ur_rtde uploads its control script; ``urcap``: play ``urcap_program``
     (UR only)."""
     urcap_program: str = "external_control.urp"
+    urcap_port: int = Field(URCAP_SCRIPT_PORT, ge=1, le=65535)
+    """The cell computer's port the *External Control* URCap fetches its script from (its
+    installation's custom port on the pendant; the URCap's default is 50002)."""
     receiver: Literal["stream", "ur_rtde"] = "stream"
     """Source of the 500 Hz state stream: ``stream`` reads every RTDE packet with fxcell's
     reader; ``ur_rtde`` polls ``RTDEReceiveInterface``, which keeps only the newest packet

@@ -25,7 +25,14 @@ from fxcell.errors import (
 )
 from fxcell.events import CommandEvent, StateEvent, TransitionEvent
 from fxcell.protocol import CONTROL_PERIOD, ProgramState
-from fxcell.testing import SimulatorHandle, brisk, simulator, urcap_port, uses_urcap_port
+from fxcell.testing import (
+    URCAP_PORT,
+    SimulatorHandle,
+    brisk,
+    simulator,
+    urcap_port,
+    uses_urcap_port,
+)
 
 TIME_SCALE = 0.05
 OBSERVE_WITHIN = 0.05  # s from the simulator's change to cell.state
@@ -39,7 +46,7 @@ still leave a busy machine time to ask too soon once."""
 
 @pytest.fixture(scope="module")
 def shared_sim() -> Iterator[SimulatorHandle]:
-    args = ["--unlock-delay", str(UNLOCK_DELAY)]
+    args = ["--unlock-delay", str(UNLOCK_DELAY), "--urcap-port", str(URCAP_PORT)]
     with simulator(time_scale=TIME_SCALE, extra_args=args) as handle:
         yield handle
 
@@ -364,8 +371,12 @@ async def test_killed_link_process_goes_disconnected_then_reconnects(cell: Cell)
 @uses_urcap_port
 async def test_external_control_through_the_urcap_program(shared_sim: SimulatorHandle) -> None:
     await asyncio.to_thread(_reset, shared_sim)
-    with urcap_port():  # the PC side binds the machine-wide port 50002
-        async with Cell(host=shared_sim.host, external_control="urcap") as cell:
+    config = CellConfig.load()
+    config = config.model_copy(
+        update={"robot": config.robot.model_copy(update={"urcap_port": URCAP_PORT})}
+    )
+    with urcap_port():  # the PC side binds the machine-wide URCAP_PORT
+        async with Cell(host=shared_sim.host, config=config, external_control="urcap") as cell:
             await cell.wait_for_state(CellState.POWER_OFF)
             await cell.init()
             assert cell.state is CellState.EXTERNAL_CONTROL_READY

@@ -925,6 +925,7 @@ def process_link(
         realtime_priority=robot.realtime_priority,
         control_mode=robot.external_control,
         urcap_program=robot.urcap_program,
+        urcap_port=robot.urcap_port,
         on_state=on_state,
         on_status=on_status,
         on_control=on_control,

@@ -296,7 +296,11 @@ async def fake_cell(fake_robot: FakeRobot) -> AsyncIterator[Any]:
         yield c
 
 
-URCAP_PORT = 50002
+URCAP_PORT = 32002
+"""The cell computer's ExternalControl port in tests (``robot.urcap_port``, the simulator's
+``--urcap-port``). Not the URCap's default 50002: that lies in Linux's ephemeral range
+(32768-60999), where any server of the suite bound to port 0, or any outgoing connection,
+may hold it for as long as it lives."""
 uses_urcap_port = pytest.mark.xdist_group("urcap-port")
 """Marks a test that binds :data:`URCAP_PORT`: on parallel workers such tests go to one worker,
 in turn (the lock of :func:`urcap_port` then never waits on another worker's test)."""
@@ -304,7 +308,7 @@ in turn (the lock of :func:`urcap_port` then never waits on another worker's tes
 
 @contextlib.contextmanager
 def urcap_port(timeout: float = 120.0, port: int = URCAP_PORT) -> Iterator[int]:
-    """Hold the machine-wide ExternalControl port (the PC side, fixed at 50002) for a test.
+    """Hold the machine-wide ExternalControl port (the PC side, :data:`URCAP_PORT`) for a test.
 
     ur_rtde's ExternalControl server listens on every interface, so only one such test can
     run at a time on a machine. This waits (up to ``timeout``) for an exclusive lock shared

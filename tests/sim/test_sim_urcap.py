@@ -16,7 +16,10 @@ from .test_sim_control import START, fresh, wait_until
 @uses_urcap_port
 def test_urcap_program_requests_the_script_and_runs_it() -> None:
     flags = RTDEControlInterface.FLAG_USE_EXT_UR_CAP | RTDEControlInterface.FLAG_NO_WAIT
-    with simulator(joints=START) as sim, urcap_port() as port:
+    with (
+        urcap_port() as port,
+        simulator(joints=START, extra_args=["--urcap-port", str(port)]) as sim,
+    ):
         sim.bring_up()
         d = DashboardClient(sim.host)
         d.connect()
