@@ -135,3 +135,29 @@ async def test_a_move_the_ned2_still_runs_after_a_drop_is_stopped_before_the_lin
     assert any("still runs a command" in r.getMessage() for r in caplog.records)
     await cell.move_joint(TARGET)  # and the next move is taken
     assert sim.state()["joints"] == pytest.approx(TARGET, abs=ARRIVED)
+
+
+async def test_a_ned2_move_whose_joint_states_stop_is_stopped_while_the_robot_still_stalls(
+    cell: Cell, sim: Ned2SimulatorHandle
+) -> None:
+    # A Ned2 holds the whole trajectory and runs it without its client. When its joint
+    # states stop (its computer stalls, its services still answer), the move is stopped at
+    # the kind's state patience, not left to run unwatched until the robot publishes again.
+    far = [-1.2, 0.3, -0.5, 1.0, 0.8, 1.0]
+    stall = 6.0  # s: longer than the move would take from where the stall catches it
+    loop = asyncio.get_running_loop()
+    move = asyncio.create_task(cell.move_joint(far))
+    with injected_faults("the robot's computer stops publishing during a move"):
+        await asyncio.to_thread(sim.wait_for, "moving", True)
+        sim.inject("stall", stall)
+        stalled_at = loop.time()
+        with pytest.raises(FxcellError):
+            await move
+        await asyncio.to_thread(sim.wait_for, "moving", False, stall)
+        stopped_after = loop.time() - stalled_at
+        await _down_then(cell, CellState.EXTERNAL_CONTROL_READY)
+    state = sim.state()
+    assert max(abs(a - b) for a, b in zip(state["joints"], far, strict=True)) > 0.05
+    assert stopped_after < stall - 1.0, f"the arm ran on for {stopped_after:.1f} s"
+    await cell.move_joint(TARGET)  # and the next move is taken
+    assert sim.state()["joints"] == pytest.approx(TARGET, abs=ARRIVED)
