@@ -71,7 +71,7 @@ from fxcell.link.contract import (
 from fxcell.link.follower import Follower
 from fxcell.link.realtime import LINK_PRIORITY, name_thread, normal_priority, request_realtime
 from fxcell.link.rtde_stream import UR_RTDE_GETTERS, RTDEStream
-from fxcell.protocol import CONTROL_PERIOD, RobotState, RuntimeState
+from fxcell.protocol import CONTROL_PERIOD, URCAP_SCRIPT_PORT, RobotState, RuntimeState
 
 log = logging.getLogger("fxcell.link.process")
 
@@ -1060,7 +1060,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--host", required=True)
     parser.add_argument("--frequency", type=float, default=500.0)
     parser.add_argument("--timeout", type=float, default=2.0)
-    parser.add_argument("--urcap-port", type=int, default=50002)
+    parser.add_argument("--urcap-port", type=int, default=URCAP_SCRIPT_PORT)
     parser.add_argument("--rt-priority", type=int, default=LINK_PRIORITY)
     parser.add_argument(
         "--receiver",

@@ -14,6 +14,7 @@ from typing import Any
 
 from fxcell.errors import SimulatorError
 from fxcell.link.embedded import FAULTS
+from fxcell.protocol import URCAP_SCRIPT_PORT
 from fxcell.sim.constants import UNLOCK_DELAY
 from fxcell.sim.lifetime import watch_parent
 from fxcell.sim.ned2 import FAULTS as NED2_FAULTS
@@ -78,8 +79,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--urcap-port",
         type=int,
-        default=50002,
-        help="port the ExternalControl URCap requests its program from",
+        default=URCAP_SCRIPT_PORT,
+        help="the remote PC's port the ExternalControl URCap requests its program from "
+        "(its installation's custom port; default %(default)s)",
     )
     p.add_argument(
         "--programs",
