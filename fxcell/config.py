@@ -189,7 +189,9 @@ class SilaConfig(_Model):
 
 class DaemonConfig(_Model):
     host: str = "127.0.0.1"
-    port: int = Field(8040, ge=1, le=65535)
+    port: int = Field(8040, ge=0, le=65535)
+    """0: a free port the system picks at start; the daemon prints the address it serves
+    (clients then need it as ``--url``)."""
     allow_remote: bool = False
     """Binding to a non-loopback address needs this set (and a token)."""
     token_file: Path = Path("~/.config/fxcell/token")

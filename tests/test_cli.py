@@ -120,3 +120,17 @@ def test_the_daemon_logs_at_info_by_default_and_other_commands_at_warning() -> N
     assert getattr(parser.parse_args(["info"]), "default_log_level", logging.WARNING) == (
         logging.WARNING
     )
+
+
+def test_a_client_command_on_a_daemon_at_any_free_port_needs_its_url(
+    tmp_path: pytest.TempPathFactory,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.delenv("FXCELL_URL", raising=False)
+    config = tmp_path / "cell.yaml"  # type: ignore[operator]
+    config.write_text("daemon:\n  port: 0\n")
+    assert main(["status", "--config", str(config)]) == 1
+    err = capsys.readouterr().err
+    assert "daemon.port is 0" in err
+    assert "--url" in err

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from fxcell.daemon.process import DaemonProcess, free_port
+from fxcell.daemon.process import DaemonProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 TOKEN = "packaging-token-0123456789abcdef"
@@ -166,7 +166,7 @@ def test_a_full_install_runs_info_and_a_daemon_from_any_directory(
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     proc = subprocess.Popen(
         [str(venv / "bin" / "fxcell"), "daemon", "--config", str(config),
-         "--port", str(free_port()), "--no-record", "--sim-time-scale", "0.2"],
+         "--port", "0", "--no-record", "--sim-time-scale", "0.2"],
         cwd=elsewhere, env={**env, "FXCELL_TOKEN": TOKEN},
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from fxcell.commands import COMMANDS, Arg, Command
-from fxcell.errors import FxcellError
+from fxcell.errors import ConfigError, FxcellError
 
 _SHORT = {"velocity_factor": "-v", "acceleration_factor": "-a"}
 
@@ -55,7 +55,11 @@ def register(sub: Any) -> None:
         "for a ur3e, config/ned2-cell.yaml for a ned2)",
     )
     p.add_argument("--host", help="address to listen on (default: daemon.host, 127.0.0.1)")
-    p.add_argument("--port", type=int, help="port to listen on (default: daemon.port, 8040)")
+    p.add_argument(
+        "--port",
+        type=int,
+        help="port to listen on (default: daemon.port, 8040; 0: a free one, printed at start)",
+    )
     p.add_argument(
         "--allow-remote",
         action="store_true",
@@ -376,6 +380,11 @@ def _endpoint(args: argparse.Namespace) -> tuple[str, str | None]:
     config = CellConfig.load(getattr(args, "config", None))
     url = getattr(args, "url", None) or os.environ.get("FXCELL_URL")
     if not url:
+        if not config.daemon.port:
+            raise ConfigError(
+                "daemon.port is 0 (a free port picked at start): give the address the daemon "
+                "printed with --url or FXCELL_URL"
+            )
         host = config.daemon.host
         host = "127.0.0.1" if host in ("0.0.0.0", "::") else host
         url = f"http://{host}:{config.daemon.port}"

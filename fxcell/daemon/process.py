@@ -1,7 +1,9 @@
 """Starting a daemon as a child process and waiting until it serves (tests, benchmarks).
 
 ``with DaemonProcess.start(config_path, token=...) as daemon: daemon.url`` runs
-``python -m fxcell daemon`` on a free loopback port and stops it (SIGTERM) on exit.
+``python -m fxcell daemon`` on a free loopback port (``--port 0``: the daemon binds it and
+prints its address, so no other socket can take it in between) and stops it (SIGTERM) on
+exit.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ _SERVING = re.compile(r"serving (http://\S+?)/?$")
 
 
 def free_port(host: str = "127.0.0.1") -> int:
+    """A port free now on ``host``, for a server that cannot take port 0 itself (it may be
+    taken by another socket before that server binds it)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind((host, 0))
         return int(sock.getsockname()[1])
@@ -67,10 +71,9 @@ class DaemonProcess:
         startup_timeout: float = 40.0,
     ) -> DaemonProcess:
         """Start a daemon on a free port; returns once it serves (or raises with its output)."""
-        port = free_port()
         verbose = ["-v"] if {**os.environ, **(env or {})}.get("FXCELL_DAEMON_VERBOSE") else []
         args = [sys.executable, "-m", "fxcell", *verbose, "daemon", "--config", str(config)]
-        args += ["--port", str(port)]
+        args += ["--port", "0"]
         args += ["--log-dir", str(log_dir)] if log_dir else ["--no-record"]
         args += list(extra_args)
         environ = {**os.environ, **(env or {}), "FXCELL_TOKEN": token, "PYTHONUNBUFFERED": "1"}
