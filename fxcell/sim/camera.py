@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import math
+import os
 import random
 from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -29,9 +31,30 @@ import numpy as np
 
 from fxcell.config import CameraConfig
 from fxcell.geometry import Pose
+from fxcell.link.realtime import LINK_PRIORITY, name_thread
 from fxcell.vision.model import Deck, FloatArray, Intrinsics, camera_pose, plane_homography
 
 log = logging.getLogger(__name__)
+
+RENDER_PRIORITY = LINK_PRIORITY - 10
+"""The renderer thread's SCHED_FIFO priority in a real-time simulator: below the robot link's
+(and the link client's beat thread's), above every normal process. A frame takes ~150 ms
+of a CPU; at the control cycle's priority, two simulators rendering at once held both
+CPUs above the links of the cells beside them, and those links fell silent."""
+
+RENDER_THREAD = "sim-camera"
+"""The renderer thread's name as the system shows it (``/proc/PID/task/TID/comm``)."""
+
+
+def _render_thread_setup() -> None:
+    """The renderer thread's start: named, and in a real-time simulator moved below the
+    robot link's priority (see :data:`RENDER_PRIORITY`); otherwise as it was started."""
+    name_thread(RENDER_THREAD)
+    with contextlib.suppress(OSError, AttributeError):
+        realtime = os.sched_getscheduler(0) == os.SCHED_FIFO
+        if realtime and os.sched_getparam(0).sched_priority > RENDER_PRIORITY:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RENDER_PRIORITY))
+
 
 TEXTURE_SCALE = 0.00025  # m per texture pixel of the holder plate
 PLATE_BGR = (58.0, 60.0, 62.0)
@@ -383,10 +406,14 @@ class SimCamera:
         self.grip_heights = grip_heights
         self.flange = flange
         self.frames = 0
-        # The renderer keeps the simulator's scheduling: a worker at a lower priority would be
-        # descheduled on a busy machine while it holds the GIL, and the control cycle waiting
-        # for the GIL would stall behind it (and the snapshot would take seconds).
-        self._executor = concurrent.futures.ThreadPoolExecutor(1, "fxcell-sim-camera")
+        # The renderer stays real time where the simulator is: a worker at normal priority
+        # would be descheduled on a busy machine while it holds the GIL, and the control
+        # cycle waiting for the GIL would stall behind it (and the snapshot would take
+        # seconds). But it runs below the robot links (RENDER_PRIORITY): a real camera
+        # takes no CPU from the cell computer.
+        self._executor = concurrent.futures.ThreadPoolExecutor(
+            1, "fxcell-sim-camera", initializer=_render_thread_setup
+        )
         # OpenCV's own workers inherit that scheduling too: with one per core, a frame's
         # parallel regions would take every CPU from the control cycle (a real-time thread
         # waits behind running ones of its priority). One thread renders a frame in time.

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 import pytest_asyncio
 
+from fxcell.errors import SimulatorError
 from fxcell.link import embedded
 from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
 from fxcell.testing.fake import FakeLink, FakeRobot, FakeTrajectory
@@ -155,6 +156,14 @@ class SimulatorHandle(ProcessHandle):
     @property
     def running(self) -> bool:
         return self._sim.running
+
+    @property
+    def pid(self) -> int:
+        """The simulator process's id (it must be running)."""
+        process = self._sim.process
+        if process is None:
+            raise SimulatorError("simulator not started")
+        return process.pid
 
     def start(self) -> SimulatorHandle:
         self._sim.start()
