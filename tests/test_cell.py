@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from waiting import until
 
 from fxcell import Cell, CellState, RobotMode, SafetyMode
 from fxcell.cell.statemachine import load_statechart
@@ -22,6 +23,7 @@ from fxcell.errors import (
     ProgramStoppedError,
     ProtectiveStopError,
     ProtectiveStopUnlockTooSoonError,
+    RobotTimeoutError,
 )
 from fxcell.events import CommandEvent, StateEvent, TransitionEvent
 from fxcell.protocol import CONTROL_PERIOD, ProgramState
@@ -350,6 +352,27 @@ async def test_link_crash_under_external_control_reconnects_and_restores_control
     await cell.wait_for_state(CellState.DISCONNECTED, timeout=1)
     await cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY, timeout=20)
     assert cell._link().control_ready
+
+
+@pytest.mark.injects_faults("the control script hung: it stops answering commands")
+async def test_a_call_the_controller_never_answers_restarts_the_link_and_control_comes_back(
+    cell: Cell, shared_sim: SimulatorHandle
+) -> None:
+    # ur_rtde waits up to 300 s for its script to finish a command, in the link process's
+    # one call worker: every call after it would time out too, heal after heal.
+    await cell.init()
+    bare = shared_sim.state()["payload"]
+    link = cell._link()
+    stuck = link.pid
+    cell.command_timeout = 1.0
+    await _inject(shared_sim, "hang_script")
+    with pytest.raises(RobotTimeoutError, match="SetTool"):
+        await cell.declare_held("crucible")  # the controller's payload: a SetTool call
+    await until(lambda: link.pid not in (stuck, None), "a fresh link process", 10.0)
+    await cell.wait_for_state(CellState.EXTERNAL_CONTROL_READY, timeout=20)
+    await cell.declare_held(None)
+    await cell.declare_held("crucible")  # answered now: the fresh process's script runs
+    assert shared_sim.state()["payload"] > bare
 
 
 @pytest.mark.injects_faults("the link process killed")

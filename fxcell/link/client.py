@@ -2,7 +2,8 @@
 
 :class:`LinkClient` starts ``fxcell.link.process`` with one end of a socketpair,
 reads its framed messages (500 Hz state samples, replies, trajectory reports) and
-restarts it with exponential backoff whenever it exits or cannot connect. The link
+restarts it with exponential backoff whenever it exits or cannot connect (and kills it
+first when a call goes unanswered past its time: its one call worker is stuck). The link
 counts as *up* while state samples arrive; it goes down when the process exits (at once),
 when the process's own pulses say it has had no state sample for 100 ms (the controller
 is gone), or when the process has sent nothing at all for 300 ms (it hangs). Judging the
@@ -95,6 +96,9 @@ WATCHDOG_LATE = 0.1
 """Seconds beyond which the watchdog's wake-up counts as late (its sleeps are ≤ 50 ms)."""
 GAP_REPORT = 0.02
 """A pause of the state stream longer than this (controller time, s) is logged as a gap."""
+STUCK_BRAKE_WITHIN = 3.0
+"""Seconds the running trajectories get to brake along their paths before a link process
+whose call worker is stuck is restarted (the longest stop under the braking limits)."""
 HOLD_STALE_AFTER = 8.0
 """The same while the link process runs a blocking ur_rtde constructor."""
 SELF_BRAKES = frozenset({"state_stalled", "cell_silent"})
@@ -317,6 +321,7 @@ class LinkClient(DashboardOperations):
         # failed ends waiting for the state sample that explains them (see _handle_trajectory)
         self._unexplained: list[tuple[TrajectoryHandle, TrajectoryResult, int]] = []
         self._ids = itertools.count(1)
+        self._restarting: asyncio.Task[None] | None = None  # see _worker_stuck
         self._hold = False
         self._last_sample = 0.0
         self._last_message = 0.0  # time.monotonic() of the newest message of any kind
@@ -366,6 +371,10 @@ class LinkClient(DashboardOperations):
             with contextlib.suppress(FxcellError):
                 await self._request(LeaveServo(), 0.5)
         self._closing = True
+        if self._restarting is not None:
+            self._restarting.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._restarting
         if self._supervisor is not None:
             self._supervisor.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -383,7 +392,8 @@ class LinkClient(DashboardOperations):
         await self.close()
 
     def kill_process(self) -> None:
-        """Kill the link process abruptly (tests and benchmarks of the supervision)."""
+        """Kill the link process abruptly (the supervisor starts a fresh one): for a process
+        whose call worker is stuck, and for tests and benchmarks of the supervision."""
         if self._process is not None and self._process.poll() is None:
             self._process.kill()
 
@@ -805,11 +815,50 @@ class LinkClient(DashboardOperations):
             async with asyncio.timeout(within):
                 return await future
         except TimeoutError:
+            self._worker_stuck(type(request).__name__, within)
             raise RobotTimeoutError(
                 f"robot link request {type(request).__name__} timed out after {within:g} s"
             ) from None
         finally:
             self._pending.pop(request_id, None)
+
+    def _worker_stuck(self, what: str, within: float) -> None:
+        """A request unanswered past its time: the link process's one call worker is still
+        in it, and every call after it would wait too. It waits on a controller that does
+        not answer (ur_rtde waits up to 300 s for its control script to finish a command),
+        and only a fresh process gets out of that: brake what runs, then restart it."""
+        pid = self.pid
+        if pid is None or self._closing or (self._restarting and not self._restarting.done()):
+            return
+        log.warning(
+            "robot link to %s: request %s unanswered after %g s; restarting the link process "
+            "(its call worker is stuck)",
+            self.host,
+            what,
+            within,
+        )
+        self._restarting = asyncio.create_task(
+            self._restart_stuck(pid, f"request {what} unanswered after {within:g} s"),
+            name=f"link {self.host} restart",
+        )
+
+    async def _restart_stuck(self, pid: int, reason: str) -> None:
+        """Brake the running trajectories (their thread is not the stuck one), wait up to
+        STUCK_BRAKE_WITHIN for them to end, then kill process ``pid`` if it still serves:
+        the supervisor starts a fresh one and the cell restores control as after any loss."""
+        running = [handle for handle in self._trajectories.values() if not handle.done]
+        for handle in running:
+            self._send_safety(wire.TRAJ_STOP, StopTrajectory(handle.id, StopReason.LINK_DOWN.value))
+        if running:
+            ends = [asyncio.shield(handle._done) for handle in running]
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(STUCK_BRAKE_WITHIN):
+                    await asyncio.wait(ends)
+            for end in ends:
+                end.cancel()
+        if self.pid == pid:
+            self.last_failure = reason
+            self.kill_process()
 
     def _requests_sent(self) -> int:
         return self.messages_sent

@@ -44,6 +44,7 @@ FAULTS = (
     "drop_rtde",
     "stall_rtde",
     "stop_program",
+    "hang_script",  # ur_rtde's control script stops answering (blocked in a call); it plays on
     "power_loss",
     "gripper_fault",  # [CODE]: the Hand-E reports FLT CODE (default 0x0E) and stops
     "gripper_drop",  # the held object slips out of the fingers

@@ -704,6 +704,10 @@ class Controller:
             self.on_drop_rtde()
         elif fault == "stop_program":
             self.stop("stopped on the teach pendant")
+        elif fault == "hang_script":
+            if self.script is None:
+                raise FaultError("hang_script: no control script runs")
+            self.script.hang()
         elif fault in ("hide_kinematics_info", "show_kinematics_info"):
             self.kinematics_info_hidden = fault == "hide_kinematics_info"
         elif fault == "power_loss":

@@ -115,6 +115,7 @@ class ControlScript:
         self.path = parse_move_path(text)
         self.executing = False
         self.terminated = False
+        self.hung = False  # stopped answering (the hang_script fault); the program plays on
         self.wait: MotionToken | None = None
         self.move_token: MotionToken | None = None  # the async move thread
         self.stop_token: MotionToken | None = None  # the async stop thread
@@ -174,8 +175,14 @@ class ControlScript:
         self.move_token = None
         self.stop_token = None
 
+    def hang(self) -> None:
+        """Stop answering commands, as a script blocked in a call does (a read without a
+        timeout): the program keeps playing, the registers keep their values, until the
+        program is stopped or a new script replaces this one."""
+        self.hung = True
+
     def step(self) -> None:
-        if self.terminated:
+        if self.terminated or self.hung:
             return
         if self.wait is not None:  # inside a blocking call
             if not self.wait.done:
