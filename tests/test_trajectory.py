@@ -24,6 +24,7 @@ from fxcell.motion.trajectory import (
     rest_to_rest,
     through_waypoints,
     validate_factor,
+    waypoint_velocities,
 )
 
 CONFIG = CellConfig.load()
@@ -186,6 +187,41 @@ def test_waypoints_in_one_direction_are_passed_without_stopping() -> None:
     assert np.min(speed[len(speed) // 10 : -len(speed) // 10]) > 0.05
     assert_within_limits(blended, LIMITS)
     np.testing.assert_array_equal(blended.positions[-1], wp[-1])
+
+
+SLOW = Limits(
+    velocity=np.full(6, 0.3 * math.pi),  # the UR3e's base at a velocity factor of 0.3
+    acceleration=np.full(6, 0.7),
+    jerk=np.full(6, 20.0),
+    position_min=np.full(6, -2 * math.pi),
+    position_max=np.full(6, 2 * math.pi),
+    period=DT,
+)
+ROUNDS_PAST = -2.449402126823381
+"""A base step whose cruise velocity, d * (limit / |d|), rounds one ulp past the limit."""
+
+
+def test_a_waypoint_velocity_that_rounds_past_its_limit_is_held_at_it() -> None:
+    wp = np.array([[2.4 + k * ROUNDS_PAST, -1.5, 1.0, -1.0, -1.5, 0.1 * k] for k in range(3)])
+    assert abs(ROUNDS_PAST * (SLOW.velocity[0] / abs(ROUNDS_PAST))) > SLOW.velocity[0]
+    v = waypoint_velocities(wp, SLOW)
+    assert v[1, 0] == -SLOW.velocity[0]
+    traj = through_waypoints(wp, SLOW)  # Ruckig refused the rounded one (a RuckigError)
+    assert traj.stops == 0
+    assert_within_limits(traj, SLOW)
+
+
+@given(
+    st.lists(st.lists(st.floats(-3.0, 3.0), min_size=6, max_size=6), min_size=3, max_size=6),
+    st.floats(0.05, 1.0),
+)
+@settings(max_examples=200, deadline=None)
+def test_waypoint_velocities_never_exceed_the_joint_limits(
+    points: list[list[float]], factor: float
+) -> None:
+    limits = Limits.from_config(CONFIG.limits, period=DT, velocity_factor=factor)
+    v = waypoint_velocities(np.array(points), limits)
+    assert np.all(np.abs(v) <= limits.velocity)
 
 
 def test_a_reversing_joint_stops_at_its_waypoint_only() -> None:

@@ -181,7 +181,10 @@ def _input(limits: Limits) -> ruckig.InputParameter:
 def _solve(inp: ruckig.InputParameter) -> ruckig.Trajectory:
     dof = inp.degrees_of_freedom
     traj = ruckig.Trajectory(dof)
-    result = ruckig.Ruckig(dof).calculate(inp, traj)
+    try:
+        result = ruckig.Ruckig(dof).calculate(inp, traj)
+    except ruckig.RuckigError as exc:  # input it refuses (its message names the value)
+        raise PlanningError(f"Ruckig could not time the motion: {str(exc).strip()}") from None
     if result not in (ruckig.Result.Working, ruckig.Result.Finished):
         raise PlanningError(f"Ruckig could not time the motion: {result}")
     return traj
@@ -311,11 +314,7 @@ def _scalar(v: float, a: float, j: float) -> ruckig.Trajectory:
     inp.max_velocity = [v]
     inp.max_acceleration = [a]
     inp.max_jerk = [j]
-    traj = ruckig.Trajectory(1)
-    result = ruckig.Ruckig(1).calculate(inp, traj)
-    if result not in (ruckig.Result.Working, ruckig.Result.Finished):
-        raise PlanningError(f"Ruckig could not time the path: {result}")
-    return traj
+    return _solve(inp)
 
 
 # ----------------------------------------------------------------- public builders
@@ -381,7 +380,9 @@ def waypoint_velocities(waypoints: Array, limits: Limits) -> Array:
     In each segment the cruise velocity is the straight-line velocity the segment could
     reach (bounded by the joint velocities and by what the acceleration limits reach
     over the segment). At an interior waypoint each joint keeps the smaller of the
-    adjacent segments' cruise speeds, and stops where it reverses direction.
+    adjacent segments' cruise speeds, and stops where it reverses direction. Each is
+    clipped to its joint's limit: ``d * (limit / |d|)`` can round past it, and Ruckig
+    refuses a target velocity beyond its limit by a single ulp.
     """
     m = len(waypoints)
     v = np.zeros((m, limits.joints))
@@ -403,7 +404,7 @@ def waypoint_velocities(waypoints: Array, limits: Limits) -> Array:
         a, b = cruise[k - 1], cruise[k]
         same = a * b > 0
         v[k] = np.where(same, np.sign(a) * np.minimum(np.abs(a), np.abs(b)), 0.0)
-    return v
+    return np.clip(v, -limits.velocity, limits.velocity)
 
 
 def through_waypoints(
