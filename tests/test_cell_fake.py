@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -98,6 +99,21 @@ async def test_init_walks_the_modes_to_external_control_and_sets_the_tool(
     assert model["tcp"] == pytest.approx(list(off_cell.config.tool.tcp))
     assert model["payload"] == pytest.approx(off_cell.config.tool.payload)
     assert (await off_cell.get_program_state()).state is ProgramState.PLAYING
+
+
+async def test_a_late_event_loop_still_sees_the_brief_booting_mode(
+    off_cell: Cell, fake_robot: FakeRobot
+) -> None:
+    # POWER_ON lasts 50 cycles here (20 ms at 5x): a loop late by more than that once
+    # advanced the idle controller past it in one step and never published it.
+    seen: list[str] = []
+    off_cell.bus.subscribe(
+        lambda e: seen.append(e.dest) if isinstance(e, TransitionEvent) else None
+    )
+    await off_cell._link().power(True)
+    time.sleep(0.2)  # noqa: ASYNC251 (holds the event loop up on purpose)
+    await off_cell.wait_for_state(CellState.IDLE, timeout=5)
+    assert seen.index("powering_on") < seen.index("idle")
 
 
 async def test_power_off_from_external_control_ends_the_program(

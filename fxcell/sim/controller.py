@@ -14,6 +14,7 @@ shorten it, ``--unlock-delay``).
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -243,6 +244,14 @@ class Controller:
         seq = self._pending.pop(name, None)
         if seq is not None:
             self._timers = [t for t in self._timers if t[1] != seq]
+
+    def cycles_to_next_timer(self) -> int | None:
+        """Control cycles until the earliest pending timer is due (at least 1); None
+        without one."""
+        if not self._timers:
+            return None
+        due = min(t[0] for t in self._timers)
+        return max(1, math.ceil((due - self.time) / CONTROL_PERIOD - 1e-9))
 
     def _run_timers(self) -> None:
         if not self._timers:

@@ -294,6 +294,26 @@ class FakeRobot:
         self._publish()
         return not self.off
 
+    def _idle(self, steps: int) -> None:
+        """``steps`` cycles of an idle controller: only the clock and the timers move, so
+        they go at once, but the cycle before each timer that fires is published and so
+        is the timer's own, as a real controller publishes every cycle (a mode that
+        lasts a few cycles is never skipped by a late event loop); cycle by cycle once
+        the controller has work."""
+        c = self.controller
+        while steps > 0:
+            if self._busy():
+                for _ in range(steps):
+                    if not self._cycle():
+                        return
+                return
+            due = c.cycles_to_next_timer()
+            n = max(1, min(steps, due - 1 if due is not None else steps))
+            c.tick(n)
+            self.cycles += n
+            steps -= n
+            self._publish()
+
     def _publish(self) -> None:
         c = self.controller
         if c.time < c.rtde_stalled_until:
@@ -332,10 +352,8 @@ class FakeRobot:
                 for _ in range(steps):
                     if not self._cycle():
                         break
-            else:  # only the clock and the controller's timers move: one step for all
-                self.controller.tick(steps)
-                self.cycles += steps
-                self._publish()
+            else:
+                self._idle(steps)
             for link in self.links:
                 link._watch()
 
