@@ -6,11 +6,18 @@ from __future__ import annotations
 import errno
 import os
 import threading
+from collections.abc import Callable
 
 import pytest
 
 from fxcell.info import link_scheduling
-from fxcell.link.realtime import Scheduling, probe, request_realtime
+from fxcell.link.realtime import (
+    Scheduling,
+    at_normal_priority,
+    lower_realtime,
+    probe,
+    request_realtime,
+)
 
 
 def _in_a_thread(priority: int) -> tuple[Scheduling, int]:
@@ -62,3 +69,56 @@ def test_the_probe_leaves_the_callers_scheduling_alone() -> None:
     before = os.sched_getscheduler(0)
     probe(10)
     assert os.sched_getscheduler(0) == before
+
+
+Seen = Callable[[], None]
+
+
+def _in_a_real_time_thread(priority: int, body: Callable[[Seen], None]) -> list[tuple[int, int]]:
+    """Run ``body(seen)`` in a thread started at real-time ``priority``; each ``seen()``
+    records the thread's (policy, priority) at that point."""
+    if not probe(priority).realtime:
+        pytest.skip("real-time scheduling is not permitted here")
+    out: list[tuple[int, int]] = []
+
+    def seen() -> None:
+        out.append((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority))
+
+    thread = threading.Thread(target=lambda: (request_realtime(priority), body(seen)))
+    thread.start()
+    thread.join()
+    return out
+
+
+def test_a_vendor_call_runs_at_normal_priority_then_the_thread_is_real_time_again() -> None:
+    def body(seen: Seen) -> None:
+        with at_normal_priority():
+            seen()
+        seen()
+
+    assert _in_a_real_time_thread(20, body) == [(os.SCHED_OTHER, 0), (os.SCHED_FIFO, 20)]
+
+
+def test_lowering_a_real_time_thread_keeps_it_real_time_and_at_least_priority_1() -> None:
+    def body(seen: Seen) -> None:
+        lower_realtime(5)
+        seen()
+        lower_realtime(50)
+        seen()
+
+    assert _in_a_real_time_thread(20, body) == [(os.SCHED_FIFO, 15), (os.SCHED_FIFO, 1)]
+
+
+def test_a_normal_thread_stays_normal_through_both() -> None:
+    out: list[int] = []
+
+    def run() -> None:
+        lower_realtime(5)
+        with at_normal_priority():
+            out.append(os.sched_getscheduler(0))
+        out.append(os.sched_getscheduler(0))
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    thread.join()
+    assert out == [os.SCHED_OTHER, os.SCHED_OTHER]

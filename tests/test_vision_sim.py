@@ -19,7 +19,7 @@ from fxcell.link import embedded
 from fxcell.link.realtime import LINK_PRIORITY
 from fxcell.recorder import topics
 from fxcell.sim.camera import RENDER_THREAD
-from fxcell.testing import SimulatorHandle, simulator
+from fxcell.testing import SimulatorHandle, simulator, thread_scheduling
 from fxcell.vision.camera import open_camera
 from fxcell.vision.placement import PlacementChecker, PlacementReport
 
@@ -69,27 +69,14 @@ async def look(sim: SimulatorHandle, expected: set[str] = ALL) -> PlacementRepor
     return await asyncio.to_thread(CHECKER.check, frame, expected)
 
 
-def _scheduling(pid: int, tid: int) -> tuple[int, int]:
-    """A thread's (policy, real-time priority) from ``/proc/PID/task/TID/stat``."""
-    stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
-    fields = stat[stat.rindex(")") + 2 :].split()
-    return int(fields[38]), int(fields[37])  # stat's 41st and 40th fields
-
-
-def _threads_named(pid: int, name: str) -> list[int]:
-    """The ids of a process's threads that the system shows as ``name``."""
-    tasks = Path(f"/proc/{pid}/task").iterdir()
-    return [int(t.name) for t in tasks if (t / "comm").read_text().strip() == name]
-
-
 async def test_the_camera_renders_below_the_robot_links_priority(seated: SimulatorHandle) -> None:
-    main = _scheduling(seated.pid, seated.pid)
+    # the control cycle runs on the main thread (its id: the process's)
+    main = os.sched_getscheduler(seated.pid), os.sched_getparam(seated.pid).sched_priority
     if main[0] != os.SCHED_FIFO:
         pytest.skip("the simulator did not get real-time scheduling here")
     await look(seated)  # the renderer thread starts with the first frame
-    renderers = _threads_named(seated.pid, RENDER_THREAD)
-    assert len(renderers) == 1
-    policy, priority = _scheduling(seated.pid, renderers[0])
+    (renderer,) = thread_scheduling(seated.pid, RENDER_THREAD)
+    policy, priority = renderer
     assert policy == os.SCHED_FIFO  # still above every normal process
     assert priority < LINK_PRIORITY < main[1]
 

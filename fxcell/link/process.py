@@ -69,7 +69,13 @@ from fxcell.link.contract import (
     stop_reason,
 )
 from fxcell.link.follower import Follower
-from fxcell.link.realtime import LINK_PRIORITY, name_thread, normal_priority, request_realtime
+from fxcell.link.realtime import (
+    LINK_PRIORITY,
+    at_normal_priority,
+    lower_realtime,
+    name_thread,
+    request_realtime,
+)
 from fxcell.link.rtde_stream import UR_RTDE_GETTERS, RTDEStream
 from fxcell.protocol import CONTROL_PERIOD, URCAP_SCRIPT_PORT, RobotState, RuntimeState
 
@@ -105,6 +111,10 @@ def process_runs(pid: int) -> bool:
 
 HOLD_FLUSH = 0.05
 """s: the longest wait for the client to be told of a hold before the call goes ahead."""
+CALLS_BELOW = 5
+"""The call worker's real-time priority is the process's less this: below its state,
+trajectory and pulse threads, above the simulator's camera renderer
+(``fxcell.sim.camera.RENDER_PRIORITY``) and every normal process."""
 
 
 class _Outbox:
@@ -477,12 +487,15 @@ class Link:
     # -- calls
 
     def _worker(self) -> None:
-        # The calls run at normal priority: ur_rtde's commands (stopScript, setTcp, ...)
-        # busy-wait until the control script is ready for them. At real-time priority that
-        # spin held a CPU above every process of the machine; two links doing so at once
-        # starved everything else (two cells' links silent ~0.95 s together, until the
-        # kernel's real-time throttling). State, trajectory and beat threads stay real time.
-        normal_priority()
+        # The calls run at real-time priority below the state, trajectory and beat threads
+        # (CALLS_BELOW): at normal priority, a busy machine kept this thread off the CPUs
+        # for up to 0.6 s at a time (measured), and preempted while it held the GIL it
+        # would silence the whole process. But ur_rtde's commands (stopScript, setTcp,
+        # ...) busy-wait until the control script is ready for them, without the GIL:
+        # they run at normal priority (at_normal_priority), as a spin at real-time
+        # priority held a CPU above every process of the machine (two links doing so at
+        # once: both silent ~0.95 s, until the kernel's real-time throttling).
+        lower_realtime(CALLS_BELOW)
         name_thread("link-calls")
         while not self._stop.is_set():
             item = self._calls.get()
@@ -544,7 +557,6 @@ class Link:
 
         mode, program, timeout = request.mode, request.program, request.timeout
 
-        flags = rtde_control.RTDEControlInterface.Flags
         c = self.control
         if c is not None:
             state = self.latest
@@ -555,7 +567,7 @@ class Link:
                 self._control_ready("already running")
                 return True
             if mode == "script" and c.isConnected():
-                with self.held():
+                with self.held(), at_normal_priority():
                     c.reuploadScript()
                 if not self._wait_playing(timeout):
                     raise CallError("timeout", "control script did not start")
@@ -572,15 +584,8 @@ class Link:
         self._stop_leftover_program()
         try:
             self._hold_stream()
-            if mode == "urcap":
-                c = rtde_control.RTDEControlInterface(
-                    self.host,
-                    self.args.frequency,
-                    flags.FLAG_USE_EXT_UR_CAP | flags.FLAG_NO_WAIT,
-                    self.args.urcap_port,
-                )
-            else:
-                c = rtde_control.RTDEControlInterface(self.host, self.args.frequency)
+            with at_normal_priority():
+                c = self._connect_control(rtde_control, mode)
         except Exception as exc:
             raise CallError("robot", f"cannot start external control: {exc}") from None
         finally:
@@ -594,13 +599,28 @@ class Link:
         self._control_ready(f"external control ({mode})")
         return True
 
+    def _connect_control(self, rtde_control: Any, mode: str) -> Any:
+        """A new ur_rtde control interface: it uploads the control script, or with the
+        URCap waits for the program to connect (ur_rtde blocks holding the GIL)."""
+        if mode == "urcap":
+            flags = rtde_control.RTDEControlInterface.Flags
+            return rtde_control.RTDEControlInterface(
+                self.host,
+                self.args.frequency,
+                flags.FLAG_USE_EXT_UR_CAP | flags.FLAG_NO_WAIT,
+                self.args.urcap_port,
+            )
+        return rtde_control.RTDEControlInterface(self.host, self.args.frequency)
+
     def _probe(self, c: Any, timeout: float) -> None:
         """Wait until the control script answers a harmless command (it accepts commands)."""
         deadline = time.monotonic() + timeout
         why = "no answer"
         while True:
             try:
-                if c.servoStop():  # harmless; True only once the script processed it
+                with at_normal_priority():
+                    answered = c.servoStop()  # harmless; True once the script processed it
+                if answered:
                     return
             except Exception as exc:
                 why = str(exc)
@@ -639,7 +659,7 @@ class Link:
         mode = request.mode
         self._stop_trajectory(StopReason.EXTERNAL_CONTROL_STOPPED)
         if self.control is not None:
-            with self.held(), contextlib.suppress(Exception):
+            with self.held(), at_normal_priority(), contextlib.suppress(Exception):
                 self.control.stopScript()
         if mode == "urcap":
             self.dashboard_line("stop")
@@ -652,7 +672,7 @@ class Link:
         if c is not None:
             # disconnect() and the destructor both block holding the GIL (~0.5 s): the
             # last reference must go inside the hold.
-            with self.held():
+            with self.held(), at_normal_priority():
                 with contextlib.suppress(Exception):
                     c.disconnect()
                 del c
@@ -678,7 +698,8 @@ class Link:
         c = self.control
         if c is None:
             return False
-        return bool(c.servoStop())
+        with at_normal_priority():
+            return bool(c.servoStop())
 
     def do_set_output(self, request: SetOutput) -> bool:
         """Set a digital (0/1) or analog (fraction of range) output through RTDE's IO recipe."""
@@ -688,7 +709,7 @@ class Link:
 
         if self.io is None or not self.io.isConnected():
             try:
-                with self.held():
+                with self.held(), at_normal_priority():
                     self.io = rtde_io.RTDEIOInterface(self.host)
             except Exception as exc:
                 raise CallError("connection", f"cannot open the RTDE IO interface: {exc}") from None
@@ -716,15 +737,17 @@ class Link:
     def do_set_tool(self, request: SetTool) -> bool:
         """Set the TCP (flange frame) and the payload on the controller."""
         c = self._require_control("setting the tool")
-        return bool(c.setTcp(list(request.tcp))) and bool(
-            c.setPayload(request.mass, list(request.cog))
-        )
+        with at_normal_priority():
+            return bool(c.setTcp(list(request.tcp))) and bool(
+                c.setPayload(request.mass, list(request.cog))
+            )
 
     def do_teach_mode(self, request: TeachMode) -> bool:
         """Enter or leave teach mode (freedrive: the arm can be moved by hand)."""
         self._stop_trajectory(StopReason.TEACH_MODE)
         c = self._require_control("freedrive")
-        return bool(c.teachMode() if request.on else c.endTeachMode())
+        with at_normal_priority():
+            return bool(c.teachMode() if request.on else c.endTeachMode())
 
     # -- trajectories
 

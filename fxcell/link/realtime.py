@@ -19,6 +19,7 @@ import contextlib
 import os
 import resource
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 LINK_PRIORITY = 80
@@ -64,6 +65,39 @@ def request_realtime(priority: int = LINK_PRIORITY) -> Scheduling:
             f"{why}; RLIMIT_RTPRIO {rtprio_limit()}, needs {priority} or CAP_SYS_NICE",
         )
     return Scheduling(True, "SCHED_FIFO", priority)
+
+
+def lower_realtime(below: int) -> None:
+    """Run the calling thread ``below`` its real-time priority (at least 1), if it has one;
+    a thread at normal priority stays so."""
+    with contextlib.suppress(OSError, AttributeError):
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            priority = max(1, os.sched_getparam(0).sched_priority - below)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+
+
+@contextlib.contextmanager
+def at_normal_priority() -> Iterator[None]:
+    """Run the block at normal priority, then go back to the thread's real-time priority:
+    for a vendor call that releases the GIL and may busy-wait in it (ur_rtde's commands
+    spin until the control script is ready for them). Outside such calls the thread keeps
+    a real-time priority: a normal thread preempted while it holds the GIL stalls every
+    real-time thread of its process until a busy machine gives it a CPU again."""
+    try:
+        policy = os.sched_getscheduler(0)
+        param = os.sched_getparam(0)
+    except (OSError, AttributeError):
+        policy = None
+    if policy != os.SCHED_FIFO:
+        yield
+        return
+    with contextlib.suppress(OSError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, param)
 
 
 def normal_priority() -> None:

@@ -54,6 +54,7 @@ __all__ = [
     "brisk_limits",
     "injected_faults",
     "simulator",
+    "thread_scheduling",
     "urcap_port",
     "uses_urcap_port",
 ]
@@ -78,6 +79,26 @@ def brisk(config: CellConfig) -> CellConfig:
 def brisk_limits() -> dict[str, list[float]]:
     """:data:`BRISK_LIMITS` as a cell file's ``limits`` section."""
     return {name: list(values) for name, values in BRISK_LIMITS.items()}
+
+
+def thread_scheduling(pid: int, name: str) -> list[tuple[int, int]]:
+    """(policy, real-time priority) of each thread of process ``pid`` that the system shows
+    as ``name`` (``/proc/PID/task/TID/comm``; Linux only)."""
+    found: list[tuple[int, int]] = []
+    try:
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except FileNotFoundError:  # the process is gone
+        return found
+    for task in tasks:
+        try:
+            if (task / "comm").read_text().strip() != name:
+                continue
+            stat = (task / "stat").read_text()
+        except OSError:  # the thread ended meanwhile
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        found.append((int(fields[38]), int(fields[37])))  # stat's 41st and 40th fields
+    return found
 
 
 def _describe(task: asyncio.Task[object]) -> str:
