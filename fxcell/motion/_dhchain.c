@@ -460,6 +460,29 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
     return norm;
 }
 
+/* Euclidean distance of joints a and b, each joint's difference wrapped into [-π, π]
+ * (kinematics._wrapped_distance). */
+static double
+wrapped_distance(const double *a, const double *b)
+{
+    double d = 0.0;
+    for (int k = 0; k < 6; k++) {
+        double w = a[k] - b[k];
+        w -= TWO_PI * nearbyint(w * INV_TWO_PI);
+        d += w * w;
+    }
+    return sqrt(d);
+}
+
+/* A lower bound of the wrapped distance from seed of any point on the segment between a and
+ * b (kinematics._chord_bound). */
+static double
+chord_bound(const double *a, const double *b, const double *seed)
+{
+    return 0.5 *
+           (wrapped_distance(a, seed) + wrapped_distance(b, seed) - wrapped_distance(a, b));
+}
+
 #define MAX_SAMPLES (VALLEY_POINTS + 2)
 #define MAX_ROOTS (VALLEY_POINTS + 3 + MAX_SAMPLES)
 
@@ -468,10 +491,12 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
 /* The solutions along the wrist's self-motion through q (DHChain._walk): up to MAX_ROOTS
  * joints into roots and their error norms into norms; their number. With pts not NULL, the
  * points on the floor by their turn from the origin (-HALF..HALF) into it, and *whole set to
- * whether every one was on the floor (the valley not cut). */
+ * whether every one was on the floor (the valley not cut). Roots that cannot be nearer seed
+ * than bound are not looked for (as in DHChain._walk). */
 static int
 valley(const Chain *c, const double *q, const double *target, double converged,
-       double roots[][6], double *norms, double pts[][6], int *whole)
+       const double *seed, double bound, double roots[][6], double *norms, double pts[][6],
+       int *whole)
 {
     int on_floor = 0;
     double h = TWO_PI / VALLEY_POINTS;
@@ -524,7 +549,8 @@ valley(const Chain *c, const double *q, const double *target, double converged,
                     memcpy(pts[HALF + (sign > 0.0 ? point : -point)], qq, sizeof qq);
                 on_floor++;
             }
-            if (sign * previous > 0.0 && sign * step[5] < 0.0) {
+            if (sign * previous > 0.0 && sign * step[5] < 0.0 &&
+                !(chord_bound(below, qq, seed) - WRIST_MOVE > bound)) {
                 if (sign > 0.0)
                     norms[n] = close_root(c, below, qq, target, converged, roots[n]);
                 else
@@ -542,6 +568,8 @@ valley(const Chain *c, const double *q, const double *target, double converged,
         double t = predicted[i];
         if (!(fabs(t) < VALLEY_PREDICT * h))
             continue;
+        if (wrapped_distance(samples[i], seed) - 2.0 * fabs(t) - WRIST_MOVE > bound)
+            continue; /* the predicted root cannot be nearer the seed than the best */
         double aim = samples[i][5] + t;
         int known = 0;
         for (int k = 0; k < n && !known; k++) {
@@ -690,7 +718,7 @@ Chain_valley(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     if (nargs > 2 && (converged = PyFloat_AsDouble(args[2])) == -1.0 && PyErr_Occurred())
         return NULL;
-    int n = valley(self, q, target, converged, roots, norms, NULL, NULL);
+    int n = valley(self, q, target, converged, q, INFINITY, roots, norms, NULL, NULL);
     PyObject *out = PyList_New(n);
     if (out == NULL)
         return NULL;
@@ -857,7 +885,8 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
                     /* along the wrist's self-motion: every solution on this branch's valley */
                     double roots[MAX_ROOTS][6];
                     int whole = 0;
-                    int n_roots = valley(self, start, target, converged, roots, norms,
+                    int n_roots = valley(self, start, target, converged, seed, sqrt(best_d),
+                                         roots, norms,
                                          n_walked < MAX_WALKED ? walked[n_walked] : NULL,
                                          &whole);
                     if (whole && n_walked < MAX_WALKED)

@@ -1663,10 +1663,17 @@ class DHChain:
         return self._walk(q, target, converged)[0]
 
     def _walk(
-        self, q: Sequence[float], target: Sequence[float], converged: float
+        self,
+        q: Sequence[float],
+        target: Sequence[float],
+        converged: float,
+        seed: Sequence[float] | None = None,
+        bound: float = math.inf,
     ) -> tuple[list[tuple[list[float], float]], list[list[float]] | None]:
         """The solutions along the wrist's self-motion through ``q``: (joints, error norm)
-        pairs, the norm below ``converged`` unless a root's search ran out of steps.
+        pairs, the norm below ``converged`` unless a root's search ran out of steps; roots
+        that cannot be nearer ``seed`` (default ``q``) than ``bound`` (rad, Euclidean) are
+        not looked for.
 
         Next to the wrist singularity (sin θ5 ≈ 0) the calibrated solutions lie along a
         curved valley of the pose error (θ6 turning, θ2, θ3 and θ4 following), far from the
@@ -1690,8 +1697,19 @@ class DHChain:
         projections, tried, missed more); roots next to a cut; and starts with |sin θ5| just
         above _VALLEY_NEAR (0.1 or 0.2 instead, tried: no better). Fewer points (8, 10) missed
         more; probing ±0.1 rad along the valley from each root found none of them, ±0.25 rad
-        one of 11 for ~30 % more chain evaluations."""
+        one of 11 for ~30 % more chain evaluations.
+
+        ``bound`` (:meth:`nearest` gives the distance of the best solution found so far): a
+        bracket whose root is surely farther from ``seed`` (:func:`_chord_bound`, less
+        _WRIST_MOVE for the valley's bend) is not closed, nor a root predicted farther (the
+        point's distance less twice its step of θ6, θ4 turning with it, and _WRIST_MOVE).
+        On the bench's wrist family (seed TCP, 400 poses) this saves ~13 % of the chain
+        evaluations per call at the median (~7 % on average) and changes no answer (tried
+        without the _WRIST_MOVE slack: also none).
+        Stopping the walk itself where θ1, θ5 and the rest of θ6's turn are too far
+        (tried) saved nothing: the valleys it cut were walked again from other starts."""
         h = TWO_PI / _VALLEY_POINTS
+        near = q if seed is None else seed
         roots: list[tuple[list[float], float]] = []
         origin = self._project([float(v) for v in q], target)
         if origin[3] < converged:
@@ -1726,7 +1744,11 @@ class DHChain:
                 if point or sign > 0.0:
                     samples.append((qq, step[5]))
                     floor[half + (point if sign > 0.0 else -point)] = qq
-                if sign * previous > 0.0 and sign * step[5] < 0.0:
+                if (
+                    sign * previous > 0.0
+                    and sign * step[5] < 0.0
+                    and not _chord_bound(below, qq, near) - _WRIST_MOVE > bound
+                ):
                     if sign > 0.0:
                         roots.append(self._close(below, qq, target, converged))
                     else:
@@ -1739,6 +1761,8 @@ class DHChain:
         for qq, t in samples:
             if not abs(t) < _VALLEY_PREDICT * h:
                 continue
+            if _wrapped_distance(qq, near) - 2.0 * abs(t) - _WRIST_MOVE > bound:
+                continue  # the predicted root cannot be nearer the seed than the best
             aim = qq[5] + t
             if any(
                 abs(r[5] - aim - TWO_PI * round((r[5] - aim) * _INV_TWO_PI)) < _VALLEY_SAME * h
@@ -1882,7 +1906,7 @@ class DHChain:
                         found.append(q)
                     elif on_valley:
                         # along the wrist's self-motion: every solution on this branch's valley
-                        roots, floor = self._walk(start, target, converged)
+                        roots, floor = self._walk(start, target, converged, seed, math.sqrt(best_d))
                         if floor is not None and len(walked) < _MAX_WALKED:
                             walked.append(floor)
                         found += [r for r, e in roots if e <= accepted]
@@ -1960,6 +1984,24 @@ class DHChain:
                 if zx * zx + zy * zy < near * near:
                     out |= 2
         return out
+
+
+def _wrapped_distance(a: Sequence[float], b: Sequence[float]) -> float:
+    """Euclidean distance of joints ``a`` and ``b``, each joint's difference wrapped into
+    ±π: a lower bound of the distance of any 2π-equivalents of them."""
+    d = 0.0
+    for k in range(6):
+        w = a[k] - b[k]
+        w -= TWO_PI * round(w * _INV_TWO_PI)
+        d += w * w
+    return math.sqrt(d)
+
+
+def _chord_bound(a: Sequence[float], b: Sequence[float], seed: Sequence[float]) -> float:
+    """A lower bound of the (wrapped) distance from ``seed`` of any point on the segment
+    between joints ``a`` and ``b``: ``(|a - s| + |b - s| - |a - b|) / 2`` (triangle
+    inequality: a point x on it has |x - a| + |x - b| = |a - b|)."""
+    return 0.5 * (_wrapped_distance(a, seed) + _wrapped_distance(b, seed) - _wrapped_distance(a, b))
 
 
 def _on_walked(q: Sequence[float], floor: list[list[float]]) -> bool:
