@@ -333,18 +333,39 @@ newton(const Chain *c, double *q, const double *target, long iterations, double 
     return norm;
 }
 
-/* Marquardt's Levenberg-Marquardt from q (in place), a stall judged over window steps; the
- * error norm left, and the stationarity ratio in *gradient. */
+/* The gain ratio of Marquardt's step (kinematics._gain_ratio). */
+static double
+gain_ratio(const double *jac, const double *err, const double *step, double lam, double norm,
+           double tnorm)
+{
+    double predicted = 0.0;
+    for (int i = 0; i < 6; i++) {
+        double g = 0.0, dd = 0.0;
+        for (int r = 0; r < 6; r++) {
+            double v = jac[6 * r + i];
+            g += v * err[r];
+            dd += v * v;
+        }
+        predicted += step[i] * (g + lam * (dd + 1e-12) * step[i]);
+    }
+    predicted *= 0.5;
+    double actual = 0.5 * (norm * norm - tnorm * tnorm);
+    return predicted > 0.0 ? actual / predicted : -1.0;
+}
+
+/* Marquardt's Levenberg-Marquardt from q (in place), a stall judged over window steps, the
+ * damping updated by Nielsen's rule if adaptive (DHChain.settle); the error norm left, and the
+ * stationarity ratio in *gradient. */
 static double
 settle(const Chain *c, double *q, const double *target, long iterations, double converged,
-       double stationary, int window, double *gradient)
+       double stationary, int window, int adaptive, double *gradient)
 {
     double frame[12], jac[36], err[6], step[6], trial[6], tjac[36], terr[6];
     evaluate(c, q, frame, jac);
     twist_to(frame, target, err);
     double norm = norm6(err);
     double g = gradient_ratio(jac, err, norm);
-    double lam = 1e-3, mark = norm;
+    double lam = 1e-3, grow = 2.0, mark = norm;
     for (long it = 0; it < iterations; it++) {
         if (norm < converged || g < stationary)
             break;
@@ -369,15 +390,29 @@ settle(const Chain *c, double *q, const double *target, long iterations, double 
         twist_to(frame, target, terr);
         double tnorm = norm6(terr);
         if (tnorm < norm) {
+            if (adaptive) {
+                double t = 2.0 * gain_ratio(jac, err, step, lam, norm, tnorm) - 1.0;
+                double f = 1.0 - t * t * t;
+                if (f < 1.0 / 3.0)
+                    f = 1.0 / 3.0;
+                lam = lam * f > 1e-9 ? lam * f : 1e-9;
+                grow = 2.0;
+            }
+            else
+                lam = lam * 0.2 > 1e-9 ? lam * 0.2 : 1e-9;
             memcpy(q, trial, sizeof trial);
             memcpy(jac, tjac, sizeof tjac);
             memcpy(err, terr, sizeof terr);
             norm = tnorm;
             g = gradient_ratio(jac, err, norm);
-            lam = lam * 0.2 > 1e-9 ? lam * 0.2 : 1e-9;
         }
         else {
-            lam *= 5.0;
+            if (adaptive) {
+                lam *= grow;
+                grow *= 2.0;
+            }
+            else
+                lam *= 5.0;
             if (lam > 1e9)
                 break;
         }
@@ -753,7 +788,7 @@ Chain_settle(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     if (nargs > 4 && (stationary = PyFloat_AsDouble(args[4])) == -1.0 && PyErr_Occurred())
         return NULL;
     double norm =
-        settle(self, q, target, iterations, converged, stationary, STALL_STEPS, &gradient);
+        settle(self, q, target, iterations, converged, stationary, STALL_STEPS, 0, &gradient);
     PyObject *out = float_list(q, 6);
     return out == NULL ? NULL : Py_BuildValue("(Ndd)", out, norm, gradient);
 }
@@ -904,7 +939,7 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
                 double gradient;
                 int window = fabs(sin(start[4])) >= near ? QUICK_STALL : STALL_STEPS;
                 double err =
-                    settle(self, q, target, n_settle, converged, stationary, window, &gradient);
+                    settle(self, q, target, n_settle, converged, stationary, window, 1, &gradient);
                 if (err > accepted) {
                     if (!(gradient <= stationary) && distance[i] < unrefined)
                         unrefined = distance[i];
