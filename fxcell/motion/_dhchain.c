@@ -49,7 +49,7 @@ static const long VALLEY_TRIES = 6;       /* as kinematics._VALLEY_TRIES */
 static const double VALLEY_ON = 0.1;      /* as kinematics._VALLEY_ON */
 #define MAX_WALKED 16                    /* as kinematics._MAX_WALKED */
 #define STALL_STEPS 8                    /* as kinematics._STALL_STEPS */
-#define QUICK_STALL 4                    /* as kinematics._QUICK_STALL */
+#define QUICK_STALL 3                    /* as kinematics._QUICK_STALL */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
 static const double STALL_DONE = 1e-10;   /* as kinematics._STALL_DONE */

@@ -140,13 +140,16 @@ from it would find the same roots."""
 _MAX_WALKED = 16
 """Valleys :meth:`DHChain.nearest` remembers per call (the C code's fixed arrays)."""
 _STALL_STEPS = 8
-_QUICK_STALL = 4
+_QUICK_STALL = 3
 """_STALL_STEPS for a start away from the wrist singularity (|sin θ5| at least ``near``, see
 :meth:`DHChain.nearest`): next to the shoulder singularity most starts the nominal closed
 form gives (the arm bent by _LENIENT_BEND) have no calibrated solution and settle into a
-local minimum, which 4 steps tell as well as 8 on the bench's families; next to the wrist
-singularity, a run crawling along the self-motion toward a root can look stalled over 4 (2: a
-shoulder-family root missed)."""
+local minimum, which 4 steps told as well as 8 on the bench's families with fixed damping
+factors, and 3 as well as 4 with Nielsen's (``adaptive``: bench/ik.py's families, seed TCP,
+400 poses of --seed 1 and 2, the same answers farther from the seed than the reference;
+shoulder family chain evaluations per call median 116 -> 108 and 138 -> 133; 2: shoulder
+roots missed, with either damping); next to the wrist singularity, a run crawling along the
+self-motion toward a root can look stalled over 4."""
 _STALL_GAIN = 1e-3
 _STALL_FLOOR = 1e-7
 """With ``stationary`` > 0, :meth:`DHChain.settle` reports a local minimum of the error (no
