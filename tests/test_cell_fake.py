@@ -81,13 +81,17 @@ async def test_the_fakes_state_has_the_simulators_schema(
     assert fake_robot.state()["robot_mode"] == "RUNNING"
 
 
+def _transitions(cell: Cell) -> list[str]:
+    """The destination of every transition the cell makes from now on, as it makes it."""
+    seen: list[str] = []
+    cell.bus.subscribe(lambda e: seen.append(e.dest) if isinstance(e, TransitionEvent) else None)
+    return seen
+
+
 async def test_init_walks_the_modes_to_external_control_and_sets_the_tool(
     off_cell: Cell, fake_robot: FakeRobot
 ) -> None:
-    seen: list[str] = []
-    off_cell.bus.subscribe(
-        lambda e: seen.append(e.dest) if isinstance(e, TransitionEvent) else None
-    )
+    seen = _transitions(off_cell)
     await off_cell.init()
     assert off_cell.state is CellState.EXTERNAL_CONTROL_READY
     for state in ("powering_on", "idle", "running.program_stopped"):
@@ -106,10 +110,7 @@ async def test_a_late_event_loop_still_sees_the_brief_booting_mode(
 ) -> None:
     # POWER_ON lasts 50 cycles here (20 ms at 5x): a loop late by more than that once
     # advanced the idle controller past it in one step and never published it.
-    seen: list[str] = []
-    off_cell.bus.subscribe(
-        lambda e: seen.append(e.dest) if isinstance(e, TransitionEvent) else None
-    )
+    seen = _transitions(off_cell)
     await off_cell._link().power(True)
     time.sleep(0.2)  # noqa: ASYNC251 (holds the event loop up on purpose)
     await off_cell.wait_for_state(CellState.IDLE, timeout=5)

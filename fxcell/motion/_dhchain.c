@@ -495,18 +495,25 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
     return norm;
 }
 
+/* Squared distance from seed with each joint's difference wrapped into [-π, π]. */
+static double
+free_distance(const double *q, const double *seed)
+{
+    double d = 0.0;
+    for (int k = 0; k < 6; k++) {
+        double w = q[k] - seed[k];
+        w -= TWO_PI * nearbyint(w * INV_TWO_PI);
+        d += w * w;
+    }
+    return d;
+}
+
 /* Euclidean distance of joints a and b, each joint's difference wrapped into [-π, π]
  * (kinematics._wrapped_distance). */
 static double
 wrapped_distance(const double *a, const double *b)
 {
-    double d = 0.0;
-    for (int k = 0; k < 6; k++) {
-        double w = a[k] - b[k];
-        w -= TWO_PI * nearbyint(w * INV_TWO_PI);
-        d += w * w;
-    }
-    return sqrt(d);
+    return sqrt(free_distance(a, b));
 }
 
 /* A lower bound of the wrapped distance from seed of any point on the segment between a and
@@ -791,19 +798,6 @@ Chain_settle(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         settle(self, q, target, iterations, converged, stationary, STALL_STEPS, 0, &gradient);
     PyObject *out = float_list(q, 6);
     return out == NULL ? NULL : Py_BuildValue("(Ndd)", out, norm, gradient);
-}
-
-/* Squared distance from seed with each joint's difference wrapped into [-π, π]. */
-static double
-free_distance(const double *q, const double *seed)
-{
-    double d = 0.0;
-    for (int k = 0; k < 6; k++) {
-        double w = q[k] - seed[k];
-        w -= TWO_PI * nearbyint(w * INV_TWO_PI);
-        d += w * w;
-    }
-    return d;
 }
 
 /* Next to which singularities target g is, whatever the joints (with the chain's own d4, d6
