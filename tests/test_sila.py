@@ -17,7 +17,9 @@ as a lab's scheduler would to the cells it was told about.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import queue
 import threading
 import time
 import uuid
@@ -170,6 +172,36 @@ class Locked:
         self.client.LockController.UnlockServer(self.identifier, metadata=token(self.client))
 
 
+class Watched:
+    """``with Watched(feature.Property, metadata) as values:`` a live subscription to an
+    observable property: entered once the server sent its current value, so every change
+    after that shows (a change made just before may come as the next value: the daemon
+    refreshes its properties every few tens of milliseconds)."""
+
+    def __init__(self, prop: Any, metadata: list[Any], within: float = 30.0) -> None:
+        self.prop = prop
+        self.metadata = metadata
+        self.within = within
+        self.values: queue.Queue[Any] = queue.Queue()
+
+    def __enter__(self) -> Watched:
+        self.subscription = self.prop.subscribe(metadata=self.metadata, callbacks=[self.values.put])
+        self.first = self.values.get(timeout=self.within)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.subscription.cancel()
+
+    def until(self, value: Any) -> list[Any]:
+        """The values shown (the current one first) up to ``value``, or for ``within``
+        seconds if it never comes."""
+        shown = [self.first]
+        with contextlib.suppress(queue.Empty):
+            while value not in shown:
+                shown.append(self.values.get(timeout=self.within))
+        return shown
+
+
 def run_to_end(cell: Cell, instance: Any, steps: Any = None) -> tuple[list[Any], Any]:
     """Every intermediate response of a Run Job execution, then its responses; fails at
     once when the run faults (a recoverable error nobody here answers), saying why."""
@@ -246,9 +278,9 @@ def test_locked_cell_refuses_other_clients_and_the_page_shows_the_lock(cell: Cel
         )
         assert refused.status_code == 409, refused.text
         assert refused.json()["error"]["type"] == "ControlHeldError"
-        holders = owner.CellController.ControlHolder.subscribe(metadata=token(owner))
-        assert next(holders) == "SiLA client (LockController)"
-        holders.cancel()
+        with Watched(owner.CellController.ControlHolder, token(owner)) as holders:
+            shown = holders.until("SiLA client (LockController)")
+            assert shown[-1] == "SiLA client (LockController)", shown
         owner.CellController.Init(metadata=md)
         owner.CellController.MoveToPosition("home", metadata=md)
         with pytest.raises(SilaError, match="InvalidArgument: UnknownPositionError"):
@@ -271,14 +303,15 @@ def test_stop_over_sila_stops_a_move_started_over_http(cell: Cell) -> None:
         http.headers["X-Fxcell-Lease"] = r.headers["X-Fxcell-Lease"]
         http.post("/api/cell/go_home", params={"wait": True}).raise_for_status()
         home = http.get("/api/info").json()["home"]
-        moving = threading.Event()
-        states = client.CellController.CellState.subscribe(metadata=token(client))
-        states.add_callback(lambda state: state == "running.moving" and moving.set())
-        op = http.post("/api/cell/move_joint", json={"target": [home[0] + 2.5, *home[1:]]})
-        assert op.status_code == 202, op.text
-        op_id = op.json()["id"]
-        assert moving.wait(30), "the move never showed in CellState"
-        states.cancel()
+        with Watched(client.CellController.CellState, token(client)) as states:
+            op = http.post("/api/cell/move_joint", json={"target": [home[0] + 2.5, *home[1:]]})
+            assert op.status_code == 202, op.text
+            op_id = op.json()["id"]
+            shown = states.until("running.moving")
+        assert shown[-1] == "running.moving", (
+            f"the move never showed in CellState (it showed {shown}); the move: "
+            f"{http.get(f'/api/operations/{op_id}').json()}\n" + "\n".join(cell.daemon.output[-30:])
+        )
         assert client.CellController.Stop(metadata=token(client)).Stopped is True
         ended = http.post(f"/api/operations/{op_id}/wait", params={"timeout": 10}).json()
         assert ended["error"]["type"] == "MoveStoppedError", ended
