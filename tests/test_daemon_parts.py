@@ -31,6 +31,7 @@ from fxcell.daemon.control import ControlLock
 from fxcell.daemon.encoding import http_status
 from fxcell.daemon.guard import same_origin
 from fxcell.daemon.notify import Notifier
+from fxcell.daemon.process import free_port
 from fxcell.daemon.server import check_bind, is_loopback
 from fxcell.daemon.service import CellService
 from fxcell.daemon.stream import Watcher, parse_rate, parse_topics
@@ -768,3 +769,13 @@ def test_the_stream_is_open_only_to_pages_of_the_same_origin(
     origin: str, scheme: str, host: str | None, same: bool
 ) -> None:
     assert same_origin(origin, scheme, host) is same
+
+
+def test_free_ports_are_bindable_below_the_ephemeral_range_and_never_given_twice() -> None:
+    lowest_ephemeral = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    ports = [free_port() for _ in range(20)]
+    assert len(set(ports)) == len(ports)
+    for port in ports:
+        assert port < lowest_ephemeral  # no outgoing connection can take it
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            sock.bind(("127.0.0.1", port))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import os
 import queue
+import random
 import re
 import signal
 import socket
@@ -28,12 +29,37 @@ from fxcell.errors import FxcellError
 _SERVING = re.compile(r"serving (http://\S+?)/?$")
 
 
+_SERVER_PORTS = range(15000, 25000)
+"""Where :func:`free_port` looks first: below Linux's ephemeral range (32768-60999 unless
+configured), away from the UR ports (29999-30004) and fxcell's defaults."""
+_given: set[int] = set()
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A port free now on ``host``, for a server that cannot take port 0 itself (it may be
-    taken by another socket before that server binds it)."""
+    """A port free now on ``host``, for a server that cannot take port 0 itself.
+
+    Another socket may still take it before that server binds it; one below the kernel's
+    ephemeral range (:data:`_SERVER_PORTS`, unless that range reaches down there) can only
+    be taken by a server binding it explicitly, not by any outgoing connection, so that is
+    where it is looked for first. A port this process was given before is not given again."""
+    lowest_ephemeral = 32768
+    with contextlib.suppress(OSError, ValueError):
+        text = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text()
+        lowest_ephemeral = int(text.split()[0])
+    candidates = [p for p in _SERVER_PORTS if p < lowest_ephemeral and p not in _given]
+    for port in random.sample(candidates, min(len(candidates), 64)):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind((host, port))
+            except OSError:
+                continue
+        _given.add(port)
+        return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind((host, 0))
-        return int(sock.getsockname()[1])
+        port = int(sock.getsockname()[1])
+    _given.add(port)
+    return port
 
 
 def _die_with_parent() -> None:
