@@ -573,7 +573,8 @@ class Arm:
         if self.suspended is not None:
             again = self.suspended.restart(self)
             self.suspended = None
-            if isinstance(self.generator, Stop):
+            if isinstance(self.generator, Stop):  # the pause's braking, cut short
+                self.generator.token.finish()
                 self.generator = None
             if again is not None:
                 self.generator = again
