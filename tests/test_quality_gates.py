@@ -263,3 +263,32 @@ def test_parallel_work_units_keep_shared_fixtures_together_and_go_longest_first(
         "test_shared.py::test_b": "test_shared.py",
         "test_short.py::test_quick": "test_short.py::test_quick",
     }
+
+
+def test_a_failed_test_reports_the_last_lines_of_its_daemons(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        """
+        from fxcell.daemon.process import DaemonProcess
+
+        class Running:
+            def poll(self):
+                return None
+
+        def started(url, lines):
+            daemon = DaemonProcess(Running(), url, "token")
+            daemon.output.extend(lines)
+            for observer in DaemonProcess.observers:  # as DaemonProcess.start does
+                observer(daemon)
+            return daemon
+
+        def test_fails_beside_a_daemon():
+            daemon = started("http://127.0.0.1:1", [f"line {i}" for i in range(100)])
+            assert daemon.output[-1] == "it went well"
+        """
+    )
+    result = pytester.runpytest("-p", "fxcell.testing", *INNER_OPTS)
+    result.assert_outcomes(failed=1)
+    result.stdout.fnmatch_lines(
+        ["*daemon http://127.0.0.1:1 (running): its last 40 lines*", "line 60", "*line 99"]
+    )
+    result.stdout.no_fnmatch_line("line 59")

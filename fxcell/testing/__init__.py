@@ -15,6 +15,8 @@ to get these fixtures:
 - ``fxcell_no_unplanned_faults`` (automatic, system tests): fails a test that saw a robot-link
   drop or a simulator fault it did not inject (:mod:`fxcell.testing.faults`); declare the
   test's own with :func:`injected_faults` or ``@pytest.mark.injects_faults("why")``.
+- a failed test's report ends with the last lines of the daemons (``DaemonProcess``) still
+  running, and of any that ended on its own.
 
 This package is test support: the runtime never imports it.
 """
@@ -25,16 +27,19 @@ import asyncio
 import contextlib
 import fcntl
 import os
+import signal
 import socket
 import tempfile
 import time
-from collections.abc import AsyncIterator, Iterator, Sequence
+import weakref
+from collections.abc import AsyncIterator, Generator, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
 import pytest_asyncio
 
+from fxcell.daemon.process import DaemonProcess
 from fxcell.errors import SimulatorError
 from fxcell.link import embedded
 from fxcell.link.embedded import EmbeddedSimulator, SimulatorState
@@ -108,11 +113,47 @@ def _describe(task: asyncio.Task[object]) -> str:
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    if _daemon_started not in DaemonProcess.observers:
+        DaemonProcess.observers.append(_daemon_started)
     config.addinivalue_line(
         "markers",
         "injects_faults(why): the test drops links or makes the simulator fault on purpose "
         "(else an unplanned link drop or simulator fault fails a system test)",
     )
+
+
+DAEMON_LOG_LINES = 40
+"""Lines of each daemon's output a failed test's report shows."""
+_daemons: weakref.WeakSet[DaemonProcess] = weakref.WeakSet()
+_daemons_shown: weakref.WeakSet[DaemonProcess] = weakref.WeakSet()
+
+
+def _daemon_started(daemon: DaemonProcess) -> None:
+    _daemons.add(daemon)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    """A failed test's report ends with the last lines of every daemon still running, and
+    of any that ended on its own since the last report showed it (a daemon runs in a
+    process of its own: its log is otherwise lost with it)."""
+    report = yield
+    if report.failed:
+        for daemon in list(_daemons):
+            ended = daemon.proc.poll()
+            if ended is not None and (ended in (0, -signal.SIGTERM) or daemon in _daemons_shown):
+                continue
+            _daemons_shown.add(daemon)
+            state = "running" if ended is None else f"exited with {ended}"
+            report.sections.append(
+                (
+                    f"daemon {daemon.url} ({state}): its last {DAEMON_LOG_LINES} lines",
+                    "\n".join(daemon.output[-DAEMON_LOG_LINES:]),
+                )
+            )
+    return report
 
 
 @pytest.fixture(autouse=True)
