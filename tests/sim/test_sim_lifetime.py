@@ -46,8 +46,11 @@ def test_a_simulator_ends_with_the_process_that_launched_it() -> None:
         text=True,
     )
     assert launcher.stdout is not None
-    sim_pid = int(launcher.stdout.readline())
+    sim_pid = 0
     try:
+        line = launcher.stdout.readline()
+        assert line.strip().isdigit(), f"the launcher did not start a simulator on {host}"
+        sim_pid = int(line)
         assert _alive(sim_pid)
         launcher.kill()  # SIGKILL: the launcher cannot stop the simulator itself
         launcher.wait(10)
@@ -56,8 +59,11 @@ def test_a_simulator_ends_with_the_process_that_launched_it() -> None:
             time.sleep(0.02)  # poll step of a wait with a deadline
         assert not _alive(sim_pid), "the simulator outlived the process that launched it"
     finally:
-        if _alive(sim_pid):
+        if sim_pid and _alive(sim_pid):
             os.kill(sim_pid, 9)
+        if launcher.poll() is None:  # it failed before it was killed: no process left behind
+            launcher.kill()
+            launcher.wait(10)
         for stream in (launcher.stdin, launcher.stdout):
             if stream is not None:
                 stream.close()
