@@ -53,6 +53,9 @@ static const double VALLEY_ON = 0.1;      /* as kinematics._VALLEY_ON */
 static const double STALL_GAIN = 1e-3;    /* as kinematics._STALL_GAIN */
 static const double STALL_FLOOR = 1e-7;   /* as kinematics._STALL_FLOOR */
 static const double STALL_DONE = 1e-10;   /* as kinematics._STALL_DONE */
+static const long VALLEY_REJECTIONS = 3;  /* as kinematics._VALLEY_REJECTIONS */
+static const int VALLEY_OFF = 2;          /* as kinematics._VALLEY_OFF */
+static const double VALLEY_CUTS = 0.01;   /* as kinematics._VALLEY_CUTS */
 
 /* ------------------------------------------------------------------ conversions */
 
@@ -286,11 +289,13 @@ gradient_ratio(const double *jac, const double *err, double norm)
 }
 
 /* Newton's steps from q (updated in place) toward target; the error norm left (after a
- * final step shorter than FINAL_STEP, the step's length squared). */
+ * final step shorter than FINAL_STEP, the step's length squared); with rejections > 0 the
+ * steps stop at that many rejected ones (DHChain.newton). */
 static double
 newton(const Chain *c, double *q, const double *target, long iterations, double converged,
-       double rounding)
+       double rounding, long rejections)
 {
+    long rejected = 0;
     double frame[12], jac[36], err[6], step[6], trial[6], tjac[36], terr[6];
     evaluate(c, q, frame, jac);
     twist_to(frame, target, err);
@@ -324,6 +329,8 @@ newton(const Chain *c, double *q, const double *target, long iterations, double 
         }
         else {
             if (norm < rounding)
+                break;
+            if (++rejected == rejections)
                 break;
             lam = lam == 0.0 ? 1e-6 : lam * 10.0;
             if (lam > 1.0)
@@ -491,7 +498,7 @@ close_root(const Chain *c, const double *lower, const double *upper, const doubl
         }
     }
     if (converged <= norm && norm < VALLEY_FINISH) /* a step's sign misled the bracket */
-        norm = newton(c, q, target, VALLEY_STEPS, converged, converged);
+        norm = newton(c, q, target, VALLEY_STEPS, converged, converged, 0);
     return norm;
 }
 
@@ -534,7 +541,8 @@ chord_bound(const double *a, const double *b, const double *seed)
  * joints into roots and their error norms into norms; their number. With pts not NULL, the
  * points on the floor by their turn from the origin (-HALF..HALF) into it, and *whole set to
  * whether every one was on the floor (the valley not cut). Roots that cannot be nearer seed
- * than bound are not looked for (as in DHChain._walk). */
+ * than bound are not looked for (as in DHChain._walk); next to the singularity (VALLEY_CUTS)
+ * a side stops where it leaves the floor and the other goes on past HALF to that point. */
 static int
 valley(const Chain *c, const double *q, const double *target, double converged,
        const double *seed, double bound, double roots[][6], double *norms, double pts[][6],
@@ -552,13 +560,16 @@ valley(const Chain *c, const double *q, const double *target, double converged,
         memcpy(roots[n], origin, sizeof origin);
         norms[n++] = origin_norm;
     }
+    int last = HALF; /* the - side's last point: beyond HALF where the + side left the floor */
+    int cuts = fabs(sin(q[4])) < VALLEY_CUTS; /* whether a side stops where it leaves the floor */
     for (int side = 0; side < 2; side++) {
         double sign = side ? -1.0 : 1.0, previous = 0.0, norm = origin_norm;
+        int been_on = 0, off = 0; /* off: points off the floor in a row */
         memcpy(qq, origin, sizeof qq);
         memcpy(jac, origin_jac, sizeof jac);
         memcpy(err, origin_err, sizeof err);
         memcpy(below, qq, sizeof below);
-        for (int point = 0; point <= VALLEY_POINTS / 2; point++) {
+        for (int point = 0; point <= (side ? last : HALF); point++) {
             if (point) {
                 memcpy(held, jac, sizeof held);
                 for (int r = 0; r < 6; r++) {
@@ -576,20 +587,34 @@ valley(const Chain *c, const double *q, const double *target, double converged,
                     memcpy(roots[n], qq, sizeof qq);
                     norms[n++] = norm;
                     previous = 0.0;
+                    been_on = 1;
+                    off = 0;
                     continue;
                 }
             }
             int ok = solve6(jac, err, 0.0, 0, step);
             if (norm > VALLEY_FLOOR || !ok) {
                 previous = 0.0; /* off the floor (out of reach there): no bracket across */
+                if (cuts && been_on && ++off == VALLEY_OFF) {
+                    /* left the floor: the rest of this side is walked from the other */
+                    if (!side)
+                        last = VALLEY_POINTS - point;
+                    break;
+                }
                 continue;
             }
-            if (point || sign > 0.0) {
+            been_on = 1;
+            off = 0;
+            if ((point || sign > 0.0) && point <= HALF) {
                 memcpy(samples[n_samples], qq, sizeof qq);
                 predicted[n_samples++] = step[5];
                 if (pts != NULL)
                     memcpy(pts[HALF + (sign > 0.0 ? point : -point)], qq, sizeof qq);
                 on_floor++;
+            }
+            else if (point) {
+                memcpy(samples[n_samples], qq, sizeof qq);
+                predicted[n_samples++] = step[5];
             }
             if (sign * previous > 0.0 && sign * step[5] < 0.0 &&
                 !(chord_bound(below, qq, seed) - WRIST_MOVE > bound)) {
@@ -623,12 +648,12 @@ valley(const Chain *c, const double *q, const double *target, double converged,
         if (known)
             continue;
         memcpy(roots[n], samples[i], 6 * sizeof(double));
-        norms[n] = newton(c, roots[n], target, VALLEY_TRIES, converged, converged);
+        norms[n] = newton(c, roots[n], target, VALLEY_TRIES, converged, converged, 0);
         if (norms[n] < converged)
             n++;
     }
     if (whole != NULL)
-        *whole = on_floor == 2 * HALF + 1;
+        *whole = on_floor == 2 * HALF + 1 && last == HALF;
     return n;
 }
 
@@ -731,8 +756,10 @@ Chain_newton(Chain *self, PyObject *const *args, Py_ssize_t nargs)
     double q[6], target[12];
     long iterations = 20;
     double converged = 1e-12, rounding = 1e-11;
-    if (nargs < 2 || nargs > 5) {
-        PyErr_SetString(PyExc_TypeError, "newton(q, target, iterations, converged, rounding)");
+    long rejections = 0;
+    if (nargs < 2 || nargs > 6) {
+        PyErr_SetString(PyExc_TypeError,
+                        "newton(q, target, iterations, converged, rounding, rejections)");
         return NULL;
     }
     if (read_floats(args[0], q, 6, "q") || read_floats(args[1], target, 12, "target"))
@@ -743,7 +770,9 @@ Chain_newton(Chain *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     if (nargs > 4 && (rounding = PyFloat_AsDouble(args[4])) == -1.0 && PyErr_Occurred())
         return NULL;
-    double norm = newton(self, q, target, iterations, converged, rounding);
+    if (nargs > 5 && (rejections = PyLong_AsLong(args[5])) == -1 && PyErr_Occurred())
+        return NULL;
+    double norm = newton(self, q, target, iterations, converged, rounding, rejections);
     PyObject *out = float_list(q, 6);
     return out == NULL ? NULL : Py_BuildValue("(Nd)", out, norm);
 }
@@ -906,7 +935,8 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
                     if (known)
                         continue; /* on a valley walked already */
                 }
-                double err = newton(self, q, target, n_newton, converged, rounding);
+                double err = newton(self, q, target, n_newton, converged, rounding,
+                                    on_valley ? VALLEY_REJECTIONS : 0);
                 if (err <= accepted) {
                     memcpy(found[n_found++], q, sizeof q);
                 }

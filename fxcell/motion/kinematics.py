@@ -137,6 +137,26 @@ _VALLEY_ON = 0.1
 """Radians (each of θ1..θ5) within which :meth:`DHChain.nearest` takes a start next to the
 wrist singularity for a point of a valley it walked already (a whole turn, uncut): the walk
 from it would find the same roots."""
+_VALLEY_CUTS = 0.01
+_VALLEY_OFF = 2
+"""With the start's |sin θ5| below _VALLEY_CUTS, a side of :meth:`DHChain._walk` that was on
+the floor stops at its _VALLEY_OFF-th point off it in a row, and the other side goes on past
+half a turn to where it stopped: next to the wrist singularity the valley is the arm's
+self-motion, cut where the wrist centre's circle leaves the arm's reach (one arc), whose
+points (2 chain evaluations each, no bracket across them) the old walk went through to the
+half turn on both sides. Farther from the singularity
+(|sin θ5| ~0.03, tried) the floor's error passes 1e-2 for a few points and comes back, with a
+root after (bench/ik.py's uniform family, --seed 1: one answer farther), and so does it,
+rarely, with a single point off (1 stopping it: wrist and limits families, 2 answers farther
+each over --seed 1 and 3)."""
+_VALLEY_REJECTIONS = 3
+"""Rejected steps at which :meth:`DHChain.newton` gives up on a start next to the wrist
+singularity (|sin θ5| below _VALLEY_NEAR): its valley is walked next, from the start, so where
+Newton's steps stopped is not used. On bench/ik.py's wrist family (seed TCP, 300 poses of
+--seed 2) none of the 103 runs that converged had 3 rejected steps, and 628 of the 642 that
+did not had 3 or more (mostly alternating with damped steps crawling along the valley), 8
+chain evaluations each without the limit; 2 (also tried) lost 6 of the 103 and one answer
+of the limits family (--seed 1) to the walk."""
 _MAX_WALKED = 16
 """Valleys :meth:`DHChain.nearest` remembers per call (the C code's fixed arrays)."""
 _STALL_STEPS = 8
@@ -1544,14 +1564,17 @@ class DHChain:
         iterations: int = 20,
         converged: float = 1e-12,
         rounding: float = 1e-11,
+        rejections: int = 0,
     ) -> tuple[list[float], float]:
         """Newton steps on the TCP pose error (position, rotation vector) from ``q`` toward
         ``target`` (12 floats as :meth:`frame`): the joints and the error norm left (m and
         rad together). A step that does not lower the error is retried damped
         (Levenberg-Marquardt), as next to a singularity; the steps stop below ``converged``,
         or below ``rounding`` when no step improves, or after a full step shorter than
-        _FINAL_STEP, whose length squared is returned as the error (its order)."""
+        _FINAL_STEP, whose length squared is returned as the error (its order); with
+        ``rejections`` > 0, at that many rejected steps (see _VALLEY_REJECTIONS)."""
         qq = [float(v) for v in q]
+        rejected = 0
         frame, jac = self.frame_and_jacobian(qq)
         err = _twist_to(frame, target)
         norm = _norm6(err)
@@ -1579,6 +1602,9 @@ class DHChain:
                 lam = lam * 0.1 if lam > 1e-9 else 0.0
             else:
                 if norm < rounding:  # at the rounding floor: no better step exists
+                    break
+                rejected += 1
+                if rejected == rejections:
                     break
                 lam = 1e-6 if lam == 0.0 else lam * 10.0
                 if lam > 1.0:
@@ -1738,7 +1764,15 @@ class DHChain:
         evaluations per call at the median (~7 % on average) and changes no answer (tried
         without the _WRIST_MOVE slack: also none).
         Stopping the walk itself where θ1, θ5 and the rest of θ6's turn are too far
-        (tried) saved nothing: the valleys it cut were walked again from other starts."""
+        (tried) saved nothing: the valleys it cut were walked again from other starts.
+        Next to the singularity (_VALLEY_CUTS) a side stops where it leaves the floor
+        (_VALLEY_OFF points off it in a row) and the other goes on past half a turn to that
+        point: a cut valley's points beyond the cut are not walked twice over (C hot path on
+        1000 poses of each family, --seed 1, 2 and 3: wrist mean time per call -4 to -10 %,
+        limits -7 %, no answer farther from the seed). Taking a start on a cut valley walked
+        already for walked (tried) saved ~16 % of the wrist family's chain evaluations but
+        lost roots (6 answers farther in 1200 poses): walks from other points of a cut valley
+        find roots next to the cut that the first one missed."""
         h = TWO_PI / _VALLEY_POINTS
         near = q if seed is None else seed
         roots: list[tuple[list[float], float]] = []
@@ -1749,11 +1783,15 @@ class DHChain:
         # the points on the floor by their turn from the origin, -half..half (None: off it)
         half = _VALLEY_POINTS // 2
         floor: list[list[float] | None] = [None] * (2 * half + 1)
+        last = half  # the - side's last point: beyond half where the + side left the floor
+        cuts = abs(math.sin(q[4])) < _VALLEY_CUTS  # a side stops where it leaves the floor
         for sign in (1.0, -1.0):
             qq, jac, err, norm = origin
             previous = 0.0  # the Newton step of θ6 at the last point on the floor (0: none)
             below = qq
-            for point in range(_VALLEY_POINTS // 2 + 1):
+            been_on = False
+            off = 0  # points off the floor in a row
+            for point in range((half if sign > 0.0 else last) + 1):
                 if point:
                     held = list(jac)
                     column = [0.0] * 6
@@ -1767,14 +1805,25 @@ class DHChain:
                     if norm < converged:
                         roots.append((qq, norm))
                         previous = 0.0
+                        been_on = True
+                        off = 0
                         continue
                 step = _solve6(jac, err, 0.0)
                 if norm > _VALLEY_FLOOR or step is None:
                     previous = 0.0  # off the floor (out of reach there): no bracket across
+                    off += 1
+                    if cuts and been_on and off == _VALLEY_OFF:
+                        # left the floor: the rest of this side is walked from the other
+                        if sign > 0.0:
+                            last = _VALLEY_POINTS - point
+                        break
                     continue
+                been_on = True
+                off = 0
                 if point or sign > 0.0:
                     samples.append((qq, step[5]))
-                    floor[half + (point if sign > 0.0 else -point)] = qq
+                    if point <= half:
+                        floor[half + (point if sign > 0.0 else -point)] = qq
                 if (
                     sign * previous > 0.0
                     and sign * step[5] < 0.0
@@ -1932,7 +1981,14 @@ class DHChain:
                     on_valley = not shoulder and abs(math.sin(start[4])) < _VALLEY_NEAR
                     if on_valley and any(_on_walked(start, w) for w in walked):
                         continue  # on a valley walked already
-                    q, err = self.newton(start, target, newton_iterations, converged, rounding)
+                    q, err = self.newton(
+                        start,
+                        target,
+                        newton_iterations,
+                        converged,
+                        rounding,
+                        _VALLEY_REJECTIONS if on_valley else 0,
+                    )
                     if err <= accepted:
                         found.append(q)
                     elif on_valley:
