@@ -924,6 +924,10 @@ nearest_core(const Chain *self, double starts[][6], Py_ssize_t n, const double *
                 if (found_any && !singular &&
                     distance[i] > sqrt(best_d) + factor * regular + 1e-9)
                     continue; /* it cannot come nearer */
+                if (found_any && shoulder &&
+                    !(fabs(sin(start[2])) < near || fabs(sin(start[4])) < near) &&
+                    distance[i] > sqrt(best_d) + factor * moved + 1e-9)
+                    continue; /* next to the shoulder singularity alone: by the largest move */
                 if (found_any && !shoulder && fabs(sin(start[4])) < near &&
                     wrist_bound(start, seed) > sqrt(best_d) + 1e-9)
                     continue; /* next to the wrist singularity, but θ1 and θ5 alone are too far */
