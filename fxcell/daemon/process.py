@@ -47,19 +47,16 @@ def free_port(host: str = "127.0.0.1") -> int:
         text = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text()
         lowest_ephemeral = int(text.split()[0])
     candidates = [p for p in _SERVER_PORTS if p < lowest_ephemeral and p not in _given]
-    for port in random.sample(candidates, min(len(candidates), 64)):
+    for port in [*random.sample(candidates, min(len(candidates), 64)), 0]:  # 0: any port
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
             try:
                 sock.bind((host, port))
             except OSError:
                 continue
+            port = int(sock.getsockname()[1])
         _given.add(port)
         return port
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind((host, 0))
-        port = int(sock.getsockname()[1])
-    _given.add(port)
-    return port
+    raise OSError(f"no free port on {host}")
 
 
 def _die_with_parent() -> None:
