@@ -314,6 +314,10 @@ singular_configurations = st.tuples(configurations, st.sampled_from([0.0, math.p
 @example(q=np.array([0.0, 0.0, 1.0, -2.5, 0.0, 0.0]), seed=np.zeros(6))
 # the other shoulder's nearest branch at full stretch, θ3 = 0 or ±3e-8 by rounding (Hypothesis)
 @example(q=np.array([-0.375, 0.0, 0.0, 0.0, math.pi, 0.0]), seed=np.array([0, 1.0, 0, 3.0, 0, 0]))
+# the nearest member 5e-14 of θ6 short of the stretched end, where θ2's shift toward the
+# seed flips at its limit (-2π): Newton's steps stopped 3.6e-9 short, 2.6e-6 farther
+# (Hypothesis)
+@example(q=np.array([0.0, 0.0, -1.19e-7, 4.5, 0.0, 0.0]), seed=np.array([0, -4.0, 0, 2.0, 0, 0]))
 @settings(max_examples=40, deadline=None)
 def test_wrist_singular_solutions_are_no_farther_than_a_dense_scan(
     kin: Kinematics, q: np.ndarray, seed: np.ndarray

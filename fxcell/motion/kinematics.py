@@ -159,6 +159,9 @@ chain evaluations each without the limit; 2 (also tried) lost 6 of the 103 and o
 of the limits family (--seed 1) to the walk."""
 _MAX_WALKED = 16
 """Valleys :meth:`DHChain.nearest` remembers per call (the C code's fixed arrays)."""
+_FLIP_BISECTIONS = 60
+"""Bisections of a continuum's parameter for the point where a joint's 2π shift toward the
+seed flips at a limit (halving u's step from ≤ 0.25 reaches rounding in ~55)."""
 _STALL_STEPS = 8
 _QUICK_STALL = 3
 """_STALL_STEPS for a start away from the wrist singularity (|sin θ5| at least ``near``, see
@@ -737,7 +740,9 @@ class Kinematics:
         So: f for both elbows on a grid in u, t = lo + span·sin²u (smooth in u at the ends,
         where θ3 has an infinite slope in t), at most _GRID_STEP rad of t apart; Newton
         steps in u from the grid's local minima (those within _MARGIN of the best found),
-        each step stopping short of a joint limit; and the points where a joint's 2π shift
+        each step stopping short of a joint limit (and, where a joint's 2π shift flips
+        past one anyway, at the last point before the flip, by bisection; u comes within
+        1e-7 of the ends, as near as rounding resolves θ3); and the points where a joint's 2π shift
         toward the seed jumps at a limit, or else (θ2, θ3) flips half a turn from the seed
         (roots of cos(·) = const in closed form), as candidates and starts. Candidates are
         compared on the solutions :meth:`_arm` gives for them. About 10-30 grid points (one
@@ -867,7 +872,7 @@ class Kinematics:
 
         # On an interval with ends, Newton steps in u, t = lo + span·sin²u (smooth in u at
         # the ends, where θ3 has an infinite slope in t); on the whole circle, in t itself.
-        umin, umax = 1e-4, 0.5 * math.pi - 1e-4
+        umin, umax = 1e-7, 0.5 * math.pi - 1e-7
 
         def t_of(u: float, lo: float, span: float) -> float:
             return u if periodic else lo + span * sin(u) ** 2
@@ -877,6 +882,22 @@ class Kinematics:
                 return t
             x = (t - lo) / span if span > 0.0 else 0.0
             return min(max(math.asin(math.sqrt(min(max(x, 0.0), 1.0))), umin), umax)
+
+        def flip_point(
+            u: float, beyond: float, cur: _Ev, e: float, lo: float, span: float
+        ) -> float:
+            """The u nearest ``beyond`` on ``u``'s side of a 2π-shift flip (or of the reach
+            or a limit: ``ev`` None) between them, to ~1e-15 rad of u."""
+            for _ in range(_FLIP_BISECTIONS):
+                mid = 0.5 * (u + beyond)
+                if mid in (u, beyond):
+                    break
+                at = ev(t_of(mid, lo, span), e)
+                if at is None or _shift_flipped(cur, at):
+                    beyond = mid
+                else:
+                    u = mid
+            return u
 
         def descend(u: float, cur: _Ev, e: float, lo: float, span: float) -> tuple[float, float]:
             """Newton steps on f from u; a step stops short of a joint limit."""
@@ -923,6 +944,15 @@ class Kinematics:
                     new = ev(nt, e)
                     if new is not None and new[0] <= fv:
                         break
+                    if new is None or _shift_flipped(cur, new):
+                        # past a point where a joint's 2π shift toward the seed flips at a
+                        # limit (f's minimum can be right there, next to a stretched end
+                        # where θ2, θ3 swing fast): the last u before it, by bisection
+                        nu = flip_point(u, nu, cur, e, lo, span)
+                        nt = t_of(nu, lo, span)
+                        new = ev(nt, e)
+                        if new is not None and new[0] <= fv:
+                            break
                     step *= 0.25
                 else:
                     break
@@ -2376,6 +2406,17 @@ def _continuum_f(
             fv += (w - g4) * (w - g4)
             out.append(fv if fv == fv else inf)
     return ups, downs
+
+
+def _shift_flipped(a: _Ev, b: _Ev) -> bool:
+    """Whether one of θ2, θ3, θ4, θ6 (their 2π shifts toward the seed) differs by over π
+    between two points of a continuum: a shift flipped between them at a joint limit."""
+    return (
+        abs(b[4] - a[4]) > math.pi
+        or abs(b[5] - a[5]) > math.pi
+        or abs(b[6] - a[6]) > math.pi
+        or abs(b[10] - a[10]) > math.pi
+    )
 
 
 def _jumps(g: float, lo: float, hi: float, flip: bool) -> list[float]:
