@@ -63,7 +63,8 @@ _GRID_STEP = 0.35
 _MARGIN = 1.0
 """Grid minima at most this much (rad²) above the best found get Newton steps."""
 _F_TOL = 1e-13
-"""Newton steps stop when the next would lower the distance² by less than this."""
+"""Newton steps stop when the next would lower the distance² by less than this fraction of
+it (relative: a member ~1e-8 from the seed is resolved too, not only to √_F_TOL ≈ 3e-7)."""
 _Ev = tuple[float, float, float, float, float, float, float, float, float, float, float]
 """f, f', f'', Gauss-Newton f'', θ2, θ3, θ4 (shifted), their derivatives, θ6 (shifted)."""
 _WRIST_EPS = 1e-12
@@ -916,7 +917,7 @@ class Kinematics:
                 lim = min(0.25, _TRUST / abs(tu))
                 if hu > 0.0:
                     step = -g * tu / hu
-                    if g * tu * step > -_F_TOL:  # converged: f within _F_TOL
+                    if g * tu * step > -_F_TOL * fv:  # converged: f within _F_TOL of itself
                         break
                     if abs(step) > lim:
                         step = math.copysign(lim, step)
