@@ -5,7 +5,7 @@ Poses: joint vectors uniform within the Ned2's limits → forward kinematics; ea
 from a random seed (uniform within the limits) by:
 
 - ``fxcell``: ``fxcell.motion.ned2.inverse(pose, seed)`` (batched damped least squares
-  from the seed and 216 branch seeds; every converged solution within the limits, the one
+  from the seed and 288 branch seeds; every converged solution within the limits, the one
   nearest the seed returned);
 - ``pinocchio CLIK``: damped least squares on the shipped URDF's ``tool_link`` (``log6``
   error, damping 1e-10), clamped to the limits, restarts from random configurations after
