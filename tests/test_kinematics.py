@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import pytest
-from hypothesis import example, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from fxcell.config import SEED_TCP, JointLimits
@@ -99,6 +99,8 @@ def test_inverse_of_forward_returns_the_configuration(kin: Kinematics, q: np.nda
 )
 @example(q=np.array([0.0, 1.0, 1.192092896e-07, 1.0, 1.192092896e-07, 0.0]), seed=np.zeros(6))
 @example(q=np.array([0.0, -5.0, 0.0, 0.0, 1.1e-10, 0.0]), seed=np.zeros(6))
+# next to the wrist singularity alone: θ6 fixed to ~3e-5 rad (θ5 = 3.1e-12; Hypothesis)
+@example(q=np.array([0.0, 0.0, 1.0, 0.0, 3.0964434259240957e-12, 0.0]), seed=np.zeros(6))
 @settings(max_examples=60)
 def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
     kin: Kinematics, q: np.ndarray, seed: np.ndarray
@@ -121,12 +123,14 @@ def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
     # the same branch (a stretched elbow turns rounding ε into √ε of joint angle, up to 1e-6,
     # which decides on which side of a joint limit an equivalent lands: skip those cases)
     at_limit = any(np.any(np.abs(np.abs(s) - 2 * math.pi) < 1e-6) for s in [*sols, best])
-    # stretched (or folded) next to the wrist singularity as well: θ6's rounding, ~1e-16 /
-    # |sin θ5|, moves frame 4 along its circle and the stretched arm turns that into its
-    # square root of θ2..θ4, so the pose fixes the joints to ~√(1e-16 / |sin θ5|) only
-    # (every such solution reaches it to ~1e-16; which one each search lands on is rounding)
+    # next to the wrist singularity θ6 (and θ4) carry rounding ~1e-16 / |sin θ5|; stretched
+    # (or folded) as well, the arm turns frame 4's move along its circle into its square
+    # root of θ2..θ4: the pose fixes the joints only that well (every such solution reaches
+    # it to ~1e-16; which one each search lands on is rounding)
     _, elbow, wrist = kin.singularity_margins(q)
-    resolution = math.sqrt(1e-16 / wrist) if elbow < 1e-3 and 0.0 < wrist < 1e-6 else 0.0
+    resolution = 0.0
+    if 0.0 < wrist < 1e-6:
+        resolution = math.sqrt(1e-16 / wrist) if elbow < 1e-3 else 1e-16 / wrist
     if not at_limit:
         slack = max(1e-5, 3.0 * resolution)
         assert float(np.linalg.norm(best - seed)) == pytest.approx(dists[0], abs=slack)
@@ -333,11 +337,26 @@ singular_configurations = st.tuples(configurations, st.sampled_from([0.0, math.p
 # (Hypothesis)
 @example(q=np.array([0.0, 0.0, -1.19e-7, 4.5, 0.0, 0.0]), seed=np.array([0, -4.0, 0, 2.0, 0, 0]))
 # the seed on the continuum: Newton's steps stopped once the distance² fell by under 1e-13,
-# 1.6e-7 and 4.2e-8 from it (Hypothesis)
+# 1.6e-7 and 4.2e-8 from it, or at u = 1e-7 from an end, 1.1e-7 from it (Hypothesis)
+@example(
+    q=np.array([0.0, 0.0, 1.192092896e-07, 0, 0, 0]),
+    seed=np.array([0, 0, 1.192092896e-07, 0, 0, 0]),
+)
 @example(q=np.array([0.0, 0.0, 1.984375, 0.0, 0.0, 0.0]), seed=np.array([0, 0, 1.984375, 0, 0, 0]))
 @example(
     q=np.array([2.75, 3.0, 3.145322439166149, 2.375, 0.0, 3.0]),
     seed=np.array([2.75, 3.0, 3.145322439166149, 2.375, 0.0, 3.0]),
+)
+# a minimum 0.007 of u inside a stretched end, which a concave step leapt past (Hypothesis)
+@example(
+    q=np.array([0.0, 0.0, 0.0, 3.0, 0.0, -4.929154813057889]),
+    seed=np.array([0.0, 0.0, 0.0078125, 3.0, 0.0, 1.0]),
+)
+# the nearest member at θ2's limit, where the closed form put θ2 1.1e-12 beyond it (θ3 = 1e-4:
+# rounding amplified) and its shift flipped (Hypothesis)
+@example(
+    q=np.array([0.75, 0.0, 0.0001, 2.5, math.pi, 0.0]),
+    seed=np.array([0.0, 6.0, 0.0, 3.0, 0.0, 0.0]),
 )
 @settings(max_examples=40, deadline=None)
 def test_wrist_singular_solutions_are_no_farther_than_a_dense_scan(
@@ -346,6 +365,10 @@ def test_wrist_singular_solutions_are_no_farther_than_a_dense_scan(
     # θ5 = 0 or ±π exactly: per shoulder and elbow a continuum, of which the member nearest
     # the seed must come back (no farther than the best of 2000 θ6 values, every joint
     # shifted by 2π toward the seed)
+    # next to the shoulder singularity θ1 carries rounding ~4e-17 / h (h: the wrist centre's
+    # distance from it, m), which tips the wrist off its singularity by as much: no
+    # continuum to compare with there (h = 6e-7 m gave |sin θ5| = 9e-6; Hypothesis)
+    assume(kin.singularity_margins(q)[0] > 1e-4)
     pose = kin.forward(q)
     sols = kin.inverse_all(pose, seed=seed)
     for s in sols:

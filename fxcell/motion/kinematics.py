@@ -160,6 +160,15 @@ chain evaluations each without the limit; 2 (also tried) lost 6 of the 103 and o
 of the limits family (--seed 1) to the walk."""
 _MAX_WALKED = 16
 """Valleys :meth:`DHChain.nearest` remembers per call (the C code's fixed arrays)."""
+_END_PROBES = (1e-2, 1e-3, 1e-4, 1e-5)
+"""How far inside an end of a continuum's interval (in u, see :meth:`Kinematics._singular_arms`)
+f is probed when Newton's steps stop at the end: a minimum just inside it, f rising toward
+the end, is reached from there (a concave step from the end's first cell leapt past one
+0.007 of u inside, 4.5e-5 nearer the seed; Hypothesis)."""
+_SHIFT_SLIP = 1e-9
+"""How much farther (rad², Σ over θ2, θ3, θ4, θ6) the closed form's solution at a point of a
+continuum may be than f there before f's own joints are taken instead (a 2π shift flipped
+by rounding: θ2 came 1.1e-12 beyond its limit at θ3 = 1e-4; Hypothesis)."""
 _FLIP_BISECTIONS = 60
 """Bisections of a continuum's parameter for the point where a joint's 2π shift toward the
 seed flips at a limit (halving u's step from ≤ 0.25 reaches rounding in ~55)."""
@@ -873,7 +882,7 @@ class Kinematics:
 
         # On an interval with ends, Newton steps in u, t = lo + span·sin²u (smooth in u at
         # the ends, where θ3 has an infinite slope in t); on the whole circle, in t itself.
-        umin, umax = 1e-7, 0.5 * math.pi - 1e-7
+        umin, umax = 1e-9, 0.5 * math.pi - 1e-9
 
         def t_of(u: float, lo: float, span: float) -> float:
             return u if periodic else lo + span * sin(u) ** 2
@@ -901,6 +910,26 @@ class Kinematics:
             return u
 
         def descend(u: float, cur: _Ev, e: float, lo: float, span: float) -> tuple[float, float]:
+            """Newton steps on f from u (:func:`newton_u`); from an end they stop at (f' is 0
+            there in u), from the lowest of points _END_PROBES of u inside it too."""
+            u, t, cur = newton_u(u, cur, e, lo, span)
+            if periodic or umin < u < umax:
+                return cur[0], t
+            inner: tuple[float, _Ev] | None = None
+            for p in _END_PROBES:
+                pu = u + p if u <= umin else u - p
+                c = ev(t_of(pu, lo, span), e)
+                if c is not None and c[0] < cur[0] and (inner is None or c[0] < inner[1][0]):
+                    inner = (pu, c)
+            if inner is not None:
+                _, it, ic = newton_u(inner[0], inner[1], e, lo, span)
+                if ic[0] < cur[0]:
+                    return ic[0], it
+            return cur[0], t
+
+        def newton_u(
+            u: float, cur: _Ev, e: float, lo: float, span: float
+        ) -> tuple[float, float, _Ev]:
             """Newton steps on f from u; a step stops short of a joint limit."""
             t = t_of(u, lo, span)
             for _ in range(20):
@@ -961,7 +990,7 @@ class Kinematics:
                 u, t, cur = nu, nt, new
                 if moved < 1e-10:
                     break
-            return cur[0], t
+            return u, t, cur
 
         # Candidates besides the Newton minima: the interval ends, and the points where a
         # joint reaches a limit (there the 2π shift jumps: f can have its minimum right at
@@ -1124,9 +1153,21 @@ class Kinematics:
                     q3s = 0.0 if cos(q3) > 0.0 else math.copysign(math.pi, q3)
                     q2s = base - atan2(0.0, a2 + a3 * cos(q3s))
                     found.append([q1, q2s, q3s, q4 + q2 + q3 - q2s - q3s, q5, q6])
+                lowest = math.inf
                 for sol in found:
                     if (shifted := self._nearest(sol, seed)) is not None:
                         # θ1, θ5 terms are the same for every t: compare the rest
+                        g = shifted[1]
+                        rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
+                        lowest = min(lowest, rest)
+                        if chosen is None or rest < chosen[0]:
+                            chosen = (rest, g)
+                if found and lowest > fv + _SHIFT_SLIP and (c := ev(t, e)) is not None:
+                    # next to a stretch the closed form's rounding (~1e-16/|sin θ3|) can put a
+                    # joint at a limit (a flip point) beyond it by more than _LIMIT_EPS, where
+                    # its shift toward the seed flips: the joints f was found on, then
+                    q1, q5 = found[0][0], found[0][4]
+                    if shifted := self._nearest([q1, c[4], c[5], c[6], q5, c[10]], seed):
                         g = shifted[1]
                         rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
                         if chosen is None or rest < chosen[0]:
