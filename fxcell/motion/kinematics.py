@@ -1113,6 +1113,48 @@ class Kinematics:
             elbows.append((lowest, e, starts, spots))
         if nearest_only:
             elbows.sort()
+
+        def best_at(
+            t: float, fv: float, e: float, chosen: tuple[float, list[float]] | None
+        ) -> tuple[float, list[float]] | None:
+            """The solution at θ6 = ``t`` (elbow ``e``, f ``fv`` there) nearer the seed than
+            ``chosen`` (Σ over θ2, θ3, θ4, θ6 first), or None."""
+            found: list[list[float]] = []
+            self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t, found, int(e))
+            if found and t in ends and abs(sin(found[0][2])) < 1e-6:
+                # at an end rounding leaves the arm ~1e-16 short of the stretch (or fold),
+                # which is θ3 ~1e-8 off it: also θ3 on it, θ2 and θ4 turned to match
+                q1, q2, q3, q4, q5, q6 = found[0]
+                base = q2 + atan2(a3 * sin(q3), a2 + a3 * cos(q3))
+                q3s = 0.0 if cos(q3) > 0.0 else math.copysign(math.pi, q3)
+                q2s = base - atan2(0.0, a2 + a3 * cos(q3s))
+                found.append([q1, q2s, q3s, q4 + q2 + q3 - q2s - q3s, q5, q6])
+            better: tuple[float, list[float]] | None = None
+            lowest = math.inf
+            for sol in found:
+                if (shifted := self._nearest(sol, seed)) is not None:
+                    # θ1, θ5 terms are the same for every t: compare the rest
+                    g = shifted[1]
+                    rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
+                    lowest = min(lowest, rest)
+                    if (chosen is None or rest < chosen[0]) and (
+                        better is None or rest < better[0]
+                    ):
+                        better = (rest, g)
+            if found and lowest > fv + _SHIFT_SLIP and (c := ev(t, e)) is not None:
+                # next to a stretch the closed form's rounding (~1e-16/|sin θ3|) can put a
+                # joint at a limit (a flip point) beyond it by more than _LIMIT_EPS, where
+                # its shift toward the seed flips: the joints f was found on, then
+                q1, q5 = found[0][0], found[0][4]
+                if shifted := self._nearest([q1, c[4], c[5], c[6], q5, c[10]], seed):
+                    g = shifted[1]
+                    rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
+                    if (chosen is None or rest < chosen[0]) and (
+                        better is None or rest < better[0]
+                    ):
+                        better = (rest, g)
+            return better
+
         out: list[list[float]] = []
         for _, e, starts, spots in elbows:
             tried: list[tuple[float, float]] = []
@@ -1143,35 +1185,18 @@ class Kinematics:
             for fv, t in tried:
                 if fv > bound or (chosen is not None and fv >= chosen[0] - 1e-12):
                     break
-                found: list[list[float]] = []
-                self._arm(f, p5x, p5y, p5z, t1, s1, c1, s5, c5, t, found, int(e))
-                if found and t in ends and abs(sin(found[0][2])) < 1e-6:
-                    # at an end rounding leaves the arm ~1e-16 short of the stretch (or fold),
-                    # which is θ3 ~1e-8 off it: also θ3 on it, θ2 and θ4 turned to match
-                    q1, q2, q3, q4, q5, q6 = found[0]
-                    base = q2 + atan2(a3 * sin(q3), a2 + a3 * cos(q3))
-                    q3s = 0.0 if cos(q3) > 0.0 else math.copysign(math.pi, q3)
-                    q2s = base - atan2(0.0, a2 + a3 * cos(q3s))
-                    found.append([q1, q2s, q3s, q4 + q2 + q3 - q2s - q3s, q5, q6])
-                lowest = math.inf
-                for sol in found:
-                    if (shifted := self._nearest(sol, seed)) is not None:
-                        # θ1, θ5 terms are the same for every t: compare the rest
-                        g = shifted[1]
-                        rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
-                        lowest = min(lowest, rest)
-                        if chosen is None or rest < chosen[0]:
-                            chosen = (rest, g)
-                if found and lowest > fv + _SHIFT_SLIP and (c := ev(t, e)) is not None:
-                    # next to a stretch the closed form's rounding (~1e-16/|sin θ3|) can put a
-                    # joint at a limit (a flip point) beyond it by more than _LIMIT_EPS, where
-                    # its shift toward the seed flips: the joints f was found on, then
-                    q1, q5 = found[0][0], found[0][4]
-                    if shifted := self._nearest([q1, c[4], c[5], c[6], q5, c[10]], seed):
-                        g = shifted[1]
-                        rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
-                        if chosen is None or rest < chosen[0]:
-                            chosen = (rest, g)
+                better = best_at(t, fv, e, chosen)
+                if better is not None:
+                    chosen = better
+            if not periodic:
+                # an end's joints with θ3 on the stretch (or fold) can lie in a sliver of
+                # ~1e-15 of θ6 where a shift sits at its limit, nearer than f on the grid
+                # around it says (both θ2 and θ3 at 2π there, f 21.2 next to it; Hypothesis)
+                for ends_of in intervals:
+                    for t in ends_of:
+                        better = best_at(t, math.inf, e, chosen)
+                        if better is not None and better[0] <= bound:
+                            chosen = better
             if chosen is not None:
                 out.append(chosen[1])
                 if nearest_only:
