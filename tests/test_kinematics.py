@@ -368,6 +368,12 @@ singular_configurations = st.tuples(configurations, st.sampled_from([0.0, math.p
 @example(
     q=np.array([6.25, 0.0, 6.283185307179585, 0.0, 0.0, 0.0]), seed=np.array([0, 4.0, 4.0, 0, 0, 0])
 )
+# a dip 0.07 rad of θ6 past the grid point beside a stretched end, the end the grid's
+# minimum (Hypothesis)
+@example(
+    q=np.array([0.0, 0.0, 0.0, 5.71875, 0.0, 4.875]),
+    seed=np.array([0.0, 0.0, 0.0, 5.71875, 0.0, 5.71875]),
+)
 @settings(max_examples=40, deadline=None)
 def test_wrist_singular_solutions_are_no_farther_than_a_dense_scan(
     kin: Kinematics, q: np.ndarray, seed: np.ndarray
