@@ -347,6 +347,10 @@ singular_configurations = st.tuples(configurations, st.sampled_from([0.0, math.p
     q=np.array([0.0, 0.0, 1.192092896e-07, 0, 0, 0]),
     seed=np.array([0, 0, 1.192092896e-07, 0, 0, 0]),
 )
+@example(
+    q=np.array([0.0, 0.0, -1.192092896e-07, 0, 0, 0]),
+    seed=np.array([0, 0, -1.192092896e-07, 0, 0, 0]),
+)
 @example(q=np.array([0.0, 0.0, 1.984375, 0.0, 0.0, 0.0]), seed=np.array([0, 0, 1.984375, 0, 0, 0]))
 @example(
     q=np.array([2.75, 3.0, 3.145322439166149, 2.375, 0.0, 3.0]),

@@ -160,11 +160,12 @@ chain evaluations each without the limit; 2 (also tried) lost 6 of the 103 and o
 of the limits family (--seed 1) to the walk."""
 _MAX_WALKED = 16
 """Valleys :meth:`DHChain.nearest` remembers per call (the C code's fixed arrays)."""
-_END_PROBES = (1e-2, 1e-3, 1e-4, 1e-5)
+_END_PROBES = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7)
 """How far inside an end of a continuum's interval (in u, see :meth:`Kinematics._singular_arms`)
 f is probed when Newton's steps stop at the end: a minimum just inside it, f rising toward
 the end, is reached from there (a concave step from the end's first cell leapt past one
-0.007 of u inside, 4.5e-5 nearer the seed; Hypothesis)."""
+0.007 of u inside, 4.5e-5 nearer the seed; a seed on the continuum 6e-8 of u inside came
+back 1.1e-7 from itself without the last two; Hypothesis)."""
 _SHIFT_SLIP = 1e-9
 """How much farther (rad², Σ over θ2, θ3, θ4, θ6) the closed form's solution at a point of a
 continuum may be than f there before f's own joints are taken instead (a 2π shift flipped
