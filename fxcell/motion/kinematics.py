@@ -166,6 +166,9 @@ f is probed when Newton's steps stop at the end: a minimum just inside it, f ris
 the end, is reached from there (a concave step from the end's first cell leapt past one
 0.007 of u inside, 4.5e-5 nearer the seed; a seed on the continuum 6e-8 of u inside came
 back 1.1e-7 from itself without the last two; Hypothesis)."""
+_END_SLACK = 1e-9
+"""How far (rad of θ6) beyond an end of a continuum's interval a candidate point (where a
+joint's shift flips at a limit) is still tried; see :func:`_within`."""
 _SHIFT_SLIP = 1e-9
 """How much farther (rad², Σ over θ2, θ3, θ4, θ6) the closed form's solution at a point of a
 continuum may be than f there before f's own joints are taken instead (a 2π shift flipped
@@ -1073,7 +1076,7 @@ class Kinematics:
             (ee, tt, lo, hi - lo)
             for t, ee in extra
             for lo, hi in intervals
-            if (tt := lo + (t - lo) % tau) <= hi
+            if (tt := _within(t, lo, hi, periodic)) == tt
         ]
         fat = _continuum_f([a[1] for a in at], consts, goals, bounds, cap)
         ends: set[float] = set()
@@ -2495,6 +2498,19 @@ def _continuum_f(
             fv += (w - g4) * (w - g4)
             out.append(fv if fv == fv else inf)
     return ups, downs
+
+
+def _within(t: float, lo: float, hi: float, periodic: bool) -> float:
+    """The 2π-equivalent of θ6 = ``t`` in [lo, hi], or just beyond an end (within
+    _END_SLACK: the ends' own rounding where the circle of frame 4 grazes the reach, an
+    interval ~6e-6 long ending 3e-11 short of a limit point that reached the pose; whether it
+    does is left to the reach check with its clip), or NaN."""
+    tt = lo + (t - lo) % TWO_PI
+    if tt <= hi or (not periodic and tt <= hi + _END_SLACK):
+        return tt
+    if not periodic and tt >= lo + TWO_PI - _END_SLACK:
+        return tt - TWO_PI
+    return math.nan
 
 
 def _shift_flipped(a: _Ev, b: _Ev) -> bool:
