@@ -102,6 +102,8 @@ def test_inverse_of_forward_returns_the_configuration(kin: Kinematics, q: np.nda
 # within a few 1e-12 of the wrist singularity (θ5 = 3.1e-12, 1.7e-12; Hypothesis)
 @example(q=np.array([0.0, 0.0, 1.0, 0.0, 3.0964434259240957e-12, 0.0]), seed=np.zeros(6))
 @example(q=np.array([3.5, 3.015625, 0.0, 0.0, -1.7296448626284881e-12, 0.0]), seed=np.zeros(6))
+# stretched and θ5 = 1e-6: θ2 2.1e-6 (the resolution there, 1e-5) from its limit (Hypothesis)
+@example(q=np.array([1.0, 1e-06, 0.0, 1.0, 1e-06, 0.0]), seed=np.array([0.0, 4.0, 0, 0, 0, 0]))
 @settings(max_examples=60)
 def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
     kin: Kinematics, q: np.ndarray, seed: np.ndarray
@@ -121,9 +123,6 @@ def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
     best = kin.inverse(pose, seed=seed)
     dists = [float(np.linalg.norm(s - seed)) for s in sols]
     assert dists == sorted(dists)
-    # the same branch (a stretched elbow turns rounding ε into √ε of joint angle, up to 1e-6,
-    # which decides on which side of a joint limit an equivalent lands: skip those cases)
-    at_limit = any(np.any(np.abs(np.abs(s) - 2 * math.pi) < 1e-6) for s in [*sols, best])
     # next to the wrist singularity θ6 (and θ4) carry rounding ~1e-16 / |sin θ5|; stretched
     # (or folded) as well, the arm turns frame 4's move along its circle into its square
     # root of θ2..θ4: the pose fixes the joints only that well (every such solution reaches
@@ -132,6 +131,11 @@ def test_every_solution_reaches_the_pose_and_the_nearest_is_picked(
     resolution = 0.0
     if 0.0 < wrist < 1e-6:
         resolution = math.sqrt(1e-16 / wrist) if elbow < 1e-3 else 1e-16 / wrist
+    # the same branch (a stretched elbow turns rounding ε into √ε of joint angle, up to 1e-6,
+    # or the resolution above, which decides on which side of a joint limit an equivalent
+    # lands: skip those cases)
+    near = max(1e-6, 3.0 * resolution)
+    at_limit = any(np.any(np.abs(np.abs(s) - 2 * math.pi) < near) for s in [*sols, best])
     # within a few 1e-12 of the wrist singularity the closed form may treat a branch as
     # exactly singular (a continuum member, ~1e-12 off the pose) or not, by rounding, and
     # inverse() and inverse_all() round differently: skip those cases too
