@@ -71,15 +71,22 @@ def address_is_free(host: str, ports: Sequence[int] = PORTS) -> bool:
     return True
 
 
-def free_loopback_host(rng: random.Random | None = None, attempts: int = 200) -> str:
-    """A random 127.0.0.x address (x in 2..253) on which every simulator port is free
-    (127.0.0.254 stays free: tests use it as an unreachable controller)."""
+def free_loopback_host(
+    rng: random.Random | None = None,
+    attempts: int = 200,
+    *,
+    ports: Sequence[int] = PORTS,
+    what: str = "simulator",
+) -> str:
+    """A random 127.0.0.x address (x in 2..253) on which every one of ``ports`` (by default
+    the UR simulator's) is free (127.0.0.254 stays free: tests use it as an unreachable
+    controller); ``what`` names the simulator in the error when none is."""
     rng = rng or random.SystemRandom()
     for _ in range(attempts):
         host = f"127.0.0.{rng.randint(2, 253)}"
-        if address_is_free(host):
+        if address_is_free(host, ports):
             return host
-    raise SimulatorError("no free loopback address for the simulator (127.0.0.2-253 all busy)")
+    raise SimulatorError(f"no free loopback address for the {what} (127.0.0.2-253 all busy)")
 
 
 def control_request(

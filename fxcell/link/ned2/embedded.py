@@ -16,7 +16,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from fxcell.errors import InvalidArgumentError, SimulatorError
-from fxcell.link.embedded import EmbeddedSimulator, address_is_free, control_request
+from fxcell.link.embedded import EmbeddedSimulator, control_request, free_loopback_host
 from fxcell.link.ned2 import SIMULATOR_CONTROL_PORT, SIMULATOR_FAULTS, SIMULATOR_PORTS
 
 __all__ = ["SIM_MODULE", "Ned2Simulator", "free_ned2_host", "ned2_simulator", "request"]
@@ -30,13 +30,9 @@ OPTIONS = frozenset(
 
 
 def free_ned2_host(rng: random.Random | None = None, attempts: int = 200) -> str:
-    """A random 127.0.0.x (x in 2..253) on which every Ned2 simulator port is free."""
-    rng = rng or random.SystemRandom()
-    for _ in range(attempts):
-        host = f"127.0.0.{rng.randint(2, 253)}"
-        if address_is_free(host, SIMULATOR_PORTS):
-            return host
-    raise SimulatorError("no free loopback address for the Ned2 simulator (127.0.0.2-253 all busy)")
+    """A random 127.0.0.x (x in 2..253) on which every Ned2 simulator port is free
+    (:func:`~fxcell.link.embedded.free_loopback_host` with the Ned2's ports)."""
+    return free_loopback_host(rng, attempts, ports=SIMULATOR_PORTS, what="Ned2 simulator")
 
 
 def request(host: str, line: str, timeout: float = 5.0) -> str:
