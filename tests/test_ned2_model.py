@@ -85,6 +85,8 @@ def test_ik_solves_every_reachable_pose_and_fk_of_it_is_the_pose(
 @example(
     q=np.array([0.0, 0.0, 1.25, 1.0, 0.0, 1.0]), seed=np.array([0.0, 0.0, 0.0, -2.0, 0.0, 0.0])
 )
+# the TCP 9 mm from the base axis, its azimuth nothing like θ1 = -2.5 (Hypothesis)
+@example(q=np.array([-2.5, 0.0, 1.5, -0.75, 0.0, 0.0]), seed=np.zeros(6))
 def test_ik_returns_the_solution_nearest_the_seed_that_a_dense_search_finds(
     q: np.ndarray, seed: np.ndarray
 ) -> None:

@@ -226,6 +226,14 @@ def _branch_seeds() -> Array:
 
 
 _BRANCHES = _branch_seeds()
+_AXIS6_IN_TOOL: Array = TOOL[2, :3].copy()
+"""Joint 6's axis in ``tool_link``'s frame."""
+_WRIST_BACK = TOOL_OFFSET + float((ORIGINS[5][:3, :3].T @ ORIGINS[5][:3, 3])[2])
+"""How far back from ``tool_link`` along joint 6's axis the wrist centre (axes 4 and 5
+meeting) lies, up to the 9.25 mm that turn with joint 6 (47.5 mm). Starting the branches'
+base joint from there rather than from the TCP: on 604 random poses (a third with θ5 = 0, a
+quarter θ2 = 0, a fifth θ3 at 0.96 of a limit), answers farther than the dense reference's
+4 -> 1, at the same cost."""
 _DENSE = np.random.default_rng(2029).uniform(LOWER, UPPER, size=(400, 6))
 
 
@@ -316,7 +324,10 @@ def inverse(
     s = np.asarray(seed, dtype=float)
     if s.shape != (6,) or not np.all(np.isfinite(s)):
         raise InvalidArgumentError("seed must be 6 finite joint positions")
-    base_yaw = math.atan2(t[1, 3], t[0, 3])
+    # the branches' base joint from the wrist centre, not the TCP: a TCP next to the base axis
+    # (the hand folded back over the shoulder) says nothing of it
+    wrist = t[:3, 3] - _WRIST_BACK * (t[:3, :3] @ _AXIS6_IN_TOOL)
+    base_yaw = math.atan2(wrist[1], wrist[0])
     first = _BRANCHES.copy()
     first[:, 0] = base_yaw
     flipped = _BRANCHES.copy()
