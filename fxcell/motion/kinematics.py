@@ -756,7 +756,7 @@ class Kinematics:
         steps in u from the grid's local minima (those within _MARGIN of the best found),
         each step stopping short of a joint limit (and, where a joint's 2π shift flips
         past one anyway, at the last point before the flip, by bisection; u comes within
-        1e-7 of the ends, as near as rounding resolves θ3); and the points where a joint's 2π shift
+        1e-9 of the ends, below where rounding resolves θ3); and the points where a joint's 2π shift
         toward the seed jumps at a limit, or else (θ2, θ3) flips half a turn from the seed
         (roots of cos(·) = const in closed form), as candidates and starts. Candidates are
         compared on the solutions :meth:`_arm` gives for them. About 10-30 grid points (one
@@ -1156,28 +1156,26 @@ class Kinematics:
                 found.append([q1, q2s, q3s, q4 + q2 + q3 - q2s - q3s, q5, q6])
             better: tuple[float, list[float]] | None = None
             lowest = math.inf
+
+            def rank(sol: list[float]) -> float:
+                """``sol`` shifted toward the seed, kept in ``better`` if nearer; its
+                distance² less the θ1, θ5 terms (the same for every t), inf if none fits."""
+                nonlocal better
+                if (shifted := self._nearest(sol, seed)) is None:
+                    return math.inf
+                g = shifted[1]
+                rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
+                if (chosen is None or rest < chosen[0]) and (better is None or rest < better[0]):
+                    better = (rest, g)
+                return rest
+
             for sol in found:
-                if (shifted := self._nearest(sol, seed)) is not None:
-                    # θ1, θ5 terms are the same for every t: compare the rest
-                    g = shifted[1]
-                    rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
-                    lowest = min(lowest, rest)
-                    if (chosen is None or rest < chosen[0]) and (
-                        better is None or rest < better[0]
-                    ):
-                        better = (rest, g)
+                lowest = min(lowest, rank(sol))
             if found and lowest > fv + _SHIFT_SLIP and (c := ev(t, e)) is not None:
                 # next to a stretch the closed form's rounding (~1e-16/|sin θ3|) can put a
                 # joint at a limit (a flip point) beyond it by more than _LIMIT_EPS, where
                 # its shift toward the seed flips: the joints f was found on, then
-                q1, q5 = found[0][0], found[0][4]
-                if shifted := self._nearest([q1, c[4], c[5], c[6], q5, c[10]], seed):
-                    g = shifted[1]
-                    rest = shifted[0] - (g[0] - seed[0]) ** 2 - (g[4] - seed[4]) ** 2
-                    if (chosen is None or rest < chosen[0]) and (
-                        better is None or rest < better[0]
-                    ):
-                        better = (rest, g)
+                rank([found[0][0], c[4], c[5], c[6], found[0][4], c[10]])
             return better
 
         out: list[list[float]] = []
@@ -1207,9 +1205,11 @@ class Kinematics:
             # rounding of the closed form can land on the other side of a 2π jump)
             tried.sort()
             chosen: tuple[float, list[float]] | None = None
+            ranked: set[float] = set()
             for fv, t in tried:
                 if fv > bound or (chosen is not None and fv >= chosen[0] - 1e-12):
                     break
+                ranked.add(t)
                 better = best_at(t, fv, e, chosen)
                 if better is not None:
                     chosen = better
@@ -1219,6 +1219,8 @@ class Kinematics:
                 # around it says (both θ2 and θ3 at 2π there, f 21.2 next to it; Hypothesis)
                 for ends_of in intervals:
                     for t in ends_of:
+                        if t in ranked:
+                            continue  # ranked above already
                         better = best_at(t, math.inf, e, chosen)
                         if better is not None and better[0] <= bound:
                             chosen = better

@@ -230,7 +230,7 @@ _AXIS6_IN_TOOL: Array = TOOL[2, :3].copy()
 """Joint 6's axis in ``tool_link``'s frame."""
 _WRIST_BACK = TOOL_OFFSET + float((ORIGINS[5][:3, :3].T @ ORIGINS[5][:3, 3])[2])
 """How far back from ``tool_link`` along joint 6's axis the wrist centre (axes 4 and 5
-meeting) lies, up to the 9.25 mm that turn with joint 6 (47.5 mm). Starting the branches'
+meeting) lies, up to the 9.25 mm that turn with joint 6 (48.2 mm). Starting the branches'
 base joint from there rather than from the TCP: on 604 random poses (a third with θ5 = 0, a
 quarter θ2 = 0, a fifth θ3 at 0.96 of a limit), answers farther than the dense reference's
 4 -> 1, at the same cost."""
