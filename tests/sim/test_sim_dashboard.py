@@ -244,6 +244,23 @@ async def test_simulator_context_manager_also_works_with_async_with() -> None:
     assert not sim.running
 
 
+def _listening_on_a_free_address(sock: socket.socket, port: int) -> str:
+    """Bind ``sock`` to ``port`` on a free loopback address and listen: the address is chosen
+    and taken in one step, so another test cannot take it in between. SO_REUSEADDR as the
+    simulator's own bind has it: a connection in TIME_WAIT left there by an earlier test does
+    not refuse the bind (a listening socket still refuses the simulator's)."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    for _ in range(50):
+        host = free_loopback_host()
+        try:
+            sock.bind((host, port))
+        except OSError:  # taken since free_loopback_host looked: pick another address
+            continue
+        sock.listen()
+        return host
+    raise AssertionError(f"no loopback address with port {port} free in 50 tries")
+
+
 @pytest.mark.parametrize("ending", ["stopped", "port taken"])
 async def test_the_simulator_stops_only_once_its_dynamic_model_is_built(
     ending: str, monkeypatch: pytest.MonkeyPatch
@@ -264,20 +281,20 @@ async def test_the_simulator_stops_only_once_its_dynamic_model_is_built(
             release.wait(30)
 
     monkeypatch.setattr(fxcell.sim.dynamics, "ArmDynamics", SlowModel)
-    host = free_loopback_host()
-    server = SimServer(host, time_scale=0.05)
-    failed = threading.Event()  # the port was found taken (the hub closed on the way out)
-    close_hub = server.hub.close
-
-    def closing_hub() -> None:
-        failed.set()
-        close_hub()
-
-    monkeypatch.setattr(server.hub, "close", closing_hub)
     with socket.socket() as taken:
         if ending == "port taken":
-            taken.bind((host, DASHBOARD_PORT))
-            taken.listen()
+            host = _listening_on_a_free_address(taken, DASHBOARD_PORT)
+        else:
+            host = free_loopback_host()
+        server = SimServer(host, time_scale=0.05)
+        failed = threading.Event()  # the port was found taken (the hub closed on the way out)
+        close_hub = server.hub.close
+
+        def closing_hub() -> None:
+            failed.set()
+            close_hub()
+
+        monkeypatch.setattr(server.hub, "close", closing_hub)
         serving = asyncio.create_task(
             server.serve(announce=False, handle_signals=False, on_listening=server.request_stop)
         )
