@@ -39,7 +39,9 @@ whole hot path one call in C, ``fxcell/motion/_dhchain.c``) and, in the same loo
 poses). Targets per family: 100 % solved, 100 %
 nearest the seed against a reference (the thorough search of ``inverse_all`` and the joints
 the pose was made from, on the first ``--reference`` poses), median ≤ 1.5 × ur_analytic_ik's,
-p99 ≤ 200 µs, max ≤ 2 ms.
+p99 ≤ 200 µs, max ≤ 2 ms. Next to the wrist singularity the reference walks the same valleys
+as the solver and can miss the same solutions: an answer it counts as farther is farther,
+but its nearest-the-seed rate is an upper bound there.
 
     ./dev bench ik [--poses N] [--tcp flange|seed|both] [--family F ...] [--clik-poses N]
                    [--interleave] [--reference N] [--ned2-poses N]
