@@ -419,7 +419,7 @@ def _self_motion_roots(kin: CalibratedKinematics, pose: Pose, seed: np.ndarray) 
     The valley walks of the solver and of ``inverse_all`` miss solutions closer together
     than their points or next to the arm's fold; this finds most of them (bench's wrist
     family, seed TCP, --seed 1, first 100 poses: the joints a pose was made from were among
-    its solutions for 88, among ``inverse_all``'s for 45), at ~50 ms per such pose."""
+    its solutions for 88, among ``inverse_all``'s for 43), at ~50 ms per such pose."""
     s = seed.tolist()
     roots: list[np.ndarray] = []
     for target in (pose, kin.nominal_target(pose, seed)):
